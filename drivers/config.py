@@ -1,0 +1,49 @@
+"""Config sections owned by the CAN side: the bus and the drive under control."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, field_validator
+
+from foilc_hil.schema import Section
+
+
+class BusConfig(Section):
+    """A python-can bus: ``can.Bus(interface=..., channel=..., bitrate=...)``.
+
+    ``interface: embedded`` runs the plant emulator in-process on a ``virtual`` bus (the default where no bus is
+    given, so every command works with no CAN hardware).
+    """
+
+    interface: str = "embedded"
+    channel: str = "foilc-hil"
+    bitrate: int | None = Field(default=None, gt=0)
+    receive_own_messages: bool = False
+
+    @field_validator("interface")
+    @classmethod
+    def _interface_named(cls, value: str) -> str:
+        if not value.strip():
+            raise ValueError("must name a python-can interface, e.g. socketcan, virtual, udp_multicast")
+        return value
+
+
+class DriveConfig(Section):
+    """The CiA 402 drive: node, mode, limits, timing and supervision."""
+
+    node_id: int = Field(default=1, ge=1, le=127)
+    mode: Literal["csv", "cst", "pv"] = "csv"
+    eds: str | None = None  # object dictionary of the drive; None: the shipped configs/foilc_servo.eds
+    velocity_limit: float = Field(default=3000.0, gt=0)  # |target velocity| clamp, in velocity units (rpm)
+    torque_limit: float = Field(default=1000.0, gt=0)  # |target torque| clamp, per mille of rated torque
+    velocity_scale: float = Field(default=1.0, gt=0)  # plant output unit -> drive velocity unit (0x60FF/0x606C)
+    torque_scale: float = Field(default=1.0, gt=0)  # plant input unit -> drive torque unit (0x6071)
+    heartbeat_producer_ms: int = Field(default=100, ge=0, le=65535)  # the drive's 0x1017
+    heartbeat_consumer_ms: int = Field(default=500, ge=0, le=65535)  # the drive watching the master
+    master_node_id: int = Field(default=127, ge=1, le=127)  # the id whose heartbeat the drive consumes
+    heartbeat_timeout_factor: float = Field(default=3.0, gt=1)  # master declares loss after factor x 0x1017
+    sdo_timeout: float = Field(default=0.5, gt=0)
+    state_timeout: float = Field(default=2.0, gt=0)  # per 402 transition
+    quick_stop_option: int = Field(default=2, ge=0, le=8)  # 0x605A
+    abort_connection_option: int = Field(default=3, ge=0, le=3)  # 0x6007

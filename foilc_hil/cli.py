@@ -1,0 +1,102 @@
+"""``foilc-hil``: the command line. Subcommands are fixed in ``../shared/interface.md``.
+
+The CLI does the shared work -- argument parsing, ``--json`` output, mapping errors to exit codes -- and
+each subcommand module in :mod:`foilc_hil.commands` does its own (python-can's ``BusABC.recv`` /
+``_recv_internal`` split). Command modules are imported lazily, so ``foilc-hil tune`` never imports the CAN
+stack and ``foilc-hil run`` never imports cvxpy unless it must.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import sys
+from collections.abc import Sequence
+from types import ModuleType
+from typing import NoReturn
+
+from foilc_hil import __version__
+from foilc_hil.errors import ExitCode, FoilcHilError, RunInterruptedError
+
+#: subcommand name -> (module implementing it, one-line help). Modules are imported only when chosen.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "tune": ("foilc_hil.commands.tune", "tune the fractional PD function's kp and r from loop specifications"),
+    "synthesize": ("foilc_hil.commands.synthesize", "solve the LMI of Theorem 1 for the learning gain P"),
+    "simulate": ("foilc_hil.commands.simulate", "run learning trials offline, with no bus"),
+    "run": ("foilc_hil.commands.run", "run learning trials over CAN against a drive"),
+    "demo": ("foilc_hil.commands.demo", "FOILC and IOILC side by side on the embedded emulator"),
+    "replay": ("foilc_hil.commands.replay", "play a log back onto a bus, or verify it bit for bit"),
+    "report": ("foilc_hil.commands.report", "plots and a summary of a log"),
+    "export": ("foilc_hil.commands.export", "write a log's CAN frames as ASC, BLF or CSV"),
+    "commission": ("foilc_hil.commands.commission", "scan, inspect, enable, parameterise and identify a drive"),
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that reports usage errors as one line and exit 2 (never a multi-line usage dump)."""
+
+    def error(self, message: str) -> NoReturn:
+        sys.stderr.write(f"{self.prog}: error: {message}\n")
+        raise SystemExit(ExitCode.USAGE)
+
+
+def _load(name: str) -> ModuleType:
+    return importlib.import_module(COMMANDS[name][0])
+
+
+def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
+    """The parser; only the ``chosen`` subcommand's module is imported, to add its options."""
+    parser = _Parser(prog="foilc-hil", description="Hardware-in-the-loop bench for 2D fractional-order ILC.")
+    parser.add_argument("--version", action="version", version=f"foilc-hil {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    for name, (_, help_text) in COMMANDS.items():
+        command_parser = sub.add_parser(name, help=help_text, description=help_text)
+        if name == chosen:
+            _load(name).add_arguments(command_parser)
+            if not any(action.dest == "json" for action in command_parser._actions):
+                command_parser.add_argument("--json", action="store_true", help="print one JSON document on stdout")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``foilc-hil`` console script. Returns the process exit code."""
+    args_list = list(sys.argv[1:] if argv is None else argv)
+    try:
+        chosen = next((token for token in args_list if not token.startswith("-")), None)
+        parser = build_parser(chosen if chosen in COMMANDS else None)
+        args = parser.parse_args(args_list)
+    except SystemExit as exc:  # --help, --version, usage errors
+        return int(exc.code) if isinstance(exc.code, int) else ExitCode.USAGE
+    module = _load(args.command)
+    want_json = bool(getattr(args, "json", False))
+    try:
+        result = module.execute(args)
+    except KeyboardInterrupt:
+        error: FoilcHilError = RunInterruptedError("interrupted")
+        return _fail(args.command, error)
+    except FoilcHilError as exc:
+        return _fail(args.command, exc)
+    if want_json:
+        sys.stdout.write(json.dumps(result.document, indent=2, allow_nan=False) + "\n")
+    elif result.text:
+        sys.stdout.write(result.text.rstrip("\n") + "\n")
+    if result.exit_code != ExitCode.OK and result.message:
+        sys.stderr.write(f"foilc-hil {args.command}: {result.message}\n")
+    sys.stdout.flush()
+    return int(result.exit_code)
+
+
+def _fail(command: str, error: FoilcHilError) -> int:
+    message = str(error).splitlines()[0] if str(error) else type(error).__name__
+    sys.stderr.write(f"foilc-hil {command}: {message}\n")
+    return int(error.exit_code)
+
+
+def run() -> NoReturn:
+    """Console-script wrapper."""
+    raise SystemExit(main())
+
+
+if __name__ == "__main__":
+    run()

@@ -1,0 +1,135 @@
+"""The bench's configuration: one YAML document, typed and validated.
+
+Sections are owned by the modules that use them (``plant_emulator.config``, ``drivers.config``) and composed
+here. Load with :func:`load_config`; command-line options override the file, which overrides defaults.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import Field, model_validator
+
+from drivers.config import BusConfig, DriveConfig
+from foilc_hil.schema import Section, apply_overrides, load_document, validate
+from plant_emulator.config import PlantConfig
+
+
+class Segment(Section):
+    """One piece of a user-defined piecewise reference: hold or ramp from ``start`` to ``end`` over ``duration``."""
+
+    duration: float = Field(gt=0)
+    start: float
+    end: float | None = None  # None: hold ``start``
+
+
+class ReferenceConfig(Section):
+    """The repeated set-point profile ``y_r(t)`` of one trial."""
+
+    profile: Literal["eq49", "eq52", "piecewise"] = "eq49"
+    scale: float = 1.0  # multiplies the profile (unit conversion)
+    time_scale: float = Field(default=1.0, gt=0)  # eq52 is printed in ms; 1.0 keeps 6 s per trial
+    segments: list[Segment] | None = None
+
+    @model_validator(mode="after")
+    def _segments_for_piecewise(self) -> ReferenceConfig:
+        if self.profile == "piecewise" and not self.segments:
+            raise ValueError("profile 'piecewise' needs 'segments'")
+        return self
+
+
+class TuningConfig(Section):
+    """Loop specification for the fractional PD function, or ``kp``/``r`` given directly."""
+
+    crossover: float | None = Field(default=None, gt=0)  # rad/s
+    phase_margin_deg: float | None = Field(default=None, gt=0, lt=180)
+    flat_phase: bool = False
+    kp: float | None = Field(default=None, ge=0)
+    r: float | None = Field(default=None, gt=0, lt=2)
+
+    @model_validator(mode="after")
+    def _spec_or_direct(self) -> TuningConfig:
+        if (self.kp is None) != (self.r is None):
+            raise ValueError("give both 'kp' and 'r', or neither")
+        return self
+
+
+class SynthesisConfig(Section):
+    """LMI synthesis of the learning gain (Theorem 1)."""
+
+    tau: float = Field(default=0.868, gt=0, lt=1)
+    theta: float = Field(default=0.868, gt=0, lt=1)
+    discretization: Literal["zoh", "euler"] = "zoh"
+    solver: Literal["CLARABEL", "SCS"] = "CLARABEL"
+    margin: float = Field(default=1e-6, gt=0)  # strictness margin of the LMIs
+    on_divergent_filter: Literal["rescale", "augment", "refuse"] = "rescale"
+
+
+class QFilterConfig(Section):
+    """Zero-phase low-pass Q-filter applied to the feedforward between trials."""
+
+    cutoff: float = Field(gt=0)  # rad/s
+    order: int = Field(default=2, ge=1, le=8)
+
+
+class LawConfig(Section):
+    """The learning law that runs."""
+
+    kind: Literal["foilc", "ioilc", "p-type"] = "foilc"
+    p_type_gain: float | None = None  # Arimoto gain; None: 1 / (C B) scaled for monotonic convergence
+    q_filter: QFilterConfig | None = None
+
+
+class BenchConfig(Section):
+    """The trial loop over CAN: timing and safety."""
+
+    mode: Literal["lockstep", "realtime"] = "lockstep"
+    watchdog_cycles: int = Field(default=5, ge=1)
+    divergence_factor: float = Field(default=10.0, gt=1)
+    settle_time: float = Field(default=0.5, ge=0)  # initial-condition reset between trials, seconds
+    settle_tolerance: float = Field(default=1.0, ge=0)  # |y| below this counts as at rest
+
+
+class EmulatorSection(Section):
+    """Virtual drive settings (see ``plant_emulator``); kept open here, validated by the emulator."""
+
+    timing: Literal["lockstep", "realtime"] = "lockstep"
+    seed: int = 0
+    options: dict[str, Any] = Field(default_factory=dict)
+
+
+class Config(Section):
+    """The whole document."""
+
+    plant: PlantConfig = PlantConfig()
+    reference: ReferenceConfig = ReferenceConfig()
+    sample_time: float = Field(default=0.01, gt=0)  # seconds; also the CAN cycle period
+    trials: int = Field(default=10, ge=1)
+    tuning: TuningConfig = TuningConfig()
+    synthesis: SynthesisConfig = SynthesisConfig()
+    law: LawConfig = LawConfig()
+    bus: BusConfig = BusConfig()
+    drive: DriveConfig = DriveConfig()
+    bench: BenchConfig = BenchConfig()
+    emulator: EmulatorSection = EmulatorSection()
+
+
+def load_config(path: str | Path | None, overrides: Mapping[str, Any] | None = None) -> Config:
+    """Load and validate a config file (``None``: defaults only), with dotted-key ``overrides`` on top.
+
+    Raises
+    ------
+    foilc_hil.errors.ConfigError
+        For the first bad value, naming the file and the key path.
+    """
+    document = load_document(path) if path is not None else {}
+    document = apply_overrides(document, overrides or {})
+    return validate(Config, document, source=str(path) if path is not None else "")
+
+
+def dump_config(config: Config) -> str:
+    """The resolved config as YAML text (the MCAP ``foilc_hil.config`` metadata record)."""
+    return yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False)

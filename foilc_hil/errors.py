@@ -1,0 +1,168 @@
+"""One error hierarchy for the whole product.
+
+Every exception the product raises on purpose derives from :class:`FoilcHilError`. As in python-can
+(``CanTimeoutError(CanError, TimeoutError)``), each subclass also inherits the builtin it refines, so callers
+that only know the builtin still catch it. Each class carries the process exit code the CLI maps it to
+(see ``../shared/interface.md``): 1 runtime failure, 2 usage or configuration error, 3 infeasible design.
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum
+
+
+class ExitCode(IntEnum):
+    """Process exit codes fixed by the interface."""
+
+    OK = 0
+    RUNTIME_FAILURE = 1
+    USAGE = 2
+    INFEASIBLE = 3
+    INTERRUPTED = 130  # Ctrl-C / SIGTERM: the shell convention 128 + SIGINT
+
+
+class FoilcHilError(Exception):
+    """Root of every error the product raises on purpose."""
+
+    exit_code: ExitCode = ExitCode.RUNTIME_FAILURE
+
+
+# --- usage and input (exit 2) ---------------------------------------------------------------------------------
+
+
+class InputError(FoilcHilError, ValueError):
+    """Bad input from the user: a config, an argument, a file. Exit 2, one line naming the field or file."""
+
+    exit_code = ExitCode.USAGE
+
+
+class ConfigError(InputError):
+    """A configuration value is invalid.
+
+    Parameters
+    ----------
+    message
+        What is wrong, e.g. ``"must be non-zero"``.
+    key
+        Dotted key path inside the document, e.g. ``"plant.b"``; empty for the document as a whole.
+    source
+        The file (or other origin) the value came from, if any.
+    """
+
+    def __init__(self, message: str, key: str = "", source: str = "") -> None:
+        self.message = message
+        self.key = key
+        self.source = source
+        where = ": ".join(part for part in (source, key) if part)
+        super().__init__(f"{where}: {message}" if where else message)
+
+
+class EdsError(ConfigError):
+    """An EDS / object dictionary file is missing, malformed or lacks a required object."""
+
+
+class LogFormatError(InputError):
+    """A log file (MCAP) is unreadable, truncated or does not follow the product's layout."""
+
+
+class ProtocolError(InputError):
+    """A CAN frame that does not fit the protocol: wrong DLC, unknown COB-ID, bad payload."""
+
+
+# --- infeasible designs (exit 3) ------------------------------------------------------------------------------
+
+
+class InfeasibleDesignError(FoilcHilError, ArithmeticError):
+    """No design meets the specification. The message names the specification that failed."""
+
+    exit_code = ExitCode.INFEASIBLE
+
+
+class TuningInfeasibleError(InfeasibleDesignError):
+    """No ``kp > 0, 0 < r < 2`` meets the loop specification."""
+
+
+class LmiInfeasibleError(InfeasibleDesignError):
+    """The LMI of Theorem 1 has no solution, or its solution fails the independent checks."""
+
+
+class ConvergenceCertificateError(InfeasibleDesignError):
+    """The law as it runs (fractional filter included) is not certified to converge and could not be fixed."""
+
+
+# --- runtime failures (exit 1) --------------------------------------------------------------------------------
+
+
+class DriveError(FoilcHilError, RuntimeError):
+    """The drive or the bus failed at run time."""
+
+
+class DriveTimeoutError(DriveError, TimeoutError):
+    """The drive did not answer in time."""
+
+
+class HeartbeatLostError(DriveTimeoutError):
+    """The drive's heartbeat stopped arriving."""
+
+
+class FeedbackTimeoutError(DriveTimeoutError):
+    """No TPDO feedback arrived for the configured number of cycles (the bench watchdog)."""
+
+
+class StateTransitionError(DriveTimeoutError):
+    """The CiA 402 state machine did not reach the requested state; the message names where it stuck."""
+
+
+class DriveFaultError(DriveError):
+    """The drive reports a fault (statusword fault bit)."""
+
+
+class EmergencyError(DriveFaultError):
+    """The drive sent an EMCY message.
+
+    Parameters
+    ----------
+    code
+        The 16-bit emergency error code (CiA 301 / CiA 402).
+    register
+        The error register (0x1001).
+    text
+        Decoded meaning of ``code``.
+    """
+
+    def __init__(self, code: int, register: int, text: str) -> None:
+        self.code = code
+        self.register = register
+        self.text = text
+        super().__init__(f"EMCY 0x{code:04X} ({text}), error register 0x{register:02X}")
+
+
+class SdoError(DriveError):
+    """An SDO transfer failed.
+
+    Parameters
+    ----------
+    index, subindex
+        The object addressed.
+    abort_code
+        The CiA 301 abort code, 0 when the transfer failed without one (e.g. a timeout).
+    text
+        Decoded meaning of the abort code.
+    """
+
+    def __init__(self, index: int, subindex: int, abort_code: int, text: str) -> None:
+        self.index = index
+        self.subindex = subindex
+        self.abort_code = abort_code
+        self.text = text
+        super().__init__(f"SDO 0x{index:04X}:{subindex:02X} aborted with 0x{abort_code:08X}: {text}")
+
+
+class LearningDivergedError(FoilcHilError, ArithmeticError):
+    """Learning made the error grow beyond the configured factor, or produced a non-finite value."""
+
+
+class RunInterruptedError(FoilcHilError):
+    """The run was stopped by Ctrl-C or SIGTERM after bringing the drive to a safe state."""
+
+    exit_code = ExitCode.INTERRUPTED
