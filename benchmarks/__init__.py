@@ -1,0 +1,1 @@
+"""Reproducible benchmarks; JSON out, peers side by side (see benchmarks/run.py)."""
