@@ -1,0 +1,77 @@
+"""The ``Plant`` protocol: what every physics model offers to simulation, the virtual drive and identification.
+
+A plant is advanced by :meth:`Plant.step` with the input held constant over the step (zero-order hold, as a
+drive applies a setpoint received on SYNC). :meth:`Plant.reset` starts a trial (1-based) from the initial
+condition; everything random (noise, random-walk variation, parameter draws) is a deterministic function of the
+seed and the trial number, so runs reproduce bit for bit.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from foilc_hil.errors import ConfigError
+
+__all__ = ["Plant", "trial_rng", "check_input", "check_step"]
+
+
+@runtime_checkable
+class Plant(Protocol):
+    """A physics model advanced step by step with a zero-order-held input."""
+
+    n_inputs: int
+    n_outputs: int
+
+    def reset(self, trial: int) -> None:
+        """Start trial ``trial`` (1-based) at the initial condition; the disturbance is active iff
+        ``trial >= disturbance.start_trial``. Deterministic per (seed, trial)."""
+        ...
+
+    def step(self, u: np.ndarray, dt: float) -> np.ndarray:
+        """Hold ``u`` over ``dt`` seconds (after actuator saturation); return the measured output at the end."""
+        ...
+
+    def output(self) -> np.ndarray:
+        """The current measured output (quantisation and noise included)."""
+        ...
+
+    def state(self) -> np.ndarray:
+        """The current true state."""
+        ...
+
+    @property
+    def time(self) -> float:
+        """Seconds since the last :meth:`reset`."""
+        ...
+
+
+def trial_rng(seed: int, trial: int, stream: int) -> np.random.Generator:
+    """An independent random generator for (``seed``, ``trial``, ``stream``); same arguments, same numbers."""
+    return np.random.default_rng([abs(int(seed)), int(seed < 0), int(trial), int(stream)])
+
+
+def check_input(u: np.ndarray | float | list[float], n_inputs: int) -> np.ndarray:
+    """``u`` as a float vector of length ``n_inputs``; a scalar is accepted for a single-input plant."""
+    vector = np.atleast_1d(np.asarray(u, dtype=float)).reshape(-1)
+    if vector.shape != (n_inputs,):
+        raise ValueError(f"u must have {n_inputs} entries, got {vector.size}")
+    if not np.all(np.isfinite(vector)):
+        raise ValueError("u must be finite")
+    return vector
+
+
+def check_step(dt: float) -> float:
+    """``dt`` as a positive finite float."""
+    value = float(dt)
+    if not np.isfinite(value) or value <= 0:
+        raise ValueError(f"dt must be positive and finite, got {dt!r}")
+    return value
+
+
+def check_trial(trial: int) -> int:
+    """``trial`` as a 1-based trial number."""
+    if int(trial) != trial or trial < 1:
+        raise ConfigError(f"trial numbers start at 1, got {trial!r}", key="trial")
+    return int(trial)
