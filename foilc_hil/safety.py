@@ -1,0 +1,230 @@
+"""Safety logic of the bench, free of CAN so it is unit-tested on its own.
+
+- :class:`CommandLimiter` clamps every command to the drive's limits (and the plant's actuator saturation).
+- :class:`FeedbackWatchdog` counts consecutive cycles without TPDO feedback and trips after
+  ``bench.watchdog_cycles``.
+- :class:`DivergenceGuard` compares each trial's SSE with the best so far and trips when it exceeds
+  ``bench.divergence_factor`` times the best; it keeps the best trial's feedforward so the bench can restore it.
+- :func:`require_finite` is the NaN/inf guard for outputs and commands.
+- :class:`StopRequest` turns SIGINT/SIGTERM into a flag the loop polls once per cycle, so a Ctrl-C never
+  interrupts the loop between a SYNC and its command: the loop then quick-stops the drive itself.
+
+What the bench does when one of them trips (quick stop, disable, close the log, exit code) is in
+:mod:`foilc_hil.bench`.
+"""
+
+from __future__ import annotations
+
+import math
+import signal
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from types import FrameType, TracebackType
+from typing import Any
+
+import numpy as np
+
+from foilc_hil.errors import FeedbackTimeoutError, LearningDivergedError
+
+__all__ = [
+    "CommandLimiter",
+    "DivergenceGuard",
+    "DivergenceVerdict",
+    "FeedbackWatchdog",
+    "StopRequest",
+    "require_finite",
+]
+
+
+class CommandLimiter:
+    """Clamp commands to ``[lower, upper]`` (plant units).
+
+    Parameters
+    ----------
+    lower, upper
+        The command limits. ``lower < upper`` and both finite.
+    """
+
+    def __init__(self, lower: float, upper: float) -> None:
+        if not (math.isfinite(lower) and math.isfinite(upper)):
+            raise ValueError(f"command limits must be finite, got [{lower!r}, {upper!r}]")
+        if lower >= upper:
+            raise ValueError(f"command lower limit {lower!r} must be below the upper limit {upper!r}")
+        self.lower = float(lower)
+        self.upper = float(upper)
+        self.clamped_count = 0
+
+    @classmethod
+    def symmetric(
+        cls, drive_limit: float, scale: float, *, u_min: float | None = None, u_max: float | None = None
+    ) -> CommandLimiter:
+        """Limits from the drive's ``|target| <= drive_limit`` (drive units; ``plant value * scale`` = drive value)
+        intersected with the plant's actuator saturation ``[u_min, u_max]`` (plant units) when given."""
+        if not (drive_limit > 0 and scale > 0):
+            raise ValueError(f"drive limit and scale must be positive, got {drive_limit!r}, {scale!r}")
+        bound = drive_limit / scale
+        lower, upper = -bound, bound
+        if u_min is not None:
+            lower = max(lower, u_min)
+        if u_max is not None:
+            upper = min(upper, u_max)
+        return cls(lower, upper)
+
+    def clamp(self, value: float) -> float:
+        """``value`` clamped to the limits; counts how often clamping was active. NaN is refused, not clamped."""
+        if value != value:  # NaN compares unequal; clamping it would hide a broken law
+            raise LearningDivergedError("the learning law produced a NaN command")
+        if value > self.upper:
+            self.clamped_count += 1
+            return self.upper
+        if value < self.lower:
+            self.clamped_count += 1
+            return self.lower
+        return value
+
+
+class FeedbackWatchdog:
+    """Trips after ``limit`` consecutive cycles without feedback.
+
+    Parameters
+    ----------
+    limit
+        ``bench.watchdog_cycles``: how many consecutive missing feedbacks are tolerated before tripping.
+    """
+
+    def __init__(self, limit: int) -> None:
+        if limit < 1:
+            raise ValueError(f"watchdog limit must be >= 1 cycle, got {limit!r}")
+        self.limit = int(limit)
+        self.consecutive_missing = 0
+        self.total_missing = 0
+
+    def fed(self) -> None:
+        """Feedback arrived this cycle."""
+        self.consecutive_missing = 0
+
+    def missed(self, cycle: int) -> None:
+        """Feedback did not arrive this cycle.
+
+        Raises
+        ------
+        FeedbackTimeoutError
+            When this makes ``limit`` consecutive misses.
+        """
+        self.consecutive_missing += 1
+        self.total_missing += 1
+        if self.consecutive_missing >= self.limit:
+            raise FeedbackTimeoutError(
+                f"no feedback from the drive for {self.consecutive_missing} consecutive cycles "
+                f"(watchdog {self.limit}, at cycle {cycle})"
+            )
+
+
+@dataclass(frozen=True)
+class DivergenceVerdict:
+    """What :meth:`DivergenceGuard.check` found for one trial."""
+
+    diverged: bool
+    is_best: bool
+    best_trial: int
+    best_sse: float
+    message: str = ""
+
+
+class DivergenceGuard:
+    """Stops learning that makes the error grow.
+
+    A trial diverges when its SSE is not finite or exceeds ``factor`` times the best SSE seen so far. The guard
+    keeps a copy of the feedforward that produced the best trial, for :meth:`best_feedforward`.
+
+    Parameters
+    ----------
+    factor
+        ``bench.divergence_factor`` (> 1).
+    """
+
+    def __init__(self, factor: float) -> None:
+        if not factor > 1:
+            raise ValueError(f"divergence factor must be > 1, got {factor!r}")
+        self.factor = float(factor)
+        self.best_sse = math.inf
+        self.best_trial = 0
+        self._best_feedforward: np.ndarray | None = None
+
+    def check(self, trial: int, sse: float, feedforward_used: np.ndarray) -> DivergenceVerdict:
+        """Judge trial ``trial`` whose SSE is ``sse``, run with ``feedforward_used`` (copied when best)."""
+        if not math.isfinite(sse):
+            return DivergenceVerdict(
+                True, False, self.best_trial, self.best_sse, f"trial {trial}: the tracking error is not finite"
+            )
+        if self.best_trial and sse > self.factor * self.best_sse:
+            return DivergenceVerdict(
+                True,
+                False,
+                self.best_trial,
+                self.best_sse,
+                f"learning diverged: trial {trial} SSE {sse:.6g} > {self.factor:g} x best SSE {self.best_sse:.6g} "
+                f"(trial {self.best_trial}); learning stopped, best feedforward restored",
+            )
+        is_best = sse < self.best_sse
+        if is_best:
+            self.best_sse = float(sse)
+            self.best_trial = trial
+            self._best_feedforward = np.array(feedforward_used, dtype=float, copy=True)
+        return DivergenceVerdict(False, is_best, self.best_trial, self.best_sse)
+
+    def best_feedforward(self) -> np.ndarray:
+        """The feedforward of the best trial so far (a copy)."""
+        if self._best_feedforward is None:
+            raise LearningDivergedError("no trial has completed yet, there is no feedforward to restore")
+        return self._best_feedforward.copy()
+
+
+def require_finite(value: float, what: str, cycle: int) -> None:
+    """NaN/inf guard. Raises :class:`LearningDivergedError` naming ``what`` (e.g. ``"command"``) and the cycle."""
+    if not math.isfinite(value):
+        raise LearningDivergedError(f"non-finite {what} ({value!r}) at cycle {cycle}")
+
+
+class StopRequest:
+    """SIGINT/SIGTERM as a flag polled by the loop (a context manager installing the handlers).
+
+    Inside the context, the first SIGINT or SIGTERM sets :attr:`requested` (and :attr:`signal_name`); the loop
+    checks it once per cycle and stops the drive itself. A second signal falls back to the default behaviour
+    (``KeyboardInterrupt`` for SIGINT), so a wedged run can still be killed. Outside the main thread signals
+    cannot be handled; the context then does nothing and the flag can only be set with :meth:`request`.
+    """
+
+    def __init__(self) -> None:
+        self.requested = False
+        self.signal_name = ""
+        self._previous: dict[int, Callable[[int, FrameType | None], Any] | int | None] = {}
+
+    def request(self, reason: str = "stop requested") -> None:
+        """Ask the loop to stop (what the signal handler does)."""
+        self.requested = True
+        self.signal_name = reason
+
+    def _handle(self, signum: int, frame: FrameType | None) -> None:
+        if self.requested:
+            previous = self._previous.get(signum)
+            if callable(previous):
+                previous(signum, frame)
+                return
+            raise KeyboardInterrupt
+        self.request(signal.Signals(signum).name)
+
+    def __enter__(self) -> StopRequest:
+        if threading.current_thread() is threading.main_thread():
+            for signum in (signal.SIGINT, signal.SIGTERM):
+                self._previous[signum] = signal.getsignal(signum)
+                signal.signal(signum, self._handle)
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        for signum, previous in self._previous.items():
+            signal.signal(signum, previous if previous is not None else signal.SIG_DFL)
+        self._previous.clear()

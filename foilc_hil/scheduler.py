@@ -1,0 +1,265 @@
+"""Cycle timing for the bench: absolute deadlines, a hybrid sleep/spin wait, and per-cycle timing records.
+
+Two timing modes drive the SYNC of the CAN loop (see :mod:`foilc_hil.bench`):
+
+``lockstep``
+    The next SYNC goes out as soon as the feedback of the previous one is in and the command is sent. The run is
+    deterministic and as fast as the bus allows; wall-clock time means nothing (tests, the demo, benchmarks).
+``realtime``
+    SYNC on a fixed period, on absolute deadlines ``t0 + k * period`` of :func:`time.perf_counter`, so errors do
+    not accumulate. :class:`DeadlineScheduler` sleeps until shortly before each deadline (``time.sleep`` is
+    coarse: its wake-up is late by the OS timer slack) and spins the last ``spin_margin`` seconds.
+
+Missed-deadline policy (documented, counted, never silently absorbed): when a cycle starts so late that one or
+more later deadlines have already passed, those deadlines are *skipped* -- no burst of catch-up SYNCs is sent --
+and the cycle waits for the next deadline still in the future. The drive holds the last command it received in
+the meantime (RPDO values persist until replaced). Every skipped deadline is counted in ``missed_deadlines`` and
+flagged in the cycle's ``/timing`` record. A cycle that starts late but before the following deadline is not
+missed; its lateness goes into the jitter statistics.
+
+:class:`TimingRecorder` keeps the per-cycle measurements in preallocated arrays (the hot path only writes into
+them) and turns them into ``/timing`` records and summary statistics off the hot path.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "DeadlineScheduler",
+    "TimingRecorder",
+    "TimingSummary",
+]
+
+#: default spin window before each deadline, seconds: covers the usual Linux timer slack (50 us) with margin
+DEFAULT_SPIN_MARGIN = 0.0008
+
+
+class DeadlineScheduler:
+    """Absolute-deadline cycle clock with a hybrid sleep/spin wait.
+
+    Parameters
+    ----------
+    period
+        Cycle period in seconds (the CAN cycle period, ``sample_time``).
+    spin_margin
+        The last part of each wait, in seconds, is spent spinning on the clock instead of sleeping.
+    clock, sleep
+        Injected for tests (a fake clock makes every policy decision deterministic).
+    """
+
+    def __init__(
+        self,
+        period: float,
+        *,
+        spin_margin: float = DEFAULT_SPIN_MARGIN,
+        clock: Callable[[], float] = time.perf_counter,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> None:
+        if not (period > 0 and math.isfinite(period)):
+            raise ValueError(f"period must be a positive number of seconds, got {period!r}")
+        if spin_margin < 0:
+            raise ValueError(f"spin_margin must be >= 0, got {spin_margin!r}")
+        self.period = float(period)
+        self.spin_margin = float(spin_margin)
+        self._clock = clock
+        self._sleep = sleep
+        self._t0 = 0.0
+        self._next_index = 0
+        self.missed_deadlines = 0
+
+    def start(self, t0: float | None = None) -> None:
+        """Set the time origin: deadline ``k`` is ``t0 + k * period``; the first :meth:`wait` targets ``k = 0``."""
+        self._t0 = self._clock() if t0 is None else float(t0)
+        self._next_index = 0
+        self.missed_deadlines = 0
+
+    def deadline(self, index: int) -> float:
+        """The absolute time of deadline ``index``."""
+        return self._t0 + index * self.period
+
+    def wait(self) -> tuple[float, float, int]:
+        """Wait for the next deadline still ahead (skipping any that already passed).
+
+        Returns
+        -------
+        deadline
+            The absolute deadline this cycle was released at.
+        lateness
+            How late the release is, seconds (``clock() - deadline`` on return, >= 0 up to clock resolution).
+        skipped
+            How many earlier deadlines passed without a cycle (counted into :attr:`missed_deadlines`).
+        """
+        index = self._next_index
+        deadline = self._t0 + index * self.period
+        now = self._clock()
+        skipped = 0
+        if now >= deadline + self.period:
+            # the policy: skip every deadline that has passed except the current slot's own; the cycle waits for
+            # the next one ahead instead of sending catch-up SYNCs
+            skipped = int((now - deadline) // self.period)
+            index += skipped
+            deadline = self._t0 + index * self.period
+            if now > deadline:
+                index += 1
+                skipped += 1
+                deadline += self.period
+            self.missed_deadlines += skipped
+        remaining = deadline - now
+        if remaining > self.spin_margin:
+            self._sleep(remaining - self.spin_margin)
+        now = self._clock()
+        while now < deadline:
+            now = self._clock()
+        self._next_index = index + 1
+        return deadline, now - deadline, skipped
+
+
+@dataclass(frozen=True)
+class TimingSummary:
+    """Timing statistics of a run (the ``"timing"`` object of ``foilc-hil run --json``).
+
+    Jitter is the release lateness of each cycle (actual SYNC time minus its deadline); in lockstep runs there are
+    no deadlines and the jitter fields are ``None``.
+    """
+
+    mode: str
+    period: float
+    cycles: int
+    missed_deadlines: int
+    late_feedback: int
+    missing_feedback: int
+    jitter_p50_us: float | None
+    jitter_p99_us: float | None
+    jitter_max_us: float | None
+    cycle_time_p50_us: float | None
+    cycle_time_p99_us: float | None
+    cycle_time_max_us: float | None
+    cycles_per_second: float | None
+
+    def to_json(self) -> dict[str, Any]:
+        return {key: getattr(self, key) for key in self.__dataclass_fields__}
+
+
+class TimingRecorder:
+    """Per-cycle timing measurements in preallocated arrays, one block per phase (a trial or a settling phase).
+
+    The hot path calls :meth:`record` (writes into arrays, no allocation); :meth:`finish_block` closes the
+    block and :meth:`records` turns it into ``/timing`` messages off the hot path.
+
+    Per cycle: the SYNC send time ``sync_time`` (perf_counter seconds), the deadline (NaN in lockstep), the
+    release lateness, the feedback latency (SYNC to TPDO handed to the loop), the cycle's compute time (feedback
+    in to command sent), how many deadlines were skipped before it, and whether the feedback was late (arrived
+    after the next deadline) or missing.
+    """
+
+    FIELDS = ("sync_time", "deadline", "lateness", "feedback_latency", "compute_time", "skipped", "late", "missing")
+
+    def __init__(self, mode: str, period: float) -> None:
+        self.mode = mode
+        self.period = period
+        self._block_arrays: list[np.ndarray] = []
+        self._current: np.ndarray = np.empty((0, len(self.FIELDS)))
+        self._count = 0
+        self._phase = ""
+        self._trial = 0
+        self._started_at = time.perf_counter()
+
+    def begin_block(self, capacity: int, *, phase: str, trial: int) -> None:
+        """Preallocate room for ``capacity`` cycles of the next phase (``"trial"`` or ``"settle"``)."""
+        self._current = np.full((max(capacity, 0), len(self.FIELDS)), np.nan)
+        self._count = 0
+        self._phase = phase
+        self._trial = trial
+
+    def record(
+        self,
+        sync_time: float,
+        deadline: float,
+        lateness: float,
+        feedback_latency: float,
+        compute_time: float,
+        skipped: int,
+        late: bool,
+        missing: bool,
+    ) -> None:
+        """Store one cycle (hot path: writes into the preallocated row; grows only past the capacity)."""
+        if self._count >= self._current.shape[0]:
+            grown = np.full((max(2 * self._current.shape[0], 64), len(self.FIELDS)), np.nan)
+            grown[: self._count] = self._current[: self._count]
+            self._current = grown
+        row = self._current[self._count]
+        row[0] = sync_time
+        row[1] = deadline
+        row[2] = lateness
+        row[3] = feedback_latency
+        row[4] = compute_time
+        row[5] = skipped
+        row[6] = 1.0 if late else 0.0
+        row[7] = 1.0 if missing else 0.0
+        self._count += 1
+
+    def finish_block(self) -> np.ndarray:
+        """Close the current block; returns its rows (columns :attr:`FIELDS`)."""
+        block = self._current[: self._count].copy()
+        self._block_arrays.append(block)
+        self._current = np.empty((0, len(self.FIELDS)))
+        self._count = 0
+        return block
+
+    def records(self, block: np.ndarray, *, first_cycle: int) -> Iterator[dict[str, Any]]:
+        """``/timing`` messages of a finished block: one per cycle, times in microseconds."""
+        for offset, row in enumerate(block):
+            yield {
+                "cycle": first_cycle + offset,
+                "trial": self._trial,
+                "phase": self._phase,
+                "sample": offset,
+                "sync_time": float(row[0]),
+                "deadline": None if math.isnan(row[1]) else float(row[1]),
+                "lateness_us": None if math.isnan(row[2]) else float(row[2] * 1e6),
+                "feedback_latency_us": None if math.isnan(row[3]) else float(row[3] * 1e6),
+                "compute_us": None if math.isnan(row[4]) else float(row[4] * 1e6),
+                "skipped_deadlines": int(row[5]),
+                "late_feedback": bool(row[6]),
+                "missing_feedback": bool(row[7]),
+            }
+
+    def summary(self, missed_deadlines: int) -> TimingSummary:
+        """Statistics over every finished block."""
+        rows = np.concatenate(self._block_arrays) if self._block_arrays else np.empty((0, len(self.FIELDS)))
+        cycles = int(rows.shape[0])
+        elapsed = time.perf_counter() - self._started_at
+
+        def percentiles(column: np.ndarray) -> tuple[float | None, float | None, float | None]:
+            finite = column[np.isfinite(column)]
+            if finite.size == 0:
+                return None, None, None
+            p50, p99 = np.percentile(finite, [50.0, 99.0])
+            return float(p50 * 1e6), float(p99 * 1e6), float(np.max(finite) * 1e6)
+
+        jitter = percentiles(rows[:, 2]) if cycles else (None, None, None)
+        # cycle time: interval between consecutive SYNCs within a block
+        intervals = [np.diff(block[:, 0]) for block in self._block_arrays if block.shape[0] > 1]
+        cycle_time = percentiles(np.concatenate(intervals)) if intervals else (None, None, None)
+        return TimingSummary(
+            mode=self.mode,
+            period=self.period,
+            cycles=cycles,
+            missed_deadlines=int(missed_deadlines),
+            late_feedback=int(np.sum(rows[:, 6])) if cycles else 0,
+            missing_feedback=int(np.sum(rows[:, 7])) if cycles else 0,
+            jitter_p50_us=jitter[0],
+            jitter_p99_us=jitter[1],
+            jitter_max_us=jitter[2],
+            cycle_time_p50_us=cycle_time[0],
+            cycle_time_p99_us=cycle_time[1],
+            cycle_time_max_us=cycle_time[2],
+            cycles_per_second=cycles / elapsed if elapsed > 0 and cycles else None,
+        )
