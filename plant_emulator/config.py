@@ -29,7 +29,13 @@ class ParameterVariation(Section):
 
 
 class DisturbanceConfig(Section):
-    """External disturbance ``d(t)`` entering the state equation, from ``start_trial`` on."""
+    """External disturbance ``d(t)`` entering the state equation, from ``start_trial`` on.
+
+    ``constant`` is ``amplitude`` over the whole trial; ``step`` jumps from 0 to ``amplitude`` at ``start_time``;
+    ``sine`` is ``amplitude * sin(frequency * (t - start_time))`` and ``square`` its sign, both from
+    ``start_time`` on. For ``first_order`` plants ``d`` is added to every state equation; for ``pmsm`` it is a
+    load torque in N m added to the motor torque.
+    """
 
     kind: Literal["none", "constant", "step", "sine", "square"] = "none"
     amplitude: float = 0.0
@@ -63,6 +69,77 @@ class SaturationConfig(Section):
         return self
 
 
+class PmsmSpread(Section):
+    """Relative bounds of the per-run random parameter draws: each parameter is scaled by a factor drawn
+    uniformly from ``[1 - spread, 1 + spread]`` (seeded by ``plant.seed``, so runs reproduce)."""
+
+    inertia: float = Field(default=0.0, ge=0, lt=1)
+    viscous: float = Field(default=0.0, ge=0, lt=1)
+    coulomb: float = Field(default=0.0, ge=0, lt=1)
+    torque_constant: float = Field(default=0.0, ge=0, lt=1)
+    resistance: float = Field(default=0.0, ge=0, lt=1)
+    inductance: float = Field(default=0.0, ge=0, lt=1)
+
+
+class PmsmDrift(Section):
+    """Slow sinusoidal drift of the inertia within a trial:
+    ``J(t) = J * (1 + amplitude * sin(frequency * t + phase_per_trial * (trial - 1)))``."""
+
+    amplitude: float = Field(default=0.0, ge=0, lt=1)  # relative
+    frequency: float = Field(default=0.5, gt=0)  # rad/s
+    phase_per_trial: float = 0.0  # rad, so the drift differs from trial to trial
+
+
+class PmsmConfig(Section):
+    """A PMSM servo axis (default: a 400 W class SCARA joint) with its drive's current and velocity loops.
+
+    Units: velocity in rpm (mechanical), torque in N m, angle in rad, resistance in ohm, inductance in H, inertia
+    in kg m^2 (motor plus reflected load), viscous friction in N m s/rad. See :mod:`plant_emulator.physics.pmsm`.
+    """
+
+    # electrical
+    pole_pairs: int = Field(default=4, ge=1)
+    resistance: float = Field(default=1.2, gt=0)  # phase resistance Rs, ohm
+    inductance_d: float = Field(default=4.0e-3, gt=0)  # Ld, H
+    inductance_q: float = Field(default=4.0e-3, gt=0)  # Lq, H
+    torque_constant: float = Field(default=0.3, gt=0)  # Kt = 1.5 * p * psi_f, N m/A (peak-current dq convention)
+    dc_bus_voltage: float = Field(default=300.0, gt=0)  # V; the voltage vector is limited to Vdc / sqrt(3)
+    current_bandwidth: float = Field(default=3000.0, gt=0)  # rad/s, closed current loop (PI tuned by pole-zero cancel)
+    # mechanical
+    inertia: float = Field(default=5.0e-4, gt=0)  # J, kg m^2
+    viscous: float = Field(default=1.0e-4, ge=0)  # B, N m s/rad
+    coulomb: float = Field(default=0.02, ge=0)  # N m
+    coulomb_velocity_scale: float = Field(default=1.0, gt=0)  # rpm, tanh smoothing of the Coulomb term
+    cogging_amplitude: float = Field(default=0.01, ge=0)  # N m
+    cogging_periods: int = Field(default=24, ge=1)  # cogging periods per mechanical revolution
+    # ratings and limits
+    rated_torque: float = Field(default=1.27, gt=0)  # N m; 0x6071/0x6077 are per mille of this
+    torque_limit: float = Field(default=3.8, gt=0)  # N m, peak torque the drive allows
+    rated_speed: float = Field(default=3000.0, gt=0)  # rpm; velocity commands are clamped to +-rated_speed
+    speed_limit: float = Field(default=3600.0, gt=0)  # rpm; above it ``over_speed`` is raised
+    # sensing
+    resolver_bits: int = Field(default=16, ge=4, le=32)  # counts per mechanical revolution = 2**bits
+    velocity_filter: float = Field(default=0.0, ge=0)  # s, low-pass time constant of the reported velocity
+    # drive's velocity loop (CSV), running every internal step
+    input_kind: Literal["velocity", "torque"] = "velocity"
+    velocity_kp: float = Field(default=0.05, ge=0)  # N m per rad/s
+    velocity_ki: float = Field(default=0.25, ge=0)  # N m per rad
+    velocity_setpoint_weight: float = Field(default=0.0, ge=0, le=1)  # 0: I-P (no overshoot), 1: plain PI
+    velocity_loop_filter: float = Field(default=5.0e-4, ge=0)  # s, low-pass of the loop's own velocity estimate
+    internal_step: float = Field(default=5.0e-5, gt=0, le=1.0e-3)  # s, fixed sub-step independent of the caller
+    # uncertainty
+    spread: PmsmSpread = PmsmSpread()
+    drift: PmsmDrift = PmsmDrift()
+
+    @model_validator(mode="after")
+    def _limits_ordered(self) -> PmsmConfig:
+        if self.torque_limit < self.rated_torque:
+            raise ValueError("torque_limit must be at least rated_torque")
+        if self.speed_limit < self.rated_speed:
+            raise ValueError("speed_limit must be at least rated_speed")
+        return self
+
+
 class PlantConfig(Section):
     """The plant. ``first_order`` is the paper's model (48) ``x' = (a + Da) x + (b + Db) u + d, y = c x`` (``a``,
     ``b``, ``c`` may be matrices for multi-input/multi-output plants); ``pmsm`` is a PMSM axis (``pmsm:``
@@ -84,3 +161,4 @@ class PlantConfig(Section):
     saturation: SaturationConfig = SaturationConfig()
     output_noise: float = Field(default=0.0, ge=0)  # std of additive measurement noise
     seed: int = 0
+    pmsm: PmsmConfig = PmsmConfig()  # used when ``model: pmsm``

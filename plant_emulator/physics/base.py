@@ -12,9 +12,9 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from foilc_hil.errors import ConfigError
+from foilc_hil.errors import ConfigError, InputError
 
-__all__ = ["Plant", "trial_rng", "check_input", "check_step"]
+__all__ = ["Plant", "check_input", "check_step", "check_trial", "trial_rng"]
 
 
 @runtime_checkable
@@ -56,9 +56,9 @@ def check_input(u: np.ndarray | float | list[float], n_inputs: int) -> np.ndarra
     """``u`` as a float vector of length ``n_inputs``; a scalar is accepted for a single-input plant."""
     vector = np.atleast_1d(np.asarray(u, dtype=float)).reshape(-1)
     if vector.shape != (n_inputs,):
-        raise ValueError(f"u must have {n_inputs} entries, got {vector.size}")
+        raise InputError(f"u must have {n_inputs} entries, got {vector.size}")
     if not np.all(np.isfinite(vector)):
-        raise ValueError("u must be finite")
+        raise InputError("u must be finite")
     return vector
 
 
@@ -66,7 +66,7 @@ def check_step(dt: float) -> float:
     """``dt`` as a positive finite float."""
     value = float(dt)
     if not np.isfinite(value) or value <= 0:
-        raise ValueError(f"dt must be positive and finite, got {dt!r}")
+        raise InputError(f"dt must be positive and finite, got {dt!r}")
     return value
 
 

@@ -1,0 +1,185 @@
+"""The paper's plant, eq. (48): ``x' = (a + Da(t)) x + (b + Db(t)) u(t - delay) + d(t)``, ``y = c x + noise``.
+
+Integration is exact for a zero-order-held input (errata 1: no forward Euler): over each step the augmented
+matrix ``[[A, B, E], [0, 0, 0]]`` is exponentiated, which gives ``x+ = Phi x + Gu u + Gd d``. ``Da``, ``Db`` and
+``d`` are held constant over a step (sampled at its midpoint), so with time variation the step is the exact
+solution of a piecewise-constant approximation; its error against a fine Runge-Kutta solution is second order
+in the step and measured in ``tests/test_physics_first_order.py``. With ``Da = Db = 0`` the matrices are cached
+per step length.
+
+For matrix plants ``Da(t)`` is added to the diagonal of ``a`` (it shifts every mode by the same amount),
+``Db(t)`` to every non-zero entry of ``b``, and ``d(t)`` to every state equation. A transport ``delay`` is
+applied to the saturated command; the step is split where a delayed command change falls inside it.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+from scipy.linalg import expm
+
+from foilc_hil.errors import ConfigError
+from plant_emulator.config import PlantConfig
+from plant_emulator.linear import continuous_model
+from plant_emulator.physics.base import check_input, check_step, check_trial, trial_rng
+from plant_emulator.physics.disturbance import Disturbance
+from plant_emulator.physics.variation import VariationSignal
+
+__all__ = ["FirstOrderPlant"]
+
+_NOISE_STREAM = 3
+_CACHE_SIZE = 64
+
+
+class FirstOrderPlant:
+    """The linear (possibly multi-input/multi-output) plant of eq. (48); implements ``Plant``.
+
+    Parameters
+    ----------
+    plant
+        The ``plant:`` section (``model: first_order``).
+    seed
+        Seed of the random walk variation and the output noise.
+    """
+
+    def __init__(self, plant: PlantConfig, *, seed: int) -> None:
+        model = continuous_model(plant)
+        self._a = model.a
+        self._b = model.b
+        self._c = model.c
+        self._delay = float(model.delay)
+        n = model.n_states
+        self.n_states = n
+        self.n_inputs = model.n_inputs
+        self.n_outputs = model.n_outputs
+        if plant.x0 is None:
+            self._x0 = np.zeros(n)
+        else:
+            if len(plant.x0) != n:
+                raise ConfigError(f"must have {n} entries (the states of 'a'), got {len(plant.x0)}", key="plant.x0")
+            self._x0 = np.asarray(plant.x0, dtype=float)
+        self._b_pattern = (self._b != 0).astype(float)
+        self._seed = seed
+        self._delta_a = VariationSignal(plant.variation.a, seed, stream=1)
+        self._delta_b = VariationSignal(plant.variation.b, seed, stream=2)
+        self._disturbance = Disturbance(plant.disturbance)
+        self._noise_std = plant.output_noise
+        self._u_min = -np.inf if plant.saturation.u_min is None else plant.saturation.u_min
+        self._u_max = np.inf if plant.saturation.u_max is None else plant.saturation.u_max
+        self._cache: dict[float, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._x = self._x0.copy()
+        self._t = 0.0
+        self._y = self._c @ self._x
+        self._noise_rng = trial_rng(seed, 1, _NOISE_STREAM)
+        self._commands: list[tuple[float, np.ndarray]] = []
+        self.saturated = False
+        """Whether the last step's input was clipped by ``plant.saturation``."""
+        self.reset(1)
+
+    # --- Plant protocol ---------------------------------------------------------------------------------------
+
+    def reset(self, trial: int) -> None:
+        """Start ``trial`` at ``x0`` with the input history cleared (the plant was at rest before)."""
+        trial = check_trial(trial)
+        self._x = self._x0.copy()
+        self._t = 0.0
+        self._commands = []
+        self._delta_a.reset(trial)
+        self._delta_b.reset(trial)
+        self._disturbance.reset(trial)
+        self._noise_rng = trial_rng(self._seed, trial, _NOISE_STREAM)
+        self.saturated = False
+        self._y = self._measure()
+
+    def step(self, u: np.ndarray, dt: float) -> np.ndarray:
+        """Hold ``u`` (saturated) over ``dt`` seconds and return the measured output."""
+        command = check_input(u, self.n_inputs)
+        dt = check_step(dt)
+        applied = np.clip(command, self._u_min, self._u_max)
+        self.saturated = bool(np.any(applied != command))
+        t0 = self._t
+        delta_a = self._delta_a.over_step(t0, dt)
+        delta_b = self._delta_b.over_step(t0, dt)
+        d = self._disturbance.over_step(t0, dt)
+        x = self._x
+        if self._delay == 0.0:
+            x = self._advance(x, applied, d, dt, delta_a, delta_b)
+        else:
+            self._commands.append((t0, applied))
+            for start, end, u_seg in self._delayed_segments(t0, t0 + dt):
+                x = self._advance(x, u_seg, d, end - start, delta_a, delta_b)
+        self._x = x
+        self._t = t0 + dt
+        self._y = self._measure()
+        return self._y.copy()
+
+    def output(self) -> np.ndarray:
+        """The last measured output ``c x + noise``."""
+        return self._y.copy()
+
+    def state(self) -> np.ndarray:
+        """The true state ``x``."""
+        return self._x.copy()
+
+    @property
+    def time(self) -> float:
+        """Seconds since :meth:`reset`."""
+        return self._t
+
+    # --- internals --------------------------------------------------------------------------------------------
+
+    def _measure(self) -> np.ndarray:
+        y = self._c @ self._x
+        if self._noise_std > 0:
+            y = y + self._noise_std * self._noise_rng.standard_normal(self.n_outputs)
+        return np.asarray(y, dtype=float)
+
+    def _advance(
+        self, x: np.ndarray, u: np.ndarray, d: float, h: float, delta_a: float, delta_b: float
+    ) -> np.ndarray:
+        if h <= 0:
+            return x
+        phi, gamma_u, gamma_d = self._discrete(h, delta_a, delta_b)
+        return np.asarray(phi @ x + gamma_u @ u + gamma_d * d, dtype=float)
+
+    def _discrete(self, h: float, delta_a: float, delta_b: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        nominal = delta_a == 0.0 and delta_b == 0.0
+        if nominal and h in self._cache:
+            return self._cache[h]
+        n, m = self.n_states, self.n_inputs
+        a = self._a + delta_a * np.eye(n)
+        b = self._b + delta_b * self._b_pattern
+        augmented = np.zeros((n + m + 1, n + m + 1))
+        augmented[:n, :n] = a
+        augmented[:n, n : n + m] = b
+        augmented[:n, n + m] = 1.0  # d(t) enters every state equation
+        exponential = expm(augmented * h)
+        result = (exponential[:n, :n], exponential[:n, n : n + m], exponential[:n, n + m])
+        if nominal:
+            if len(self._cache) >= _CACHE_SIZE:
+                self._cache.pop(next(iter(self._cache)))
+            self._cache[h] = result
+        return result
+
+    def _delayed_segments(self, t0: float, t1: float) -> list[tuple[float, float, np.ndarray]]:
+        """Split ``[t0, t1]`` where the delayed command changes; each piece with the input the plant sees."""
+        delay = self._delay
+        # Commands issued before t0 - delay are superseded by the last of them; drop the older ones.
+        while len(self._commands) >= 2 and self._commands[1][0] + delay <= t0:
+            self._commands.pop(0)
+        zero = np.zeros(self.n_inputs)
+        # Ignore change points within rounding of an edge: they would only create slivers of a step.
+        slack = 1e-9 * (t1 - t0)
+        inner = sorted({t + delay for t, _ in self._commands if t0 + slack < t + delay < t1 - slack})
+        edges = [t0, *inner, t1]
+        segments = []
+        for start, end in itertools.pairwise(edges):
+            # The command the plant sees in this piece: the last one issued before its delayed midpoint.
+            seen = 0.5 * (start + end) - delay
+            u_seg = zero
+            for issued, value in self._commands:
+                if issued <= seen:
+                    u_seg = value
+            segments.append((start, end, u_seg))
+        return segments
