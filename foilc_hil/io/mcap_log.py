@@ -1,0 +1,814 @@
+"""The bench's MCAP log: a writer (a python-can listener), a queued writer for the real-time loop, and a reader.
+
+Layout (topics, schemas, metadata) is in :mod:`foilc_hil.io.schemas` and ``../shared/interface.md``.
+
+Durability
+----------
+:meth:`McapLogWriter.end_trial` closes the MCAP chunk in progress, writes it and its message indexes, flushes the
+stream and (by default) ``fsync``s it. Everything logged for a trial -- its samples, frames, timing and its
+``/ilc/trial`` metrics -- is therefore on disk before the next trial starts, and a process that dies mid-trial
+loses at most the trial in progress. An orderly stop (Ctrl-C, a drive fault, an exception leaving a ``with``
+block) closes the file with its summary and footer, so ``mcap.reader.make_reader`` opens it as it is.
+A file cut short (a crash, a full disk) has no footer; :class:`McapLogReader` reads it front to back with mcap's
+non-seeking :class:`~mcap.stream_reader.StreamReader`, checking every chunk's CRC, and stops at the first damage
+with ``truncated=True``.
+
+Real time
+---------
+:class:`McapLogWriter` encodes JSON and compresses on the calling thread. The bench's cycle must not pay for that:
+:class:`QueuedLogWriter` has the same logging methods, but they only put a small tuple on a
+:class:`queue.SimpleQueue`; a background thread (python-can ``Notifier`` style) does the encoding and the I/O.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import math
+import os
+import struct
+import threading
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from queue import SimpleQueue
+from types import TracebackType
+from typing import IO, Any, Final, Literal
+
+import can
+import numpy as np
+from mcap.exceptions import McapError
+from mcap.records import Channel, Footer, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from foilc_hil.errors import FoilcHilError, LogFormatError
+from foilc_hil.io.schemas import (
+    MESSAGE_ENCODING,
+    METADATA_CONFIG,
+    METADATA_DESIGN,
+    SCHEMA_ENCODING,
+    TOPIC_CAN,
+    TOPIC_SAMPLE,
+    TOPIC_TIMING,
+    TOPIC_TRIAL,
+    TOPICS,
+    schema_bytes,
+)
+
+__all__ = [
+    "Compression",
+    "Direction",
+    "LogContents",
+    "LogMessage",
+    "LogWriteError",
+    "McapLogReader",
+    "McapLogWriter",
+    "QueuedLogWriter",
+    "frame_to_message",
+    "read_log",
+]
+
+Compression = Literal["zstd", "lz4", "none"]
+Direction = Literal["tx", "rx"]
+
+_COMPRESSION: Final[dict[str, CompressionType]] = {
+    "zstd": CompressionType.ZSTD,
+    "lz4": CompressionType.LZ4,
+    "none": CompressionType.NONE,
+}
+_MCAP_MAGIC: Final = b"\x89MCAP0\r\n"
+_PROFILE: Final = ""  # no ROS profile: plain JSON messages
+_LIBRARY: Final = "foilc-hil"
+
+
+class LogWriteError(FoilcHilError, OSError):
+    """Writing the log failed at run time (disk full, file gone). Exit 1."""
+
+
+# --- JSON encoding --------------------------------------------------------------------------------------------
+
+
+def _jsonable(value: Any) -> Any:
+    """``value`` with numpy scalars/arrays turned into Python numbers/lists and non-finite floats into ``None``.
+
+    JSON has no NaN or infinity (Foxglove's parser rejects Python's ``NaN`` extension), so a non-finite value is
+    logged as ``null``. Finite floats are written with ``repr``, which round-trips float64 exactly.
+    """
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, (bool, int, str)) or value is None:
+        return value
+    if isinstance(value, np.ndarray):
+        return _jsonable(value.tolist())
+    if isinstance(value, np.generic):
+        return _jsonable(value.item())
+    if isinstance(value, Mapping):
+        return {str(key): _jsonable(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(item) for item in value]
+    if hasattr(value, "to_json"):
+        return _jsonable(value.to_json())
+    raise TypeError(f"cannot log a value of type {type(value).__name__}")
+
+
+def _encode(document: dict[str, Any]) -> bytes:
+    try:
+        return json.dumps(document, allow_nan=False, separators=(",", ":")).encode("utf-8")
+    except (TypeError, ValueError):  # numpy values or non-finite floats: take the slow, careful path
+        return json.dumps(_jsonable(document), allow_nan=False, separators=(",", ":")).encode("utf-8")
+
+
+def _scalar_or_list(value: Any) -> Any:
+    """A Python float for a scalar (SISO), a list for a vector; numpy values converted."""
+    if isinstance(value, float):
+        return value
+    if isinstance(value, np.ndarray):
+        return value.item() if value.ndim == 0 else value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+# --- writer ---------------------------------------------------------------------------------------------------
+
+
+class McapLogWriter(can.Listener):
+    """Writes one bench run as MCAP.
+
+    A :class:`can.Listener`: attach it to a :class:`can.Notifier` and every received frame is logged with
+    ``dir: "rx"``; the bench logs what it sends with :meth:`log_frame`. Thread-safe (one lock), but it encodes
+    and writes on the calling thread -- the real-time loop uses :class:`QueuedLogWriter` in front of it.
+
+    Lifecycle: construct (writes the header and the metadata, flushed at once) -> log trial 1 ... ->
+    :meth:`end_trial` -> ... -> :meth:`close` (summary and footer). Use it as a context manager so an exception
+    still closes the file.
+
+    Parameters
+    ----------
+    output
+        File path, or a binary stream the caller owns (it is flushed, not closed).
+    compression
+        Chunk compression: ``"zstd"`` (default), ``"lz4"`` or ``"none"``.
+    config_yaml
+        The resolved config as YAML text (metadata record ``foilc_hil.config``); ``None`` writes no record
+        (e.g. a plain CAN capture through ``can_logger``).
+    design
+        Gains and certificates (metadata record ``foilc_hil.design``, each value JSON-encoded); can also be
+        given later with :meth:`log_design`.
+    chunk_size
+        Chunks are closed at this size (bytes, uncompressed) as well as at every :meth:`end_trial`.
+    fsync
+        ``os.fsync`` the file at every :meth:`end_trial` so a completed trial survives a power cut too.
+    """
+
+    def __init__(
+        self,
+        output: str | os.PathLike[str] | IO[bytes],
+        *,
+        compression: Compression = "zstd",
+        config_yaml: str | None,
+        design: Mapping[str, Any] | None = None,
+        chunk_size: int = 4 * 1024 * 1024,
+        fsync: bool = True,
+    ) -> None:
+        if compression not in _COMPRESSION:
+            raise LogFormatError(f"compression must be one of {', '.join(_COMPRESSION)}, not {compression!r}")
+        self.path = str(output) if isinstance(output, (str, os.PathLike)) else str(getattr(output, "name", "<stream>"))
+        if isinstance(output, (str, os.PathLike)):
+            try:
+                self._stream: IO[bytes] = open(output, "wb")  # noqa: SIM115 -- closed in close()
+            except OSError as exc:
+                raise LogFormatError(f"{output}: cannot create: {exc.strerror or exc}") from None
+            self._owns_stream = True
+        else:
+            self._stream = output
+            self._owns_stream = False
+        self._fsync = fsync
+        self._lock = threading.Lock()
+        self._closed = False
+        try:
+            self._writer = Writer(self._stream, chunk_size=chunk_size, compression=_COMPRESSION[compression])
+        except McapError as exc:  # UnsupportedCompressionError: lz4 / zstandard not installed
+            self._close_stream()
+            raise LogFormatError(f"{self.path}: {exc}") from None
+        self._writer.start(profile=_PROFILE, library=_LIBRARY)
+        self._channels: dict[str, int] = {}
+        self._sequences: dict[str, int] = {}
+        for topic, (name, schema) in TOPICS.items():
+            schema_id = self._writer.register_schema(name=name, encoding=SCHEMA_ENCODING, data=schema_bytes(schema))
+            self._channels[topic] = self._writer.register_channel(
+                topic=topic, message_encoding=MESSAGE_ENCODING, schema_id=schema_id
+            )
+            self._sequences[topic] = 0
+        if config_yaml is not None:
+            self._writer.add_metadata(METADATA_CONFIG, {"yaml": config_yaml})
+        if design is not None:
+            self._writer.add_metadata(METADATA_DESIGN, _design_record(design))
+        self._stream.flush()  # header and metadata reach the file before the first trial
+
+    # -- logging ---------------------------------------------------------------------------------------------
+
+    def on_message_received(self, msg: can.Message) -> None:
+        """python-can listener hook: log a received frame (``dir: "rx"``)."""
+        self.log_frame(msg, "rx")
+
+    def log_frame(self, msg: can.Message, direction: Direction, log_time_ns: int | None = None) -> None:
+        """Log one CAN frame on ``/can``.
+
+        ``timestamp`` is the frame's own (bus) timestamp; a frame built by the bench has none (0.0), so it gets
+        its log time.
+        """
+        now = time.time_ns() if log_time_ns is None else log_time_ns
+        timestamp = msg.timestamp if msg.timestamp else now / 1e9
+        document = {
+            "timestamp": timestamp,
+            "id": msg.arbitration_id,
+            "extended": msg.is_extended_id,
+            "dlc": msg.dlc,
+            "data": base64.b64encode(bytes(msg.data)).decode("ascii"),
+            "dir": direction,
+        }
+        self._add(TOPIC_CAN, document, now, publish_time_ns=round(timestamp * 1e9))
+
+    def log_sample(
+        self,
+        trial: int,
+        t: float,
+        reference: Any,
+        output: Any,
+        control: Any,
+        error: Any,
+        E: Any = None,
+        *,
+        sample: int | None = None,
+        log_time_ns: int | None = None,
+    ) -> None:
+        """Log one sample on ``/ilc/sample``: ``output`` is the feedback the law saw, ``control`` its command.
+
+        Scalars for a SISO axis, sequences/arrays for a multi-variable one. Values are encoded exactly (float64
+        ``repr``), so :func:`foilc_hil.replay.verify_log` can check the law bit for bit.
+        """
+        document: dict[str, Any] = {
+            "trial": trial,
+            "t": t,
+            "reference": _scalar_or_list(reference),
+            "output": _scalar_or_list(output),
+            "control": _scalar_or_list(control),
+            "error": _scalar_or_list(error),
+            "E": _scalar_or_list(E),
+        }
+        if sample is not None:
+            document["sample"] = sample
+        self._add(TOPIC_SAMPLE, document, time.time_ns() if log_time_ns is None else log_time_ns)
+
+    def log_trial(self, metrics: Any, log_time_ns: int | None = None, **extra: Any) -> None:
+        """Log one trial's metrics on ``/ilc/trial``.
+
+        ``metrics`` is a :class:`foilc_hil.metrics.TrialMetrics` (or a mapping with ``trial``, ``sse``, ``rmse``,
+        ``max_abs_error``); ``extra`` fields are added as they are.
+        """
+        base = metrics.to_json() if hasattr(metrics, "to_json") else dict(metrics)
+        missing = [key for key in ("trial", "sse", "rmse", "max_abs_error") if key not in base]
+        if missing:
+            raise LogFormatError(f"/ilc/trial message lacks {', '.join(missing)}")
+        self._add(TOPIC_TRIAL, {**base, **extra}, time.time_ns() if log_time_ns is None else log_time_ns)
+
+    def log_timing(
+        self,
+        cycle: int,
+        trial: int,
+        sample: int,
+        lateness_us: float,
+        period_us: float,
+        feedback_latency_us: float | None,
+        missed: bool,
+        log_time_ns: int | None = None,
+    ) -> None:
+        """Log one real-time cycle on ``/timing`` (see :data:`foilc_hil.io.schemas.TIMING_SCHEMA`)."""
+        document = {
+            "cycle": cycle,
+            "trial": trial,
+            "sample": sample,
+            "lateness_us": lateness_us,
+            "period_us": period_us,
+            "feedback_latency_us": feedback_latency_us,
+            "missed": bool(missed),
+        }
+        self._add(TOPIC_TIMING, document, time.time_ns() if log_time_ns is None else log_time_ns)
+
+    def log_design(self, design: Mapping[str, Any]) -> None:
+        """Write the ``foilc_hil.design`` metadata record (if it was not known at construction)."""
+        with self._lock:
+            self._check_open()
+            self._writer.add_metadata(METADATA_DESIGN, _design_record(design))
+
+    def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
+        """Write another metadata record (str -> str)."""
+        with self._lock:
+            self._check_open()
+            self._writer.add_metadata(name, dict(data))
+
+    def end_trial(self) -> None:
+        """Close the chunk in progress and push it to disk: the trial just logged survives a crash."""
+        with self._lock:
+            self._check_open()
+            try:
+                self._writer.flush()
+                if self._fsync and hasattr(self._stream, "fileno"):
+                    os.fsync(self._stream.fileno())
+            except OSError as exc:
+                raise LogWriteError(f"{self.path}: {exc.strerror or exc}") from None
+
+    def close(self) -> None:
+        """Write the summary and footer and close the file (idempotent)."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            try:
+                self._writer.finish()
+                self._stream.flush()
+            except OSError as exc:
+                raise LogWriteError(f"{self.path}: {exc.strerror or exc}") from None
+            finally:
+                self._close_stream()
+
+    def stop(self) -> None:
+        """python-can listener hook: same as :meth:`close`."""
+        self.close()
+
+    def __enter__(self) -> McapLogWriter:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc_value: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    # -- internals -------------------------------------------------------------------------------------------
+
+    def _add(self, topic: str, document: dict[str, Any], log_time_ns: int, publish_time_ns: int | None = None) -> None:
+        data = _encode(document)
+        with self._lock:
+            self._check_open()
+            sequence = self._sequences[topic]
+            self._sequences[topic] = sequence + 1
+            try:
+                self._writer.add_message(
+                    channel_id=self._channels[topic],
+                    log_time=log_time_ns,
+                    data=data,
+                    publish_time=log_time_ns if publish_time_ns is None else publish_time_ns,
+                    sequence=sequence & 0xFFFFFFFF,
+                )
+            except OSError as exc:
+                raise LogWriteError(f"{self.path}: {exc.strerror or exc}") from None
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise LogWriteError(f"{self.path}: the log is closed")
+
+    def _close_stream(self) -> None:
+        if self._owns_stream:
+            self._stream.close()
+
+
+def _design_record(design: Mapping[str, Any]) -> dict[str, str]:
+    """MCAP metadata is str -> str: every value of the design becomes its JSON text."""
+    return {str(key): json.dumps(_jsonable(value), allow_nan=False) for key, value in design.items()}
+
+
+# --- queued writer (the real-time path) -----------------------------------------------------------------------
+
+# Operation codes of the queue items: small tuples, no JSON and no I/O on the caller's thread.
+_FRAME: Final = 0
+_SAMPLE: Final = 1
+_TRIAL: Final = 2
+_TIMING: Final = 3
+_END_TRIAL: Final = 4
+_SYNC: Final = 5
+_STOP: Final = 6
+
+
+class QueuedLogWriter(can.Listener):
+    """:class:`McapLogWriter` behind a queue: the caller only enqueues, a background thread writes.
+
+    Same logging methods as :class:`McapLogWriter`. Each one stamps the time (``time.time_ns()``), puts a small
+    tuple on a :class:`queue.SimpleQueue` and returns; the thread ``foilc-hil-mcap-log`` encodes and writes. Values
+    are referenced, not copied: pass floats, or arrays the caller does not mutate afterwards.
+
+    A write error in the background thread is kept and raised by the next :meth:`end_trial`, :meth:`sync` or
+    :meth:`close` (never from the per-cycle calls), as :class:`LogWriteError`; later items are dropped.
+
+    Parameters
+    ----------
+    writer
+        The writer that does the work; this object owns it and closes it in :meth:`close`.
+    """
+
+    def __init__(self, writer: McapLogWriter) -> None:
+        self.writer = writer
+        self._queue: SimpleQueue[tuple[Any, ...]] = SimpleQueue()
+        self._error: BaseException | None = None
+        self._closed = False
+        self._thread = threading.Thread(target=self._drain, name="foilc-hil-mcap-log", daemon=True)
+        self._thread.start()
+
+    @classmethod
+    def open(
+        cls,
+        output: str | os.PathLike[str],
+        *,
+        compression: Compression = "zstd",
+        config_yaml: str | None,
+        design: Mapping[str, Any] | None = None,
+        fsync: bool = True,
+    ) -> QueuedLogWriter:
+        """Create the file and the writer thread in one step."""
+        return cls(
+            McapLogWriter(output, compression=compression, config_yaml=config_yaml, design=design, fsync=fsync)
+        )
+
+    # -- hot path: enqueue only ----------------------------------------------------------------------------
+
+    def on_message_received(self, msg: can.Message) -> None:
+        """python-can listener hook (runs on the Notifier thread): enqueue a received frame."""
+        self._queue.put((_FRAME, time.time_ns(), msg, "rx"))
+
+    def log_frame(self, msg: can.Message, direction: Direction) -> None:
+        """Enqueue one frame the bench sent (``"tx"``) or received (``"rx"``)."""
+        self._queue.put((_FRAME, time.time_ns(), msg, direction))
+
+    def log_sample(
+        self,
+        trial: int,
+        t: float,
+        reference: Any,
+        output: Any,
+        control: Any,
+        error: Any,
+        E: Any = None,
+        *,
+        sample: int | None = None,
+    ) -> None:
+        """Enqueue one ``/ilc/sample`` message (see :meth:`McapLogWriter.log_sample`)."""
+        self._queue.put((_SAMPLE, time.time_ns(), trial, t, reference, output, control, error, E, sample))
+
+    def log_trial(self, metrics: Any, **extra: Any) -> None:
+        """Enqueue one ``/ilc/trial`` message (see :meth:`McapLogWriter.log_trial`)."""
+        self._queue.put((_TRIAL, time.time_ns(), metrics, extra))
+
+    def log_timing(
+        self,
+        cycle: int,
+        trial: int,
+        sample: int,
+        lateness_us: float,
+        period_us: float,
+        feedback_latency_us: float | None,
+        missed: bool,
+    ) -> None:
+        """Enqueue one ``/timing`` message (see :meth:`McapLogWriter.log_timing`)."""
+        self._queue.put(
+            (_TIMING, time.time_ns(), cycle, trial, sample, lateness_us, period_us, feedback_latency_us, missed)
+        )
+
+    # -- between trials and at the end ---------------------------------------------------------------------
+
+    def end_trial(self, wait: bool = False) -> None:
+        """Close the trial's chunk once everything enqueued before it is written; ``wait`` blocks until then."""
+        self._raise_pending()
+        self._queue.put((_END_TRIAL,))
+        if wait:
+            self.sync()
+
+    def log_design(self, design: Mapping[str, Any]) -> None:
+        """Write the ``foilc_hil.design`` metadata record (waits for the queue first, to keep the order)."""
+        self.sync()
+        self.writer.log_design(design)
+
+    def sync(self, timeout: float | None = None) -> bool:
+        """Block until everything enqueued so far is written; ``False`` if ``timeout`` expired first."""
+        done = threading.Event()
+        self._queue.put((_SYNC, done))
+        finished = done.wait(timeout)
+        self._raise_pending()
+        return finished
+
+    def pending(self) -> int:
+        """Items waiting in the queue (approximate)."""
+        return self._queue.qsize()
+
+    def close(self) -> None:
+        """Write everything enqueued, then the summary and footer; stop the thread (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        self._queue.put((_STOP,))
+        self._thread.join()
+        try:
+            self.writer.close()
+        finally:
+            self._raise_pending()
+
+    def stop(self) -> None:
+        """python-can listener hook: same as :meth:`close`."""
+        self.close()
+
+    def __enter__(self) -> QueuedLogWriter:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc_value: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    # -- background thread ---------------------------------------------------------------------------------
+
+    def _raise_pending(self) -> None:
+        error = self._error
+        if error is not None:
+            self._error = None
+            if isinstance(error, FoilcHilError):
+                raise error
+            raise LogWriteError(f"{self.writer.path}: {error}") from error
+
+    def _drain(self) -> None:
+        writer = self.writer
+        get = self._queue.get
+        while True:
+            item = get()
+            op = item[0]
+            if op == _STOP:
+                return
+            if op == _SYNC:
+                item[1].set()
+                continue
+            if self._error is not None:
+                continue  # the log is broken: drop, never block the producer
+            try:
+                if op == _FRAME:
+                    writer.log_frame(item[2], item[3], log_time_ns=item[1])
+                elif op == _SAMPLE:
+                    _, stamp, trial, t, reference, output, control, error, E, sample = item
+                    writer.log_sample(
+                        trial, t, reference, output, control, error, E, sample=sample, log_time_ns=stamp
+                    )
+                elif op == _TRIAL:
+                    writer.log_trial(item[2], log_time_ns=item[1], **item[3])
+                elif op == _TIMING:
+                    _, stamp, cycle, trial, sample, lateness, period, latency, missed = item
+                    writer.log_timing(cycle, trial, sample, lateness, period, latency, missed, log_time_ns=stamp)
+                elif op == _END_TRIAL:
+                    writer.end_trial()
+            except Exception as exc:
+                self._error = exc
+
+
+# --- reader ---------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class LogMessage:
+    """One decoded message: its topic, MCAP times (ns) and JSON document."""
+
+    topic: str
+    log_time_ns: int
+    publish_time_ns: int
+    data: dict[str, Any]
+
+
+@dataclass
+class LogContents:
+    """Everything readable in a log. ``truncated`` says the file ended or broke before its footer."""
+
+    path: str
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    frames: list[dict[str, Any]] = field(default_factory=list)
+    samples: list[dict[str, Any]] = field(default_factory=list)
+    trials: list[dict[str, Any]] = field(default_factory=list)
+    timing: list[dict[str, Any]] = field(default_factory=list)
+    truncated: bool = False
+    damage: str = ""
+
+    @property
+    def config_yaml(self) -> str | None:
+        """The resolved config's YAML text, if the log has it."""
+        record = self.metadata.get(METADATA_CONFIG)
+        return None if record is None else record.get("yaml")
+
+    @property
+    def design(self) -> dict[str, Any] | None:
+        """The design record with its values decoded from JSON, if the log has it."""
+        record = self.metadata.get(METADATA_DESIGN)
+        if record is None:
+            return None
+        try:
+            return {key: json.loads(value) for key, value in record.items()}
+        except ValueError as exc:
+            raise LogFormatError(f"{self.path}: metadata {METADATA_DESIGN} is not JSON: {exc}") from None
+
+    @property
+    def completed_trials(self) -> list[int]:
+        """Trials with an ``/ilc/trial`` record: completed before the log ended."""
+        return [int(record["trial"]) for record in self.trials]
+
+
+# What a damaged or cut file can raise inside mcap's stream reader: its own errors, CRC mismatches
+# (ValueError), short reads decoded by struct, and the decompressors' errors (zstandard.ZstdError derives from
+# Exception only; lz4.frame raises RuntimeError).
+_DAMAGE: tuple[type[BaseException], ...] = (McapError, ValueError, struct.error, RuntimeError, EOFError)
+try:
+    import zstandard
+
+    _DAMAGE = (*_DAMAGE, zstandard.ZstdError)
+except ImportError:  # pragma: no cover - zstandard is a declared dependency
+    pass
+
+
+class McapLogReader:
+    """Reads a foilc-hil MCAP log front to back, surviving truncation and damage.
+
+    Parameters
+    ----------
+    source
+        Path of the log, or a binary stream positioned at its start.
+
+    Raises
+    ------
+    LogFormatError
+        The file does not exist, cannot be read, or is not MCAP (names the file).
+    """
+
+    def __init__(self, source: str | os.PathLike[str] | IO[bytes]) -> None:
+        if isinstance(source, (str, os.PathLike)):
+            self.path = str(source)
+            try:
+                self._stream: IO[bytes] = open(source, "rb")  # noqa: SIM115 -- closed in close()
+            except FileNotFoundError:
+                raise LogFormatError(f"{self.path}: no such file") from None
+            except OSError as exc:
+                raise LogFormatError(f"{self.path}: cannot read: {exc.strerror or exc}") from None
+            self._owns_stream = True
+        else:
+            self.path = str(getattr(source, "name", "<stream>"))
+            self._stream = source
+            self._owns_stream = False
+        self._start = self._stream.tell() if self._stream.seekable() else 0
+        magic = self._stream.read(len(_MCAP_MAGIC))
+        if magic != _MCAP_MAGIC:
+            self.close()
+            raise LogFormatError(f"{self.path}: not an MCAP file")
+        self._size = self._file_size()
+        self.metadata: dict[str, dict[str, str]] = {}
+        self.truncated = False
+        self.damage = ""
+        self._spent = False
+
+    def _file_size(self) -> int | None:
+        if not self._stream.seekable():
+            return None
+        here = self._stream.tell()
+        end = self._stream.seek(0, os.SEEK_END)
+        self._stream.seek(here)
+        return end - self._start
+
+    def iter_messages(self, topics: Sequence[str] | None = None) -> Iterator[LogMessage]:
+        """Messages in file order, decoded; metadata is collected into :attr:`metadata` on the way.
+
+        At the first damage (cut file, bad CRC, undecodable record) iteration stops, :attr:`truncated` becomes
+        ``True`` and :attr:`damage` says what and where. One pass per reader (the stream is read once).
+        """
+        if self._spent:
+            raise RuntimeError("McapLogReader reads its file once; create another reader")
+        self._spent = True
+        if self._stream.seekable():
+            self._stream.seek(self._start)
+        wanted = None if topics is None else set(topics)
+        # A corrupt length field must not make the reader allocate gigabytes: no record exceeds the file.
+        reader = StreamReader(
+            self._stream,
+            skip_magic=not self._stream.seekable(),  # the magic was consumed by the check above
+            validate_crcs=True,
+            record_size_limit=self._size,
+        )
+        schemas: dict[int, Schema] = {}
+        channels: dict[int, Channel] = {}
+        complete = False
+        records = reader.records
+        while True:
+            try:
+                record = next(records)
+            except StopIteration:
+                break
+            except _DAMAGE as exc:
+                self._mark_damage(exc)
+                return
+            if isinstance(record, Message):
+                channel = channels.get(record.channel_id)
+                if channel is None:
+                    self._mark_damage(McapError(f"message on unknown channel {record.channel_id}"))
+                    return
+                if wanted is not None and channel.topic not in wanted:
+                    continue
+                try:
+                    document = json.loads(record.data)
+                except ValueError as exc:
+                    self._mark_damage(exc)
+                    return
+                if not isinstance(document, dict):
+                    self._mark_damage(McapError(f"{channel.topic} message is not a JSON object"))
+                    return
+                yield LogMessage(channel.topic, record.log_time, record.publish_time, document)
+            elif isinstance(record, Channel):
+                channels[record.id] = record
+            elif isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Metadata):
+                self.metadata[record.name] = dict(record.metadata)
+            elif isinstance(record, Footer):
+                complete = True
+        if not complete:  # pragma: no cover - the stream reader raises before this
+            self._mark_damage(McapError("no footer"))
+
+    def read(self) -> LogContents:
+        """Read the whole log (everything readable) into memory."""
+        contents = LogContents(path=self.path)
+        buckets = {
+            TOPIC_CAN: contents.frames,
+            TOPIC_SAMPLE: contents.samples,
+            TOPIC_TRIAL: contents.trials,
+            TOPIC_TIMING: contents.timing,
+        }
+        for message in self.iter_messages():
+            bucket = buckets.get(message.topic)
+            if bucket is not None:
+                bucket.append(message.data)
+        contents.metadata = dict(self.metadata)
+        contents.truncated = self.truncated
+        contents.damage = self.damage
+        return contents
+
+    def _mark_damage(self, exc: BaseException) -> None:
+        self.truncated = True
+        try:
+            offset = f" near byte {self._stream.tell()}"
+        except (OSError, ValueError):
+            offset = ""
+        kind = "file ends before its footer" if _is_cut(exc) else f"damaged ({type(exc).__name__}: {exc})"
+        self.damage = f"{kind}{offset}"
+
+    def close(self) -> None:
+        if self._owns_stream:
+            self._stream.close()
+
+    def __enter__(self) -> McapLogReader:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc_value: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+def _is_cut(exc: BaseException) -> bool:
+    from mcap.exceptions import EndOfFile
+
+    return isinstance(exc, (EndOfFile, struct.error, EOFError))
+
+
+def read_log(path: str | os.PathLike[str]) -> LogContents:
+    """Read everything readable in the log at ``path`` (see :class:`McapLogReader`)."""
+    with McapLogReader(Path(path)) as reader:
+        return reader.read()
+
+
+def frame_to_message(frame: Mapping[str, Any]) -> can.Message:
+    """The python-can message of one ``/can`` record (timestamp, id, payload, direction as ``is_rx``)."""
+    try:
+        data = base64.b64decode(frame["data"], validate=True)
+        return can.Message(
+            timestamp=float(frame["timestamp"]),
+            arbitration_id=int(frame["id"]),
+            is_extended_id=bool(frame["extended"]),
+            dlc=int(frame["dlc"]),
+            data=data,
+            is_rx=frame["dir"] != "tx",
+        )
+    except (KeyError, ValueError, TypeError) as exc:
+        raise LogFormatError(f"/can message {dict(frame)!r} is malformed: {exc}") from None

@@ -1,0 +1,138 @@
+"""The MCAP layout of a foilc-hil log: topics, JSON schemas, metadata record names.
+
+Fixed by ``../shared/interface.md`` ("MCAP layout"). Schema encoding ``jsonschema``, message encoding ``json``,
+so Foxglove opens the files as they are. The schemas here are what is registered in every file; changing a field
+name is a breaking change for users' scripts.
+
+Signals in ``/ilc/sample`` (``reference``, ``output``, ``control``, ``error``, ``E``) are JSON numbers for a
+single-input single-output axis and arrays of numbers (one entry per output or input) for a multi-variable one;
+the schema allows both, so a SISO log plots directly in Foxglove. ``E`` (the fractional PD function of eq. (15))
+is ``null`` for laws that do not form it (P-type).
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any, Final
+
+__all__ = [
+    "CAN_FRAME_SCHEMA",
+    "DIRECTIONS",
+    "ILC_SAMPLE_SCHEMA",
+    "ILC_TRIAL_SCHEMA",
+    "MESSAGE_ENCODING",
+    "METADATA_CONFIG",
+    "METADATA_DESIGN",
+    "SCHEMA_ENCODING",
+    "TIMING_SCHEMA",
+    "TOPICS",
+    "TOPIC_CAN",
+    "TOPIC_SAMPLE",
+    "TOPIC_TIMING",
+    "TOPIC_TRIAL",
+    "schema_bytes",
+]
+
+SCHEMA_ENCODING: Final = "jsonschema"
+MESSAGE_ENCODING: Final = "json"
+
+TOPIC_CAN: Final = "/can"
+TOPIC_SAMPLE: Final = "/ilc/sample"
+TOPIC_TRIAL: Final = "/ilc/trial"
+TOPIC_TIMING: Final = "/timing"
+
+#: metadata record holding ``{"yaml": <the resolved config as YAML text>}``
+METADATA_CONFIG: Final = "foilc_hil.config"
+#: metadata record holding the design (gains, certificates); each value is a JSON text (MCAP metadata is str -> str)
+METADATA_DESIGN: Final = "foilc_hil.design"
+
+#: values of ``/can`` ``dir``: sent by the bench, received by the bench
+DIRECTIONS: Final = ("tx", "rx")
+
+_SIGNAL: Final[dict[str, Any]] = {
+    "oneOf": [
+        {"type": "number"},
+        {"type": "array", "items": {"type": "number"}},
+    ],
+}
+
+CAN_FRAME_SCHEMA: Final[dict[str, Any]] = {
+    "title": "foilc_hil.CanFrame",
+    "description": "One classic CAN frame the bench sent (tx) or received (rx).",
+    "type": "object",
+    "properties": {
+        "timestamp": {"type": "number", "description": "bus timestamp, seconds (python-can Message.timestamp)"},
+        "id": {"type": "integer", "minimum": 0, "description": "arbitration id"},
+        "extended": {"type": "boolean", "description": "29-bit identifier"},
+        "dlc": {"type": "integer", "minimum": 0, "maximum": 15},
+        "data": {"type": "string", "contentEncoding": "base64", "description": "payload bytes"},
+        "dir": {"type": "string", "enum": list(DIRECTIONS)},
+    },
+    "required": ["timestamp", "id", "extended", "dlc", "data", "dir"],
+}
+
+ILC_SAMPLE_SCHEMA: Final[dict[str, Any]] = {
+    "title": "foilc_hil.IlcSample",
+    "description": "One sample of one trial: what the learning law saw (output) and what it commanded (control).",
+    "type": "object",
+    "properties": {
+        "trial": {"type": "integer", "minimum": 1, "description": "trial index k, from 1"},
+        "t": {"type": "number", "description": "time within the trial, seconds"},
+        "sample": {"type": "integer", "minimum": 0, "description": "sample index within the trial"},
+        "reference": {**_SIGNAL, "description": "y_r(t)"},
+        "output": {**_SIGNAL, "description": "measured feedback y(t, k) the law saw"},
+        "control": {**_SIGNAL, "description": "command u(t, k) the law produced"},
+        "error": {**_SIGNAL, "description": "e = y_r - y"},
+        "E": {
+            "oneOf": [*_SIGNAL["oneOf"], {"type": "null"}],
+            "description": "fractional PD function E = e + kp D^r e (eq. 15); null if the law has none",
+        },
+    },
+    "required": ["trial", "t", "reference", "output", "control", "error", "E"],
+}
+
+ILC_TRIAL_SCHEMA: Final[dict[str, Any]] = {
+    "title": "foilc_hil.IlcTrial",
+    "description": "Tracking metrics of one completed trial (extra fields allowed).",
+    "type": "object",
+    "properties": {
+        "trial": {"type": "integer", "minimum": 1},
+        "sse": {"type": "number", "description": "sum of squared errors"},
+        "rmse": {"type": "number"},
+        "max_abs_error": {"type": "number"},
+    },
+    "required": ["trial", "sse", "rmse", "max_abs_error"],
+    "additionalProperties": True,
+}
+
+TIMING_SCHEMA: Final[dict[str, Any]] = {
+    "title": "foilc_hil.CycleTiming",
+    "description": "Timing of one real-time bench cycle.",
+    "type": "object",
+    "properties": {
+        "cycle": {"type": "integer", "minimum": 0, "description": "cycle counter over the whole run"},
+        "trial": {"type": "integer", "minimum": 0},
+        "sample": {"type": "integer", "minimum": 0},
+        "lateness_us": {"type": "number", "description": "SYNC sent this late after its absolute deadline"},
+        "period_us": {"type": "number", "description": "time since the previous cycle's SYNC"},
+        "feedback_latency_us": {
+            "type": ["number", "null"],
+            "description": "SYNC to TPDO feedback; null when no feedback arrived",
+        },
+        "missed": {"type": "boolean", "description": "the cycle missed its deadline"},
+    },
+    "required": ["cycle", "trial", "sample", "lateness_us", "period_us", "feedback_latency_us", "missed"],
+}
+
+#: topic -> (schema name, schema)
+TOPICS: Final[dict[str, tuple[str, dict[str, Any]]]] = {
+    TOPIC_CAN: ("foilc_hil.CanFrame", CAN_FRAME_SCHEMA),
+    TOPIC_SAMPLE: ("foilc_hil.IlcSample", ILC_SAMPLE_SCHEMA),
+    TOPIC_TRIAL: ("foilc_hil.IlcTrial", ILC_TRIAL_SCHEMA),
+    TOPIC_TIMING: ("foilc_hil.CycleTiming", TIMING_SCHEMA),
+}
+
+
+def schema_bytes(schema: dict[str, Any]) -> bytes:
+    """The schema as the UTF-8 JSON text stored in the MCAP schema record."""
+    return json.dumps(schema, sort_keys=True).encode("utf-8")
