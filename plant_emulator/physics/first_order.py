@@ -135,9 +135,7 @@ class FirstOrderPlant:
             y = y + self._noise_std * self._noise_rng.standard_normal(self.n_outputs)
         return np.asarray(y, dtype=float)
 
-    def _advance(
-        self, x: np.ndarray, u: np.ndarray, d: float, h: float, delta_a: float, delta_b: float
-    ) -> np.ndarray:
+    def _advance(self, x: np.ndarray, u: np.ndarray, d: float, h: float, delta_a: float, delta_b: float) -> np.ndarray:
         if h <= 0:
             return x
         phi, gamma_u, gamma_d = self._discrete(h, delta_a, delta_b)
