@@ -9,6 +9,13 @@ The law applies, per sample ``t`` of trial ``k`` (paper eq. 21, with ``P = (p1 p
     u_k(t) = u_{k-1}(t) + p1 @ (x_k(t) - x_{k-1}(t)) + p2 @ E_{k-1}(t + 1)
     E      = (I + kp D^r) e            (fractional PD function of the tracking error)
 
+Sample alignment is that of :mod:`foilc_hil.references`: ``error[i] = e((i+1) Ts)`` is the first error sample
+``u(i)`` can move, so with no input delay the paper's ``E_{k-1}(t+1)`` is ``E_{k-1}[i]``. With ``input_delay = d``
+cycles the design model is augmented (:func:`foilc_hil.discretize.augment_input_delay`): the state is
+``z = [x; u(t-d); ...; u(t-1)]``, ``C`` is the ``d``-step-ahead output map and ``C_measured = [C_plant 0]``; the law
+then uses ``E_{k-1}[i + d]`` (:attr:`Design.error_lead`, zero past the end of the trial), the first error
+sample ``u(i)`` can move through the delay.
+
 ``gain_scale`` is informational: when the certificate step had to shrink ``p2`` (see
 :mod:`foilc_hil.certificates`), the stored ``P`` already contains the shrunk ``p2``; ``gain_scale`` records by
 how much, so a reader can tell the LMI gain from the gain that runs.
@@ -100,6 +107,9 @@ class Design:
         ``1.0`` unless the certificate step rescaled ``p2`` (``P`` holds the rescaled gain).
     certificates
         Convergence certificates of the law as it runs (see :mod:`foilc_hil.certificates`).
+    C_measured
+        The measured output ``y = C_measured z`` of the (augmented) state; ``None`` means ``C`` (allowed only
+        without input delay). Always an array after construction.
     """
 
     law: str
@@ -122,6 +132,7 @@ class Design:
     input_delay: int = 0
     gain_scale: float = 1.0
     certificates: dict[str, Any] = field(default_factory=dict)
+    C_measured: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.law not in LAW_KINDS:
@@ -158,6 +169,15 @@ class Design:
             raise InputError("design.input_delay: must be a non-negative integer")
         object.__setattr__(self, "input_delay", int(self.input_delay))
         object.__setattr__(self, "certificates", dict(self.certificates))
+        if self.C_measured is None:
+            if self.input_delay:
+                raise InputError("design.C_measured: is required when input_delay > 0")
+            object.__setattr__(self, "C_measured", self.C)
+        else:
+            measured = _matrix(self.C_measured, "C_measured")
+            if measured.shape != self.C.shape:
+                raise InputError(f"design.C_measured: must have the shape of C {self.C.shape}, got {measured.shape}")
+            object.__setattr__(self, "C_measured", measured)
 
     # --- dimensions and gain blocks -------------------------------------------------------------------------
 
@@ -186,11 +206,22 @@ class Design:
         """The error gain (acting on ``E_{k-1}(t+1)``), ``m x p``."""
         return self.P[:, self.n_states :]
 
+    @property
+    def error_lead(self) -> int:
+        """Extra samples of lead on the error: the law uses ``E_{k-1}[i + error_lead]`` (``= input_delay``)."""
+        return self.input_delay
+
+    @property
+    def measured_output(self) -> np.ndarray:
+        """``C_measured`` as an array (never ``None`` after construction)."""
+        assert self.C_measured is not None
+        return self.C_measured
+
     # --- JSON -----------------------------------------------------------------------------------------------
 
     def to_json(self) -> dict[str, Any]:
         """The interface document of ``synthesize --json`` (matrices as lists of rows), plus ``law``,
-        ``input_delay``, ``gain_scale``, ``p1`` and ``p2``."""
+        ``input_delay``, ``gain_scale``, ``p1``, ``p2`` and ``C_measured``."""
         document: dict[str, Any] = {name: _rows(getattr(self, name)) for name in ("A", "B", "C")}
         document.update({name: _rows(getattr(self, name)) for name in ("G1", "H1", "G2", "H2", "P", "Qb", "Qt")})
         document.update(
@@ -207,6 +238,7 @@ class Design:
                 "gain_scale": self.gain_scale,
                 "p1": _rows(self.p1),
                 "p2": _rows(self.p2),
+                "C_measured": _rows(self.measured_output),
             }
         )
         return document
@@ -251,5 +283,6 @@ class Design:
             Qt=_matrix(document["Qt"], "Qt"),
             input_delay=delay,
             certificates=dict(certificates),
+            C_measured=_matrix(document["C_measured"], "C_measured") if "C_measured" in document else None,
             **floats,
         )

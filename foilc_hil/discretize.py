@@ -1,0 +1,306 @@
+"""Discrete design models: zero-order hold or forward Euler, input-delay augmentation, discrete uncertainty.
+
+Errata item 1: the paper's eq. (6) ``A = a - I`` is a forward-Euler step with unit sample time. The product
+discretises with a zero-order hold and the configured sample time (``A = exp(a Ts)``,
+``B = int_0^Ts exp(a s) ds b``, both read off one matrix exponential of the block matrix
+``[[a, b], [0, 0]] Ts``); ``method="euler"`` gives ``A = I + a Ts``, ``B = b Ts`` to compare with the print.
+
+Uncertainty: the config's ``plant.uncertainty`` matrices ``G1, H1, G2, H2`` describe the DISCRETE model the gain
+is designed on, ``dA = G1 Delta H1``, ``dB = G2 Delta H2`` with ``||Delta|| <= 1`` (paper eq. 7 is written for
+the discrete model too). They are not rescaled with ``Ts``; omitted ones mean no uncertainty in that channel
+(zero matrices of compatible size).
+
+Input delay: a SYNC-driven CAN loop applies the input one cycle late. :func:`augment_input_delay` folds ``d``
+cycles of delay into the state, ``z(t) = [x(t); u(t-d); ...; u(t-1)]``, so ``x(t+1) = A x(t) + B u(t-d)`` is the
+first block row of ``z(t+1) = Az z(t) + Bz u(t)``. The measured output is ``y(t) = [C 0] z(t)``; the design
+output is the ``d``-step-ahead output ``y(t+d) = Cz z(t)`` (computable from ``z(t)`` because the inputs of the
+next ``d`` steps are already in the delay line), which restores relative degree one for the Roesser model of
+Theorem 1. A law designed on the augmented model therefore uses the measured error ``d`` samples further ahead
+(see :attr:`foilc_hil.design.Design.error_lead`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from foilc_hil.errors import ConfigError, InputError
+from foilc_hil.schema import as_array
+from plant_emulator.config import UncertaintyConfig
+from plant_emulator.linear import ContinuousModel
+
+__all__ = [
+    "DiscreteModel",
+    "Uncertainty",
+    "augment_input_delay",
+    "discretize",
+    "uncertainty_from_config",
+]
+
+Method = Literal["zoh", "euler"]
+
+
+def _ssmatrix(value: object, name: str) -> np.ndarray:
+    """``value`` as a finite 2-D float array; errors name the matrix (python-control's ``_ssmatrix`` style)."""
+    try:
+        array = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"{name}: must be a real matrix") from None
+    if array.ndim == 0:
+        array = array.reshape(1, 1)
+    if array.ndim != 2:
+        raise InputError(f"{name}: must be a 2-D matrix, got {array.ndim} dimension(s)")
+    if not np.all(np.isfinite(array)):
+        raise InputError(f"{name}: must be finite")
+    array.setflags(write=False)
+    return array
+
+
+@dataclass(frozen=True)
+class DiscreteModel:
+    """``x(t+1) = A x(t) + B u(t)``, ``y(t) = C x(t)`` sampled every ``sample_time`` seconds.
+
+    Attributes
+    ----------
+    A, B, C
+        ``n x n``, ``n x m``, ``p x n``. ``C`` is the design output (see the module notes on input delay).
+    sample_time
+        Seconds per sample.
+    input_delay
+        Cycles of input delay folded into the state (0: none).
+    C_measured
+        The measured output ``y(t) = C_measured z(t)``; equal to ``C`` without input delay.
+    """
+
+    A: np.ndarray
+    B: np.ndarray
+    C: np.ndarray
+    sample_time: float
+    input_delay: int = 0
+    C_measured: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        A = _ssmatrix(self.A, "A")
+        B = _ssmatrix(self.B, "B")
+        C = _ssmatrix(self.C, "C")
+        n = A.shape[0]
+        if A.shape != (n, n):
+            raise InputError(f"A: must be square, got {A.shape[0]}x{A.shape[1]}")
+        if B.shape[0] != n:
+            raise InputError(f"B: must have {n} rows (the states of A), got {B.shape[0]}")
+        if C.shape[1] != n:
+            raise InputError(f"C: must have {n} columns (the states of A), got {C.shape[1]}")
+        if not (isinstance(self.sample_time, (int, float)) and math.isfinite(self.sample_time)):
+            raise InputError("sample_time: must be a finite number")
+        if self.sample_time <= 0:
+            raise InputError(f"sample_time: must be positive, got {self.sample_time}")
+        if int(self.input_delay) != self.input_delay or self.input_delay < 0:
+            raise InputError(f"input_delay: must be a non-negative integer, got {self.input_delay}")
+        measured = C if self.C_measured is None else _ssmatrix(self.C_measured, "C_measured")
+        if measured.shape != C.shape:
+            raise InputError(f"C_measured: must be {C.shape[0]}x{C.shape[1]} like C, got {measured.shape}")
+        if self.input_delay == 0 and not np.array_equal(measured, C):
+            raise InputError("C_measured: must equal C when there is no input delay")
+        for name, value in (("A", A), ("B", B), ("C", C), ("C_measured", measured)):
+            object.__setattr__(self, name, value)
+        object.__setattr__(self, "sample_time", float(self.sample_time))
+        object.__setattr__(self, "input_delay", int(self.input_delay))
+
+    @property
+    def n_states(self) -> int:
+        """``n``."""
+        return int(self.A.shape[0])
+
+    @property
+    def n_inputs(self) -> int:
+        """``m``."""
+        return int(self.B.shape[1])
+
+    @property
+    def n_outputs(self) -> int:
+        """``p``."""
+        return int(self.C.shape[0])
+
+    @property
+    def measured_output(self) -> np.ndarray:
+        """``C_measured`` (never ``None`` after construction)."""
+        assert self.C_measured is not None
+        return self.C_measured
+
+
+@dataclass(frozen=True)
+class Uncertainty:
+    """Norm-bounded uncertainty ``dA = G1 Delta1 H1``, ``dB = G2 Delta2 H2``, ``||Delta_i|| <= 1``."""
+
+    G1: np.ndarray
+    H1: np.ndarray
+    G2: np.ndarray
+    H2: np.ndarray
+
+    def __post_init__(self) -> None:
+        for name in ("G1", "H1", "G2", "H2"):
+            object.__setattr__(self, name, _ssmatrix(getattr(self, name), name))
+        if self.G1.shape[1] != self.H1.shape[0]:
+            raise InputError(
+                f"G1/H1: Delta must fit between them: G1 has {self.G1.shape[1]} columns, H1 {self.H1.shape[0]} rows"
+            )
+        if self.G2.shape[1] != self.H2.shape[0]:
+            raise InputError(
+                f"G2/H2: Delta must fit between them: G2 has {self.G2.shape[1]} columns, H2 {self.H2.shape[0]} rows"
+            )
+
+    @classmethod
+    def none(cls, n_states: int, n_inputs: int) -> Uncertainty:
+        """No uncertainty: zero matrices of compatible size (``Delta`` 1 x 1)."""
+        return cls(np.zeros((n_states, 1)), np.zeros((1, n_states)), np.zeros((n_states, 1)), np.zeros((1, n_inputs)))
+
+    def check_against(self, model: DiscreteModel) -> None:
+        """Raise :class:`ConfigError` naming the matrix whose size does not fit ``model``."""
+        n, m = model.n_states, model.n_inputs
+        checks = (
+            ("G1", self.G1.shape[0], n, "rows"),
+            ("H1", self.H1.shape[1], n, "columns"),
+            ("G2", self.G2.shape[0], n, "rows"),
+            ("H2", self.H2.shape[1], m, "columns"),
+        )
+        for name, actual, expected, what in checks:
+            if actual != expected:
+                raise ConfigError(f"must have {expected} {what}, got {actual}", key=f"plant.uncertainty.{name}")
+
+    @property
+    def is_zero(self) -> bool:
+        """True when both channels vanish (``G Delta H = 0`` for every ``Delta``)."""
+        return not ((np.any(self.G1) and np.any(self.H1)) or (np.any(self.G2) and np.any(self.H2)))
+
+
+def uncertainty_from_config(config: UncertaintyConfig, n_states: int, n_inputs: int) -> Uncertainty:
+    """The discrete-model uncertainty of ``plant.uncertainty``; omitted pairs become zeros.
+
+    Raises
+    ------
+    foilc_hil.errors.ConfigError
+        When only one matrix of a pair is given or a size does not fit the model (naming the key).
+    """
+    pairs: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for g_name, h_name, cols in (("G1", "H1", n_states), ("G2", "H2", n_inputs)):
+        g_raw = getattr(config, g_name)
+        h_raw = getattr(config, h_name)
+        if (g_raw is None) != (h_raw is None):
+            missing = h_name if h_raw is None else g_name
+            partner = g_name if missing == h_name else h_name
+            raise ConfigError(f"is required together with {partner}", key=f"plant.uncertainty.{missing}")
+        if g_raw is None:
+            pairs[g_name] = (np.zeros((n_states, 1)), np.zeros((1, cols)))
+            continue
+        g = as_array(g_raw, f"plant.uncertainty.{g_name}")
+        h = as_array(h_raw, f"plant.uncertainty.{h_name}")
+        if g.shape[0] != n_states:
+            raise ConfigError(
+                f"must have {n_states} rows (the states), got {g.shape[0]}", key=f"plant.uncertainty.{g_name}"
+            )
+        if h.shape[1] != cols:
+            what = "states" if h_name == "H1" else "inputs"
+            raise ConfigError(
+                f"must have {cols} columns (the {what}), got {h.shape[1]}", key=f"plant.uncertainty.{h_name}"
+            )
+        if g.shape[1] != h.shape[0]:
+            raise ConfigError(
+                f"Delta must fit between {g_name} ({g.shape[1]} columns) and {h_name} ({h.shape[0]} rows)",
+                key=f"plant.uncertainty.{h_name}",
+            )
+        pairs[g_name] = (g, h)
+    return Uncertainty(pairs["G1"][0], pairs["G1"][1], pairs["G2"][0], pairs["G2"][1])
+
+
+def discretize(model: ContinuousModel, sample_time: float, method: Method = "zoh") -> DiscreteModel:
+    """Sample ``x' = a x + b u``, ``y = c x`` every ``sample_time`` seconds.
+
+    Parameters
+    ----------
+    model
+        The continuous model (its ``delay`` is not folded in here; see :func:`augment_input_delay`).
+    sample_time
+        ``Ts > 0`` in seconds.
+    method
+        ``"zoh"``: ``A = exp(a Ts)``, ``B = int_0^Ts exp(a s) ds b`` from ``expm([[a, b], [0, 0]] Ts)``;
+        ``"euler"``: ``A = I + a Ts``, ``B = b Ts`` (the paper's eq. (6) is this with ``Ts = 1``).
+
+    Raises
+    ------
+    foilc_hil.errors.InputError
+        For a non-positive sample time or an unknown method.
+    """
+    from scipy.linalg import expm
+
+    if not (isinstance(sample_time, (int, float)) and math.isfinite(sample_time) and sample_time > 0):
+        raise InputError(f"sample_time: must be positive and finite, got {sample_time!r}")
+    a = _ssmatrix(model.a, "a")
+    b = _ssmatrix(model.b, "b")
+    c = _ssmatrix(model.c, "c")
+    n, m = a.shape[0], b.shape[1]
+    if method == "zoh":
+        block = np.zeros((n + m, n + m))
+        block[:n, :n] = a * sample_time
+        block[:n, n:] = b * sample_time
+        exponential = expm(block)
+        A, B = exponential[:n, :n], exponential[:n, n:]
+    elif method == "euler":
+        A, B = np.eye(n) + a * sample_time, b * sample_time
+    else:
+        raise InputError(f"method: must be 'zoh' or 'euler', got {method!r}")
+    return DiscreteModel(A, B, c, float(sample_time))
+
+
+def augment_input_delay(
+    model: DiscreteModel, cycles: int, uncertainty: Uncertainty | None = None
+) -> tuple[DiscreteModel, Uncertainty]:
+    """Fold ``cycles`` samples of input delay into the state (module notes), padding the uncertainty.
+
+    The augmented state is ``z = [x; u(t-d); ...; u(t-1)]`` (oldest input first), so
+    ``x(t+1) = A x(t) + B u(t-d)``, each delay slot shifts one place, and ``u(t)`` enters the last slot.
+    The returned model's ``C`` is the ``d``-step-ahead output map ``Cz`` with ``y(t+d) = Cz z(t)``;
+    ``C_measured = [C 0]``. The uncertainty is padded with zeros: ``dA`` acts on ``x`` only (``G1 -> [G1; 0]``,
+    ``H1 -> [H1 0]``), and ``dB`` multiplies the delayed input, so it moves into the state matrix as
+    ``dAz = [G2; 0] Delta2 [0 ... H2]`` (the input matrix of the augmented model is exact). Because
+    Theorem 1's uncertainty channels are independent, ``dB`` then becomes a second ``dA`` channel: the returned
+    ``G1/H1`` stack both (``Delta = diag(Delta1, Delta2)``, still ``||Delta|| <= 1``) and ``G2/H2`` are zero.
+
+    Raises
+    ------
+    foilc_hil.errors.InputError
+        For a negative or non-integer ``cycles``, or a model that is already augmented.
+    """
+    if int(cycles) != cycles or cycles < 0:
+        raise InputError(f"input_delay: must be a non-negative integer, got {cycles!r}")
+    if model.input_delay:
+        raise InputError("input_delay: the model is already augmented")
+    n, m = model.n_states, model.n_inputs
+    base_uncertainty = uncertainty if uncertainty is not None else Uncertainty.none(n, m)
+    base_uncertainty.check_against(model)
+    d = int(cycles)
+    if d == 0:
+        return model, base_uncertainty
+    nz = n + d * m
+    Az = np.zeros((nz, nz))
+    Az[:n, :n] = model.A
+    Az[:n, n : n + m] = model.B  # the oldest slot u(t-d) drives the plant
+    for slot in range(d - 1):  # slot i+1 moves to slot i
+        Az[n + slot * m : n + (slot + 1) * m, n + (slot + 1) * m : n + (slot + 2) * m] = np.eye(m)
+    Bz = np.zeros((nz, m))
+    Bz[n + (d - 1) * m :, :] = np.eye(m)
+    C_measured = np.hstack([model.C, np.zeros((model.n_outputs, d * m))])
+    C_ahead = C_measured @ np.linalg.matrix_power(Az, d)
+    G1 = np.vstack([base_uncertainty.G1, np.zeros((d * m, base_uncertainty.G1.shape[1]))])
+    H1 = np.hstack([base_uncertainty.H1, np.zeros((base_uncertainty.H1.shape[0], d * m))])
+    G2_as_state = np.vstack([base_uncertainty.G2, np.zeros((d * m, base_uncertainty.G2.shape[1]))])
+    H2_as_state = np.zeros((base_uncertainty.H2.shape[0], nz))
+    H2_as_state[:, n : n + m] = base_uncertainty.H2
+    G1z = np.hstack([G1, G2_as_state])
+    H1z = np.zeros((H1.shape[0] + H2_as_state.shape[0], nz))
+    H1z[: H1.shape[0]] = H1
+    H1z[H1.shape[0] :] = H2_as_state
+    augmented = DiscreteModel(Az, Bz, C_ahead, model.sample_time, input_delay=d, C_measured=C_measured)
+    return augmented, Uncertainty(G1z, H1z, np.zeros((nz, 1)), np.zeros((1, m)))
