@@ -1,0 +1,714 @@
+"""The bench: learning trials over CAN in a cyclic loop, with safety and logging.
+
+One trial of ``N`` samples runs ``N + 1`` SYNC cycles on the drive's cyclic path::
+
+    cycle i = 0 .. N:  SYNC -> wait TPDO feedback y_i = y(i Ts) -> u_i = law.command(i, y_i) -> clamp -> RPDO
+
+The last cycle (``i = N``) only reads ``y(N Ts)``; its RPDO is a zero command. The trial arrays follow
+:mod:`foilc_hil.references` (``output[i] = y((i + 1) Ts)``), so ``output[i] = y_{i+1}``. The drive applies an
+RPDO at the next SYNC, so ``u_i`` acts from ``(i + 1) Ts``: a one-cycle transport delay that the design models
+with ``input_delay = 1`` (see :func:`build_design`).
+
+Between trials the axis is brought back to rest over the same cyclic path (zero command, which in CSV/PV is a
+braking velocity set-point and in CST lets a stable axis coast down), until ``|y| <= bench.settle_tolerance`` for
+``bench.settle_time``; a settle that does not finish within :data:`SETTLE_TIMEOUT_FACTOR` x ``settle_time`` (at
+least :data:`MIN_SETTLE_TIMEOUT` seconds of cycles) raises :class:`~foilc_hil.errors.DriveError`.
+
+Timing modes (:mod:`foilc_hil.scheduler`): ``lockstep`` sends the next SYNC as soon as the command of the
+previous one is out; ``realtime`` releases each SYNC on an absolute deadline (period ``sample_time``), measures
+lateness, feedback latency and missed deadlines, and logs one ``/timing`` record per cycle.
+
+Hot path: the per-trial arrays are allocated before the trial; per cycle the loop only writes into them, calls
+the law and the drive, and the frame tap enqueues CAN frames for the log writer thread. ``/ilc/sample``,
+``/ilc/trial`` and ``/timing`` messages are built after the trial.
+
+Safety (:mod:`foilc_hil.safety`): commands are clamped to the drive limits and the plant saturation; a watchdog
+trips after ``bench.watchdog_cycles`` cycles without feedback; EMCY, a fault statusword or a drive leaving
+OPERATION ENABLED aborts; non-finite outputs or commands abort; a trial whose SSE exceeds
+``bench.divergence_factor`` x the best SSE stops learning and restores the best feedforward; SIGINT/SIGTERM
+stop the loop at the next cycle. Every abort quick-stops the drive first; on every exit path the caller's
+``finally`` disables the drive (``safe_stop``) and closes the log.
+
+What ``/ilc/sample`` holds (the contract with ``replay --verify``): row ``i`` of trial ``k`` has
+``output = y_i`` -- exactly the float64 the law was given at sample ``i`` -- and ``control = u_i``, the law's
+command *before* clamping (what the law computed; clamping is the bench's, recorded in ``applied`` -- the value
+sent to the drive after clamping, in plant units). ``reference``, ``error`` and ``E`` are row ``i`` of the trial
+arrays (``error[i] = reference[i] - y_{i+1}``), so the SSE of a trial is the sum of the squared ``error`` fields.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal, Protocol
+
+import numpy as np
+
+from drivers.cia402 import State402
+from foilc_hil.errors import (
+    DriveError,
+    DriveFaultError,
+    FeedbackTimeoutError,
+    LearningDivergedError,
+    RunInterruptedError,
+)
+from foilc_hil.metrics import TrialMetrics, trial_metrics
+from foilc_hil.progress import UPDATES_PER_TRIAL, NullProgress, ProgressView
+from foilc_hil.safety import CommandLimiter, DivergenceGuard, FeedbackWatchdog, StopRequest, require_finite
+from foilc_hil.scheduler import DeadlineScheduler, TimingRecorder, TimingSummary
+
+__all__ = [
+    "MIN_SETTLE_TIMEOUT",
+    "SETTLE_TIMEOUT_FACTOR",
+    "BenchOutcome",
+    "LoopSettings",
+    "TrialLoop",
+    "TrialRecord",
+]
+
+TimingMode = Literal["lockstep", "realtime"]
+
+#: the settle phase gives up after this many times ``bench.settle_time`` ...
+SETTLE_TIMEOUT_FACTOR = 20.0
+#: ... but never sooner than this many seconds of cycles
+MIN_SETTLE_TIMEOUT = 5.0
+#: lockstep: how long to wait for one cycle's TPDO feedback before counting it missing (seconds)
+LOCKSTEP_FEEDBACK_TIMEOUT = 0.1
+#: realtime: feedback arriving later than this fraction of the period after its SYNC counts as late
+LATE_FEEDBACK_FRACTION = 0.5
+
+
+# --- what the loop talks to (the real pieces: drivers.drive.Drive, foilc_hil.laws, foilc_hil.io.mcap_log) ---------
+
+
+class FeedbackLike(Protocol):
+    """One cycle's TPDO feedback (``drivers.drive.Feedback``)."""
+
+    @property
+    def cycle(self) -> int: ...
+
+    @property
+    def state(self) -> State402: ...
+
+    @property
+    def velocity(self) -> float: ...
+
+
+class DriveLike(Protocol):
+    """The subset of ``drivers.drive.Drive`` the trial loop uses."""
+
+    def sync(self) -> int: ...
+
+    def wait_feedback(self, timeout: float) -> Any: ...
+
+    def set_target(self, value: float) -> float: ...
+
+    def quick_stop(self) -> None: ...
+
+
+class TrialUpdateLike(Protocol):
+    @property
+    def error(self) -> np.ndarray: ...
+
+    @property
+    def E(self) -> np.ndarray | None: ...
+
+
+class LawLike(Protocol):
+    """The subset of ``foilc_hil.laws.LearningLaw`` the loop uses."""
+
+    def begin_trial(self) -> None: ...
+
+    def command(self, t: int, output: np.ndarray) -> np.ndarray: ...
+
+    def end_trial(self, reference: np.ndarray, output: np.ndarray) -> Any: ...
+
+    @property
+    def feedforward(self) -> np.ndarray: ...
+
+    def restore(self, feedforward: np.ndarray) -> None: ...
+
+
+class LogSink(Protocol):
+    """Where finished trials go (an adapter over ``foilc_hil.io.mcap_log``); called off the hot path."""
+
+    def trial_finished(self, record: TrialRecord) -> None: ...
+
+    def timing(self, records: Iterator[dict[str, Any]]) -> None: ...
+
+
+# --- results ------------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TrialRecord:
+    """One completed trial, as logged."""
+
+    trial: int
+    sample_time: float
+    reference: np.ndarray  # (N,)
+    seen: np.ndarray  # (N + 1,): y_i the law was given at cycle i (y_N only read)
+    control: np.ndarray  # (N,): the law's command u_i, before clamping
+    applied: np.ndarray  # (N,): what was sent to the drive (plant units)
+    output: np.ndarray  # (N,): trial output array, output[i] = y_{i+1}
+    error: np.ndarray  # (N,)
+    E: np.ndarray | None  # (N,) fractional PD function of the error; None for laws without one
+    metrics: TrialMetrics
+    sync_times: np.ndarray  # (N + 1,) perf_counter time of each SYNC
+
+    def sample_messages(self) -> Iterator[dict[str, Any]]:
+        """The ``/ilc/sample`` messages of this trial (module docstring: what each field is)."""
+        E = self.E
+        for i in range(self.control.shape[0]):
+            yield {
+                "trial": self.trial,
+                "t": (i + 1) * self.sample_time,
+                "sample": i,
+                "reference": float(self.reference[i]),
+                "output": float(self.seen[i]),
+                "control": float(self.control[i]),
+                "applied": float(self.applied[i]),
+                "error": float(self.error[i]),
+                "E": None if E is None else float(E[i]),
+            }
+
+
+@dataclass
+class BenchOutcome:
+    """What a run produced: per-trial metrics, timing, and why it stopped early (``None``: it did not)."""
+
+    trials: list[TrialMetrics] = field(default_factory=list)
+    timing: TimingSummary | None = None
+    stopped: str | None = None
+    diverged: bool = False
+    clamped_commands: int = 0
+    settle_cycles: int = 0
+
+
+@dataclass(frozen=True)
+class LoopSettings:
+    """Timing and safety settings of the loop (from ``bench:`` and ``sample_time``)."""
+
+    period: float
+    mode: TimingMode = "lockstep"
+    watchdog_cycles: int = 5
+    divergence_factor: float = 10.0
+    settle_time: float = 0.5
+    settle_tolerance: float = 1.0
+    lockstep_feedback_timeout: float = LOCKSTEP_FEEDBACK_TIMEOUT
+
+    @property
+    def settle_cycles(self) -> int:
+        """Consecutive at-rest cycles that count as settled (at least one)."""
+        return max(1, math.ceil(self.settle_time / self.period - 1e-9))
+
+    @property
+    def settle_timeout_cycles(self) -> int:
+        return math.ceil(max(SETTLE_TIMEOUT_FACTOR * self.settle_time, MIN_SETTLE_TIMEOUT) / self.period)
+
+
+# --- the loop -----------------------------------------------------------------------------------------------------
+
+
+class TrialLoop:
+    """Runs trials of a learning law against a drive.
+
+    Parameters
+    ----------
+    drive
+        Commissioned and enabled (OPERATION ENABLED); the loop only runs the cyclic path and quick-stops on abort.
+    law
+        The learning law; ``command`` is called once per cycle with a preallocated ``(1,)`` output array.
+    reference
+        One trial's reference, shape ``(N,)`` (:func:`foilc_hil.references.reference_profile`).
+    limiter
+        Command limits in plant units.
+    settings
+        Timing and safety settings.
+    log
+        Receives each finished trial and, in realtime mode, the per-cycle timing records.
+    progress
+        The stderr view.
+    stop
+        The SIGINT/SIGTERM flag, polled once per cycle.
+    clock
+        ``time.perf_counter`` (injected in tests).
+    """
+
+    def __init__(
+        self,
+        drive: DriveLike,
+        law: LawLike,
+        reference: np.ndarray,
+        limiter: CommandLimiter,
+        settings: LoopSettings,
+        *,
+        log: LogSink | None = None,
+        progress: ProgressView | None = None,
+        stop: StopRequest | None = None,
+        clock: Callable[[], float] = time.perf_counter,
+    ) -> None:
+        ref = np.asarray(reference, dtype=float)
+        if ref.ndim != 1 or ref.size == 0:
+            raise ValueError(f"reference must be a non-empty 1-D array (single-output axis), got shape {ref.shape}")
+        self.drive = drive
+        self.law = law
+        self.reference = ref
+        self.limiter = limiter
+        self.settings = settings
+        self.log = log
+        self.progress: ProgressView = progress if progress is not None else NullProgress()
+        self.stop = stop if stop is not None else StopRequest()
+        self._clock = clock
+        self.watchdog = FeedbackWatchdog(settings.watchdog_cycles)
+        self.guard = DivergenceGuard(settings.divergence_factor)
+        self.timing = TimingRecorder(settings.mode, settings.period)
+        self.scheduler = DeadlineScheduler(settings.period, clock=clock) if settings.mode == "realtime" else None
+        self.outcome = BenchOutcome()
+        self._cycle = 0  # cycles run so far, over the whole run
+        self._last_output = 0.0
+        self._output_buffer = np.zeros(1)
+        self._feedforward_used = np.zeros(0)
+        # the current cycle's measurements, written by _cycle_feedback and read by _finish_cycle
+        self._sync_time = self._received = self._latency = 0.0
+        self._deadline = self._lateness = math.nan
+        self._skipped = 0
+        self._late = self._missing = False
+
+    # -- public --------------------------------------------------------------------------------------------------
+
+    @property
+    def cycles(self) -> int:
+        """SYNC cycles run so far (trial and settle phases)."""
+        return self._cycle
+
+    def run(self, trials: int) -> BenchOutcome:
+        """Run up to ``trials`` trials. Returns the outcome; raises on aborts after quick-stopping the drive.
+
+        Raises
+        ------
+        DriveError
+            Feedback watchdog, EMCY, drive fault, heartbeat loss, a settle that never finishes.
+        LearningDivergedError
+            Non-finite output or command.
+        RunInterruptedError
+            SIGINT / SIGTERM.
+        """
+        if trials < 1:
+            raise ValueError(f"trials must be >= 1, got {trials}")
+        if self.scheduler is not None:
+            self.scheduler.start()
+        try:
+            for trial in range(1, trials + 1):
+                self._settle(trial)
+                record = self._run_trial(trial, trials)
+                self.outcome.trials.append(record.metrics)
+                self.progress.end_trial(trial, record.metrics.sse, record.metrics.rmse, record.metrics.max_abs_error)
+                if self.log is not None:
+                    self.log.trial_finished(record)
+                verdict = self.guard.check(trial, record.metrics.sse, self._feedforward_used)
+                if verdict.diverged:
+                    self.law.restore(self.guard.best_feedforward())
+                    self.outcome.stopped = verdict.message
+                    self.outcome.diverged = True
+                    self._quick_stop()
+                    break
+        except (DriveError, LearningDivergedError, RunInterruptedError):
+            self._quick_stop()
+            raise
+        finally:
+            self.outcome.clamped_commands = self.limiter.clamped_count
+            self.outcome.timing = self.timing.summary(
+                self.scheduler.missed_deadlines if self.scheduler is not None else 0
+            )
+        return self.outcome
+
+    # -- phases --------------------------------------------------------------------------------------------------
+
+    def _settle(self, trial: int) -> None:
+        """Zero command until the axis rests within tolerance for ``settle_time`` (bounded)."""
+        needed = self.settings.settle_cycles
+        limit = self.settings.settle_timeout_cycles
+        tolerance = self.settings.settle_tolerance
+        self.timing.begin_block(min(limit, 4 * needed + 16), phase="settle", trial=trial)
+        first_cycle = self._cycle
+        at_rest = 0
+        try:
+            for _ in range(limit):
+                y = self._cycle_feedback()
+                self.drive.set_target(0.0)
+                self._finish_cycle()
+                at_rest = at_rest + 1 if abs(y) <= tolerance else 0
+                if at_rest >= needed:
+                    self.outcome.settle_cycles += self._cycle - first_cycle
+                    return
+        finally:
+            self._flush_timing(first_cycle)
+        raise DriveError(
+            f"the axis did not come to rest before trial {trial}: |velocity| stayed above "
+            f"bench.settle_tolerance {tolerance:g} for {limit} cycles ({limit * self.settings.period:g} s)"
+        )
+
+    def _run_trial(self, trial: int, total_trials: int) -> TrialRecord:
+        n = self.reference.shape[0]
+        seen = np.empty(n + 1)
+        control = np.empty(n)
+        applied = np.empty(n)
+        sync_times = np.empty(n + 1)
+        self._feedforward_used = np.array(self.law.feedforward, dtype=float, copy=True)
+        self.timing.begin_block(n + 1, phase="trial", trial=trial)
+        first_cycle = self._cycle
+        every = max(1, n // UPDATES_PER_TRIAL)
+        self.progress.begin_trial(trial, total_trials, n)
+        self.law.begin_trial()
+        output_buffer = self._output_buffer
+        limiter = self.limiter
+        drive = self.drive
+        law = self.law
+        try:
+            for i in range(n):
+                y = self._cycle_feedback()
+                sync_times[i] = self._sync_time
+                seen[i] = y
+                output_buffer[0] = y
+                u = float(law.command(i, output_buffer)[0])
+                require_finite(u, "command", self._cycle)
+                control[i] = u
+                applied[i] = drive.set_target(limiter.clamp(u))
+                self._finish_cycle()
+                if i % every == 0:
+                    self.progress.advance(i)
+            y = self._cycle_feedback()  # y(N Ts): closes the trial's output array
+            sync_times[n] = self._sync_time
+            seen[n] = y
+            drive.set_target(0.0)
+            self._finish_cycle()
+        finally:
+            self._flush_timing(first_cycle)
+        self.progress.advance(n)
+        output = seen[1:].copy()
+        update = law.end_trial(self.reference, output)
+        error = np.asarray(update.error, dtype=float).reshape(n)
+        E_raw = getattr(update, "E", None)
+        E = None if E_raw is None else np.asarray(E_raw, dtype=float).reshape(n)
+        metrics = trial_metrics(trial, error)
+        return TrialRecord(
+            trial=trial,
+            sample_time=self.settings.period,
+            reference=self.reference,
+            seen=seen,
+            control=control,
+            applied=applied,
+            output=output,
+            error=error,
+            E=E,
+            metrics=metrics,
+            sync_times=sync_times,
+        )
+
+    # -- one cycle -----------------------------------------------------------------------------------------------
+
+    def _cycle_feedback(self) -> float:
+        """Release (realtime: wait for the deadline), SYNC, and get this cycle's output (held if missing)."""
+        if self.stop.requested:
+            raise RunInterruptedError(f"interrupted by {self.stop.signal_name}; drive quick-stopped and disabled")
+        if self.scheduler is not None:
+            deadline, lateness, skipped = self.scheduler.wait()
+        else:
+            deadline, lateness, skipped = math.nan, math.nan, 0
+        expected = self.drive.sync()
+        sync_time = self._clock()
+        self._sync_time = sync_time
+        self._deadline, self._lateness, self._skipped = deadline, lateness, skipped
+        if self.scheduler is not None:
+            # feedback must be in before the next deadline, leaving a little time to send the command
+            wait_until = deadline + self.settings.period * 0.9
+        else:
+            wait_until = sync_time + self.settings.lockstep_feedback_timeout
+        feedback = self._await_feedback(expected, wait_until)
+        received = self._clock()
+        self._received = received
+        if feedback is None:
+            self._missing = True
+            self._late = False
+            self._latency = math.nan
+            self.watchdog.missed(self._cycle)
+            return self._last_output
+        self._missing = False
+        self._latency = received - sync_time
+        self._late = self.scheduler is not None and self._latency > LATE_FEEDBACK_FRACTION * self.settings.period
+        self.watchdog.fed()
+        if feedback.state != State402.OPERATION_ENABLED:
+            raise DriveFaultError(
+                f"the drive left OPERATION ENABLED (now {State402(feedback.state).name}) at cycle {self._cycle}"
+            )
+        y = float(feedback.velocity)
+        require_finite(y, "drive feedback", self._cycle)
+        self._last_output = y
+        return y
+
+    def _await_feedback(self, expected: int, wait_until: float) -> Any:
+        """The feedback of SYNC ``expected``; stale feedback of earlier SYNCs is dropped. None on timeout."""
+        while True:
+            remaining = wait_until - self._clock()
+            if remaining <= 0:
+                return None
+            try:
+                feedback = self.drive.wait_feedback(remaining)
+            except FeedbackTimeoutError:
+                return None
+            if _cycle_not_before(feedback.cycle, expected):
+                return feedback
+
+    def _finish_cycle(self) -> None:
+        self.timing.record(
+            self._sync_time,
+            self._deadline,
+            self._lateness,
+            self._latency,
+            self._clock() - self._received,
+            self._skipped,
+            self._late,
+            self._missing,
+        )
+        self._cycle += 1
+
+    def _flush_timing(self, first_cycle: int) -> None:
+        block = self.timing.finish_block()
+        if self.log is not None and self.scheduler is not None:
+            self.log.timing(self.timing.records(block, first_cycle=first_cycle))
+
+    def _quick_stop(self) -> None:
+        # best effort on the way out: the caller's finally follows with safe_stop (disable)
+        with contextlib.suppress(Exception):
+            self.drive.quick_stop()
+
+
+def _cycle_not_before(cycle: int, expected: int) -> bool:
+    """Whether feedback tagged ``cycle`` answers SYNC ``expected`` or a later one."""
+    return cycle >= expected
+
+
+def trial_sse_from_samples(errors: Sequence[float]) -> float:
+    """The SSE of a trial recomputed from its ``/ilc/sample`` ``error`` fields (what the tests cross-check)."""
+    return float(np.sum(np.square(np.asarray(errors, dtype=float))))
+
+
+# --- a whole run: design, law, bus or embedded emulator, drive, log ---------------------------------------------
+
+
+@dataclass(frozen=True)
+class RunRequest:
+    """What ``foilc-hil run`` asks for.
+
+    Attributes
+    ----------
+    config
+        The resolved :class:`foilc_hil.config.Config`.
+    out
+        The MCAP file to write.
+    law
+        ``foilc``, ``ioilc`` or ``p-type``; ``None``: ``config.law.kind``.
+    trials
+        ``None``: ``config.trials``.
+    mode
+        ``None``: ``config.bench.mode``.
+    bus
+        A ``drivers.config.BusConfig``; ``None`` or ``interface: embedded``: the in-process emulator.
+    quiet
+        No progress view on stderr.
+    design
+        A precomputed :class:`foilc_hil.design.Design` (the demo reuses one); ``None``: tune if needed and
+        synthesize with ``input_delay = 1`` (the CAN loop's one-cycle transport delay).
+    """
+
+    config: Any
+    out: Any
+    law: str | None = None
+    trials: int | None = None
+    mode: TimingMode | None = None
+    bus: Any = None
+    quiet: bool = True
+    design: Any = None
+    title: str = ""
+
+
+@dataclass(frozen=True)
+class RunReport:
+    """What a run produced (the ``foilc-hil run --json`` document is :meth:`to_json`)."""
+
+    law: str
+    outcome: BenchOutcome
+    log: str
+    design: dict[str, Any]
+    bus: str
+    cycles: int
+
+    def to_json(self) -> dict[str, Any]:
+        timing = self.outcome.timing.to_json() if self.outcome.timing is not None else {}
+        return {
+            "law": self.law,
+            "trials": [metrics.to_json() for metrics in self.outcome.trials],
+            "timing": timing,
+            "log": self.log,
+            "design": self.design,
+            "bus": self.bus,
+            "clamped_commands": self.outcome.clamped_commands,
+            "settle_cycles": self.outcome.settle_cycles,
+            "stopped": self.outcome.stopped,
+        }
+
+
+#: the CAN loop applies a command one SYNC after it is computed (the drive latches RPDOs at the next SYNC)
+CAN_INPUT_DELAY = 1
+
+
+def build_design(config: Any, law: str, n_samples: int) -> Any:
+    """Tune (if the config gives no ``kp``/``r``) and synthesize the design for the bench's CAN loop."""
+    from foilc_hil.synthesis import synthesize_from_config
+
+    kp, r = config.tuning.kp, config.tuning.r
+    if kp is None or r is None:
+        from foilc_hil.tuning import tune
+
+        tuned = tune(config)
+        kp, r = tuned.kp, tuned.r
+    return synthesize_from_config(config, law=law, kp=kp, r=r, input_delay=CAN_INPUT_DELAY, n_samples=n_samples)
+
+
+def command_limiter(config: Any) -> CommandLimiter:
+    """Limits of the command in plant units: the drive's limit for the mode, and the plant's saturation."""
+    drive = config.drive
+    saturation = config.plant.saturation
+    if drive.mode == "cst":
+        return CommandLimiter.symmetric(
+            drive.torque_limit, drive.torque_scale, u_min=saturation.u_min, u_max=saturation.u_max
+        )
+    return CommandLimiter.symmetric(
+        drive.velocity_limit, drive.velocity_scale, u_min=saturation.u_min, u_max=saturation.u_max
+    )
+
+
+class _McapSink:
+    """Adapter from the loop's :class:`LogSink` to the queued MCAP writer (enqueues; the writer thread writes)."""
+
+    def __init__(self, writer: Any) -> None:
+        self.writer = writer
+
+    def trial_finished(self, record: TrialRecord) -> None:
+        log_sample = self.writer.log_sample
+        for message in record.sample_messages():
+            log_sample(
+                message["trial"],
+                message["t"],
+                message["reference"],
+                message["output"],
+                message["control"],
+                message["error"],
+                message["E"],
+                sample=message["sample"],
+            )
+        self.writer.log_trial(record.metrics, clamped=int(np.sum(record.applied != record.control)))
+        self.writer.end_trial()
+
+    def timing(self, records: Iterator[dict[str, Any]]) -> None:
+        previous: float | None = None
+        for record in records:
+            sync_time = record["sync_time"]
+            period_us = (sync_time - previous) * 1e6 if previous is not None else 0.0
+            previous = sync_time
+            self.writer.log_timing(
+                record["cycle"],
+                record["trial"],
+                record["sample"],
+                record["lateness_us"] if record["lateness_us"] is not None else 0.0,
+                period_us,
+                record["feedback_latency_us"],
+                record["skipped_deadlines"] > 0,
+            )
+
+
+_MODES = {"csv": "CYCLIC_SYNC_VELOCITY", "cst": "CYCLIC_SYNC_TORQUE", "pv": "PROFILE_VELOCITY"}
+
+
+def run_bench(request: RunRequest) -> RunReport:
+    """Run learning trials over CAN: commission the drive, run the loop, and leave a safe drive and a closed log.
+
+    On every exit path the drive ends disabled (``safe_stop``) and the log is closed. Aborts propagate as
+    :class:`~foilc_hil.errors.FoilcHilError` subclasses (after the log is closed); a divergence stop does not
+    raise -- the report's ``outcome.stopped`` says why and ``outcome.diverged`` is set.
+    """
+    from contextlib import ExitStack
+
+    from drivers.cia402_master import Cia402Drive
+
+    from drivers.bus import open_bus
+    from drivers.cia402 import OperationMode
+    from foilc_hil.config import dump_config
+    from foilc_hil.io.mcap_log import QueuedLogWriter
+    from foilc_hil.laws import make_law
+    from foilc_hil.progress import make_progress
+    from foilc_hil.references import reference_profile
+
+    config = request.config
+    law_kind = request.law or config.law.kind
+    trials = request.trials or config.trials
+    mode: TimingMode = request.mode or config.bench.mode
+    bus_cfg = request.bus if request.bus is not None else config.bus
+    reference = reference_profile(config.reference, config.sample_time)
+    n_samples = int(reference.shape[0])
+    design = request.design if request.design is not None else build_design(config, law_kind, n_samples)
+    law = make_law(law_kind, design, config.law, n_samples)
+    limiter = command_limiter(config)
+    settings = LoopSettings(
+        period=config.sample_time,
+        mode=mode,
+        watchdog_cycles=config.bench.watchdog_cycles,
+        divergence_factor=config.bench.divergence_factor,
+        settle_time=config.bench.settle_time,
+        settle_tolerance=config.bench.settle_tolerance,
+    )
+    design_json = design.to_json()
+    with ExitStack() as stack:
+        writer = QueuedLogWriter.open(request.out, config_yaml=dump_config(config), design=design_json)
+        stack.callback(writer.close)
+        if bus_cfg.interface == "embedded":
+            from plant_emulator.embedded import EmbeddedEmulator
+
+            emulator = stack.enter_context(EmbeddedEmulator(config))
+            bus_cfg = emulator.bus_config
+        bus = open_bus(bus_cfg)
+        stack.callback(bus.shutdown)
+        drive = Cia402Drive.open(bus, config.drive, sample_time=config.sample_time)
+        stack.callback(drive.close)
+        drive.add_frame_listener(writer.log_frame)
+        # LIFO: safe_stop runs before the drive is closed and before the log is closed, so its frames are logged
+        stack.callback(drive.safe_stop)
+        progress = make_progress(
+            request.title or f"{law_kind} on {bus_cfg.interface}:{bus_cfg.channel}", quiet=request.quiet
+        )
+        stack.callback(progress.close)
+        stop = stack.enter_context(StopRequest())
+        drive.connect()
+        drive.configure(OperationMode[_MODES[config.drive.mode]], config.sample_time)
+        drive.enable()
+        loop = TrialLoop(drive, law, reference, limiter, settings, log=_McapSink(writer), progress=progress, stop=stop)
+        outcome = loop.run(trials)
+        cycles = loop.cycles
+    return RunReport(
+        law=law_kind,
+        outcome=outcome,
+        log=str(request.out),
+        design={
+            "kp": design.kp,
+            "r": design.r,
+            "input_delay": design.input_delay,
+            "gain_scale": design.gain_scale,
+            "certificates": design_json.get("certificates", {}),
+        },
+        bus=f"{bus_cfg.interface}:{bus_cfg.channel}",
+        cycles=cycles,
+    )
