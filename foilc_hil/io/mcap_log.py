@@ -573,7 +573,7 @@ class QueuedLogWriter(can.Listener):
                     writer.log_timing(cycle, trial, sample, lateness, period, latency, missed, log_time_ns=stamp)
                 elif op == _END_TRIAL:
                     writer.end_trial()
-            except Exception as exc:
+            except Exception as exc:  # kept, then raised on the caller's thread by end_trial/sync/close
                 self._error = exc
 
 
