@@ -1,0 +1,158 @@
+"""The CAN bus: parsing ``--bus INTERFACE:CHANNEL``, opening it with python-can, and tapping every frame.
+
+``open_bus`` is the only place the product calls ``can.Bus``; it turns python-can's open errors into one
+:class:`~foilc_hil.errors.DriveError` line that says what to do (for SocketCAN: create the interface). The
+``embedded`` interface (the in-process emulator) is resolved by ``plant_emulator.embedded``, not here.
+
+:class:`FrameTap` lets a logger see every frame the bench sends and receives: it wraps ``bus.send`` (so frames sent
+by canopen, by python-can's thread-based periodic tasks and by the cyclic path are all seen) and is a
+``can.Listener`` for the receive side. Listeners are called from the sending thread ("tx") and from the Notifier
+thread ("rx"), so they must be thread-safe (e.g. put the frame on a queue).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from typing import Any
+
+import can
+
+from drivers.config import BusConfig
+from foilc_hil.errors import DriveError, InputError
+
+__all__ = [
+    "SIMULATED_INTERFACES",
+    "FrameListener",
+    "FrameTap",
+    "is_simulated_bus",
+    "open_bus",
+    "parse_bus_spec",
+]
+
+SIMULATED_INTERFACES = frozenset({"virtual", "udp_multicast", "embedded"})
+"""Interfaces that cannot move real hardware (``replay`` refuses the others without ``--allow-real-bus``)."""
+
+FrameListener = Callable[[can.Message, str], None]
+"""Called with ``(message, direction)``, direction ``"tx"`` or ``"rx"``."""
+
+
+def parse_bus_spec(spec: str, *, bitrate: int | None = None) -> BusConfig:
+    """Parse a ``--bus`` value ``INTERFACE:CHANNEL`` (e.g. ``socketcan:vcan0``, ``virtual:bench``).
+
+    The channel may itself contain colons (only the first one separates). Raises :class:`InputError` naming
+    ``--bus`` when the spec has no interface or no channel.
+    """
+    interface, sep, channel = spec.partition(":")
+    interface, channel = interface.strip(), channel.strip()
+    if not sep or not interface or not channel:
+        raise InputError(
+            f"--bus: {spec!r} is not INTERFACE:CHANNEL (e.g. socketcan:vcan0, virtual:bench, "
+            "udp_multicast:239.74.163.2)"
+        )
+    if interface == "embedded":
+        raise InputError("--bus: 'embedded' is not a bus; use --emulator embedded")
+    try:
+        return BusConfig(interface=interface, channel=channel, bitrate=bitrate)
+    except ValueError as exc:  # pydantic's ValidationError is a ValueError
+        raise InputError(f"--bus: {spec!r}: {exc}") from exc
+
+
+def is_simulated_bus(interface: str) -> bool:
+    """True for interfaces that reach no hardware (``virtual``, ``udp_multicast``, ``embedded``)."""
+    return interface in SIMULATED_INTERFACES
+
+
+def open_bus(cfg: BusConfig) -> can.BusABC:
+    """Open the python-can bus ``cfg`` describes.
+
+    Raises
+    ------
+    DriveError
+        When python-can cannot open it; the message names the interface and channel and, for SocketCAN, how to
+        create a virtual interface.
+    InputError
+        For ``interface: embedded`` (the emulator opens that one) or an interface python-can does not know.
+    """
+    if cfg.interface == "embedded":
+        raise InputError("bus.interface: 'embedded' is opened by plant_emulator.embedded, not drivers.bus")
+    kwargs: dict[str, Any] = {"interface": cfg.interface, "channel": cfg.channel}
+    if cfg.bitrate is not None:
+        kwargs["bitrate"] = cfg.bitrate
+    if cfg.receive_own_messages:
+        kwargs["receive_own_messages"] = True
+    where = f"{cfg.interface}:{cfg.channel}"
+    try:
+        return can.Bus(**kwargs)
+    except can.CanInterfaceNotImplementedError as exc:
+        raise InputError(f"--bus: interface {cfg.interface!r} is not available in python-can: {exc}") from exc
+    except (can.CanError, OSError, ValueError) as exc:
+        hint = ""
+        if cfg.interface == "socketcan":
+            hint = (
+                f"; create it with `sudo ip link add dev {cfg.channel} type vcan && sudo ip link set up "
+                f"{cfg.channel}` (virtual) or bring the adapter up with `ip link set {cfg.channel} up type can "
+                "bitrate ...`"
+            )
+        raise DriveError(f"cannot open CAN bus {where}: {exc}{hint}") from exc
+
+
+class FrameTap(can.Listener):
+    """Shows every frame sent on and received from one bus to registered listeners.
+
+    ``attach`` replaces the bus object's ``send`` with a wrapper that reports the frame as ``"tx"`` after it was
+    sent; add the tap to the Notifier (``notifier.add_listener(tap)``) for ``"rx"``. ``detach`` restores ``send``.
+    Frames sent by a kernel-side periodic task (SocketCAN's broadcast manager) bypass ``bus.send`` and are not
+    seen as ``tx``.
+
+    Thread safety: listeners may be added from any thread; they are called on the sending thread (``tx``) and the
+    Notifier thread (``rx``). An exception in a listener is counted in :attr:`listener_errors`, never propagated
+    to the CAN path.
+    """
+
+    def __init__(self) -> None:
+        self._listeners: tuple[FrameListener, ...] = ()
+        self._lock = threading.Lock()
+        self._bus: can.BusABC | None = None
+        self.listener_errors = 0
+
+    def add_listener(self, listener: FrameListener) -> None:
+        """Call ``listener(message, direction)`` for every frame from now on."""
+        with self._lock:
+            self._listeners = (*self._listeners, listener)
+
+    def remove_listener(self, listener: FrameListener) -> None:
+        """Stop calling ``listener``."""
+        with self._lock:
+            self._listeners = tuple(item for item in self._listeners if item is not listener)
+
+    def attach(self, bus: can.BusABC) -> None:
+        """Wrap ``bus.send`` so every sent frame reaches the listeners as ``"tx"``."""
+        if self._bus is not None:
+            raise DriveError("frame tap is already attached to a bus")
+        original_send = bus.send
+
+        def tapped_send(msg: can.Message, timeout: float | None = None) -> None:
+            original_send(msg, timeout)
+            self._emit(msg, "tx")
+
+        bus.send = tapped_send  # type: ignore[method-assign]
+        self._bus = bus
+
+    def detach(self) -> None:
+        """Restore the bus's own ``send``."""
+        if self._bus is not None:
+            if "send" in vars(self._bus):
+                del self._bus.send
+            self._bus = None
+
+    def on_message_received(self, msg: can.Message) -> None:
+        """``can.Listener`` hook: report a received frame as ``"rx"``."""
+        self._emit(msg, "rx")
+
+    def _emit(self, msg: can.Message, direction: str) -> None:
+        for listener in self._listeners:  # the tuple is replaced, never mutated: no lock needed to iterate
+            try:
+                listener(msg, direction)
+            except Exception:  # a logger's failure must not break the control path; counted instead
+                self.listener_errors += 1

@@ -1,0 +1,127 @@
+"""Object dictionaries: loading an EDS with canopen's parser, and the sizes of the objects the master maps.
+
+:func:`load_od` is the one way the product reads an EDS (the shipped ``configs/foilc_servo.eds`` by default, or the
+drive's own EDS from ``drive.eds``). Every failure -- missing file, syntax error, a sub-index with no parent, a
+missing mandatory object -- becomes one :class:`~foilc_hil.errors.EdsError` line naming the file.
+
+:func:`mapped_variable` gives the size and signedness of an object for a PDO codec: from the EDS when it describes
+the object, else from the CiA 301/402 standard type of the object (:data:`STANDARD_TYPES`), so the master can map
+the standard objects of a drive whose EDS is incomplete.
+"""
+
+from __future__ import annotations
+
+import configparser
+from pathlib import Path
+
+import canopen
+from canopen.objectdictionary import ObjectDictionary, ObjectDictionaryError, ODVariable, datatypes
+
+from drivers.cia402 import Obj
+from drivers.pdo import MappedVariable
+from foilc_hil.errors import EdsError
+
+__all__ = [
+    "DEFAULT_EDS",
+    "REQUIRED_OBJECTS",
+    "STANDARD_TYPES",
+    "load_od",
+    "mapped_variable",
+]
+
+DEFAULT_EDS = Path(__file__).resolve().parents[1] / "configs" / "foilc_servo.eds"
+"""The object dictionary of the product's own drive (the plant emulator)."""
+
+REQUIRED_OBJECTS: tuple[Obj, ...] = (
+    Obj.DEVICE_TYPE,
+    Obj.ERROR_REGISTER,
+    Obj.IDENTITY,
+    Obj.CONTROLWORD,
+    Obj.STATUSWORD,
+    Obj.MODES_OF_OPERATION,
+    Obj.MODES_OF_OPERATION_DISPLAY,
+)
+"""Objects every drive the bench controls must describe (CiA 301 mandatory + the CiA 402 device control)."""
+
+# (bits, signed) of the standard objects the master maps into PDOs (CiA 402-2 data types).
+STANDARD_TYPES: dict[int, tuple[int, bool]] = {
+    Obj.ERROR_CODE: (16, False),
+    Obj.CONTROLWORD: (16, False),
+    Obj.STATUSWORD: (16, False),
+    Obj.MODES_OF_OPERATION: (8, True),
+    Obj.MODES_OF_OPERATION_DISPLAY: (8, True),
+    Obj.POSITION_ACTUAL_VALUE: (32, True),
+    Obj.VELOCITY_ACTUAL_VALUE: (32, True),
+    Obj.TARGET_TORQUE: (16, True),
+    Obj.MAX_TORQUE: (16, False),
+    Obj.TORQUE_ACTUAL_VALUE: (16, True),
+    Obj.TARGET_VELOCITY: (32, True),
+}
+
+_SIGNED_BITS = {
+    datatypes.INTEGER8: 8,
+    datatypes.INTEGER16: 16,
+    datatypes.INTEGER32: 32,
+    datatypes.INTEGER64: 64,
+}
+_UNSIGNED_BITS = {
+    datatypes.BOOLEAN: 8,
+    datatypes.UNSIGNED8: 8,
+    datatypes.UNSIGNED16: 16,
+    datatypes.UNSIGNED32: 32,
+    datatypes.UNSIGNED64: 64,
+}
+
+
+def load_od(path: str | Path | None = None, node_id: int | None = None) -> ObjectDictionary:
+    """Load an EDS (or DCF) with canopen's parser and check it describes a CiA 402 drive.
+
+    Parameters
+    ----------
+    path
+        The EDS file; ``None`` loads :data:`DEFAULT_EDS`.
+    node_id
+        Resolves ``$NODEID`` in default values (COB-IDs).
+
+    Raises
+    ------
+    EdsError
+        Naming the file: it is missing, unreadable, malformed, or lacks one of :data:`REQUIRED_OBJECTS`.
+    """
+    source = Path(path) if path is not None else DEFAULT_EDS
+    if not source.is_file():
+        raise EdsError("EDS file not found", source=str(source))
+    try:
+        od = canopen.import_od(str(source), node_id)
+    except (
+        configparser.Error,
+        ObjectDictionaryError,
+        KeyError,
+        ValueError,
+        UnicodeDecodeError,
+        OSError,
+    ) as exc:
+        raise EdsError(f"not a valid EDS: {type(exc).__name__}: {exc}", source=str(source)) from exc
+    for index in REQUIRED_OBJECTS:
+        if index not in od:
+            raise EdsError(f"lacks object 0x{index:04X} ({index.name.lower()})", source=str(source))
+    return od
+
+
+def mapped_variable(od: ObjectDictionary | None, index: int, subindex: int = 0) -> MappedVariable:
+    """Size and signedness of object ``index:subindex`` for a PDO mapping.
+
+    The EDS decides when it describes the object with an integer type; otherwise the CiA 402 standard type.
+    Raises :class:`EdsError` for an object neither knows, or one whose type cannot be carried in a PDO here.
+    """
+    variable = od.get_variable(index, subindex) if od is not None else None
+    if isinstance(variable, ODVariable):
+        if variable.data_type in _SIGNED_BITS:
+            return MappedVariable(index, subindex, _SIGNED_BITS[variable.data_type], signed=True)
+        if variable.data_type in _UNSIGNED_BITS:
+            return MappedVariable(index, subindex, _UNSIGNED_BITS[variable.data_type], signed=False)
+        raise EdsError(f"object 0x{index:04X}:{subindex:02X} has data type 0x{variable.data_type:04X}, not an integer")
+    if subindex == 0 and index in STANDARD_TYPES:
+        bits, signed = STANDARD_TYPES[index]
+        return MappedVariable(index, subindex, bits, signed=signed)
+    raise EdsError(f"object 0x{index:04X}:{subindex:02X} is neither in the EDS nor a known CiA 402 object")
