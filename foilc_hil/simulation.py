@@ -1,0 +1,552 @@
+"""Offline learning trials on the one physics code path (``plant_emulator.physics.build_plant``).
+
+Each trial runs sample by sample exactly as the bench does: reset the plant for trial ``k`` (initial condition,
+disturbance armed from ``disturbance.start_trial``), then for ``t = 0 .. N-1`` hand the measured output
+``y(t Ts)`` to :meth:`~foilc_hil.laws.LearningLaw.command`, hold the returned ``u(t)`` over one sample (after
+``input_delay`` samples, the CAN loop's transport delay when emulated), and finally pass the trial arrays
+(values at ``(i + 1) Ts``, see :mod:`foilc_hil.references`) to :meth:`~foilc_hil.laws.LearningLaw.end_trial`.
+No plant dynamics are written here.
+
+``python -m foilc_hil.simulation --paper-table [--config configs/paper_sim.yaml]`` prints the Markdown table of
+``docs/paper-reproduction.md`` from fresh runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from foilc_hil.errors import ConfigError, LearningDivergedError
+from foilc_hil.metrics import TrialMetrics
+
+if TYPE_CHECKING:
+    from foilc_hil.config import Config
+    from foilc_hil.design import Design
+    from foilc_hil.laws import LearningLaw
+
+__all__ = [
+    "SimulationResult",
+    "build_law",
+    "design_for",
+    "nominal_discrete_model",
+    "paper_table",
+    "plot_simulation",
+    "simulate",
+]
+
+LAWS = ("foilc", "ioilc", "p-type")
+
+
+@dataclass
+class SimulationResult:
+    """Everything a simulation produced.
+
+    Attributes
+    ----------
+    law
+        ``foilc``, ``ioilc`` or ``p-type``.
+    metrics
+        One :class:`~foilc_hil.metrics.TrialMetrics` per completed trial.
+    time
+        ``(i + 1) Ts``, ``(N,)``: the instants of the trial arrays.
+    reference
+        ``(N, p)``.
+    outputs, errors, learned
+        ``(K, N, p)`` per completed trial: ``y``, ``e`` and ``E`` at ``(i + 1) Ts``.
+    controls
+        ``(K, N, m)``: the command ``u(i)`` issued in sample ``i``.
+    feedback
+        ``(K, N, p)``: the output the law saw in sample ``i`` (``y(i Ts)``).
+    certificates
+        The design's certificates (2D laws) or the P-type lifted-map certificates.
+    design
+        The design the 2D laws ran with (``None`` for P-type).
+    stopped
+        Empty, or why the run stopped early (learning diverged).
+    seconds
+        Wall-clock time of the trial loop.
+    """
+
+    law: str
+    metrics: list[TrialMetrics]
+    time: np.ndarray
+    reference: np.ndarray
+    outputs: np.ndarray
+    controls: np.ndarray
+    errors: np.ndarray
+    learned: np.ndarray
+    feedback: np.ndarray
+    certificates: dict[str, Any] = field(default_factory=dict)
+    design: Design | None = None
+    stopped: str = ""
+    seconds: float = 0.0
+
+    def to_json(self) -> dict[str, Any]:
+        """The ``simulate --json`` document: ``{"law", "trials": [...]}`` plus ``certificates``/``stopped``."""
+        document: dict[str, Any] = {"law": self.law, "trials": [m.to_json() for m in self.metrics]}
+        document["certificates"] = _jsonable(self.certificates)
+        if self.design is not None:
+            document["design"] = {
+                "kp": self.design.kp,
+                "r": self.design.r,
+                "gain_scale": self.design.gain_scale,
+                "gamma": self.design.gamma,
+                "P": self.design.P.tolist(),
+                "input_delay": self.design.input_delay,
+            }
+        if self.stopped:
+            document["stopped"] = self.stopped
+        return document
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _jsonable(value.tolist())
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        number = float(value)
+        return number if math.isfinite(number) else str(number)
+    return value
+
+
+# --- design and law ---------------------------------------------------------------------------------------------
+
+
+def nominal_discrete_model(config: Config, input_delay: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The nominal ``(A, B, C)`` sampled with ``config.synthesis.discretization`` and augmented by ``input_delay``
+    cycles (state ``[x; u(t-1); ...; u(t-d)]``) -- what a P-type law needs for its default gain."""
+    from scipy.linalg import expm
+
+    from plant_emulator.linear import continuous_model
+
+    model = continuous_model(config.plant)
+    a, b, c = model.a, model.b, model.c
+    n, m = a.shape[0], b.shape[1]
+    ts = config.sample_time
+    if config.synthesis.discretization == "euler":
+        A = np.eye(n) + a * ts
+        B = b * ts
+    else:
+        block = np.zeros((n + m, n + m))
+        block[:n, :n] = a * ts
+        block[:n, n:] = b * ts
+        phi = expm(block)
+        A, B = phi[:n, :n], phi[:n, n:]
+    if input_delay == 0:
+        return A, B, c
+    size = n + input_delay * m
+    A_aug = np.zeros((size, size))
+    A_aug[:n, :n] = A
+    A_aug[:n, size - m :] = B  # u(t-d) drives the plant
+    B_aug = np.zeros((size, m))
+    B_aug[n : n + m] = np.eye(m)  # u(t) enters the first delay slot
+    for lag in range(1, input_delay):
+        A_aug[n + lag * m : n + (lag + 1) * m, n + (lag - 1) * m : n + lag * m] = np.eye(m)
+    C_aug = np.zeros((c.shape[0], size))
+    C_aug[:, :n] = c
+    return A_aug, B_aug, C_aug
+
+
+def design_for(config: Config, law: str, input_delay: int = 0) -> Design:
+    """Tune (unless ``tuning.kp``/``tuning.r`` are given) and synthesize the gain of a 2D law.
+
+    IOILC is designed with ``kp = 0`` (``r`` is then unused; the tuned or given ``r``, or 1, is recorded).
+    """
+    from foilc_hil.synthesis import synthesize_from_config
+
+    if law not in ("foilc", "ioilc"):
+        raise ConfigError(f"no LMI design for law {law!r}", key="law.kind")
+    kp, r = config.tuning.kp, config.tuning.r
+    if law == "ioilc":
+        return synthesize_from_config(config, law="ioilc", kp=0.0, r=1.0 if r is None else r, input_delay=input_delay)
+    if kp is None or r is None:
+        from foilc_hil.tuning import tune
+
+        tuned = tune(config)
+        kp, r = tuned.kp, tuned.r
+    return synthesize_from_config(config, law="foilc", kp=kp, r=r, input_delay=input_delay)
+
+
+def build_law(
+    config: Config, law: str, n_samples: int, *, design: Design | None = None, input_delay: int = 0
+) -> tuple[LearningLaw, Design | None, dict[str, Any]]:
+    """The law ``law`` for ``config`` with its design (2D laws) and certificates."""
+    from foilc_hil.laws import PType, make_law, p_type_certificates
+
+    if law not in LAWS:
+        raise ConfigError(f"unknown law {law!r}; choose {', '.join(LAWS)}", key="law.kind")
+    if law == "p-type":
+        q_filter = None
+        if config.law.q_filter is not None:
+            from foilc_hil.qfilter import QFilter
+
+            q_filter = QFilter(config.law.q_filter.cutoff, config.law.q_filter.order, config.sample_time)
+        if design is not None:
+            A, B, C, delay = design.A, design.B, design.C, design.input_delay
+        else:
+            A, B, C = nominal_discrete_model(config, input_delay)
+            delay = input_delay
+        p_law = PType(A, B, C, n_samples, input_delay=delay, gain=config.law.p_type_gain, q_filter=q_filter)
+        certificates: dict[str, Any] = {"gain": p_law.gain.tolist()}
+        if q_filter is None and n_samples * p_law.n_outputs <= 4000:
+            certificates.update(p_type_certificates(p_law))
+        return p_law, None, certificates
+    if design is None:
+        design = design_for(config, law, input_delay)
+    elif design.law != law and not (law == "ioilc" and design.kp == 0):
+        raise ConfigError(f"the design is for law {design.law!r}, not {law!r}", key="law.kind")
+    return make_law(law, design, config.law, n_samples), design, dict(design.certificates)
+
+
+# --- the trial loop ---------------------------------------------------------------------------------------------
+
+
+def simulate(
+    config: Config,
+    *,
+    law: str,
+    trials: int,
+    design: Design | None = None,
+    input_delay: int = 0,
+    out: str | Path | None = None,
+) -> SimulationResult:
+    """Run ``trials`` learning trials of ``law`` offline on ``build_plant(config.plant)``.
+
+    Parameters
+    ----------
+    config
+        The whole configuration (plant, reference, sample time, tuning, synthesis, law, bench).
+    law
+        ``foilc``, ``ioilc`` or ``p-type``.
+    trials
+        Number of trials.
+    design
+        A ready design (skips tuning and synthesis).
+    input_delay
+        Samples between issuing ``u(t)`` and the plant applying it (1 emulates a SYNC-driven CAN loop); the
+        design is made for the same delay.
+    out
+        Optional MCAP file (layout of ``../shared/interface.md``).
+
+    Returns
+    -------
+    SimulationResult
+        If learning diverges (non-finite values, or a trial's SSE above ``bench.divergence_factor`` times the
+        best so far) the run stops after that trial and ``stopped`` says why.
+    """
+    from foilc_hil.references import reference_profile, sample_times, trial_samples
+    from plant_emulator.physics import build_plant
+
+    if trials < 1:
+        raise ConfigError(f"must be >= 1, got {trials}", key="trials")
+    ts = config.sample_time
+    n = trial_samples(config.reference, ts)
+    learning_law, used_design, certificates = build_law(config, law, n, design=design, input_delay=input_delay)
+    p, m = learning_law.n_outputs, learning_law.n_inputs
+    plant = build_plant(config.plant)
+    if plant.n_inputs != m or plant.n_outputs != p:
+        raise ConfigError(f"the plant is {plant.n_outputs}x{plant.n_inputs} but the law is {p}x{m}", key="plant")
+    reference = np.repeat(reference_profile(config.reference, ts)[:, None], p, axis=1)
+    delay = learning_law.input_delay
+
+    outputs = np.zeros((trials, n, p))
+    feedback = np.zeros((trials, n, p))
+    controls = np.zeros((trials, n, m))
+    errors = np.zeros((trials, n, p))
+    learned = np.zeros((trials, n, p))
+    metrics: list[TrialMetrics] = []
+    stopped = ""
+    writer = _open_log(out, config, used_design) if out is not None else None
+    started = time.perf_counter()
+    try:
+        pending = np.zeros((delay + 1, m))  # FIFO of issued commands: row 0 is applied now
+        for k in range(1, trials + 1):
+            plant.reset(k)
+            learning_law.begin_trial()
+            pending.fill(0.0)  # the plant rests before the trial: nothing in flight
+            y = np.array(plant.output(), dtype=float).reshape(p)
+            trial_out, trial_fb, trial_u = outputs[k - 1], feedback[k - 1], controls[k - 1]
+            try:
+                for t in range(n):
+                    trial_fb[t] = y
+                    u = learning_law.command(t, y)
+                    trial_u[t] = u
+                    pending[delay] = u
+                    y = np.array(plant.step(pending[0], ts), dtype=float).reshape(p)
+                    trial_out[t] = y
+                    if delay:
+                        pending[:-1] = pending[1:]
+                update = learning_law.end_trial(reference, trial_out)
+            except LearningDivergedError as exc:
+                stopped = str(exc)
+                break
+            errors[k - 1] = update.error
+            learned[k - 1] = update.E
+            metrics.append(update.metrics)
+            if writer is not None:
+                _log_trial(writer, k, ts, reference, trial_fb, trial_u, update.error, update.E, trial_out, update)
+            best = min(metric.sse for metric in metrics)
+            if update.metrics.sse > config.bench.divergence_factor * best:
+                stopped = (
+                    f"trial {k}: SSE {update.metrics.sse:.6g} exceeds bench.divergence_factor "
+                    f"{config.bench.divergence_factor:g} x the best SSE {best:.6g}; learning diverged"
+                )
+                break
+    finally:
+        if writer is not None:
+            writer.close()
+    done = len(metrics)
+    return SimulationResult(
+        law=law,
+        metrics=metrics,
+        time=sample_times(config.reference, ts),
+        reference=reference,
+        outputs=outputs[:done],
+        controls=controls[:done],
+        errors=errors[:done],
+        learned=learned[:done],
+        feedback=feedback[:done],
+        certificates=certificates,
+        design=used_design,
+        stopped=stopped,
+        seconds=time.perf_counter() - started,
+    )
+
+
+def _open_log(out: str | Path, config: Config, design: Design | None) -> Any:
+    from foilc_hil.config import dump_config
+    from foilc_hil.io.mcap_log import McapLogWriter
+
+    return McapLogWriter(
+        out,
+        config_yaml=dump_config(config),
+        design=design.to_json() if design is not None else None,
+        fsync=False,
+    )
+
+
+def _log_trial(
+    writer: Any,
+    trial: int,
+    ts: float,
+    reference: np.ndarray,
+    feedback: np.ndarray,
+    control: np.ndarray,
+    error: np.ndarray,
+    learned: np.ndarray,
+    output: np.ndarray,
+    update: Any,
+) -> None:
+    """One ``/ilc/sample`` per sample, then ``/ilc/trial``.
+
+    In the sample message of sample ``i``: ``t = i Ts``; ``output`` is the feedback the law saw (``y(i Ts)``) and
+    ``control`` its command ``u(i)``; ``reference``, ``error`` and ``E`` are the trial arrays at index ``i`` (at
+    ``(i + 1) Ts``, the first output ``u(i)`` moves). The trial message adds ``final_output`` (``y(N Ts)``), so
+    a replay can rebuild ``end_trial``'s output array exactly: feedback of samples ``1 .. N-1`` plus it.
+    """
+    squeeze = feedback.shape[1] == 1
+    for i in range(feedback.shape[0]):
+        writer.log_sample(
+            trial,
+            i * ts,
+            reference[i, 0] if squeeze else reference[i],
+            feedback[i, 0] if squeeze else feedback[i],
+            control[i, 0] if control.shape[1] == 1 else control[i],
+            error[i, 0] if squeeze else error[i],
+            learned[i, 0] if squeeze else learned[i],
+            sample=i,
+        )
+    final = output[-1, 0] if squeeze else output[-1].tolist()
+    writer.log_trial(update.metrics, final_output=float(final) if squeeze else final)
+    writer.end_trial()
+
+
+# --- plots ------------------------------------------------------------------------------------------------------
+
+
+def plot_simulation(result: SimulationResult, out_dir: str | Path) -> list[Path]:
+    """Write ``outputs.png``, ``control.png``, ``error.png`` and ``sse.png`` (matplotlib, Agg) into ``out_dir``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    directory = Path(out_dir)
+    directory.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+    t = result.time
+    panels = (
+        ("outputs.png", "output y", result.outputs, True),
+        ("control.png", "control u", result.controls, False),
+        ("error.png", "tracking error e", result.errors, False),
+    )
+    colors = plt.get_cmap("viridis")
+    count = max(len(result.metrics), 1)
+    for name, label, data, with_reference in panels:
+        fig, ax = plt.subplots(figsize=(8, 4.5))
+        for k in range(data.shape[0]):
+            ax.plot(t, data[k, :, 0], color=colors(k / max(count - 1, 1)), lw=1.0, label=f"trial {k + 1}")
+        if with_reference:
+            ax.plot(t, result.reference[:, 0], "k--", lw=1.0, label="reference")
+        ax.set_xlabel("time [s]")
+        ax.set_ylabel(label)
+        ax.set_title(f"{result.law}: {label} by trial")
+        ax.grid(True, alpha=0.3)
+        if data.shape[0] <= 12:
+            ax.legend(fontsize="small", ncol=2)
+        path = directory / name
+        fig.tight_layout()
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        written.append(path)
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.semilogy([m.trial for m in result.metrics], [max(m.sse, 1e-300) for m in result.metrics], "o-")
+    ax.set_xlabel("trial")
+    ax.set_ylabel("SSE")
+    ax.set_title(f"{result.law}: sum of squared errors")
+    ax.grid(True, which="both", alpha=0.3)
+    path = directory / "sse.png"
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    written.append(path)
+    return written
+
+
+# --- the paper-reproduction table -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PaperRow:
+    """One law's line of the reproduction table."""
+
+    law: str
+    trials_to_tolerance: int | None
+    final_rmse: float
+    sse_before_disturbance: float
+    sse_at_disturbance: float
+    recovery_trials: int | None
+    certificates: dict[str, Any]
+    stopped: str
+
+
+def _paper_row(result: SimulationResult, tolerance: float, disturbance_trial: int) -> PaperRow:
+    rmse = [m.rmse for m in result.metrics]
+    sse = [m.sse for m in result.metrics]
+    reached = next((i + 1 for i, value in enumerate(rmse) if value < tolerance), None)
+    before = sse[disturbance_trial - 2] if len(sse) >= disturbance_trial else math.nan
+    at = sse[disturbance_trial - 1] if len(sse) >= disturbance_trial else math.nan
+    recovery = None
+    for i in range(disturbance_trial - 1, len(rmse)):
+        if rmse[i] < tolerance:
+            recovery = i + 1 - disturbance_trial
+            break
+    return PaperRow(
+        law=result.law,
+        trials_to_tolerance=reached,
+        final_rmse=rmse[-1] if rmse else math.nan,
+        sse_before_disturbance=before,
+        sse_at_disturbance=at,
+        recovery_trials=recovery,
+        certificates=result.certificates,
+        stopped=result.stopped,
+    )
+
+
+def _fmt(value: Any, digits: int = 4) -> str:
+    if value is None:
+        return "not reached"
+    if isinstance(value, float):
+        return f"{value:.{digits}g}"
+    return str(value)
+
+
+def paper_table(config: Config, *, trials: int | None = None, tolerance_fraction: float = 0.01) -> str:
+    """Run FOILC, IOILC and P-type on ``config`` and return the Markdown reproduction table.
+
+    The tolerance is ``tolerance_fraction`` of the reference range (max - min); the disturbance trial is
+    ``plant.disturbance.start_trial``.
+    """
+    from foilc_hil.references import reference_profile
+
+    count = config.trials if trials is None else trials
+    reference = reference_profile(config.reference, config.sample_time)
+    span = float(np.max(reference) - np.min(reference)) or float(np.max(np.abs(reference))) or 1.0
+    tolerance = tolerance_fraction * span
+    start = config.plant.disturbance.start_trial if config.plant.disturbance.kind != "none" else count + 1
+    rows: list[PaperRow] = []
+    timings: list[str] = []
+    for law in LAWS:
+        result = simulate(config, law=law, trials=count)
+        rows.append(_paper_row(result, tolerance, start))
+        timings.append(f"{law} {result.seconds:.2f} s")
+    lines = [
+        f"Tolerance: RMSE < {tolerance:g} ({tolerance_fraction:.0%} of the reference range {span:g}); "
+        f"{count} trials; disturbance from trial {start}. Trial-loop time: {', '.join(timings)}.",
+        "",
+        "| law | first trial with RMSE < tol | final RMSE | SSE trial "
+        f"{start - 1} | SSE trial {start} | trials after {start} to RMSE < tol | spectral radius | 2-norm "
+        "| gamma | gain_scale |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        cert = row.certificates
+        radius = _certificate(cert, ("spectral_radius", "rho", "nominal_spectral_radius"))
+        norm = _certificate(cert, ("norm_2", "induced_2_norm", "nominal_norm_2", "two_norm"))
+        gamma = cert.get("gamma") if row.law == "p-type" else None
+        design_gamma = "-" if row.law == "p-type" else _fmt(cert.get("lmi_gamma", gamma))
+        lines.append(
+            f"| {row.law} | {_fmt(row.trials_to_tolerance)} | {_fmt(row.final_rmse)} | "
+            f"{_fmt(row.sse_before_disturbance)} | {_fmt(row.sse_at_disturbance)} | {_fmt(row.recovery_trials)} | "
+            f"{_fmt(radius)} | {_fmt(norm)} | {design_gamma} | {_fmt(cert.get('gain_scale', '-'))} |"
+        )
+        if row.stopped:
+            lines.append(f"|  | stopped: {row.stopped} | | | | | | | | |")
+    return "\n".join(lines) + "\n"
+
+
+def _certificate(certificates: dict[str, Any], names: Sequence[str]) -> Any:
+    for name in names:
+        if name in certificates:
+            value = certificates[name]
+            return float(value) if isinstance(value, (int, float)) else value
+    return None
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m foilc_hil.simulation --paper-table [--config C] [--trials N]``."""
+    from foilc_hil.config import load_config
+    from foilc_hil.errors import FoilcHilError
+
+    parser = argparse.ArgumentParser(prog="python -m foilc_hil.simulation")
+    parser.add_argument("--paper-table", action="store_true", help="print the paper-reproduction table")
+    parser.add_argument("--config", default="configs/paper_sim.yaml")
+    parser.add_argument("--trials", type=int, default=None)
+    args = parser.parse_args(argv)
+    if not args.paper_table:
+        parser.error("nothing to do: give --paper-table")
+    try:
+        sys.stdout.write(paper_table(load_config(args.config), trials=args.trials))
+    except FoilcHilError as exc:
+        sys.stderr.write(f"{exc}\n")
+        return int(exc.exit_code)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
