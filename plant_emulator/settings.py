@@ -1,0 +1,27 @@
+"""The ``emulator:`` section: how the virtual CiA 402 drive behaves (not what it drives -- that is ``plant:``)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from foilc_hil.schema import Section
+
+
+class EmulatorConfig(Section):
+    """Virtual drive settings.
+
+    ``timing: lockstep`` advances the physics by one cycle period (0x1006, else ``sample_time``) per SYNC, so a
+    run is deterministic and as fast as the bus allows; ``realtime`` runs the physics on the wall clock in its own
+    thread, so a late or missing SYNC shows up as on hardware (stale feedback, SYNC-loss EMCY).
+    """
+
+    timing: Literal["lockstep", "realtime"] = "lockstep"
+    seed: int = 0  # physics noise seed (the plant's own ``seed`` is added to it)
+    eds: str | None = None  # object dictionary; None: the shipped configs/foilc_servo.eds
+    sync_loss_cycles: float = Field(default=5.0, gt=1)  # realtime: no SYNC for this many periods -> SYNC loss
+    torque_limit_fault_cycles: int = Field(default=200, ge=0)  # torque limited this long -> over-current; 0: never
+    velocity_window: float = Field(default=10.0, ge=0)  # target reached window (drive velocity units), PV mode
+    standstill_velocity: float = Field(default=1.0, ge=0)  # |v| below this ends a quick stop ramp (drive units)
+    options: dict[str, float | int | str | bool] = Field(default_factory=dict)  # free-form, ignored by the drive
