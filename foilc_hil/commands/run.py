@@ -1,0 +1,101 @@
+"""``foilc-hil run``: learning trials over CAN against a CiA 402 drive (or the embedded emulator).
+
+``foilc-hil run --config C [--bus SPEC | --emulator embedded] [--trials N] [--mode lockstep|realtime]
+[--law foilc|ioilc|p-type] --out F.mcap [--json] [--quiet]``
+
+JSON: ``{"law", "trials": [{"trial", "sse", "rmse", "max_abs_error"}, ...], "timing": {"period", "cycles",
+"missed_deadlines", "jitter_p99_us", ...}, "log", "design": {"kp", "r", "certificates", ...}, "stopped"}``.
+Exit 0 when every trial ran; 1 for a drive fault, a bus timeout or learning that diverged and was stopped (the
+JSON document and the log are still written for a divergence stop); 2 for bad input; 130 for Ctrl-C / SIGTERM.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from foilc_hil.commands import CommandResult
+from foilc_hil.errors import ExitCode
+
+HELP = "run learning trials over CAN against a drive"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", metavar="C", help="config YAML (defaults when omitted)")
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument(
+        "--bus", metavar="SPEC", help="INTERFACE:CHANNEL, e.g. socketcan:vcan0, udp_multicast:239.74.163.2"
+    )
+    where.add_argument(
+        "--emulator",
+        choices=["embedded"],
+        help="run the plant emulator in this process on a virtual bus (the default when no bus is given)",
+    )
+    parser.add_argument("--trials", type=int, metavar="N", help="number of trials (default: config 'trials')")
+    parser.add_argument("--mode", choices=["lockstep", "realtime"], help="timing mode (default: config bench.mode)")
+    parser.add_argument("--law", choices=["foilc", "ioilc", "p-type"], help="learning law (default: config law.kind)")
+    parser.add_argument("--out", required=True, metavar="F.mcap", help="MCAP log to write")
+    parser.add_argument("--quiet", action="store_true", help="no progress view on stderr")
+
+
+def resolve_bus(config: Any, bus_spec: str | None, emulator: str | None) -> Any:
+    """The bus: ``--bus`` wins, ``--emulator embedded`` forces the emulator, else the config's ``bus:`` block."""
+    from drivers.bus import parse_bus_spec
+    from drivers.config import BusConfig
+
+    if bus_spec is not None:
+        return parse_bus_spec(bus_spec, bitrate=config.bus.bitrate)
+    if emulator == "embedded":
+        return BusConfig(interface="embedded", channel=config.bus.channel)
+    return config.bus
+
+
+def execute(args: argparse.Namespace) -> CommandResult:
+    from foilc_hil.bench import RunRequest, run_bench
+    from foilc_hil.config import load_config
+    from foilc_hil.errors import InputError
+
+    if args.trials is not None and args.trials < 1:
+        raise InputError(f"--trials: must be >= 1, got {args.trials}")
+    config = load_config(args.config)
+    request = RunRequest(
+        config=config,
+        out=args.out,
+        law=args.law,
+        trials=args.trials,
+        mode=args.mode,
+        bus=resolve_bus(config, args.bus, args.emulator),
+        quiet=bool(args.quiet or args.json),
+    )
+    report = run_bench(request)
+    document = report.to_json()
+    text = render_text(document)
+    if report.outcome.diverged:
+        return CommandResult(
+            document, text, exit_code=ExitCode.RUNTIME_FAILURE, message=report.outcome.stopped or "learning diverged"
+        )
+    return CommandResult(document, text)
+
+
+def render_text(document: dict[str, Any]) -> str:
+    """The human-readable summary: one line per trial and the timing."""
+    lines = [f"law {document['law']}, log {document['log']}"]
+    lines.append(f"{'trial':>5} {'SSE':>14} {'RMSE':>12} {'max |e|':>12}")
+    for trial in document["trials"]:
+        lines.append(
+            f"{trial['trial']:>5} {trial['sse']:>14.6g} {trial['rmse']:>12.6g} {trial['max_abs_error']:>12.6g}"
+        )
+    timing = document["timing"]
+    if timing:
+        line = f"{timing['mode']}: {timing['cycles']} cycles of {timing['period'] * 1e3:g} ms"
+        if timing.get("cycles_per_second"):
+            line += f", {timing['cycles_per_second']:.0f} cycles/s"
+        if timing.get("jitter_p99_us") is not None:
+            line += (
+                f", jitter p50 {timing['jitter_p50_us']:.0f} us p99 {timing['jitter_p99_us']:.0f} us "
+                f"max {timing['jitter_max_us']:.0f} us, missed deadlines {timing['missed_deadlines']}"
+            )
+        lines.append(line)
+    if document.get("stopped"):
+        lines.append(f"stopped: {document['stopped']}")
+    return "\n".join(lines)
