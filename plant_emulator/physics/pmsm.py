@@ -115,7 +115,7 @@ class PmsmPlant:
         self._int_q = 0.0
         self._int_velocity = 0.0
         self._omega_estimate = self._omega
-        self._count = 0
+        self._count = math.floor(self._theta / self._count_angle)
         self._torque = 0.0
         self._torque_command = 0.0
         self._t = 0.0
@@ -256,14 +256,7 @@ class PmsmPlant:
         c = self._config
         drawn = self._drawn
         p = c.pole_pairs
-        # 1. Sensing: quantised angle, differentiated over the internal step, low-passed.
-        count = math.floor(self._theta / self._count_angle)
-        raw = (count - self._count) * self._count_angle / h
-        self._count = count
-        if c.velocity_loop_filter > 0:
-            self._omega_estimate += (1.0 - math.exp(-h / c.velocity_loop_filter)) * (raw - self._omega_estimate)
-        else:
-            self._omega_estimate = raw
+        # 1. The velocity estimate sensed at the end of the previous internal step.
         omega_est = self._omega_estimate
         # 2. Torque command: velocity loop (CSV) or direct (CST).
         limit = c.torque_limit
@@ -327,6 +320,15 @@ class PmsmPlant:
         self._theta = theta0 + 0.5 * h * (omega0 + self._omega)
         self._torque = 1.5 * p * (self._psi * self._iq + (ld - lq) * self._id * self._iq)
         self._t += h
+        # 6. Sensing at the end of the step (used by the next one): the quantised angle, differentiated over the
+        # internal step and low-passed -- the drive's own velocity estimate.
+        count = math.floor(self._theta / self._count_angle)
+        raw = (count - self._count) * self._count_angle / h
+        self._count = count
+        if c.velocity_loop_filter > 0:
+            self._omega_estimate += (1.0 - math.exp(-h / c.velocity_loop_filter)) * (raw - self._omega_estimate)
+        else:
+            self._omega_estimate = raw
         if abs(self._omega) > c.speed_limit * RAD_PER_S_PER_RPM:
             self.over_speed = True
 

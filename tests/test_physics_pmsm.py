@@ -1,0 +1,230 @@
+"""The PMSM axis against independent truths: energy balance, analytic steady states and step responses,
+resolver quantisation bounds, seeded reproducibility, limits."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+from scipy import signal
+
+from foilc_hil.errors import ConfigError
+from plant_emulator.config import PlantConfig
+from plant_emulator.physics import Plant, build_plant
+from plant_emulator.physics.pmsm import RAD_PER_S_PER_RPM, PmsmPlant
+
+FRICTIONLESS: dict[str, Any] = {"viscous": 0.0, "coulomb": 0.0, "cogging_amplitude": 0.0}
+
+
+def _pmsm(pmsm: dict[str, Any] | None = None, seed: int | None = None, **plant: Any) -> PmsmPlant:
+    built = build_plant(PlantConfig.model_validate({"model": "pmsm", "pmsm": pmsm or {}, **plant}), seed=seed)
+    assert isinstance(built, PmsmPlant)
+    return built
+
+
+def test_pmsm_satisfies_the_protocol() -> None:
+    plant = _pmsm()
+    assert isinstance(plant, Plant)
+    assert (plant.n_inputs, plant.n_outputs) == (1, 1)
+    assert plant.state().shape == (4,)
+
+
+def _work_and_kinetic_energy(dt: float, duration: float) -> tuple[float, float, float]:
+    plant = _pmsm({**FRICTIONLESS, "input_kind": "torque"})
+    inertia = plant.drawn_parameters()["inertia"]
+    omega, torque = [plant.state()[1]], [plant.torque]
+    for k in range(round(duration / dt)):
+        plant.step(np.array([0.3 * math.sin(2 * math.pi * k * dt) + 0.1]), dt)
+        omega.append(plant.state()[1])
+        torque.append(plant.torque)
+    power = np.array(torque) * np.array(omega)
+    work = float(np.sum(0.5 * (power[1:] + power[:-1])) * dt)
+    kinetic = 0.5 * inertia * (omega[-1] ** 2 - omega[0] ** 2)
+    return work, kinetic, float(np.sum(np.abs(power)) * dt)
+
+
+def test_pmsm_conserves_energy_with_friction_off() -> None:
+    # Sampled at the internal step, the trapezoid of Te*w is the integrator's own quadrature: exact.
+    work, kinetic, scale = _work_and_kinetic_energy(5e-5, 0.5)
+    assert kinetic > 1.0
+    assert abs(work - kinetic) <= 1e-9 * scale
+    # Sampled at 1 kHz the test's quadrature misses the current-loop ripple; the balance still holds to 0.3 %.
+    work, kinetic, scale = _work_and_kinetic_energy(1e-3, 1.5)
+    assert abs(work - kinetic) <= 3e-3 * scale
+
+
+def test_pmsm_keeps_its_speed_with_zero_torque_and_no_friction() -> None:
+    plant = _pmsm({**FRICTIONLESS, "input_kind": "torque"}, x0=[300.0])
+    readings = np.array([plant.step(np.zeros(1), 1e-3)[0] for _ in range(1000)])
+    assert plant.state()[1] / RAD_PER_S_PER_RPM == pytest.approx(300.0, abs=1e-3)
+    count = 2 * math.pi / 2**16 / 1e-3 / RAD_PER_S_PER_RPM
+    assert np.max(np.abs(readings - 300.0)) <= count
+
+
+def test_viscous_steady_state_and_transient_match_the_analytic_solution() -> None:
+    viscous, torque, dt = 1e-2, 0.5, 1e-3
+    plant = _pmsm({"viscous": viscous, "coulomb": 0.0, "cogging_amplitude": 0.0, "input_kind": "torque"})
+    inertia = plant.drawn_parameters()["inertia"]
+    lag = 1.0 / plant._config.current_bandwidth  # the closed current loop delays the torque by about 1/wc
+    for k in range(1, 601):
+        plant.step(np.array([torque]), dt)
+        t = k * dt
+        if t > 0.01:
+            expected = torque / viscous * (1 - math.exp(-(t - lag) * viscous / inertia))
+            assert plant.state()[1] == pytest.approx(expected, rel=2e-3), f"t = {t}"
+    assert plant.state()[1] == pytest.approx(torque / viscous, rel=1e-4)
+
+
+def test_velocity_loop_step_response_matches_the_analytic_closed_loop() -> None:
+    plant = _pmsm({"coulomb": 0.0, "cogging_amplitude": 0.0})
+    c = plant._config
+    times = 1e-3 * np.arange(1, 1501)
+    speeds = np.array([plant.step(np.array([400.0]), 1e-3)[0] for _ in times])
+    closed_loop = ([c.velocity_ki], [c.inertia, c.velocity_kp + c.viscous, c.velocity_ki])
+    _, unit = signal.step(closed_loop, T=times)
+    # Current loop, velocity-estimate filter and quantisation make up the rest: under 1 % of the step.
+    assert np.max(np.abs(speeds - 400.0 * unit)) < 4.0
+    a, b = plant.nominal_first_order()
+    assert b == pytest.approx(-a)
+    assert np.max(np.abs(speeds - 400.0 * (1 - np.exp(a * times)))) < 0.06 * 400.0
+
+
+def test_velocity_loop_reaches_the_command_despite_friction_and_cogging() -> None:
+    plant = _pmsm()
+    speeds = np.array([plant.step(np.array([500.0]), 1e-3)[0] for _ in range(2500)])
+    assert float(np.mean(speeds[-500:])) == pytest.approx(500.0, abs=0.2)
+
+
+def test_resolver_velocity_error_is_bounded_by_one_count_per_sample() -> None:
+    plant = _pmsm({"resolver_bits": 12})
+    dt = 1e-3
+    count_speed = 2 * math.pi / 2**12 / dt  # rad/s of one count per sample
+    errors = []
+    for k in range(800):
+        theta0 = plant.state()[0]
+        measured = plant.step(np.array([300.0 + 200.0 * math.sin(0.01 * k)]), dt)[0] * RAD_PER_S_PER_RPM
+        true_mean = (plant.state()[0] - theta0) / dt
+        errors.append(measured - true_mean)
+        assert measured / count_speed == pytest.approx(round(measured / count_speed), abs=1e-6)
+    assert np.max(np.abs(errors)) < count_speed
+    assert np.max(np.abs(errors)) > 0.3 * count_speed  # quantisation is really there
+
+
+def test_seeds_reproduce_bit_for_bit_and_differ_between_seeds() -> None:
+    pmsm = {"spread": {"inertia": 0.1, "viscous": 0.2, "torque_constant": 0.05}}
+
+    def run(seed: int, trial: int = 1) -> tuple[np.ndarray, dict[str, float]]:
+        plant = _pmsm(pmsm, seed=seed, output_noise=0.5)
+        plant.reset(trial)
+        return np.array([plant.step(np.array([400.0]), 1e-3)[0] for _ in range(200)]), plant.drawn_parameters()
+
+    first, drawn = run(11)
+    again, drawn_again = run(11)
+    other, drawn_other = run(12)
+    assert np.array_equal(first, again) and drawn == drawn_again
+    assert not np.array_equal(first, other) and drawn != drawn_other
+    assert not np.array_equal(first, run(11, trial=2)[0])  # noise is per trial
+    nominal = PlantConfig(model="pmsm").pmsm
+    assert abs(drawn["inertia"] / nominal.inertia - 1) <= 0.1
+    assert abs(drawn["viscous"] / nominal.viscous - 1) <= 0.2
+    assert abs(drawn["torque_constant"] / nominal.torque_constant - 1) <= 0.05
+    assert drawn["coulomb"] == nominal.coulomb  # no spread given
+
+
+def test_inertia_drift_varies_the_response_between_trials() -> None:
+    plant = _pmsm({"drift": {"amplitude": 0.3, "frequency": 2.0, "phase_per_trial": 1.0}})
+
+    def trial(k: int) -> np.ndarray:
+        plant.reset(k)
+        return np.array([plant.step(np.array([400.0]), 1e-3)[0] for _ in range(300)])
+
+    first = trial(1)
+    assert np.array_equal(first, trial(1))
+    assert np.max(np.abs(first - trial(2))) > 1.0
+
+
+def test_torque_limit_flag_and_clamp() -> None:
+    plant = _pmsm({"input_kind": "torque"})
+    plant.step(np.array([10.0]), 5e-3)
+    assert plant.torque_limited
+    assert plant.torque_command == plant._config.torque_limit
+    assert plant.torque == pytest.approx(plant._config.torque_limit, rel=0.01)
+    plant.step(np.array([1.0]), 1e-3)
+    assert not plant.torque_limited
+
+
+def test_over_speed_flag() -> None:
+    plant = _pmsm({**FRICTIONLESS, "input_kind": "torque"})
+    flags = []
+    while plant.time < 0.2:
+        plant.step(np.array([3.0]), 1e-3)
+        flags.append((plant.state()[1] / RAD_PER_S_PER_RPM, plant.over_speed))
+    assert any(flag for _, flag in flags)
+    assert all(flag == (speed > 3600.0) for speed, flag in flags if abs(speed - 3600.0) > 50.0)
+
+
+def test_velocity_command_is_clamped_to_rated_speed_and_saturation_applies_first() -> None:
+    plant = _pmsm({"velocity_kp": 0.2, "velocity_ki": 4.0})
+    for _ in range(150):
+        plant.step(np.array([5000.0]), 1e-2)
+    assert plant.output()[0] == pytest.approx(3000.0, abs=3.0)
+    saturated = _pmsm(saturation={"u_max": 450.0})
+    for _ in range(250):
+        saturated.step(np.array([600.0]), 1e-2)
+    assert saturated.saturated
+    assert saturated.output()[0] == pytest.approx(450.0, abs=2.0)
+
+
+def test_switching_input_kind_at_run_time_is_bumpless() -> None:
+    plant = _pmsm()
+    for _ in range(1500):
+        plant.step(np.array([400.0]), 1e-3)
+    holding = plant.torque_command
+    plant.set_input_kind("torque")
+    assert plant.input_kind == "torque"
+    speeds = [plant.step(np.array([holding]), 1e-3)[0] for _ in range(100)]
+    assert max(abs(s - 400.0) for s in speeds) < 5.0
+    plant.set_input_kind("velocity")
+    speeds = [plant.step(np.array([400.0]), 1e-3)[0] for _ in range(300)]
+    assert max(abs(s - 400.0) for s in speeds) < 5.0
+    with pytest.raises(ConfigError, match="input_kind"):
+        plant.set_input_kind("position")  # type: ignore[arg-type]
+
+
+def test_load_disturbance_acts_from_its_start_trial() -> None:
+    viscous, torque, load = 1e-2, 0.5, 0.2
+    plant = _pmsm(
+        {"viscous": viscous, "coulomb": 0.0, "cogging_amplitude": 0.0, "input_kind": "torque"},
+        disturbance={"kind": "constant", "amplitude": load, "start_trial": 2},
+    )
+    for trial, expected in ((1, torque / viscous), (2, (torque + load) / viscous)):
+        plant.reset(trial)
+        for _ in range(60):
+            plant.step(np.array([torque]), 1e-2)
+        assert plant.state()[1] == pytest.approx(expected, rel=1e-3)
+
+
+def test_pmsm_rejects_first_order_variation_and_bad_x0() -> None:
+    with pytest.raises(ConfigError, match=r"plant\.variation"):
+        _pmsm(variation={"a": {"kind": "sine", "amplitude": 0.1}})
+    with pytest.raises(ConfigError, match=r"plant\.x0"):
+        _pmsm(x0=[1.0, 2.0])
+
+
+def test_nominal_first_order_in_torque_mode() -> None:
+    plant = _pmsm({"input_kind": "torque"})
+    c = plant._config
+    a, b = plant.nominal_first_order()
+    assert a == pytest.approx(-c.viscous / c.inertia)
+    assert b == pytest.approx(60.0 / (2 * math.pi) / c.inertia)
+
+
+def test_closed_current_loop_is_a_first_order_lag_of_the_configured_bandwidth() -> None:
+    plant = _pmsm({**FRICTIONLESS, "input_kind": "torque"})
+    bandwidth = plant._config.current_bandwidth
+    for k in range(1, 41):
+        plant.step(np.array([1.0]), 1e-4)
+        expected = 1.0 - math.exp(-bandwidth * k * 1e-4)
+        assert plant.torque == pytest.approx(expected, abs=0.03), f"t = {k * 1e-4}"
