@@ -236,6 +236,10 @@ class TrialLoop:
         The SIGINT/SIGTERM flag, polled once per cycle.
     clock
         ``time.perf_counter`` (injected in tests).
+    before_trial
+        Called with the trial number once the axis has settled, just before the trial's first SYNC. The embedded
+        emulator uses it to start its plant's trial (a disturbance that begins at a given trial, per-trial noise);
+        a real drive has no such hook.
     """
 
     def __init__(
@@ -250,6 +254,7 @@ class TrialLoop:
         progress: ProgressView | None = None,
         stop: StopRequest | None = None,
         clock: Callable[[], float] = time.perf_counter,
+        before_trial: Callable[[int], None] | None = None,
     ) -> None:
         ref = np.asarray(reference, dtype=float)
         if ref.ndim != 1 or ref.size == 0:
@@ -263,6 +268,7 @@ class TrialLoop:
         self.progress: ProgressView = progress if progress is not None else NullProgress()
         self.stop = stop if stop is not None else StopRequest()
         self._clock = clock
+        self._before_trial = before_trial
         self.watchdog = FeedbackWatchdog(settings.watchdog_cycles)
         self.guard = DivergenceGuard(settings.divergence_factor)
         self.timing = TimingRecorder(settings.mode, settings.period)
@@ -304,6 +310,8 @@ class TrialLoop:
         try:
             for trial in range(1, trials + 1):
                 self._settle(trial)
+                if self._before_trial is not None:
+                    self._before_trial(trial)
                 record = self._run_trial(trial, trials)
                 self.outcome.trials.append(record.metrics)
                 self.progress.end_trial(trial, record.metrics.sse, record.metrics.rmse, record.metrics.max_abs_error)
@@ -509,7 +517,7 @@ class RunRequest:
     config
         The resolved :class:`foilc_hil.config.Config`.
     out
-        The MCAP file to write.
+        The MCAP file to write; ``None``: no log (benchmarks measuring the loop without logging).
     law
         ``foilc``, ``ioilc`` or ``p-type``; ``None``: ``config.law.kind``.
     trials
@@ -672,19 +680,25 @@ def run_bench(request: RunRequest) -> RunReport:
         settle_tolerance=config.bench.settle_tolerance,
     )
     design_json = design.to_json()
+    before_trial: Callable[[int], None] | None = None
     with ExitStack() as stack:
-        writer = QueuedLogWriter.open(request.out, config_yaml=dump_config(config), design=design_json)
-        stack.callback(writer.close)
+        sink: _McapSink | None = None
+        if request.out is not None:
+            writer = QueuedLogWriter.open(request.out, config_yaml=dump_config(config), design=design_json)
+            stack.callback(writer.close)
+            sink = _McapSink(writer)
         if bus_cfg.interface == "embedded":
             from plant_emulator.embedded import EmbeddedEmulator
 
             emulator = stack.enter_context(EmbeddedEmulator(config))
             bus_cfg = emulator.bus_config
+            before_trial = getattr(emulator, "begin_trial", None)
         bus = open_bus(bus_cfg)
         stack.callback(bus.shutdown)
         drive = Cia402Drive.open(bus, config.drive, sample_time=config.sample_time)
         stack.callback(drive.close)
-        drive.add_frame_listener(writer.log_frame)
+        if sink is not None:
+            drive.add_frame_listener(sink.writer.log_frame)
         # LIFO: safe_stop runs before the drive is closed and before the log is closed, so its frames are logged
         stack.callback(drive.safe_stop)
         progress = make_progress(
@@ -695,13 +709,15 @@ def run_bench(request: RunRequest) -> RunReport:
         drive.connect()
         drive.configure(OperationMode[_MODES[config.drive.mode]], config.sample_time)
         drive.enable()
-        loop = TrialLoop(drive, law, reference, limiter, settings, log=_McapSink(writer), progress=progress, stop=stop)
+        loop = TrialLoop(
+            drive, law, reference, limiter, settings, log=sink, progress=progress, stop=stop, before_trial=before_trial
+        )
         outcome = loop.run(trials)
         cycles = loop.cycles
     return RunReport(
         law=law_kind,
         outcome=outcome,
-        log=str(request.out),
+        log=str(request.out) if request.out is not None else "",
         design={
             "kp": design.kp,
             "r": design.r,
