@@ -17,8 +17,10 @@ The 2D law (FOILC; IOILC is the same with ``kp = 0``) is, with ``P = (p1 p2)`` f
 at ``(t + 1 + d) Ts``. Entries past the end of the trial (``t + d >= N``) are zero -- those inputs cannot move
 any output of the trial, so nothing is learned for them. The state is reconstructed from the measured output,
 ``x = pinv(C) y``, which requires ``C`` to have full column rank (else :class:`~foilc_hil.errors.ConfigError`
-naming ``plant.c``); with ``d > 0`` the design's augmented state is ``[x; u(t-1); ...; u(t-d)]``, whose extra
-entries are the law's own past commands of this trial (zero before the trial starts, as the plant rests).
+naming ``plant.c``) -- ``C`` here is the design's MEASURED output map ``design.measured_output``; with ``d > 0``
+the design's augmented state is ``[x; u(t-d); ...; u(t-1)]`` (:func:`foilc_hil.discretize.augment_input_delay`,
+oldest input first), whose extra entries are the law's own past commands of this trial (zero before the trial
+starts, as the plant rests). The lead ``d`` is ``design.error_lead``.
 
 P-type (Arimoto): ``u_k(t) = u_{k-1}(t) + Gamma e_{k-1}[t + d]``.
 
@@ -296,7 +298,7 @@ class Foilc(LearningLaw):
     def __init__(self, design: Design, n_samples: int, *, q_filter: QFilter | None = None) -> None:
         from foilc_hil.fractional import FractionalPD
 
-        n, m, p, d = design.n_states, design.n_inputs, design.n_outputs, design.input_delay
+        n, m, p, d = design.n_states, design.n_inputs, design.n_outputs, design.error_lead
         super().__init__(
             n_samples=n_samples,
             n_inputs=m,
@@ -312,9 +314,10 @@ class Foilc(LearningLaw):
         n_plant = n - d * m
         if n_plant < 1:
             raise InputError(f"design: {n} states cannot hold {d} delayed copies of {m} inputs")
-        c_plant = np.asarray(design.C[:, :n_plant], dtype=float)
-        if np.any(design.C[:, n_plant:] != 0):
-            raise InputError("design.C: the input-delay augmentation states must not be measured")
+        measured = np.asarray(design.measured_output, dtype=float)
+        c_plant = measured[:, :n_plant]
+        if np.any(measured[:, n_plant:] != 0):
+            raise InputError("design.C_measured: the input-delay augmentation states must not be measured")
         rank = int(np.linalg.matrix_rank(c_plant))
         if rank < n_plant:
             raise ConfigError(
@@ -348,10 +351,12 @@ class Foilc(LearningLaw):
         n_plant, m = self.n_plant_states, self.n_inputs
         x = self._x[t]
         np.dot(self._c_pinv, y, out=x[:n_plant])
-        for lag in range(1, self.input_delay + 1):
-            block = x[n_plant + (lag - 1) * m : n_plant + lag * m]
-            if t - lag >= 0:
-                block[:] = self._u[t - lag]
+        d = self.input_delay
+        for slot in range(d):  # slot j holds u(t - d + j): oldest first, as augment_input_delay orders them
+            block = x[n_plant + slot * m : n_plant + (slot + 1) * m]
+            issued = t - d + slot
+            if issued >= 0:
+                block[:] = self._u[issued]
             else:
                 block.fill(0.0)
         if self._has_record:
@@ -383,7 +388,8 @@ class PType(LearningLaw):
     Parameters
     ----------
     A, B, C
-        Discrete nominal model (augmented by ``input_delay`` like a design's), used for the default gain.
+        Discrete nominal model, augmented by ``input_delay`` like a design's, with ``C`` the MEASURED output map
+        (``C_measured``); used for the default gain and the certificates.
     n_samples
         ``N``.
     input_delay
@@ -563,7 +569,7 @@ def make_law(kind: str, design: Design, law_cfg: LawConfig, n_samples: int) -> L
         return PType(
             design.A,
             design.B,
-            design.C,
+            design.measured_output,
             n_samples,
             input_delay=design.input_delay,
             gain=law_cfg.p_type_gain,

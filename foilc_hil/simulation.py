@@ -128,38 +128,14 @@ def _jsonable(value: Any) -> Any:
 
 
 def nominal_discrete_model(config: Config, input_delay: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The nominal ``(A, B, C)`` sampled with ``config.synthesis.discretization`` and augmented by ``input_delay``
-    cycles (state ``[x; u(t-1); ...; u(t-d)]``) -- what a P-type law needs for its default gain."""
-    from scipy.linalg import expm
-
+    """The nominal ``(A, B, C_measured)`` sampled with ``config.synthesis.discretization`` and augmented by
+    ``input_delay`` cycles (:func:`foilc_hil.discretize.augment_input_delay`) -- what a P-type law needs."""
+    from foilc_hil.discretize import augment_input_delay, discretize
     from plant_emulator.linear import continuous_model
 
-    model = continuous_model(config.plant)
-    a, b, c = model.a, model.b, model.c
-    n, m = a.shape[0], b.shape[1]
-    ts = config.sample_time
-    if config.synthesis.discretization == "euler":
-        A = np.eye(n) + a * ts
-        B = b * ts
-    else:
-        block = np.zeros((n + m, n + m))
-        block[:n, :n] = a * ts
-        block[:n, n:] = b * ts
-        phi = expm(block)
-        A, B = phi[:n, :n], phi[:n, n:]
-    if input_delay == 0:
-        return A, B, c
-    size = n + input_delay * m
-    A_aug = np.zeros((size, size))
-    A_aug[:n, :n] = A
-    A_aug[:n, size - m :] = B  # u(t-d) drives the plant
-    B_aug = np.zeros((size, m))
-    B_aug[n : n + m] = np.eye(m)  # u(t) enters the first delay slot
-    for lag in range(1, input_delay):
-        A_aug[n + lag * m : n + (lag + 1) * m, n + (lag - 1) * m : n + lag * m] = np.eye(m)
-    C_aug = np.zeros((c.shape[0], size))
-    C_aug[:, :n] = c
-    return A_aug, B_aug, C_aug
+    model = discretize(continuous_model(config.plant), config.sample_time, config.synthesis.discretization)
+    augmented, _ = augment_input_delay(model, input_delay)
+    return augmented.A, augmented.B, augmented.measured_output
 
 
 def design_for(config: Config, law: str, input_delay: int = 0) -> Design:
@@ -197,7 +173,7 @@ def build_law(
 
             q_filter = QFilter(config.law.q_filter.cutoff, config.law.q_filter.order, config.sample_time)
         if design is not None:
-            A, B, C, delay = design.A, design.B, design.C, design.input_delay
+            A, B, C, delay = design.A, design.B, design.measured_output, design.input_delay
         else:
             A, B, C = nominal_discrete_model(config, input_delay)
             delay = input_delay
