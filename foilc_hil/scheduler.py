@@ -126,7 +126,9 @@ class TimingSummary:
     """Timing statistics of a run (the ``"timing"`` object of ``foilc-hil run --json``).
 
     Jitter is the release lateness of each cycle (actual SYNC time minus its deadline); in lockstep runs there are
-    no deadlines and the jitter fields are ``None``.
+    no deadlines and the jitter fields are ``None``. ``cycle_time`` is the interval between consecutive SYNCs;
+    ``compute`` is the bench's own share of a cycle, from the feedback handed to the loop to the command sent
+    (law, clamp, RPDO encode and send, log enqueue).
     """
 
     mode: str
@@ -141,6 +143,8 @@ class TimingSummary:
     cycle_time_p50_us: float | None
     cycle_time_p99_us: float | None
     cycle_time_max_us: float | None
+    compute_p50_us: float | None
+    compute_p99_us: float | None
     cycles_per_second: float | None
 
     def to_json(self) -> dict[str, Any]:
@@ -248,6 +252,7 @@ class TimingRecorder:
         # cycle time: interval between consecutive SYNCs within a block
         intervals = [np.diff(block[:, 0]) for block in self._block_arrays if block.shape[0] > 1]
         cycle_time = percentiles(np.concatenate(intervals)) if intervals else (None, None, None)
+        compute = percentiles(rows[:, 4]) if cycles else (None, None, None)
         return TimingSummary(
             mode=self.mode,
             period=self.period,
@@ -261,5 +266,7 @@ class TimingRecorder:
             cycle_time_p50_us=cycle_time[0],
             cycle_time_p99_us=cycle_time[1],
             cycle_time_max_us=cycle_time[2],
+            compute_p50_us=compute[0],
+            compute_p99_us=compute[1],
             cycles_per_second=cycles / elapsed if elapsed > 0 and cycles else None,
         )
