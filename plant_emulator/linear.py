@@ -51,7 +51,17 @@ class ContinuousModel:
 
 
 def continuous_model(plant: PlantConfig) -> ContinuousModel:
-    """The nominal continuous model of ``plant``, validated for shape; errors name the offending key."""
+    """The nominal continuous model of ``plant``, validated for shape; errors name the offending key.
+
+    A ``pmsm`` plant given without ``a``/``b``/``num``/``den`` uses the first-order approximation of its nominal
+    axis (:func:`plant_emulator.physics.pmsm.nominal_first_order`, in rpm), so a default PMSM config can be
+    tuned and synthesised before it is identified.
+    """
+    if plant.model == "pmsm" and all(v is None for v in (plant.a, plant.b, plant.num, plant.den)):
+        from plant_emulator.physics.pmsm import nominal_first_order
+
+        pole, gain = nominal_first_order(plant.pmsm)
+        return ContinuousModel(np.array([[pole]]), np.array([[gain]]), np.array([[1.0]]), plant.delay)
     if plant.a is not None or plant.b is not None:
         if plant.a is None or plant.b is None:
             raise ConfigError("give both 'a' and 'b' (or 'num' and 'den')", key="plant")

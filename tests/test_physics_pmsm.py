@@ -228,3 +228,16 @@ def test_closed_current_loop_is_a_first_order_lag_of_the_configured_bandwidth() 
         plant.step(np.array([1.0]), 1e-4)
         expected = 1.0 - math.exp(-bandwidth * k * 1e-4)
         assert plant.torque == pytest.approx(expected, abs=0.03), f"t = {k * 1e-4}"
+
+
+def test_default_pmsm_design_model_is_its_nominal_first_order() -> None:
+    from plant_emulator.linear import continuous_model
+
+    config = PlantConfig(model="pmsm")
+    model = continuous_model(config)
+    a, b = _pmsm().nominal_first_order()
+    assert (model.a[0, 0], model.b[0, 0], model.c[0, 0]) == (a, b, 1.0)
+    c = config.pmsm
+    assert -1.0 / a == pytest.approx((c.velocity_kp + c.viscous) / c.velocity_ki)
+    given = continuous_model(PlantConfig(model="pmsm", a=-2.0, b=3.0))
+    assert (given.a[0, 0], given.b[0, 0]) == (-2.0, 3.0)

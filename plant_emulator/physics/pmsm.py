@@ -47,7 +47,7 @@ from plant_emulator.config import PlantConfig, PmsmConfig
 from plant_emulator.physics.base import check_input, check_step, check_trial, trial_rng
 from plant_emulator.physics.disturbance import Disturbance
 
-__all__ = ["RAD_PER_S_PER_RPM", "InputKind", "PmsmPlant"]
+__all__ = ["RAD_PER_S_PER_RPM", "InputKind", "PmsmPlant", "nominal_first_order"]
 
 RAD_PER_S_PER_RPM = 2.0 * math.pi / 60.0
 InputKind = Literal["velocity", "torque"]
@@ -216,24 +216,9 @@ class PmsmPlant:
         return dict(self._drawn)
 
     def nominal_first_order(self) -> tuple[float, float]:
-        """``(a, b)`` of the first-order approximation ``y' = a y + b u`` of the nominal axis, in rpm.
-
-        Velocity input: the closed velocity loop ``(beta kp s + ki) / (J s^2 + (kp + B) s + ki)`` matched in DC
-        gain (1) and mean delay ``tau = (kp (1 - beta) + B) / ki`` (floored at ``J / (kp + B)``, the fast
-        time constant, when the set-point weight makes the mean delay degenerate): ``a = -1/tau``, ``b = 1/tau``.
-        Torque input: ``a = -B / J``, ``b = (60 / 2 pi) / J`` (rpm/s per N m). Coulomb friction, cogging and the
-        current loop lag are neglected.
-        """
-        c = self._config
-        if self._input_kind == "torque":
-            return -c.viscous / c.inertia, 1.0 / (c.inertia * RAD_PER_S_PER_RPM)
-        if c.velocity_ki == 0:
-            raise ConfigError(
-                "the velocity loop has no integral action; give velocity_ki > 0", key="plant.pmsm.velocity_ki"
-            )
-        mean_delay = (c.velocity_kp * (1.0 - c.velocity_setpoint_weight) + c.viscous) / c.velocity_ki
-        tau = max(mean_delay, c.inertia / (c.velocity_kp + c.viscous))
-        return -1.0 / tau, 1.0 / tau
+        """``(a, b)`` of the first-order approximation of the nominal axis for the current input kind; see
+        :func:`nominal_first_order`."""
+        return nominal_first_order(self._config, self._input_kind)
 
     # --- internals --------------------------------------------------------------------------------------------
 
@@ -362,3 +347,33 @@ def _draw_parameters(config: PmsmConfig, seed: int) -> dict[str, float]:
         "inductance_d": config.inductance_d * factors["inductance"],
         "inductance_q": config.inductance_q * factors["inductance"],
     }
+
+
+def nominal_first_order(config: PmsmConfig, input_kind: InputKind | None = None) -> tuple[float, float]:
+    """``(a, b)`` of the first-order approximation ``y' = a y + b u`` of the nominal axis, ``y`` in rpm.
+
+    Velocity input (CSV): the closed velocity loop ``(beta kp s + ki) / (J s^2 + (kp + B) s + ki)`` matched in
+    DC gain (1) and mean delay ``tau = (kp (1 - beta) + B) / ki``, floored at ``J / (kp + B)`` (the fast time
+    constant) when the set-point weight makes the mean delay degenerate: ``a = -1/tau``, ``b = 1/tau``. With the
+    defaults ``tau`` = 0.2004 s, ``a = -b`` = -4.99 1/s.
+    Torque input (CST): ``a = -B / J``, ``b = (60 / 2 pi) / J`` (rpm/s per N m).
+    Coulomb friction, cogging and the current-loop lag are neglected.
+
+    Parameters
+    ----------
+    config
+        The ``plant.pmsm`` section.
+    input_kind
+        ``"velocity"`` or ``"torque"``; default ``config.input_kind``.
+    """
+    kind = config.input_kind if input_kind is None else input_kind
+    if kind == "torque":
+        return -config.viscous / config.inertia, 1.0 / (config.inertia * RAD_PER_S_PER_RPM)
+    if config.velocity_ki == 0:
+        raise ConfigError(
+            "the velocity loop has no integral action; give velocity_ki > 0", key="plant.pmsm.velocity_ki"
+        )
+    proportional = config.velocity_kp * (1.0 - config.velocity_setpoint_weight)
+    mean_delay = (proportional + config.viscous) / config.velocity_ki
+    tau = max(mean_delay, config.inertia / (config.velocity_kp + config.viscous))
+    return -1.0 / tau, 1.0 / tau
