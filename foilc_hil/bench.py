@@ -22,17 +22,21 @@ Hot path: the per-trial arrays are allocated before the trial; per cycle the loo
 the law and the drive, and the frame tap enqueues CAN frames for the log writer thread. ``/ilc/sample``,
 ``/ilc/trial`` and ``/timing`` messages are built after the trial.
 
-Safety (:mod:`foilc_hil.safety`): commands are clamped to the drive limits and the plant saturation; a watchdog
-trips after ``bench.watchdog_cycles`` cycles without feedback; EMCY, a fault statusword or a drive leaving
-OPERATION ENABLED aborts; non-finite outputs or commands abort; a trial whose SSE exceeds
-``bench.divergence_factor`` x the best SSE stops learning and restores the best feedforward; SIGINT/SIGTERM
-stop the loop at the next cycle. Every abort quick-stops the drive first; on every exit path the caller's
+Safety (:mod:`foilc_hil.safety`): commands are clamped to the drive limits and the plant saturation; the
+watchdog bounds the wait for each SYNC's feedback to ``bench.watchdog_cycles`` cycles (one period each in
+realtime, :data:`LOCKSTEP_FEEDBACK_TIMEOUT` in lockstep) -- no further SYNC is sent while waiting, the drive holds
+its last command, and feedback that arrives after half a period is counted late; when it trips the master has
+already quick-stopped the drive and the run aborts with :class:`~foilc_hil.errors.FeedbackTimeoutError`. EMCY,
+a fault statusword or a drive leaving OPERATION ENABLED aborts; non-finite outputs or commands abort; a trial
+whose SSE exceeds ``bench.divergence_factor`` x the best SSE stops learning and restores the best feedforward;
+SIGINT/SIGTERM stop the loop at the next cycle. Every abort quick-stops the drive first; on every exit path the caller's
 ``finally`` disables the drive (``safe_stop``) and closes the log.
 
 What ``/ilc/sample`` holds (the contract with ``replay --verify``): row ``i`` of trial ``k`` has
 ``output = y_i`` -- exactly the float64 the law was given at sample ``i`` -- and ``control = u_i``, the law's
-command *before* clamping (what the law computed; clamping is the bench's, recorded in ``applied`` -- the value
-sent to the drive after clamping, in plant units). ``reference``, ``error`` and ``E`` are row ``i`` of the trial
+command *before* clamping (what the law computed, so ``replay --verify`` can reproduce it bit for bit; the
+clamped, quantised value actually sent is kept in :attr:`TrialRecord.applied`, and ``/ilc/trial`` counts the
+clamped commands in ``clamped``). ``reference``, ``error`` and ``E`` are row ``i`` of the trial
 arrays (``error[i] = reference[i] - y_{i+1}``), so the SSE of a trial is the sum of the squared ``error`` fields.
 """
 
@@ -77,7 +81,8 @@ SETTLE_TIMEOUT_FACTOR = 20.0
 MIN_SETTLE_TIMEOUT = 5.0
 #: lockstep: how long to wait for one cycle's TPDO feedback before counting it missing (seconds)
 LOCKSTEP_FEEDBACK_TIMEOUT = 0.1
-#: realtime: feedback arriving later than this fraction of the period after its SYNC counts as late
+#: realtime: feedback arriving later than this fraction of the period after its SYNC counts as late (the command
+#: then has less than half a period to reach the drive before the next SYNC)
 LATE_FEEDBACK_FRACTION = 0.5
 
 
@@ -158,6 +163,7 @@ class TrialRecord:
     E: np.ndarray | None  # (N,) fractional PD function of the error; None for laws without one
     metrics: TrialMetrics
     sync_times: np.ndarray  # (N + 1,) perf_counter time of each SYNC
+    clamped: int = 0  # commands of this trial the limiter clamped
 
     def sample_messages(self) -> Iterator[dict[str, Any]]:
         """The ``/ilc/sample`` messages of this trial (module docstring: what each field is)."""
@@ -269,13 +275,15 @@ class TrialLoop:
         self.stop = stop if stop is not None else StopRequest()
         self._clock = clock
         self._before_trial = before_trial
-        self.watchdog = FeedbackWatchdog(settings.watchdog_cycles)
+        self.watchdog = FeedbackWatchdog(
+            settings.watchdog_cycles,
+            settings.period if settings.mode == "realtime" else settings.lockstep_feedback_timeout,
+        )
         self.guard = DivergenceGuard(settings.divergence_factor)
         self.timing = TimingRecorder(settings.mode, settings.period)
         self.scheduler = DeadlineScheduler(settings.period, clock=clock) if settings.mode == "realtime" else None
         self.outcome = BenchOutcome()
         self._cycle = 0  # cycles run so far, over the whole run
-        self._last_output = 0.0
         self._output_buffer = np.zeros(1)
         self._feedforward_used = np.zeros(0)
         # the current cycle's measurements, written by _cycle_feedback and read by _finish_cycle
@@ -374,6 +382,7 @@ class TrialLoop:
         self.law.begin_trial()
         output_buffer = self._output_buffer
         limiter = self.limiter
+        clamped_before = limiter.clamped_count
         drive = self.drive
         law = self.law
         try:
@@ -415,61 +424,41 @@ class TrialLoop:
             E=E,
             metrics=metrics,
             sync_times=sync_times,
+            clamped=limiter.clamped_count - clamped_before,
         )
 
     # -- one cycle -----------------------------------------------------------------------------------------------
 
     def _cycle_feedback(self) -> float:
-        """Release (realtime: wait for the deadline), SYNC, and get this cycle's output (held if missing)."""
+        """Release (realtime: wait for the deadline), SYNC, and wait for this cycle's feedback (watchdog-bounded)."""
         if self.stop.requested:
             raise RunInterruptedError(f"interrupted by {self.stop.signal_name}; drive quick-stopped and disabled")
         if self.scheduler is not None:
             deadline, lateness, skipped = self.scheduler.wait()
         else:
             deadline, lateness, skipped = math.nan, math.nan, 0
-        expected = self.drive.sync()
+        self.drive.sync()
         sync_time = self._clock()
         self._sync_time = sync_time
         self._deadline, self._lateness, self._skipped = deadline, lateness, skipped
-        if self.scheduler is not None:
-            # feedback must be in before the next deadline, leaving a little time to send the command
-            wait_until = deadline + self.settings.period * 0.9
-        else:
-            wait_until = sync_time + self.settings.lockstep_feedback_timeout
-        feedback = self._await_feedback(expected, wait_until)
+        try:
+            feedback = self.drive.wait_feedback(self.watchdog.timeout)
+        except FeedbackTimeoutError as exc:
+            self._missing = True
+            self.timing.record(sync_time, deadline, lateness, math.nan, math.nan, skipped, False, True)
+            raise self.watchdog.trip(self._cycle, exc) from exc
         received = self._clock()
         self._received = received
-        if feedback is None:
-            self._missing = True
-            self._late = False
-            self._latency = math.nan
-            self.watchdog.missed(self._cycle)
-            return self._last_output
         self._missing = False
         self._latency = received - sync_time
         self._late = self.scheduler is not None and self._latency > LATE_FEEDBACK_FRACTION * self.settings.period
-        self.watchdog.fed()
         if feedback.state != State402.OPERATION_ENABLED:
             raise DriveFaultError(
                 f"the drive left OPERATION ENABLED (now {State402(feedback.state).name}) at cycle {self._cycle}"
             )
         y = float(feedback.velocity)
         require_finite(y, "drive feedback", self._cycle)
-        self._last_output = y
         return y
-
-    def _await_feedback(self, expected: int, wait_until: float) -> Any:
-        """The feedback of SYNC ``expected``; stale feedback of earlier SYNCs is dropped. None on timeout."""
-        while True:
-            remaining = wait_until - self._clock()
-            if remaining <= 0:
-                return None
-            try:
-                feedback = self.drive.wait_feedback(remaining)
-            except FeedbackTimeoutError:
-                return None
-            if _cycle_not_before(feedback.cycle, expected):
-                return feedback
 
     def _finish_cycle(self) -> None:
         self.timing.record(
@@ -493,11 +482,6 @@ class TrialLoop:
         # best effort on the way out: the caller's finally follows with safe_stop (disable)
         with contextlib.suppress(Exception):
             self.drive.quick_stop()
-
-
-def _cycle_not_before(cycle: int, expected: int) -> bool:
-    """Whether feedback tagged ``cycle`` answers SYNC ``expected`` or a later one."""
-    return cycle >= expected
 
 
 def trial_sse_from_samples(errors: Sequence[float]) -> float:
@@ -591,13 +575,8 @@ def command_limiter(config: Any) -> CommandLimiter:
     """Limits of the command in plant units: the drive's limit for the mode, and the plant's saturation."""
     drive = config.drive
     saturation = config.plant.saturation
-    if drive.mode == "cst":
-        return CommandLimiter.symmetric(
-            drive.torque_limit, drive.torque_scale, u_min=saturation.u_min, u_max=saturation.u_max
-        )
-    return CommandLimiter.symmetric(
-        drive.velocity_limit, drive.velocity_scale, u_min=saturation.u_min, u_max=saturation.u_max
-    )
+    limit = drive.torque_limit if drive.mode == "cst" else drive.velocity_limit
+    return CommandLimiter.symmetric(limit, u_min=saturation.u_min, u_max=saturation.u_max)
 
 
 class _McapSink:
@@ -619,7 +598,7 @@ class _McapSink:
                 message["E"],
                 sample=message["sample"],
             )
-        self.writer.log_trial(record.metrics, clamped=int(np.sum(record.applied != record.control)))
+        self.writer.log_trial(record.metrics, clamped=record.clamped)
         self.writer.end_trial()
 
     def timing(self, records: Iterator[dict[str, Any]]) -> None:
@@ -651,10 +630,9 @@ def run_bench(request: RunRequest) -> RunReport:
     """
     from contextlib import ExitStack
 
-    from drivers.cia402_master import Cia402Drive
-
     from drivers.bus import open_bus
     from drivers.cia402 import OperationMode
+    from drivers.cia402_master import Cia402Drive
     from foilc_hil.config import dump_config
     from foilc_hil.io.mcap_log import QueuedLogWriter
     from foilc_hil.laws import make_law

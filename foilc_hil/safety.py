@@ -1,8 +1,7 @@
 """Safety logic of the bench, free of CAN so it is unit-tested on its own.
 
 - :class:`CommandLimiter` clamps every command to the drive's limits (and the plant's actuator saturation).
-- :class:`FeedbackWatchdog` counts consecutive cycles without TPDO feedback and trips after
-  ``bench.watchdog_cycles``.
+- :class:`FeedbackWatchdog` bounds the wait for each cycle's TPDO feedback to ``bench.watchdog_cycles`` cycles.
 - :class:`DivergenceGuard` compares each trial's SSE with the best so far and trips when it exceeds
   ``bench.divergence_factor`` times the best; it keeps the best trial's feedforward so the bench can restore it.
 - :func:`require_finite` is the NaN/inf guard for outputs and commands.
@@ -56,15 +55,12 @@ class CommandLimiter:
         self.clamped_count = 0
 
     @classmethod
-    def symmetric(
-        cls, drive_limit: float, scale: float, *, u_min: float | None = None, u_max: float | None = None
-    ) -> CommandLimiter:
-        """Limits from the drive's ``|target| <= drive_limit`` (drive units; ``plant value * scale`` = drive value)
-        intersected with the plant's actuator saturation ``[u_min, u_max]`` (plant units) when given."""
-        if not (drive_limit > 0 and scale > 0):
-            raise ValueError(f"drive limit and scale must be positive, got {drive_limit!r}, {scale!r}")
-        bound = drive_limit / scale
-        lower, upper = -bound, bound
+    def symmetric(cls, drive_limit: float, *, u_min: float | None = None, u_max: float | None = None) -> CommandLimiter:
+        """Limits from the drive's ``|target| <= drive_limit`` (``drive.velocity_limit`` / ``torque_limit``, in plant
+        units: the master clamps before scaling) intersected with the plant's saturation ``[u_min, u_max]``."""
+        if not drive_limit > 0:
+            raise ValueError(f"drive limit must be positive, got {drive_limit!r}")
+        lower, upper = -float(drive_limit), float(drive_limit)
         if u_min is not None:
             lower = max(lower, u_min)
         if u_max is not None:
@@ -85,40 +81,43 @@ class CommandLimiter:
 
 
 class FeedbackWatchdog:
-    """Trips after ``limit`` consecutive cycles without feedback.
+    """The feedback watchdog: no TPDO feedback for ``limit`` cycles trips it.
+
+    The bench waits for each SYNC's feedback at most :attr:`timeout` (``limit`` cycles' worth) and sends no
+    further SYNC meanwhile; the drive holds its last command. The CiA 402 master quick-stops the drive the moment
+    that wait times out, so the watchdog is a single bounded wait rather than a count of separate misses (a
+    second SYNC after a missed answer would already run on a stopped drive).
 
     Parameters
     ----------
     limit
-        ``bench.watchdog_cycles``: how many consecutive missing feedbacks are tolerated before tripping.
+        ``bench.watchdog_cycles`` (>= 1).
+    cycle_time
+        The time one cycle's feedback may take: the period in realtime, the lockstep per-cycle allowance otherwise.
     """
 
-    def __init__(self, limit: int) -> None:
+    def __init__(self, limit: int, cycle_time: float) -> None:
         if limit < 1:
             raise ValueError(f"watchdog limit must be >= 1 cycle, got {limit!r}")
+        if not (cycle_time > 0 and math.isfinite(cycle_time)):
+            raise ValueError(f"watchdog cycle time must be positive, got {cycle_time!r}")
         self.limit = int(limit)
-        self.consecutive_missing = 0
-        self.total_missing = 0
+        self.cycle_time = float(cycle_time)
+        self.tripped = False
 
-    def fed(self) -> None:
-        """Feedback arrived this cycle."""
-        self.consecutive_missing = 0
+    @property
+    def timeout(self) -> float:
+        """How long one SYNC's feedback may take before the watchdog trips, seconds."""
+        return self.limit * self.cycle_time
 
-    def missed(self, cycle: int) -> None:
-        """Feedback did not arrive this cycle.
-
-        Raises
-        ------
-        FeedbackTimeoutError
-            When this makes ``limit`` consecutive misses.
-        """
-        self.consecutive_missing += 1
-        self.total_missing += 1
-        if self.consecutive_missing >= self.limit:
-            raise FeedbackTimeoutError(
-                f"no feedback from the drive for {self.consecutive_missing} consecutive cycles "
-                f"(watchdog {self.limit}, at cycle {cycle})"
-            )
+    def trip(self, cycle: int, cause: BaseException | None = None) -> FeedbackTimeoutError:
+        """The error to raise when the wait at ``cycle`` timed out (marks the watchdog tripped)."""
+        self.tripped = True
+        detail = f": {cause}" if cause is not None and str(cause) else ""
+        return FeedbackTimeoutError(
+            f"watchdog: no feedback from the drive for {self.limit} cycles ({self.timeout:.3g} s) at cycle {cycle}; "
+            f"drive quick-stopped{detail}"
+        )
 
 
 @dataclass(frozen=True)

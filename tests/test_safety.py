@@ -14,7 +14,7 @@ from foilc_hil.safety import CommandLimiter, DivergenceGuard, FeedbackWatchdog, 
 
 
 def test_limiter_clamps_and_counts() -> None:
-    limiter = CommandLimiter.symmetric(3000.0, 10.0, u_max=250.0)  # drive: 300 plant units; plant: 250
+    limiter = CommandLimiter.symmetric(300.0, u_max=250.0)  # drive: +-300 plant units; plant saturates at 250
     assert (limiter.lower, limiter.upper) == (-300.0, 250.0)
     assert limiter.clamp(100.0) == 100.0
     assert limiter.clamp(1e6) == 250.0
@@ -31,16 +31,16 @@ def test_limiter_refuses_nan_and_bad_limits() -> None:
         CommandLimiter(1.0, 1.0)
 
 
-def test_watchdog_trips_on_consecutive_misses_only() -> None:
-    watchdog = FeedbackWatchdog(3)
-    watchdog.missed(1)
-    watchdog.missed(2)
-    watchdog.fed()
-    watchdog.missed(4)
-    watchdog.missed(5)
-    with pytest.raises(FeedbackTimeoutError, match="3 consecutive"):
-        watchdog.missed(6)
-    assert watchdog.total_missing == 5
+def test_watchdog_timeout_and_message() -> None:
+    watchdog = FeedbackWatchdog(5, 0.002)
+    assert watchdog.timeout == pytest.approx(0.010)
+    assert not watchdog.tripped
+    error = watchdog.trip(42, FeedbackTimeoutError("no TPDO set answered SYNC 42"))
+    assert isinstance(error, FeedbackTimeoutError)
+    assert watchdog.tripped
+    assert "5 cycles" in str(error) and "cycle 42" in str(error) and "SYNC 42" in str(error)
+    with pytest.raises(ValueError, match="limit"):
+        FeedbackWatchdog(0, 0.001)
 
 
 def test_divergence_guard_keeps_best_feedforward() -> None:
