@@ -12,6 +12,7 @@ import threading
 import time
 import uuid
 from collections.abc import Iterator
+from typing import Any
 
 import can
 import canopen
@@ -92,7 +93,8 @@ def test_base_node_402_enables_and_runs_csv(
     assert node.statusword & (1 << 12)  # CSV: target value followed
 
     target_rpm = 300.0
-    node.rpdo_pointers[0x60FF].raw = int(target_rpm * COUNTS_PER_RPM)
+    target_velocity: Any = node.rpdo_pointers[0x60FF]  # canopen annotates these as PdoMap; they are variables
+    target_velocity.raw = int(target_rpm * COUNTS_PER_RPM)
     velocity = _wait_tpdo_value(node, 0x606C, accept=0.98 * target_rpm * COUNTS_PER_RPM, timeout=10.0)
     assert velocity == pytest.approx(target_rpm * COUNTS_PER_RPM, rel=0.03)
     assert node.sdo[0x606C].raw == pytest.approx(target_rpm * COUNTS_PER_RPM, rel=0.03)  # SDO agrees with PDO
