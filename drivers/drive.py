@@ -14,6 +14,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
 from types import TracebackType
+from typing import TypeVar
 
 import can
 
@@ -21,6 +22,8 @@ from drivers.cia301 import NmtState
 from drivers.cia402 import OperationMode, State402
 
 __all__ = ["DeviceInfo", "Drive", "Feedback"]
+
+DriveT = TypeVar("DriveT", bound="Drive")
 
 
 @dataclass(frozen=True, slots=True)
@@ -125,7 +128,7 @@ class Drive(ABC):
     def add_frame_listener(self, listener: Callable[[can.Message, str], None]) -> None:
         """Call ``listener(message, "tx" | "rx")`` for every frame on the bus from now on."""
 
-    def __enter__(self) -> Drive:
+    def __enter__(self: DriveT) -> DriveT:
         return self
 
     def __exit__(

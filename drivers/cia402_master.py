@@ -1,0 +1,914 @@
+"""CiA 402 master over python-can + canopen: :class:`Cia402Drive`, the bench's :class:`~drivers.drive.Drive`.
+
+Start-up follows what real CANopen masters do, using only standard objects, so any CiA 402 drive works:
+
+1. ``connect``: NMT reset communication, wait for the boot-up, NMT pre-operational, read 0x1000 (must be a 402
+   device), 0x1018:1..4 and 0x6502 over SDO.
+2. ``configure``: start the master's heartbeat producer; for every RPDO/TPDO 1..4: disable it (COB-ID bit 31),
+   and for those the mode uses: transmission type 1, mapping count 0, mapping entries, count, COB-ID enabled;
+   then 0x6060 mode, 0x605A, 0x6007, 0x1006 (cycle period in us), 0x1017 (drive heartbeat), 0x1016:1 (drive
+   watches the master); read all of it back (0x6061 must show the mode); NMT start; wait for the operational
+   heartbeat.
+3. ``enable``: controlword 0x06 / 0x07 / 0x0F through the RPDO, one SYNC each, until the TPDO statusword shows
+   OPERATION_ENABLED.
+
+Cyclic path (never SDO): ``set_target`` encodes the RPDO with a precomputed :class:`~drivers.pdo.PdoCodec` and
+sends it; ``sync`` sends a prebuilt SYNC (DLC 0: no counter, so no drive needs 0x1019) and advances the master's
+cycle counter; TPDOs are decoded on the Notifier thread and handed to ``wait_feedback`` through a condition
+variable.
+
+Errors: EMCY -> :class:`~foilc_hil.errors.EmergencyError` (code decoded), statusword fault bit ->
+:class:`~foilc_hil.errors.DriveFaultError`, no heartbeat for ``heartbeat_timeout_factor x 0x1017`` ->
+:class:`~foilc_hil.errors.HeartbeatLostError` (checked by ``wait_feedback`` and by a watchdog thread), no TPDO set
+in time -> :class:`~foilc_hil.errors.FeedbackTimeoutError`, SDO abort -> :class:`~foilc_hil.errors.SdoError`.
+Before any of these leaves ``wait_feedback`` the master commands quick stop (controlword 0x02, target 0, one SYNC).
+Received frames: a TPDO/EMCY/heartbeat of the drive with the wrong DLC is a
+:class:`~foilc_hil.errors.ProtocolError` (raised by the next ``wait_feedback``); a frame with a COB-ID nobody
+subscribed to (another node's traffic) is ignored and counted in :attr:`Cia402Drive.stats`.
+
+Thread safety
+-------------
+- Public methods are called from ONE control thread (the bench's). canopen's SDO client is not re-entrant.
+- The Notifier thread runs the receive callbacks (TPDO, EMCY, heartbeat). They touch only the state guarded by
+  ``self._cv`` (a ``threading.Condition``): the current cycle's partial TPDO set, the latest feedback and the
+  queue of pending errors. The control thread reads that state only under the same lock.
+- The heartbeat watchdog thread only posts a pending error under ``self._cv``.
+- Frames are sent under canopen's ``network.send_lock``, shared with canopen's own sends; python-can's
+  periodic heartbeat task has its own lock (the interfaces' ``send`` is thread-safe).
+- Frame listeners (:meth:`Cia402Drive.add_frame_listener`) run on the sending thread and the Notifier thread.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import struct
+import threading
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import can
+import canopen
+from canopen.nmt import NmtMaster
+from canopen.objectdictionary import ObjectDictionary
+from canopen.sdo import SdoAbortedError, SdoCommunicationError
+
+from drivers.bus import FrameListener, FrameTap
+from drivers.cia301 import (
+    RPDO_BASES,
+    SYNC_COB_ID,
+    TPDO_BASES,
+    EmcyCode,
+    FunctionCode,
+    NmtCommand,
+    NmtState,
+    SdoAbortCode,
+    check_node_id,
+    cob_id,
+    sdo_abort_text,
+)
+from drivers.cia402 import (
+    SUPPORTED_MODE_BITS,
+    Command402,
+    IdentitySub,
+    Obj,
+    OperationMode,
+    State402,
+    Statusword,
+    decode_state,
+)
+from drivers.config import DriveConfig
+from drivers.drive import DeviceInfo, Drive, Feedback
+from drivers.emcy import decode_emcy
+from drivers.heartbeat import HeartbeatMonitor, HeartbeatProducer
+from drivers.od import load_od, mapped_variable
+from drivers.pdo import PDO_DISABLED, MappedVariable, PdoCodec, PdoDirection, PdoLayout
+from foilc_hil.errors import (
+    ConfigError,
+    DriveError,
+    DriveFaultError,
+    DriveTimeoutError,
+    FeedbackTimeoutError,
+    FoilcHilError,
+    HeartbeatLostError,
+    ProtocolError,
+    SdoError,
+    StateTransitionError,
+)
+
+__all__ = ["Cia402Drive", "RxStats", "pdo_layouts"]
+
+logger = logging.getLogger(__name__)
+
+CIA402_PROFILE = 402
+"""Low 16 bits of 0x1000 for a CiA 402 drive."""
+
+MASTER_HEARTBEATS_PER_CONSUMER_TIME = 4
+"""The master beats this many times per drive consumer time (0x1016), so one lost or late frame never trips it."""
+
+_FEEDBACK_OBJECTS = (
+    Obj.STATUSWORD,
+    Obj.VELOCITY_ACTUAL_VALUE,
+    Obj.TORQUE_ACTUAL_VALUE,
+    Obj.POSITION_ACTUAL_VALUE,
+)
+
+# The command that leaves each state on the way to OPERATION_ENABLED (None: the drive leaves it by itself).
+_ENABLE_PATH: dict[State402, Command402 | None] = {
+    State402.NOT_READY_TO_SWITCH_ON: None,
+    State402.SWITCH_ON_DISABLED: Command402.SHUTDOWN,
+    State402.READY_TO_SWITCH_ON: Command402.SWITCH_ON,
+    State402.SWITCHED_ON: Command402.ENABLE_OPERATION,
+    State402.QUICK_STOP_ACTIVE: Command402.DISABLE_VOLTAGE,
+    State402.FAULT_REACTION_ACTIVE: None,
+}
+
+_U8, _U16, _U32 = ("B", False), ("H", False), ("I", False)
+_I8, _I16 = ("b", True), ("h", True)
+
+
+def pdo_layouts(
+    mode: OperationMode, node_id: int, od: ObjectDictionary | None
+) -> tuple[tuple[PdoLayout, ...], tuple[PdoLayout, ...]]:
+    """The RPDOs and TPDOs the master configures for ``mode`` (standard objects only).
+
+    RPDO1 = controlword + target (0x60FF for CSV/PV, 0x6071 for CST); TPDO1 = statusword + velocity actual;
+    TPDO2 = torque actual + position actual. All synchronous (transmission type 1), default COB-IDs.
+    """
+    target = Obj.TARGET_TORQUE if mode is OperationMode.CYCLIC_SYNC_TORQUE else Obj.TARGET_VELOCITY
+
+    def variables(*indices: int) -> tuple[MappedVariable, ...]:
+        return tuple(mapped_variable(od, index) for index in indices)
+
+    rpdos = (
+        PdoLayout(PdoDirection.RPDO, 1, cob_id(RPDO_BASES[0], node_id), variables(Obj.CONTROLWORD, target)),
+    )
+    tpdos = (
+        PdoLayout(
+            PdoDirection.TPDO,
+            1,
+            cob_id(TPDO_BASES[0], node_id),
+            variables(Obj.STATUSWORD, Obj.VELOCITY_ACTUAL_VALUE),
+        ),
+        PdoLayout(
+            PdoDirection.TPDO,
+            2,
+            cob_id(TPDO_BASES[1], node_id),
+            variables(Obj.TORQUE_ACTUAL_VALUE, Obj.POSITION_ACTUAL_VALUE),
+        ),
+    )
+    return rpdos, tpdos
+
+
+def _format(variable: MappedVariable) -> tuple[str, bool]:
+    codes = {8: "b", 16: "h", 32: "i", 64: "q"}
+    code = codes[variable.bits]
+    return (code if variable.signed else code.upper()), variable.signed
+
+
+@dataclass(frozen=True, slots=True)
+class RxStats:
+    """Counters of the receive side (read with :attr:`Cia402Drive.stats`)."""
+
+    tpdo_frames: int
+    emcy_frames: int
+    heartbeat_frames: int
+    bad_frames: int  # wrong DLC or impossible content: raised as ProtocolError
+    unknown_frames: int  # COB-ID nobody subscribed to: ignored
+
+
+class _UnknownFrameCounter(can.Listener):
+    """Counts received frames whose COB-ID no canopen subscriber handles (ignored otherwise)."""
+
+    def __init__(self, network: canopen.Network) -> None:
+        self._network = network
+        self.count = 0
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.arbitration_id not in self._network.subscribers and not msg.is_error_frame:
+            self.count += 1
+
+
+class Cia402Drive(Drive):
+    """A CiA 402 drive on a python-can bus, driven through canopen's SDO client and NMT master.
+
+    Build it with :meth:`open`. The bus belongs to the caller: :meth:`close` releases the Notifier, the heartbeat
+    producer and the frame tap, never the bus.
+    """
+
+    def __init__(
+        self,
+        bus: can.BusABC,
+        cfg: DriveConfig,
+        *,
+        sample_time: float,
+        od: ObjectDictionary,
+    ) -> None:
+        if not (sample_time > 0 and math.isfinite(sample_time)):
+            raise ConfigError(f"must be a positive number of seconds, got {sample_time}", key="sample_time")
+        self.cfg = cfg
+        self.node_id = check_node_id(cfg.node_id)
+        self.sample_time = sample_time
+        self.od = od
+        self._bus = bus
+
+        self._tap = FrameTap()
+        self._tap.attach(bus)
+        self.network = canopen.Network(bus)
+        self.network.NOTIFIER_CYCLE = 0.1  # bounds how long close() waits for the Notifier thread
+        self._unknown = _UnknownFrameCounter(self.network)
+        # canopen annotates Network.listeners as list[MessageListener]; the Notifier takes any can.Listener
+        self.network.listeners.extend([self._tap, self._unknown])  # type: ignore[list-item]
+        self.node = canopen.RemoteNode(self.node_id, od)
+        self.node.sdo.RESPONSE_TIMEOUT = cfg.sdo_timeout
+        self.network.add_node(self.node)
+        self._master_nmt: NmtMaster = self.node.nmt
+
+        # state shared with the Notifier and watchdog threads: only under self._cv
+        self._cv = threading.Condition()
+        self._cycle = 0
+        self._parts: dict[int, tuple[int, ...]] = {}
+        self._feedback: Feedback | None = None
+        self._errors: collections.deque[FoilcHilError] = collections.deque()
+        self._tpdo_frames = 0
+        self._emcy_frames = 0
+        self._heartbeat_frames = 0
+        self._bad_frames = 0
+        self._heartbeat_fault = False
+
+        self.heartbeat = HeartbeatMonitor(self.node_id)
+        self._producer: HeartbeatProducer | None = None
+
+        # control-thread state
+        self._mode: OperationMode | None = None
+        self._device_modes: tuple[OperationMode, ...] | None = None  # from 0x6502, read once
+        self._cycle_period = sample_time
+        self._rpdo: PdoLayout | None = None
+        self._rpdo_codec: PdoCodec | None = None
+        self._target_limits = (0, 0)
+        self._tpdo_codecs: dict[int, PdoCodec] = {}
+        self._controlword = int(Command402.DISABLE_VOLTAGE)
+        self._target_raw = 0
+        self._operational = False
+        self._closed = False
+        self._sync_message = can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False)
+
+        # canopen's EMCY consumer unpacks without a length check and would stop the callbacks of a short frame:
+        # ours replaces it. Our heartbeat callback runs before canopen's NMT state tracking, for the same reason.
+        emcy_cob = cob_id(FunctionCode.EMCY, self.node_id)
+        self.network.unsubscribe(emcy_cob, self.node.emcy.on_emcy)
+        self.network.subscribe(emcy_cob, self._on_emcy)
+        self.network.subscribers[cob_id(FunctionCode.HEARTBEAT, self.node_id)].insert(0, self._on_heartbeat)
+        self.network.connect()  # starts the Notifier with canopen's listener, the tap and the counter
+        self.heartbeat.start_watchdog(self._on_heartbeat_lost, poll=0.05)
+
+    # --- construction -----------------------------------------------------------------------------------------
+
+    @classmethod
+    def open(cls, bus: can.BusABC, cfg: DriveConfig, *, sample_time: float) -> Cia402Drive:
+        """A master for drive ``cfg.node_id`` on ``bus`` with the EDS ``cfg.eds`` (default: the shipped one).
+
+        Raises :class:`~foilc_hil.errors.EdsError` for a bad EDS. Nothing is sent until :meth:`connect`.
+        """
+        od = load_od(cfg.eds, cfg.node_id)
+        return cls(bus, cfg, sample_time=sample_time, od=od)
+
+    # --- Drive: start-up --------------------------------------------------------------------------------------
+
+    def connect(self) -> DeviceInfo:
+        """NMT reset communication, wait for boot-up, NMT pre-operational, read identity (see module docstring)."""
+        self._require_open()
+        self._reset_communication()
+        self._nmt(NmtCommand.ENTER_PRE_OPERATIONAL)
+        device_type = self._read(Obj.DEVICE_TYPE, 0, _U32)
+        if device_type & 0xFFFF != CIA402_PROFILE:
+            raise DriveError(
+                f"node {self.node_id} is not a CiA 402 drive: device type 0x{device_type:08X} (0x1000)"
+            )
+        identity = [self._read(Obj.IDENTITY, sub, _U32) for sub in IdentitySub]
+        supported = self._supported_modes()
+        self._device_modes = supported
+        return DeviceInfo(
+            node_id=self.node_id,
+            vendor_id=identity[0],
+            product_code=identity[1],
+            revision=identity[2],
+            serial=identity[3],
+            device_type=device_type,
+            nmt_state=NmtState.PRE_OPERATIONAL,
+            supported_modes=supported,
+        )
+
+    def configure(self, mode: OperationMode, cycle_period: float) -> None:
+        """Configure PDOs, mode, timing and heartbeats over SDO, verify by reading back, then NMT start."""
+        self._require_open()
+        mode = OperationMode(mode)
+        if not (cycle_period > 0 and math.isfinite(cycle_period)):
+            raise ConfigError(f"must be a positive number of seconds, got {cycle_period}", key="cycle_period")
+        supported = self._device_modes if self._device_modes is not None else self._supported_modes()
+        if supported and mode not in supported:
+            names = ", ".join(m.name for m in supported)
+            raise ConfigError(f"node {self.node_id} does not support {mode.name} (0x6502 offers {names})",
+                              key="drive.mode")
+        self.heartbeat.disarm()
+        self._operational = False
+        self._nmt(NmtCommand.ENTER_PRE_OPERATIONAL)
+        with self._cv:
+            self._errors.clear()
+            self._heartbeat_fault = False
+        self._start_master_heartbeat()
+
+        rpdos, tpdos = pdo_layouts(mode, self.node_id, self.od)
+        for layouts, bases, direction in ((rpdos, RPDO_BASES, PdoDirection.RPDO),
+                                          (tpdos, TPDO_BASES, PdoDirection.TPDO)):
+            used = {layout.number: layout for layout in layouts}
+            for number in range(1, len(bases) + 1):
+                if number in used:
+                    self._write_pdo(used[number])
+                else:
+                    self._disable_pdo(direction, number, cob_id(bases[number - 1], self.node_id))
+
+        cycle_us = round(cycle_period * 1e6)
+        consumer = (self.cfg.master_node_id << 16) | self.cfg.heartbeat_consumer_ms
+        settings: tuple[tuple[int, int, tuple[str, bool], int], ...] = (
+            (Obj.MODES_OF_OPERATION, 0, _I8, int(mode)),
+            (Obj.QUICK_STOP_OPTION, 0, _I16, self.cfg.quick_stop_option),
+            (Obj.ABORT_CONNECTION_OPTION, 0, _I16, self.cfg.abort_connection_option),
+            (Obj.COMMUNICATION_CYCLE_PERIOD, 0, _U32, cycle_us),
+            (Obj.PRODUCER_HEARTBEAT_TIME, 0, _U16, self.cfg.heartbeat_producer_ms),
+            (Obj.CONSUMER_HEARTBEAT_TIME, 1, _U32, consumer),
+        )
+        for index, sub, fmt, value in settings:
+            self._write(index, sub, fmt, value)
+
+        # read everything back: a drive may accept a write and keep another value
+        for layout in (*rpdos, *tpdos):
+            self._verify_pdo(layout)
+        for index, sub, fmt, value in settings:
+            self._expect(index, sub, fmt, value)
+        self._wait_mode_display(mode)
+
+        self._install_codecs(mode, rpdos, tpdos)
+        self._mode = mode
+        self._cycle_period = cycle_period
+        self._controlword = int(Command402.DISABLE_VOLTAGE)
+        self._target_raw = 0
+
+        beats_before = self.heartbeat.beats
+        self._nmt(NmtCommand.START)
+        self._operational = True
+        if self.cfg.heartbeat_producer_ms > 0:
+            state = self.heartbeat.wait_for(
+                lambda s: s == NmtState.OPERATIONAL,
+                beats_before,
+                timeout=self.cfg.state_timeout + 2 * self.cfg.heartbeat_producer_ms / 1000,
+            )
+            if state is None:
+                raise DriveTimeoutError(
+                    f"node {self.node_id} did not report NMT OPERATIONAL in its heartbeat after NMT start"
+                )
+            self.heartbeat.arm(self.cfg.heartbeat_timeout_factor * self.cfg.heartbeat_producer_ms / 1000)
+
+    # --- Drive: CiA 402 state machine -------------------------------------------------------------------------
+
+    def enable(self) -> None:
+        """Controlword 0x06 / 0x07 / 0x0F until OPERATION_ENABLED (target held at 0)."""
+        self._require_operational()
+        self._target_raw = 0
+        try:
+            state = self._step(self._controlword).state
+            for _ in range(len(State402) + 2):  # the path is at most 4 transitions; bounded against a looping drive
+                if state is State402.OPERATION_ENABLED:
+                    return
+                if state is State402.FAULT:
+                    raise DriveFaultError(
+                        f"node {self.node_id} is in FAULT; fault_reset() first "
+                        f"(statusword 0x{self._statusword():04X})"
+                    )
+                state = self._leave(state, _ENABLE_PATH[state], goal=State402.OPERATION_ENABLED)
+            raise StateTransitionError(
+                f"node {self.node_id} never reached OPERATION_ENABLED (last state {state.name})"
+            )
+        except FoilcHilError:
+            self._fail_safe()
+            raise
+
+    def disable(self) -> None:
+        """Disable voltage until SWITCH_ON_DISABLED (or FAULT, which disable voltage does not leave)."""
+        self._require_connected()
+        self._target_raw = 0
+        self._drive_to(Command402.DISABLE_VOLTAGE, {State402.SWITCH_ON_DISABLED, State402.FAULT},
+                       self.cfg.state_timeout)
+
+    def quick_stop(self) -> None:
+        """Quick stop until QUICK_STOP_ACTIVE, or SWITCH_ON_DISABLED (quick stop options 0..4, or not enabled)."""
+        self._require_connected()
+        self._target_raw = 0
+        self._drive_to(Command402.QUICK_STOP,
+                       {State402.QUICK_STOP_ACTIVE, State402.SWITCH_ON_DISABLED, State402.FAULT},
+                       self.cfg.state_timeout)
+
+    def fault_reset(self) -> None:
+        """Rising edge on controlword bit 7 until the drive leaves FAULT.
+
+        After a heartbeat fault (EMCY 0x8130 from the drive, or the master lost the drive's heartbeat) the
+        drive's communication is restored first: NMT reset communication, boot-up, and the last
+        :meth:`configure` again (reset communication restores the drive's 0x1000..0x1FFF defaults).
+        """
+        self._require_connected()
+        with self._cv:
+            heartbeat_fault = self._heartbeat_fault
+            self._errors.clear()
+        if heartbeat_fault and self._mode is not None:
+            mode, period = self._mode, self._cycle_period
+            self.heartbeat.disarm()
+            self._operational = False
+            self._reset_communication()
+            self.configure(mode, period)
+        self._target_raw = 0
+        self._step(int(Command402.DISABLE_VOLTAGE))  # bit 7 low first: the reset acts on the rising edge
+        deadline = time.monotonic() + self.cfg.state_timeout
+        state = self._step(int(Command402.FAULT_RESET)).state
+        while state in (State402.FAULT, State402.FAULT_REACTION_ACTIVE):
+            if time.monotonic() > deadline:
+                self._step(int(Command402.DISABLE_VOLTAGE))
+                raise StateTransitionError(
+                    f"node {self.node_id} stuck in {state.name}: fault reset (controlword 0x80) for "
+                    f"{self.cfg.state_timeout} s did not clear it"
+                )
+            state = self._step(int(Command402.FAULT_RESET)).state
+        self._step(int(Command402.DISABLE_VOLTAGE))
+        with self._cv:
+            self._errors.clear()
+            self._heartbeat_fault = False
+
+    # --- Drive: cyclic path -----------------------------------------------------------------------------------
+
+    def set_target(self, value: float) -> float:
+        """Clamp to the mode's limit, scale, round and send RPDO1 (controlword + target); no SDO."""
+        codec = self._require_codec()
+        if not math.isfinite(value):
+            raise DriveError(f"target {value} is not finite; not sent")
+        if self._mode is OperationMode.CYCLIC_SYNC_TORQUE:
+            limit, scale = self.cfg.torque_limit, self.cfg.torque_scale
+        else:
+            limit, scale = self.cfg.velocity_limit, self.cfg.velocity_scale
+        clamped = min(max(value, -limit), limit)
+        low, high = self._target_limits
+        raw = min(max(round(clamped * scale), low), high)
+        self._target_raw = raw
+        self._send(can.Message(arbitration_id=self._rpdo_cob(), data=codec.encode(self._controlword, raw),
+                               is_extended_id=False))
+        return raw / scale
+
+    def sync(self) -> int:
+        """Send SYNC; TPDOs received from now on answer the returned cycle."""
+        self._require_open()
+        with self._cv:
+            self._cycle += 1
+            self._parts.clear()
+            with self.network.send_lock:
+                self._bus.send(self._sync_message)
+            return self._cycle
+
+    def wait_feedback(self, timeout: float) -> Feedback:
+        """Block until the TPDO set answering the last SYNC arrived (see :class:`~drivers.drive.Drive`)."""
+        try:
+            return self._await_feedback(timeout, raise_on_fault=True)
+        except (FoilcHilError, can.CanError):
+            self._fail_safe()
+            raise
+
+    def safe_stop(self) -> None:
+        """Quick stop, zero target, disable voltage; logs and swallows every failure."""
+        if self._closed:
+            return
+        short = min(self.cfg.state_timeout, 0.5)
+        for command, goal in (
+            (Command402.QUICK_STOP, {State402.QUICK_STOP_ACTIVE, State402.SWITCH_ON_DISABLED, State402.FAULT}),
+            (Command402.DISABLE_VOLTAGE, {State402.SWITCH_ON_DISABLED, State402.FAULT}),
+        ):
+            self._target_raw = 0
+            try:
+                self._drive_to(command, goal, short)
+            except Exception as exc:  # safe_stop never raises: every exit path calls it
+                logger.warning("safe stop: %s of node %d failed: %s", command.name, self.node_id, exc)
+                self._fail_safe(command)
+
+    def close(self) -> None:
+        """NMT pre-operational and consumer heartbeat off (best effort), then release the Notifier, producer, tap."""
+        if self._closed:
+            return
+        if self._operational:
+            try:
+                self._nmt(NmtCommand.ENTER_PRE_OPERATIONAL)
+                self._write(Obj.CONSUMER_HEARTBEAT_TIME, 1, _U32, 0)
+            except Exception as exc:  # the drive may be gone; closing must still release everything
+                logger.info("close: could not park node %d: %s", self.node_id, exc)
+        self._operational = False
+        self._closed = True
+        self.heartbeat.stop_watchdog()
+        if self._producer is not None:
+            self._producer.stop()
+        if self.network.notifier is not None:
+            self.network.notifier.stop(self.network.NOTIFIER_SHUTDOWN_TIMEOUT)
+        self._tap.detach()
+
+    def add_frame_listener(self, listener: FrameListener) -> None:
+        """Call ``listener(message, "tx" | "rx")`` for every frame; runs on the sending and the Notifier thread."""
+        self._tap.add_listener(listener)
+
+    # --- SDO access for commissioning (not for the cyclic path) ----------------------------------------------
+
+    def read_object(self, index: int, subindex: int = 0) -> int:
+        """SDO upload of an integer object, typed by the EDS (or the CiA 402 standard); SdoError on abort."""
+        variable = mapped_variable(self.od, index, subindex)
+        return self._read(index, subindex, _format(variable))
+
+    def write_object(self, index: int, subindex: int, value: int) -> None:
+        """SDO download of an integer object, typed by the EDS (or the CiA 402 standard); SdoError on abort."""
+        variable = mapped_variable(self.od, index, subindex)
+        self._write(index, subindex, _format(variable), value)
+
+    # --- observation ------------------------------------------------------------------------------------------
+
+    @property
+    def stats(self) -> RxStats:
+        """Receive-side counters."""
+        with self._cv:
+            return RxStats(self._tpdo_frames, self._emcy_frames, self._heartbeat_frames, self._bad_frames,
+                           self._unknown.count)
+
+    @property
+    def last_feedback(self) -> Feedback | None:
+        """The latest complete feedback, whatever cycle it answered."""
+        with self._cv:
+            return self._feedback
+
+    @property
+    def controlword(self) -> int:
+        """The controlword the master sends with every RPDO."""
+        return self._controlword
+
+    @property
+    def cycle(self) -> int:
+        """The master's SYNC counter."""
+        with self._cv:
+            return self._cycle
+
+    # --- Notifier-thread callbacks (guarded by self._cv) ------------------------------------------------------
+
+    def _on_tpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        received = time.monotonic()
+        codec = self._tpdo_codecs.get(can_id)
+        if codec is None:
+            return
+        try:
+            values = codec.decode(data)
+        except ProtocolError as exc:
+            self._post_error(exc, bad_frame=True)
+            return
+        with self._cv:
+            self._tpdo_frames += 1
+            self._parts[can_id] = values
+            if len(self._parts) < len(self._tpdo_codecs):
+                return
+            try:
+                feedback = self._assemble(received)
+            except ProtocolError as exc:
+                self._bad_frames += 1
+                self._errors.append(exc)
+            else:
+                self._feedback = feedback
+            self._cv.notify_all()
+
+    def _assemble(self, received: float) -> Feedback:
+        """Feedback from the complete TPDO set of the current cycle (caller holds self._cv)."""
+        by_object: dict[int, int] = {}
+        for cob, values in self._parts.items():
+            for variable, value in zip(self._tpdo_codecs[cob].variables, values, strict=True):
+                by_object[variable.index] = value
+        statusword = by_object[Obj.STATUSWORD]
+        try:
+            state = decode_state(statusword)
+        except ValueError as exc:
+            raise ProtocolError(f"node {self.node_id}: {exc}") from exc
+        return Feedback(
+            cycle=self._cycle,
+            statusword=statusword,
+            state=state,
+            velocity=by_object[Obj.VELOCITY_ACTUAL_VALUE] / self.cfg.velocity_scale,
+            torque=by_object[Obj.TORQUE_ACTUAL_VALUE] / self.cfg.torque_scale,
+            position=by_object[Obj.POSITION_ACTUAL_VALUE],
+            timestamp=received,
+        )
+
+    def _on_emcy(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        try:
+            emergency = decode_emcy(data, time.monotonic())
+        except ProtocolError as exc:
+            self._post_error(exc, bad_frame=True)
+            return
+        with self._cv:
+            self._emcy_frames += 1
+            if emergency.is_reset:
+                return
+            if emergency.code == EmcyCode.HEARTBEAT_LOSS:
+                self._heartbeat_fault = True
+            self._errors.append(emergency.error())
+            self._cv.notify_all()
+        logger.warning("node %d: %s", self.node_id, emergency.error())
+
+    def _on_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if len(data) != 1:
+            self._post_error(ProtocolError(f"heartbeat of node {self.node_id} has DLC {len(data)}, not 1"),
+                             bad_frame=True)
+            return
+        with self._cv:
+            self._heartbeat_frames += 1
+        self.heartbeat.beat(data[0])
+
+    def _on_heartbeat_lost(self, error: HeartbeatLostError) -> None:
+        self._post_error(error)
+        with self._cv:
+            self._heartbeat_fault = True
+
+    def _post_error(self, error: FoilcHilError, *, bad_frame: bool = False) -> None:
+        with self._cv:
+            if bad_frame:
+                self._bad_frames += 1
+            self._errors.append(error)
+            self._cv.notify_all()
+
+    # --- cyclic helpers ---------------------------------------------------------------------------------------
+
+    def _await_feedback(self, timeout: float, *, raise_on_fault: bool) -> Feedback:
+        deadline = time.monotonic() + timeout
+        poll = 0.05
+        with self._cv:
+            cycle = self._cycle
+            while True:
+                if self._errors:
+                    raise self._errors.popleft()
+                try:
+                    self.heartbeat.check()
+                except HeartbeatLostError:
+                    self._heartbeat_fault = True
+                    raise
+                feedback = self._feedback
+                if feedback is not None and feedback.cycle == cycle:
+                    if raise_on_fault and feedback.statusword & Statusword.FAULT:
+                        raise DriveFaultError(
+                            f"node {self.node_id} reports a fault: statusword 0x{feedback.statusword:04X} "
+                            f"({feedback.state.name})"
+                        )
+                    return feedback
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise FeedbackTimeoutError(
+                        f"no TPDO set from node {self.node_id} answered SYNC {cycle} within {timeout:.3f} s"
+                    )
+                self._cv.wait(min(remaining, poll))
+
+    def _exchange_timeout(self) -> float:
+        return min(self.cfg.state_timeout, max(0.2, 10 * self._cycle_period))
+
+    def _step(self, controlword: int) -> Feedback:
+        """One cycle with ``controlword``: RPDO, SYNC, feedback (paced at the cycle period)."""
+        start = time.monotonic()
+        self._controlword = controlword
+        codec = self._require_codec()
+        self._send(can.Message(arbitration_id=self._rpdo_cob(), data=codec.encode(controlword, self._target_raw),
+                               is_extended_id=False))
+        self.sync()
+        feedback = self._await_feedback(self._exchange_timeout(), raise_on_fault=False)
+        rest = self._cycle_period - (time.monotonic() - start)
+        if rest > 0:
+            time.sleep(rest)
+        return feedback
+
+    def _leave(self, state: State402, command: Command402 | None, *, goal: State402) -> State402:
+        """Repeat ``command`` until the drive leaves ``state``; StateTransitionError naming it otherwise."""
+        controlword = self._controlword if command is None else int(command)
+        deadline = time.monotonic() + self.cfg.state_timeout
+        while True:
+            new_state = self._step(controlword).state
+            if new_state is not state:
+                return new_state
+            if time.monotonic() > deadline:
+                what = f"controlword 0x{controlword:02X} ({command.name})" if command else "waiting"
+                raise StateTransitionError(
+                    f"node {self.node_id} stuck in {state.name}: {what} for {self.cfg.state_timeout} s did not "
+                    f"leave it (wanted {goal.name})"
+                )
+
+    def _drive_to(self, command: Command402, goal: set[State402], timeout: float) -> None:
+        """Send ``command`` until the drive is in one of ``goal`` (over PDO when operational, else SDO)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            state = self._command_state(int(command))
+            if state in goal:
+                return
+            if time.monotonic() > deadline:
+                names = " or ".join(sorted(s.name for s in goal))
+                raise StateTransitionError(
+                    f"node {self.node_id} stuck in {state.name}: controlword 0x{int(command):02X} "
+                    f"({command.name}) for {timeout} s did not reach {names}"
+                )
+
+    def _command_state(self, controlword: int) -> State402:
+        if self._operational and self._rpdo_codec is not None:
+            return self._step(controlword).state
+        self._controlword = controlword
+        self._write(Obj.CONTROLWORD, 0, _U16, controlword)
+        time.sleep(self._cycle_period)
+        statusword = self._read(Obj.STATUSWORD, 0, _U16)
+        try:
+            return decode_state(statusword)
+        except ValueError as exc:
+            raise ProtocolError(f"node {self.node_id}: {exc}") from exc
+
+    def _fail_safe(self, command: Command402 = Command402.QUICK_STOP) -> None:
+        """Best effort: command ``command`` with target 0 and apply it with one SYNC; never raises."""
+        self._controlword = int(command)
+        self._target_raw = 0
+        if self._closed or self._rpdo_codec is None or not self._operational:
+            return
+        try:
+            self._send(can.Message(arbitration_id=self._rpdo_cob(),
+                                   data=self._rpdo_codec.encode(self._controlword, 0), is_extended_id=False))
+            self.sync()
+        except Exception as exc:  # called while another error propagates; must not replace it
+            logger.warning("could not command %s on node %d: %s", command.name, self.node_id, exc)
+
+    def _send(self, message: can.Message) -> None:
+        try:
+            with self.network.send_lock:
+                self._bus.send(message)
+        except can.CanError as exc:
+            raise DriveError(f"cannot send 0x{message.arbitration_id:03X} on the bus: {exc}") from exc
+
+    def _statusword(self) -> int:
+        feedback = self.last_feedback
+        return feedback.statusword if feedback is not None else 0
+
+    def _rpdo_cob(self) -> int:
+        if self._rpdo is None:
+            raise DriveError(f"node {self.node_id} is not configured; call configure() first")
+        return self._rpdo.cob_id
+
+    def _require_codec(self) -> PdoCodec:
+        self._require_operational()
+        if self._rpdo_codec is None:
+            raise DriveError(f"node {self.node_id} is not configured; call configure() first")
+        return self._rpdo_codec
+
+    def _require_open(self) -> None:
+        if self._closed:
+            raise DriveError(f"drive {self.node_id} is closed")
+
+    def _require_connected(self) -> None:
+        self._require_open()
+
+    def _require_operational(self) -> None:
+        self._require_open()
+        if not self._operational:
+            raise DriveError(f"node {self.node_id} is not operational; call configure() first")
+
+    # --- start-up helpers (SDO / NMT) -------------------------------------------------------------------------
+
+    def _nmt(self, command: NmtCommand) -> None:
+        try:
+            self._master_nmt.send_command(int(command))
+        except can.CanError as exc:
+            raise DriveError(f"cannot send NMT {command.name} to node {self.node_id}: {exc}") from exc
+
+    def _reset_communication(self) -> None:
+        beats_before = self.heartbeat.beats
+        self._nmt(NmtCommand.RESET_COMMUNICATION)
+        # boot-up (state 0) is what CiA 301 sends; a heartbeat in pre-operational also proves the reset is done
+        state = self.heartbeat.wait_for(lambda s: s in (NmtState.INITIALISING, NmtState.PRE_OPERATIONAL),
+                                        beats_before, timeout=self.cfg.state_timeout)
+        if state is None:
+            raise DriveTimeoutError(
+                f"no boot-up from node {self.node_id} within {self.cfg.state_timeout} s after NMT reset "
+                "communication: is the drive powered, on this bus, with this node id?"
+            )
+
+    def _start_master_heartbeat(self) -> None:
+        if self.cfg.heartbeat_consumer_ms == 0 or self._producer is not None:
+            return
+        period = self.cfg.heartbeat_consumer_ms / 1000 / MASTER_HEARTBEATS_PER_CONSUMER_TIME
+        self._producer = HeartbeatProducer(self._bus, self.cfg.master_node_id, period)
+        self._producer.start()
+
+    def _supported_modes(self) -> tuple[OperationMode, ...]:
+        try:
+            bits = self._read(Obj.SUPPORTED_DRIVE_MODES, 0, _U32)
+        except SdoError as exc:
+            if exc.abort_code in (SdoAbortCode.NO_OBJECT, SdoAbortCode.NO_SUBINDEX):
+                return ()  # 0x6502 is optional: any mode may be tried
+            raise
+        return tuple(mode for mode, bit in SUPPORTED_MODE_BITS.items() if bits & bit)
+
+    def _write_pdo(self, layout: PdoLayout) -> None:
+        """CiA 301 PDO reconfiguration: disable, transmission type, count 0, entries, count, enable."""
+        com, mapping = layout.communication_index, layout.mapping_index
+        self._write(com, 1, _U32, layout.cob_id | PDO_DISABLED)
+        self._write(com, 2, _U8, int(layout.transmission_type))
+        self._write(mapping, 0, _U8, 0)
+        for sub, variable in enumerate(layout.variables, start=1):
+            self._write(mapping, sub, _U32, variable.mapping_entry)
+        self._write(mapping, 0, _U8, len(layout.variables))
+        self._write(com, 1, _U32, layout.cob_id)
+
+    def _disable_pdo(self, direction: PdoDirection, number: int, default_cob: int) -> None:
+        layout = PdoLayout(direction, number, default_cob, ())
+        try:
+            self._write(layout.communication_index, 1, _U32, default_cob | PDO_DISABLED)
+        except SdoError as exc:
+            if exc.abort_code != SdoAbortCode.NO_OBJECT:
+                raise  # the drive has fewer PDOs than four: nothing to disable
+
+    def _verify_pdo(self, layout: PdoLayout) -> None:
+        com, mapping = layout.communication_index, layout.mapping_index
+        self._expect(com, 1, _U32, layout.cob_id, mask=0x9FFF_FFFF)  # bit 30 (RTR) is the drive's business
+        self._expect(com, 2, _U8, int(layout.transmission_type))
+        self._expect(mapping, 0, _U8, len(layout.variables))
+        for sub, variable in enumerate(layout.variables, start=1):
+            self._expect(mapping, sub, _U32, variable.mapping_entry)
+
+    def _wait_mode_display(self, mode: OperationMode) -> None:
+        deadline = time.monotonic() + self.cfg.state_timeout
+        while True:
+            shown = self._read(Obj.MODES_OF_OPERATION_DISPLAY, 0, _I8)
+            if shown == mode:
+                return
+            if time.monotonic() > deadline:
+                raise DriveError(
+                    f"node {self.node_id}: 0x6061 shows mode {shown}, not {int(mode)} ({mode.name}) "
+                    f"{self.cfg.state_timeout} s after writing 0x6060"
+                )
+            time.sleep(0.01)
+
+    def _install_codecs(self, mode: OperationMode, rpdos: Iterable[PdoLayout], tpdos: Iterable[PdoLayout]) -> None:
+        for cob in list(self._tpdo_codecs):
+            self.network.unsubscribe(cob, self._on_tpdo)
+        rpdo = next(iter(rpdos))
+        codec = rpdo.codec()
+        target = codec.variables[1]
+        tpdo_codecs = {layout.cob_id: layout.codec() for layout in tpdos}
+        mapped = {variable.index for c in tpdo_codecs.values() for variable in c.variables}
+        missing = [f"0x{index:04X}" for index in _FEEDBACK_OBJECTS if index not in mapped]
+        if missing:
+            raise DriveError(f"TPDO mapping lacks {', '.join(missing)}")
+        with self._cv:
+            self._tpdo_codecs = tpdo_codecs
+            self._parts.clear()
+            self._feedback = None
+        self._rpdo, self._rpdo_codec = rpdo, codec
+        self._target_limits = (target.minimum, target.maximum)
+        for cob in tpdo_codecs:
+            self.network.subscribe(cob, self._on_tpdo)
+
+    def _read(self, index: int, subindex: int, fmt: tuple[str, bool]) -> int:
+        code, signed = fmt
+        size = struct.calcsize(code)
+        try:
+            data = self.node.sdo.upload(index, subindex)
+        except SdoAbortedError as exc:
+            raise SdoError(index, subindex, exc.code, sdo_abort_text(exc.code)) from exc
+        except SdoCommunicationError as exc:
+            raise SdoError(index, subindex, 0, f"no valid SDO response: {exc}") from exc
+        except can.CanError as exc:
+            raise DriveError(f"SDO upload 0x{index:04X}:{subindex:02X} could not be sent: {exc}") from exc
+        if len(data) < size:
+            raise SdoError(index, subindex, int(SdoAbortCode.LENGTH_TOO_LOW),
+                           f"answered {len(data)} bytes, expected {size}")
+        return int.from_bytes(data[:size], "little", signed=signed)
+
+    def _write(self, index: int, subindex: int, fmt: tuple[str, bool], value: int) -> None:
+        code, _ = fmt
+        try:
+            data = struct.pack("<" + code, value)
+        except struct.error as exc:
+            raise ConfigError(f"0x{index:04X}:{subindex:02X} = {value} does not fit its type: {exc}") from exc
+        try:
+            self.node.sdo.download(index, subindex, data)
+        except SdoAbortedError as exc:
+            raise SdoError(index, subindex, exc.code, sdo_abort_text(exc.code)) from exc
+        except SdoCommunicationError as exc:
+            raise SdoError(index, subindex, 0, f"no valid SDO response: {exc}") from exc
+        except can.CanError as exc:
+            raise DriveError(f"SDO download 0x{index:04X}:{subindex:02X} could not be sent: {exc}") from exc
+
+    def _expect(self, index: int, subindex: int, fmt: tuple[str, bool], value: int, *, mask: int = -1) -> None:
+        read = self._read(index, subindex, fmt)
+        if read & mask != value & mask:
+            raise DriveError(
+                f"node {self.node_id}: 0x{index:04X}:{subindex:02X} reads back {read} (0x{read:X}) after writing "
+                f"{value} (0x{value:X})"
+            )
+
