@@ -15,6 +15,7 @@ applied to the saturated command; the step is split where a delayed command chan
 from __future__ import annotations
 
 import itertools
+import math
 
 import numpy as np
 from scipy.linalg import expm
@@ -148,6 +149,15 @@ class FirstOrderPlant:
         n, m = self.n_states, self.n_inputs
         a = self._a + delta_a * np.eye(n)
         b = self._b + delta_b * self._b_pattern
+        if n == 1:
+            # Scalar state (the paper's plant): the closed form is ~100x cheaper than expm, which matters when
+            # Delta changes every step. integral_0^h e^(a s) ds = h * expm1(a h) / (a h).
+            z = float(a[0, 0]) * h
+            integral = h * (math.expm1(z) / z if z != 0.0 else 1.0)
+            result = (np.array([[math.exp(z)]]), integral * b, np.array([integral]))
+            if nominal:
+                self._remember(h, result)
+            return result
         augmented = np.zeros((n + m + 1, n + m + 1))
         augmented[:n, :n] = a
         augmented[:n, n : n + m] = b
@@ -155,10 +165,13 @@ class FirstOrderPlant:
         exponential = expm(augmented * h)
         result = (exponential[:n, :n], exponential[:n, n : n + m], exponential[:n, n + m])
         if nominal:
-            if len(self._cache) >= _CACHE_SIZE:
-                self._cache.pop(next(iter(self._cache)))
-            self._cache[h] = result
+            self._remember(h, result)
         return result
+
+    def _remember(self, h: float, result: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+        if len(self._cache) >= _CACHE_SIZE:
+            self._cache.pop(next(iter(self._cache)))
+        self._cache[h] = result
 
     def _delayed_segments(self, t0: float, t1: float) -> list[tuple[float, float, np.ndarray]]:
         """Split ``[t0, t1]`` where the delayed command changes; each piece with the input the plant sees."""
