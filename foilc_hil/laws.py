@@ -464,10 +464,10 @@ def _shifted_response(A: np.ndarray, B: np.ndarray, C: np.ndarray, input_delay: 
 def _symbol_bound(response: np.ndarray, gamma: np.ndarray) -> float:
     """``sup_w sigma_max(I - G(w) Gamma)`` over the grid: an upper bound of the lifted ``||I - G Gamma||_2``."""
     p = response.shape[1]
-    worst = 0.0
-    for g in response:
-        worst = max(worst, float(np.linalg.norm(np.eye(p) - g @ gamma, 2)))
-    return worst
+    residual = np.eye(p) - response @ gamma
+    if p == 1 and residual.shape[2] == 1:
+        return float(np.max(np.abs(residual[:, 0, 0])))
+    return float(np.max(np.linalg.norm(residual, 2, axis=(1, 2))))
 
 
 def p_type_default_gain(A: np.ndarray, B: np.ndarray, C: np.ndarray, input_delay: int = 0) -> np.ndarray:
@@ -513,16 +513,14 @@ def lifted_plant(A: np.ndarray, B: np.ndarray, C: np.ndarray, n_samples: int, in
     """The ``(N p, N m)`` lifted map ``u[0..N-1] -> y[(1+d)..(N+d)]`` shifted so row block ``i`` holds the output
     that ``u(i)`` first reaches: block ``(i, j)`` is ``C A^(i-j+d) B`` for ``j <= i`` (zero initial state)."""
     p, m = C.shape[0], B.shape[1]
-    markov = []
+    markov = np.empty((n_samples, p, m))
     power = np.linalg.matrix_power(A, input_delay)
-    for _ in range(n_samples):
-        markov.append(C @ power @ B)
+    for k in range(n_samples):
+        markov[k] = C @ power @ B
         power = A @ power
-    G = np.zeros((n_samples * p, n_samples * m))
-    for i in range(n_samples):
-        for j in range(i + 1):
-            G[i * p : (i + 1) * p, j * m : (j + 1) * m] = markov[i - j]
-    return G
+    lag = np.subtract.outer(np.arange(n_samples), np.arange(n_samples))  # i - j
+    blocks = np.where((lag >= 0)[:, :, None, None], markov[np.clip(lag, 0, None)], 0.0)  # (N, N, p, m)
+    return np.ascontiguousarray(blocks.transpose(0, 2, 1, 3).reshape(n_samples * p, n_samples * m))
 
 
 def p_type_certificates(law: PType) -> dict[str, float]:
