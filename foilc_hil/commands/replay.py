@@ -1,0 +1,129 @@
+"""``foilc-hil replay F.mcap [--bus SPEC] [--rate X] [--verify] [--allow-real-bus] [--json]``.
+
+JSON: ``{"log", "frames_selected", "frames_sent", "duration", "verified", "first_divergence", "samples_checked",
+"trials_checked", "truncated", "damage"}``; ``verified`` is ``null`` without ``--verify``. A divergence exits 1
+(after printing the document); a non-MCAP or missing file, a bad option, or a real bus without
+``--allow-real-bus`` exits 2 before anything is sent.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+from foilc_hil.commands import CommandResult
+from foilc_hil.errors import ExitCode, InputError
+
+HELP = "play a log back onto a bus, or verify it bit for bit"
+
+
+def _id(text: str) -> int:
+    try:
+        return int(text, 0)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an arbitration id (e.g. 0x201 or 513)") from None
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("log", metavar="F.mcap", help="the log to play back")
+    parser.add_argument("--bus", metavar="SPEC", help="re-emit the logged frames here (INTERFACE:CHANNEL)")
+    parser.add_argument("--rate", type=float, default=1.0, metavar="X", help="playback speed factor (default 1)")
+    parser.add_argument("--start", type=float, default=0.0, metavar="S", help="skip the first S seconds of the log")
+    parser.add_argument("--duration", type=float, metavar="D", help="replay only D seconds from --start")
+    parser.add_argument(
+        "--direction",
+        choices=("tx", "rx", "both"),
+        default="tx",
+        help="which logged frames to re-emit: sent by the bench (tx, default), received (rx), or both",
+    )
+    parser.add_argument("--ids", type=_id, nargs="+", metavar="ID", help="re-emit only these arbitration ids")
+    parser.add_argument("--verify", action="store_true", help="re-run the learning law and check every command")
+    parser.add_argument(
+        "--allow-real-bus",
+        action="store_true",
+        help="allow a bus other than virtual/udp_multicast: a replayed log moves real hardware",
+    )
+
+
+def _check_bus(spec: str, allow_real_bus: bool) -> Any:
+    """Parse ``--bus`` and refuse hardware unless allowed -- before anything is opened."""
+    from drivers.bus import is_simulated_bus, parse_bus_spec
+
+    cfg = parse_bus_spec(spec)
+    if not is_simulated_bus(cfg.interface) and not allow_real_bus:
+        raise InputError(
+            f"--bus: {spec} is a real bus and a replayed log moves real hardware; use virtual or udp_multicast, "
+            "or pass --allow-real-bus"
+        )
+    return cfg
+
+
+def execute(args: argparse.Namespace) -> CommandResult:
+    from foilc_hil.io.mcap_log import read_log
+    from foilc_hil.replay import play_frames, select_frames, verify_log
+
+    if not args.rate > 0:
+        raise InputError(f"--rate: must be > 0, got {args.rate}")
+    bus_cfg = _check_bus(args.bus, args.allow_real_bus) if args.bus else None
+    contents = read_log(args.log)
+    if contents.truncated:
+        sys.stderr.write(f"foilc-hil replay: {args.log}: {contents.damage}; using what was read before it\n")
+    directions = ("tx", "rx") if args.direction == "both" else (args.direction,)
+    frames = select_frames(
+        contents.frames, directions=directions, start=args.start, duration=args.duration, ids=args.ids
+    )
+    document: dict[str, Any] = {
+        "log": str(args.log),
+        "frames_selected": len(frames),
+        "frames_sent": 0,
+        "duration": 0.0,
+        "verified": None,
+        "first_divergence": None,
+        "truncated": contents.truncated,
+        "damage": contents.damage or None,
+    }
+    if args.verify:
+        verification = verify_log(contents)
+        document["verified"] = verification.verified
+        document["samples_checked"] = verification.samples_checked
+        document["trials_checked"] = verification.trials_checked
+        if verification.first_divergence is not None:
+            document["first_divergence"] = verification.first_divergence.to_json()
+    if bus_cfg is not None:
+        from drivers.bus import open_bus
+
+        bus = open_bus(bus_cfg)
+        try:
+            playback = play_frames(bus, frames, rate=args.rate)
+        finally:
+            bus.shutdown()
+        document["frames_sent"] = playback.frames_sent
+        document["duration"] = playback.duration
+        document["max_lateness"] = playback.max_lateness
+    lines = [f"{args.log}: {len(frames)} frames selected, {document['frames_sent']} sent"]
+    if contents.truncated:
+        lines.append(f"truncated: {contents.damage}")
+    if args.verify:
+        divergence = document["first_divergence"]
+        if divergence is None:
+            lines.append(
+                f"verified: {document['samples_checked']} commands in {document['trials_checked']} trials "
+                "are bit-identical to the log"
+            )
+        else:
+            lines.append(
+                f"NOT verified: trial {divergence['trial']} sample {divergence['sample']}: {divergence['reason']} "
+                f"(logged {divergence['logged']}, recomputed {divergence['recomputed']})"
+            )
+    text = "\n".join(lines)
+    if document["verified"] is False:
+        divergence = document["first_divergence"]
+        return CommandResult(
+            document,
+            text,
+            exit_code=ExitCode.RUNTIME_FAILURE,
+            message=f"replay differs from the log at trial {divergence['trial']}, sample {divergence['sample']}: "
+            f"{divergence['reason']}",
+        )
+    return CommandResult(document, text)

@@ -1,0 +1,389 @@
+"""Playing a log back: its CAN frames onto a bus in their original timing, and its learning law bit for bit.
+
+Frames
+------
+:func:`select_frames` picks the ``/can`` frames to re-emit (direction ``tx`` by default -- what the bench sent --,
+a time window relative to the log's first frame, optional arbitration ids); :func:`play_frames` sends them with
+their original relative timing scaled by ``rate``, each on an absolute deadline from one start instant (no drift
+accumulates, a late frame does not delay the following ones' deadlines).
+
+Verification
+------------
+:func:`verify_log` rebuilds the law the run used (``make_law`` from the ``foilc_hil.design`` and
+``foilc_hil.config`` metadata), feeds it the logged feedback sample by sample, and checks every command against the
+logged ``control`` bit for bit (float64 bytes, so ``-0.0 != 0.0`` and NaN payloads count). Between trials it calls
+``end_trial`` with the trial's output array ``output[i] = y((i+1) Ts)``: the feedback of samples ``1 .. N-1`` plus
+the trial's ``final_output`` (``/ilc/trial``). A log without ``final_output`` gets the last entry from the logged
+error: a float ``y`` with ``fl(reference - y) == error`` bit for bit, found within a few ulps of
+``reference - error``; the law sees exactly the logged error either way (it learns from ``reference - output``).
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Protocol
+
+import numpy as np
+
+from foilc_hil.errors import FoilcHilError, InputError, LogFormatError
+
+if TYPE_CHECKING:
+    import can
+
+    from foilc_hil.io.mcap_log import LogContents
+
+__all__ = [
+    "Divergence",
+    "LawLike",
+    "Playback",
+    "Verification",
+    "law_from_log",
+    "play_frames",
+    "select_frames",
+    "verify_log",
+]
+
+
+# --- frames ---------------------------------------------------------------------------------------------------
+
+
+def select_frames(
+    frames: Sequence[Mapping[str, Any]],
+    *,
+    directions: Iterable[str] = ("tx",),
+    start: float = 0.0,
+    duration: float | None = None,
+    ids: Iterable[int] | None = None,
+) -> list[Mapping[str, Any]]:
+    """The ``/can`` records to replay, in log order.
+
+    Parameters
+    ----------
+    frames
+        ``/can`` records (:attr:`foilc_hil.io.mcap_log.LogContents.frames`).
+    directions
+        ``"tx"`` (what the bench sent; the default), ``"rx"``, or both.
+    start, duration
+        Window in seconds from the log's first frame (any direction): ``start <= t - t0 < start + duration``.
+    ids
+        Arbitration ids to keep (``None``: all).
+    """
+    if start < 0:
+        raise InputError(f"--start: must be >= 0, got {start}")
+    if duration is not None and duration <= 0:
+        raise InputError(f"--duration: must be > 0, got {duration}")
+    if not frames:
+        return []
+    wanted_dirs = set(directions)
+    wanted_ids = None if ids is None else set(ids)
+    t0 = min(float(frame["timestamp"]) for frame in frames)
+    end = math.inf if duration is None else start + duration
+    selected = []
+    for frame in frames:
+        offset = float(frame["timestamp"]) - t0
+        if frame["dir"] not in wanted_dirs or not start <= offset < end:
+            continue
+        if wanted_ids is not None and int(frame["id"]) not in wanted_ids:
+            continue
+        selected.append(frame)
+    return selected
+
+
+@dataclass(frozen=True)
+class Playback:
+    """What :func:`play_frames` did: frames sent, wall-clock duration, and the worst lateness of a send."""
+
+    frames_sent: int
+    duration: float
+    max_lateness: float
+
+
+def play_frames(
+    bus: can.BusABC,
+    frames: Sequence[Mapping[str, Any]],
+    *,
+    rate: float = 1.0,
+    clock: Callable[[], float] = time.perf_counter,
+    sleep: Callable[[float], None] = time.sleep,
+) -> Playback:
+    """Send ``frames`` on ``bus`` with their logged relative timing divided by ``rate``.
+
+    Frame ``k`` is due at ``t_start + (timestamp_k - timestamp_0) / rate``, an absolute deadline: sleeping
+    too long before one frame shortens the wait before the next instead of shifting the rest of the log.
+    """
+    from foilc_hil.io.mcap_log import frame_to_message
+
+    if not rate > 0 or not math.isfinite(rate):
+        raise InputError(f"--rate: must be a positive number, got {rate}")
+    if not frames:
+        return Playback(0, 0.0, 0.0)
+    messages = [frame_to_message(frame) for frame in frames]  # decode before the clock starts
+    first = messages[0].timestamp
+    started = clock()
+    worst = 0.0
+    for message in messages:
+        due = started + (message.timestamp - first) / rate
+        wait = due - clock()
+        if wait > 0:
+            sleep(wait)
+        worst = max(worst, clock() - due)
+        message.timestamp = 0.0  # the bus stamps what it sends
+        bus.send(message)
+    return Playback(len(messages), clock() - started, worst)
+
+
+# --- verification ---------------------------------------------------------------------------------------------
+
+
+class LawLike(Protocol):
+    """The part of :class:`foilc_hil.laws.LearningLaw` that verification drives."""
+
+    n_samples: int
+
+    def begin_trial(self) -> None: ...
+
+    def command(self, t: int, output: np.ndarray) -> np.ndarray: ...
+
+    def end_trial(self, reference: np.ndarray, output: np.ndarray) -> Any: ...
+
+
+@dataclass(frozen=True)
+class Divergence:
+    """The first sample whose recomputed command differs from the log (or why verification stopped)."""
+
+    trial: int
+    sample: int
+    t: float | None
+    logged: Any
+    recomputed: Any
+    reason: str
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "trial": self.trial,
+            "sample": self.sample,
+            "t": self.t,
+            "logged": _json_number(self.logged),
+            "recomputed": _json_number(self.recomputed),
+            "logged_hex": _hex(self.logged),
+            "recomputed_hex": _hex(self.recomputed),
+            "reason": self.reason,
+        }
+
+
+@dataclass(frozen=True)
+class Verification:
+    """Result of :func:`verify_log`."""
+
+    verified: bool
+    samples_checked: int
+    trials_checked: int
+    first_divergence: Divergence | None
+
+
+def _as_vector(value: Any) -> np.ndarray | None:
+    """A logged signal as a 1-D float64 array (``null`` -> NaN); ``None`` if it is not numeric."""
+    try:
+        return np.atleast_1d(np.asarray(value if value is not None else math.nan, dtype=np.float64)).ravel()
+    except (TypeError, ValueError):
+        return None
+
+
+def _bits_equal(a: np.ndarray, b: np.ndarray) -> bool:
+    return a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+def _json_number(value: Any) -> Any:
+    array = _as_vector(value)
+    if array is None:
+        return None
+    items = [x if math.isfinite(x) else repr(x) for x in array.tolist()]
+    return items[0] if len(items) == 1 else items
+
+
+def _hex(value: Any) -> Any:
+    array = _as_vector(value)
+    if array is None:
+        return None
+    items = [float(x).hex() for x in array.tolist()]
+    return items[0] if len(items) == 1 else items
+
+
+def _output_for_error(reference: float, error: float) -> float | None:
+    """A float ``y`` with ``reference - y == error`` exactly (float64), searched around ``reference - error``."""
+    guess = reference - error
+    candidates = [guess]
+    up = down = guess
+    for _ in range(8):
+        up, down = math.nextafter(up, math.inf), math.nextafter(down, -math.inf)
+        candidates += [up, down]
+    for y in candidates:
+        if struct.pack("<d", reference - y) == struct.pack("<d", error):
+            return y
+    return None
+
+
+def law_from_log(contents: LogContents, n_samples: int) -> LawLike:
+    """Rebuild the run's law from the log's metadata.
+
+    With a ``foilc_hil.design`` record: ``make_law(design.law, design, config.law, n_samples)`` (the design names
+    the law that ran; the bench may override the config's ``law.kind``). Without one (an offline P-type run):
+    the P-type law of the config's nominal model (:func:`foilc_hil.simulation.build_law`, no input delay).
+
+    Raises
+    ------
+    LogFormatError
+        The log lacks the records it needs, or they do not load (the message says which).
+    """
+    import yaml
+
+    from foilc_hil.config import Config
+    from foilc_hil.schema import validate
+
+    config_yaml = contents.config_yaml
+    if config_yaml is None:
+        raise LogFormatError(f"{contents.path}: no foilc_hil.config metadata; --verify needs the run's config")
+    try:
+        document = yaml.safe_load(config_yaml) or {}
+    except yaml.YAMLError as exc:
+        raise LogFormatError(f"{contents.path}: metadata foilc_hil.config is not YAML: {exc}") from None
+    if not isinstance(document, dict):
+        raise LogFormatError(f"{contents.path}: metadata foilc_hil.config is not a mapping")
+    config = validate(Config, document, source=f"{contents.path} (foilc_hil.config)")
+    design_doc = contents.design
+    if design_doc is None:
+        if config.law.kind != "p-type":
+            raise LogFormatError(
+                f"{contents.path}: no foilc_hil.design metadata; --verify needs the design the {config.law.kind} "
+                "run used"
+            )
+        from foilc_hil.simulation import build_law
+
+        return build_law(config, "p-type", n_samples)[0]
+    from foilc_hil.design import Design
+    from foilc_hil.laws import make_law
+
+    try:
+        design = Design.from_json(design_doc)
+    except InputError as exc:
+        raise LogFormatError(f"{contents.path}: metadata foilc_hil.design: {exc}") from None
+    return make_law(design.law, design, config.law, n_samples)
+
+
+def _group_samples(samples: Sequence[Mapping[str, Any]]) -> dict[int, list[Mapping[str, Any]]]:
+    trials: dict[int, list[Mapping[str, Any]]] = {}
+    for sample in samples:
+        trials.setdefault(int(sample["trial"]), []).append(sample)
+    for rows in trials.values():
+        if all("sample" in row for row in rows):
+            rows.sort(key=lambda row: int(row["sample"]))
+    return trials
+
+
+def samples_per_trial(contents: LogContents) -> int:
+    """``N``: the sample count of the log's completed trials (they all have the same)."""
+    grouped = _group_samples(contents.samples)
+    complete = {len(grouped.get(trial, [])) for trial in contents.completed_trials}
+    complete.discard(0)
+    if len(complete) > 1:
+        raise LogFormatError(f"{contents.path}: completed trials have different sample counts {sorted(complete)}")
+    if complete:
+        return complete.pop()
+    if grouped:
+        return max(len(rows) for rows in grouped.values())
+    raise LogFormatError(f"{contents.path}: no /ilc/sample messages to verify")
+
+
+def verify_log(contents: LogContents, law: LawLike | None = None) -> Verification:
+    """Re-run the learning law on the logged feedback; check every command bit for bit.
+
+    Parameters
+    ----------
+    contents
+        The log (:func:`foilc_hil.io.mcap_log.read_log`); a truncated log is verified as far as it goes.
+    law
+        The law to drive; by default :func:`law_from_log`.
+    """
+    grouped = _group_samples(contents.samples)
+    if not grouped:
+        raise LogFormatError(f"{contents.path}: no /ilc/sample messages to verify")
+    n = samples_per_trial(contents)
+    if law is None:
+        law = law_from_log(contents, n)
+    trial_records = {int(record["trial"]): record for record in contents.trials}
+    checked = 0
+    trials_checked = 0
+    expected_trial = min(grouped)
+    for trial in sorted(grouped):
+        rows = grouped[trial]
+        position = 0
+        if trial != expected_trial:
+            return _stop(checked, trials_checked, trial, 0, None, None, None, f"trial {expected_trial} is missing")
+        try:
+            law.begin_trial()
+            for i, row in enumerate(rows):
+                position = i
+                if int(row.get("sample", i)) != i:
+                    return _stop(checked, trials_checked, trial, i, row.get("t"), None, None, "sample missing")
+                y = _as_vector(row["output"])
+                logged = _as_vector(row["control"])
+                if y is None or logged is None:
+                    return _stop(checked, trials_checked, trial, i, row.get("t"), row["control"], None, "not numeric")
+                recomputed = np.asarray(law.command(i, y), dtype=np.float64).ravel()
+                if not _bits_equal(recomputed, logged):
+                    return _stop(
+                        checked, trials_checked, trial, i, row.get("t"), logged, recomputed.copy(), "command differs"
+                    )
+                checked += 1
+            if trial not in trial_records or len(rows) != n:
+                break  # the trial in progress when the log ended: nothing after it
+            reference, output, problem = _trial_arrays(rows, trial_records[trial])
+            if problem:
+                return _stop(checked, trials_checked, trial, n - 1, rows[-1].get("t"), None, None, problem)
+            law.end_trial(reference, output)
+        except FoilcHilError as exc:
+            return _stop(checked, trials_checked, trial, position, None, None, None, f"the law refused: {exc}")
+        trials_checked += 1
+        expected_trial = trial + 1
+    return Verification(True, checked, trials_checked, None)
+
+
+def _stop(
+    checked: int,
+    trials_checked: int,
+    trial: int,
+    sample: int,
+    t: Any,
+    logged: Any,
+    recomputed: Any,
+    reason: str,
+) -> Verification:
+    return Verification(False, checked, trials_checked, Divergence(trial, sample, t, logged, recomputed, reason))
+
+
+def _trial_arrays(rows: Sequence[Mapping[str, Any]], record: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray, str]:
+    """``end_trial``'s ``(reference, output)``: feedback of samples 1..N-1 plus ``y(N Ts)``; or why not."""
+    reference = np.array([_as_vector(row["reference"]) for row in rows], dtype=np.float64)
+    seen = [_as_vector(row["output"]) for row in rows]
+    final = record.get("final_output")
+    if final is not None:
+        last = _as_vector(final)
+    else:
+        error = _as_vector(rows[-1]["error"])
+        if error is None:
+            return reference, reference, "no final_output and no numeric error to recover y(N Ts)"
+        found = [_output_for_error(float(r), float(e)) for r, e in zip(reference[-1], error, strict=True)]
+        if any(y is None for y in found):
+            return reference, reference, "no final_output, and no float output reproduces the logged error"
+        last = np.array(found, dtype=np.float64)
+    output = np.array([*seen[1:], last], dtype=np.float64)
+    # The log must agree with itself: the error it records is reference - output for every sample.
+    for i, row in enumerate(rows):
+        logged_error = _as_vector(row["error"])
+        if logged_error is not None and not _bits_equal(reference[i] - output[i], logged_error):
+            return reference, output, f"logged error of sample {i} is not reference - output"
+    return reference, output, ""
