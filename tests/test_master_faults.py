@@ -1,0 +1,197 @@
+"""Every way the drive can fail reaches the bench as a typed error, and leaves the drive commanded to stop.
+
+The slave is the LocalNode-only :class:`~tests.test_master_localnode.MiniServo` with its fault hooks. "Commanded
+to stop" is read from the frames the master sent (its frame tap): the last RPDO1 carries controlword 0x02 (quick
+stop) or 0x00 (disable voltage), target 0, and a SYNC follows it so a synchronous drive applies it.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+
+import can
+import pytest
+
+from drivers.cia301 import RPDO_BASES, SYNC_COB_ID, EmcyCode, FunctionCode, cob_id
+from drivers.cia402 import Command402, OperationMode, State402
+from drivers.cia402_master import Cia402Drive
+from foilc_hil.errors import (
+    DriveFaultError,
+    EmergencyError,
+    FeedbackTimeoutError,
+    HeartbeatLostError,
+    ProtocolError,
+    StateTransitionError,
+)
+from tests.test_master_localnode import NODE_ID, MiniServo, drive_config
+
+RPDO1 = cob_id(RPDO_BASES[0], NODE_ID)
+SAFE_CONTROLWORDS = {int(Command402.QUICK_STOP), int(Command402.DISABLE_VOLTAGE)}
+
+
+class TxRecorder:
+    """The master's transmitted frames, from its frame tap."""
+
+    def __init__(self) -> None:
+        self.frames: list[can.Message] = []
+        self._lock = threading.Lock()
+
+    def __call__(self, msg: can.Message, direction: str) -> None:
+        if direction == "tx":
+            with self._lock:
+                self.frames.append(msg)
+
+    def last_command(self) -> tuple[int, int]:
+        """(controlword, target) of the last RPDO1, asserting a SYNC went out after it."""
+        with self._lock:
+            frames = list(self.frames)
+        last_rpdo = max(i for i, m in enumerate(frames) if m.arbitration_id == RPDO1)
+        assert any(m.arbitration_id == SYNC_COB_ID for m in frames[last_rpdo + 1 :]), "no SYNC applies the stop"
+        data = bytes(frames[last_rpdo].data)
+        return int.from_bytes(data[:2], "little"), int.from_bytes(data[2:], "little", signed=True)
+
+    def assert_commanded_safe(self) -> None:
+        controlword, target = self.last_command()
+        assert controlword in SAFE_CONTROLWORDS, f"last controlword 0x{controlword:02X} is not a stop"
+        assert target == 0
+
+
+@pytest.fixture
+def rig() -> Iterator[tuple[MiniServo, Cia402Drive, TxRecorder]]:
+    channel = f"test-faults-{uuid.uuid4()}"
+    servo = MiniServo(channel)
+    bus = can.Bus(interface="virtual", channel=channel)
+    drive = Cia402Drive.open(bus, drive_config(), sample_time=0.002)
+    recorder = TxRecorder()
+    drive.add_frame_listener(recorder)
+    try:
+        drive.connect()
+        drive.configure(OperationMode.CYCLIC_SYNC_VELOCITY, 0.002)
+        drive.enable()
+        yield servo, drive, recorder
+    finally:
+        drive.safe_stop()
+        drive.close()
+        bus.shutdown()
+        servo.close()
+
+
+def cycle(drive: Cia402Drive, target: float = 1.0, timeout: float = 0.5) -> None:
+    drive.set_target(target)
+    drive.sync()
+    drive.wait_feedback(timeout)
+
+
+def test_emcy_raises_emergency_error_and_fault_reset_recovers(rig: tuple[MiniServo, Cia402Drive, TxRecorder]) -> None:
+    servo, drive, recorder = rig
+    cycle(drive)
+    servo.fault(EmcyCode.OVER_CURRENT)
+    with pytest.raises(EmergencyError) as caught:
+        cycle(drive)
+    assert caught.value.code == EmcyCode.OVER_CURRENT
+    assert "over-current" in str(caught.value)
+    recorder.assert_commanded_safe()
+
+    # the statusword still shows the fault on the next cycle
+    with pytest.raises(DriveFaultError, match="statusword 0x"):
+        cycle(drive)
+    recorder.assert_commanded_safe()
+
+    drive.fault_reset()
+    assert servo.state is State402.SWITCH_ON_DISABLED
+    drive.enable()
+    cycle(drive, 2.0)
+    assert servo.state is State402.OPERATION_ENABLED
+
+
+def test_fault_statusword_without_emcy_raises_drive_fault(rig: tuple[MiniServo, Cia402Drive, TxRecorder]) -> None:
+    servo, drive, recorder = rig
+    servo.fault(emcy=False)
+    with pytest.raises(DriveFaultError, match=r"FAULT") as caught:
+        cycle(drive)
+    assert not isinstance(caught.value, EmergencyError)
+    recorder.assert_commanded_safe()
+
+
+def test_heartbeat_loss_is_detected_and_fault_reset_restores_communication(
+    rig: tuple[MiniServo, Cia402Drive, TxRecorder],
+) -> None:
+    servo, drive, recorder = rig
+    servo.stop_heartbeat()
+    # TPDOs keep coming, only the heartbeat stopped: timeout = 3 x 50 ms
+    deadline = time.monotonic() + 2.0
+    with pytest.raises(HeartbeatLostError, match=f"heartbeat of node {NODE_ID} lost"):
+        while time.monotonic() < deadline:
+            cycle(drive)
+            time.sleep(0.01)
+    recorder.assert_commanded_safe()
+
+    # fault reset after a heartbeat fault: NMT reset communication (the slave reboots its heartbeat), reconfigure
+    frames_before = len(recorder.frames)
+    drive.fault_reset()
+    nmt = [m for m in recorder.frames[frames_before:] if m.arbitration_id == FunctionCode.NMT]
+    assert bytes(nmt[0].data) == bytes([0x82, NODE_ID])  # reset communication came first
+    drive.enable()
+    cycle(drive)
+
+
+def test_heartbeat_watchdog_reports_without_polling(rig: tuple[MiniServo, Cia402Drive, TxRecorder]) -> None:
+    servo, drive, recorder = rig
+    servo.stop_heartbeat()
+    time.sleep(0.4)  # nobody calls wait_feedback; the watchdog notices (timeout 0.15 s) and queues the error
+    drive.set_target(0.0)
+    drive.sync()
+    with pytest.raises(HeartbeatLostError):
+        drive.wait_feedback(0.5)
+    recorder.assert_commanded_safe()
+
+
+def test_missing_tpdo_raises_feedback_timeout(rig: tuple[MiniServo, Cia402Drive, TxRecorder]) -> None:
+    servo, drive, recorder = rig
+    servo.mute_tpdo = True
+    with pytest.raises(FeedbackTimeoutError, match=r"answered SYNC \d+ within 0.050 s"):
+        cycle(drive, timeout=0.05)
+    recorder.assert_commanded_safe()
+
+
+def test_state_that_never_changes_names_the_stuck_state(rig: tuple[MiniServo, Cia402Drive, TxRecorder]) -> None:
+    servo, drive, recorder = rig
+    drive.disable()
+    servo.freeze = True
+    with pytest.raises(StateTransitionError, match=r"stuck in SWITCH_ON_DISABLED.*0x06 \(SHUTDOWN\)"):
+        drive.enable()
+    recorder.assert_commanded_safe()
+
+
+def test_wrong_dlc_tpdo_is_a_protocol_error(rig: tuple[MiniServo, Cia402Drive, TxRecorder]) -> None:
+    servo, drive, recorder = rig
+    servo.short_tpdo = True
+    with pytest.raises(ProtocolError, match="DLC 5 does not match the mapped length 6"):
+        cycle(drive)
+    assert drive.stats.bad_frames >= 1
+    recorder.assert_commanded_safe()
+
+
+def test_wrong_dlc_emcy_is_a_protocol_error(rig: tuple[MiniServo, Cia402Drive, TxRecorder]) -> None:
+    servo, drive, recorder = rig
+    servo.network.send_message(cob_id(FunctionCode.EMCY, NODE_ID), b"\x10\x23\x01")
+    with pytest.raises(ProtocolError, match="EMCY frame has DLC 3"):
+        cycle(drive)
+    recorder.assert_commanded_safe()
+
+
+def test_unknown_cob_ids_are_ignored_and_counted(rig: tuple[MiniServo, Cia402Drive, TxRecorder]) -> None:
+    servo, drive, _ = rig
+    other_node_tpdo = cob_id(FunctionCode.TPDO1, NODE_ID + 1)
+    before = drive.stats.unknown_frames
+    servo.network.send_message(0x123, b"\x01\x02")
+    servo.network.send_message(other_node_tpdo, b"\x00" * 6)
+    cycle(drive)  # unaffected
+    deadline = time.monotonic() + 1.0
+    while drive.stats.unknown_frames < before + 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert drive.stats.unknown_frames == before + 2
+    assert drive.stats.bad_frames == 0
