@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -16,7 +18,7 @@ from foilc_hil.qfilter import QFilter
 TS = 0.05
 
 
-def _design(A, B, C, P, *, kp=0.3, r=0.7, law="foilc", input_delay=0, C_measured=None) -> Design:
+def _design(A, B, C, P, *, kp=0.3, r=0.7, law="foilc", input_delay=0, C_measured=None):
     A, B, C, P = (np.atleast_2d(np.asarray(x, dtype=float)) for x in (A, B, C, P))
     n, m, p = A.shape[0], B.shape[1], C.shape[0]
     return Design(
@@ -68,7 +70,6 @@ def _run_plant(A, B, C, x0, u_of, n, delay=0):
 def _brute_force_foilc(A, B, C, P, kp, r, ref, trials, n, x0, delay=0):
     """The 2D law written out from eq. (21) with lists and a dense fractional matrix (no shared buffers)."""
     m = B.shape[1]
-    n_x = A.shape[0]
     M = FractionalPD(kp, r, TS).matrix(n) if kp > 0 else np.eye(n)
     u_prev = np.zeros((n, m))
     x_prev = None
@@ -97,8 +98,6 @@ def _brute_force_foilc(A, B, C, P, kp, r, ref, trials, n, x0, delay=0):
         x_prev = np.array(states)
         u_prev = commands
         all_commands.append(commands)
-        del n_x
-        n_x = A.shape[0]
     return all_commands
 
 
@@ -226,7 +225,7 @@ def test_p_type_default_gain_converges_monotonically() -> None:
         law.begin_trial()
         _, outputs, _ = _run_plant(A, B, C, [0.0], lambda t, y: law.command(t, y).copy(), n)
         norms.append(float(np.linalg.norm(law.end_trial(ref, outputs).error)))
-    assert all(b < a for a, b in zip(norms, norms[1:], strict=False)), norms
+    assert all(b < a for a, b in itertools.pairwise(norms)), norms
     assert norms[-1] < 0.5 * norms[0]
 
 
@@ -279,5 +278,5 @@ def test_make_law_with_q_filter_stores_filtered_feedforward() -> None:
     commands = _run_law(law, A2, B2, C2, ref, 2, n, x0=[0.2, 0.1])
     assert law.q_filter is not None
     np.testing.assert_allclose(law.feedforward[:, 0], law.q_filter.apply(commands[-1][:, 0]), atol=1e-14)
-    with pytest.raises(ConfigError, match="law.kind"):
+    with pytest.raises(ConfigError, match=r"law\.kind"):
         make_law("pid", design, LawConfig(), n)

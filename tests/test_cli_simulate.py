@@ -1,0 +1,82 @@
+"""``foilc-hil simulate``: JSON shape and exit codes, through the real CLI entry point."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from foilc_hil.cli import main
+
+CONFIG = """
+plant: {a: -1.23, b: 1.68, c: 1.0}
+reference:
+  profile: piecewise
+  segments: [{duration: 1.0, start: 1.0}]
+sample_time: 0.05
+trials: 3
+law: {kind: p-type, p_type_gain: 0.5}
+"""
+
+
+def _write(tmp_path: Path, text: str = CONFIG) -> Path:
+    path = tmp_path / "c.yaml"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def test_json_document(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["simulate", "--config", str(_write(tmp_path)), "--trials", "4", "--json"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    document = json.loads(captured.out)
+    assert document["law"] == "p-type"
+    assert [t["trial"] for t in document["trials"]] == [1, 2, 3, 4]
+    for trial in document["trials"]:
+        assert set(trial) == {"trial", "sse", "rmse", "max_abs_error"}
+    # the reference is 1 on every sample and trial 1 runs u = 0 from rest: e = 1 everywhere
+    assert document["trials"][0]["sse"] == pytest.approx(20.0)
+    assert document["trials"][-1]["sse"] < document["trials"][0]["sse"]
+
+
+def test_law_option_and_text_output(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["simulate", "--config", str(_write(tmp_path)), "--law", "p-type", "--trials", "2"])
+    out = capsys.readouterr().out
+    assert code == 0
+    assert out.startswith("p-type: 2 trial(s)")
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--config", "/nonexistent/c.yaml"], "no such file"),
+        (["--law", "pid"], "invalid choice"),
+        (["--trials", "0"], "trials"),
+    ],
+)
+def test_usage_errors_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], message: str) -> None:
+    base = ["simulate", "--config", str(_write(tmp_path))]
+    code = main([*base, *args, "--json"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert message in err
+    assert "Traceback" not in err and err.count("\n") == 1
+
+
+def test_bad_sample_time_names_the_key(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = _write(tmp_path, CONFIG.replace("sample_time: 0.05", "sample_time: 0.3"))
+    code = main(["simulate", "--config", str(path), "--json"])
+    assert code == 2
+    assert "sample_time" in capsys.readouterr().err
+
+
+def test_divergence_exits_1_with_document(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = _write(tmp_path, CONFIG.replace("p_type_gain: 0.5", "p_type_gain: 500.0"))
+    code = main(["simulate", "--config", str(path), "--trials", "20", "--json"])
+    captured = capsys.readouterr()
+    assert code == 1
+    document = json.loads(captured.out)
+    assert "diverged" in document["stopped"]
+    assert 1 <= len(document["trials"]) < 20
+    assert "diverged" in captured.err
