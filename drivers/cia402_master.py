@@ -219,8 +219,10 @@ class Cia402Drive(Drive):
         self.network = canopen.Network(bus)
         self.network.NOTIFIER_CYCLE = 0.1  # bounds how long close() waits for the Notifier thread
         self._unknown = _UnknownFrameCounter(self.network)
-        # canopen annotates Network.listeners as list[MessageListener]; the Notifier takes any can.Listener
-        self.network.listeners.extend([self._tap, self._unknown])  # type: ignore[list-item]
+        # canopen annotates Network.listeners as list[MessageListener]; the Notifier takes any can.Listener.
+        # The tap goes first so a received frame is shown before canopen dispatches it: traces stay causal.
+        self.network.listeners.insert(0, self._tap)  # type: ignore[arg-type]
+        self.network.listeners.append(self._unknown)  # type: ignore[arg-type]
         self.node = canopen.RemoteNode(self.node_id, od)
         self.node.sdo.RESPONSE_TIMEOUT = cfg.sdo_timeout
         self.network.add_node(self.node)
@@ -540,6 +542,14 @@ class Cia402Drive(Drive):
         with self._cv:
             return RxStats(self._tpdo_frames, self._emcy_frames, self._heartbeat_frames, self._bad_frames,
                            self._unknown.count)
+
+    @property
+    def pdo_codecs(self) -> dict[int, PdoCodec]:
+        """The configured PDO codecs by COB-ID (RPDO and TPDOs), e.g. for :func:`drivers.trace.describe_frame`."""
+        codecs = dict(self._tpdo_codecs)
+        if self._rpdo is not None and self._rpdo_codec is not None:
+            codecs[self._rpdo.cob_id] = self._rpdo_codec
+        return codecs
 
     @property
     def last_feedback(self) -> Feedback | None:
