@@ -291,9 +291,7 @@ def write_report(log: str | Path, out_dir: str | Path) -> ReportFiles:
     signals = trial_signals(contents.samples)
     plots: list[Path] = []
     if signals:
-        tracked = {
-            trial: {**data, "tracked": data["reference"] - data["error"]} for trial, data in signals.items()
-        }
+        tracked = {trial: {**data, "tracked": data["reference"] - data["error"]} for trial, data in signals.items()}
         plots.append(
             _plot_by_trial(tracked, "tracked", "y", directory / "outputs.png", "output by trial", with_reference=True)
         )

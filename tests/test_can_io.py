@@ -15,15 +15,25 @@ from foilc_hil.io.mcap_log import McapLogWriter, read_log
 
 def _frames() -> list[can.Message]:
     return [
-        can.Message(timestamp=50.0 + 0.001 * i, arbitration_id=0x181 + (i % 3), data=bytes([i, 255 - i]),
-                    is_extended_id=False, is_rx=bool(i % 2))
+        can.Message(
+            timestamp=50.0 + 0.001 * i,
+            arbitration_id=0x181 + (i % 3),
+            data=bytes([i, 255 - i]),
+            is_extended_id=False,
+            is_rx=bool(i % 2),
+        )
         for i in range(20)
     ] + [can.Message(timestamp=51.0, arbitration_id=0x18DAF110, data=b"", is_extended_id=True)]
 
 
 def _same(a: can.Message, b: can.Message) -> None:
     assert (a.timestamp, a.arbitration_id, a.is_extended_id, a.dlc, bytes(a.data), a.is_rx) == (
-        b.timestamp, b.arbitration_id, b.is_extended_id, b.dlc, bytes(b.data), b.is_rx
+        b.timestamp,
+        b.arbitration_id,
+        b.is_extended_id,
+        b.dlc,
+        bytes(b.data),
+        b.is_rx,
     )
 
 

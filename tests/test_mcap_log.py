@@ -32,9 +32,7 @@ def _write_trial(writer: McapLogWriter | QueuedLogWriter, trial: int, rng: np.ra
     expected = []
     for i in range(N_SAMPLES):
         reference, output, control = (float(x) for x in rng.normal(size=3))
-        writer.log_frame(
-            can.Message(arbitration_id=0x201, data=struct.pack("<d", control), is_extended_id=False), "tx"
-        )
+        writer.log_frame(can.Message(arbitration_id=0x201, data=struct.pack("<d", control), is_extended_id=False), "tx")
         writer.log_frame(
             can.Message(
                 timestamp=1000.0 + trial + i * 1e-3, arbitration_id=0x181, data=b"\x01\x02", is_extended_id=False
@@ -44,8 +42,16 @@ def _write_trial(writer: McapLogWriter | QueuedLogWriter, trial: int, rng: np.ra
         writer.log_sample(trial, i * 0.01, reference, output, control, reference - output, None, sample=i)
         writer.log_timing(trial * N_SAMPLES + i, trial, i, 12.5, 10000.0, 300.0 if i % 2 else None, i == 3)
         expected.append(
-            {"trial": trial, "t": i * 0.01, "reference": reference, "output": output, "control": control,
-             "error": reference - output, "E": None, "sample": i}
+            {
+                "trial": trial,
+                "t": i * 0.01,
+                "reference": reference,
+                "output": output,
+                "control": control,
+                "error": reference - output,
+                "E": None,
+                "sample": i,
+            }
         )
     writer.log_trial({"trial": trial, "sse": float(trial), "rmse": 0.5, "max_abs_error": 2.0}, law="foilc")
     return expected
@@ -85,8 +91,12 @@ def test_standard_mcap_reader_sees_the_layout(tmp_path: Path, compression: str) 
         for _, channel, message in reader.iter_messages():
             counts[channel.topic] += 1
             json.loads(message.data)  # every message is JSON
-        assert counts == {"/can": 3 * 2 * N_SAMPLES, "/ilc/sample": 3 * N_SAMPLES, "/ilc/trial": 3,
-                          "/timing": 3 * N_SAMPLES}
+        assert counts == {
+            "/can": 3 * 2 * N_SAMPLES,
+            "/ilc/sample": 3 * N_SAMPLES,
+            "/ilc/trial": 3,
+            "/timing": 3 * N_SAMPLES,
+        }
         assert summary.statistics is not None and summary.statistics.chunk_count == 3  # one chunk per trial
         metadata = {record.name: record.metadata for record in reader.iter_metadata()}
     assert metadata["foilc_hil.config"] == {"yaml": CONFIG_YAML}

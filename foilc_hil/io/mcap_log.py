@@ -263,17 +263,22 @@ class McapLogWriter(can.Listener):
             document["sample"] = sample
         self._add(TOPIC_SAMPLE, document, time.time_ns() if log_time_ns is None else log_time_ns)
 
-    def log_trial(self, metrics: Any, log_time_ns: int | None = None, **extra: Any) -> None:
+    def log_trial(self, metrics: Any, /, **extra: Any) -> None:
         """Log one trial's metrics on ``/ilc/trial``.
 
         ``metrics`` is a :class:`foilc_hil.metrics.TrialMetrics` (or a mapping with ``trial``, ``sse``, ``rmse``,
-        ``max_abs_error``); ``extra`` fields are added as they are.
+        ``max_abs_error``); ``extra`` fields are added as they are (e.g. ``final_output``, the output ``y(N Ts)``
+        that closes the trial's output array, which ``replay --verify`` uses).
         """
+        self.log_trial_at(time.time_ns(), metrics, extra)
+
+    def log_trial_at(self, log_time_ns: int, metrics: Any, extra: Mapping[str, Any]) -> None:
+        """:meth:`log_trial` with an explicit log time (ns)."""
         base = metrics.to_json() if hasattr(metrics, "to_json") else dict(metrics)
         missing = [key for key in ("trial", "sse", "rmse", "max_abs_error") if key not in base]
         if missing:
             raise LogFormatError(f"/ilc/trial message lacks {', '.join(missing)}")
-        self._add(TOPIC_TRIAL, {**base, **extra}, time.time_ns() if log_time_ns is None else log_time_ns)
+        self._add(TOPIC_TRIAL, {**base, **extra}, log_time_ns)
 
     def log_timing(
         self,
@@ -434,9 +439,7 @@ class QueuedLogWriter(can.Listener):
         fsync: bool = True,
     ) -> QueuedLogWriter:
         """Create the file and the writer thread in one step."""
-        return cls(
-            McapLogWriter(output, compression=compression, config_yaml=config_yaml, design=design, fsync=fsync)
-        )
+        return cls(McapLogWriter(output, compression=compression, config_yaml=config_yaml, design=design, fsync=fsync))
 
     # -- hot path: enqueue only ----------------------------------------------------------------------------
 
@@ -463,7 +466,7 @@ class QueuedLogWriter(can.Listener):
         """Enqueue one ``/ilc/sample`` message (see :meth:`McapLogWriter.log_sample`)."""
         self._queue.put((_SAMPLE, time.time_ns(), trial, t, reference, output, control, error, E, sample))
 
-    def log_trial(self, metrics: Any, **extra: Any) -> None:
+    def log_trial(self, metrics: Any, /, **extra: Any) -> None:
         """Enqueue one ``/ilc/trial`` message (see :meth:`McapLogWriter.log_trial`)."""
         self._queue.put((_TRIAL, time.time_ns(), metrics, extra))
 
@@ -563,11 +566,9 @@ class QueuedLogWriter(can.Listener):
                     writer.log_frame(item[2], item[3], log_time_ns=item[1])
                 elif op == _SAMPLE:
                     _, stamp, trial, t, reference, output, control, error, E, sample = item
-                    writer.log_sample(
-                        trial, t, reference, output, control, error, E, sample=sample, log_time_ns=stamp
-                    )
+                    writer.log_sample(trial, t, reference, output, control, error, E, sample=sample, log_time_ns=stamp)
                 elif op == _TRIAL:
-                    writer.log_trial(item[2], log_time_ns=item[1], **item[3])
+                    writer.log_trial_at(item[1], item[2], item[3])
                 elif op == _TIMING:
                     _, stamp, cycle, trial, sample, lateness, period, latency, missed = item
                     writer.log_timing(cycle, trial, sample, lateness, period, latency, missed, log_time_ns=stamp)
