@@ -103,6 +103,7 @@ TRANS_EVENT_TYPES = (254, 255)
 HEARTBEAT_CONSUMER_NODE_SHIFT = 16
 QUICK_STOP_OPTION_MAX = 8  # 0x605A: 0..8 are defined by CiA 402-2
 VELOCITY_RESOLUTION_INDEX = 0x2000  # manufacturer object of the shipped EDS: counts of 0x606C per rpm
+NOTIFIER_CYCLE = 0.1  # s the notifier blocks in recv(): bounds how long stop() waits (canopen default 1 s)
 MONITOR_PERIOD = 0.002  # s, resolution of the heartbeat consumer / SYNC-loss / event-timer supervision
 RAMP_SETTLE_TIME = 3.0  # s a finished quick-stop ramp waits at most for the axis to come to rest
 SUPPORTED_MODES = frozenset(int(m) for m in OperationMode)
@@ -357,6 +358,7 @@ class VirtualDrive:
         if self._running:
             raise RuntimeError("the virtual drive is already running")
         network = canopen.Network(bus)
+        network.NOTIFIER_CYCLE = NOTIFIER_CYCLE
         network.connect()
         self._network = network
         network[self.node_id] = self.node
