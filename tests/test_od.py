@@ -1,0 +1,114 @@
+"""EDS loading: the shipped EDS is a consistent CiA 402 servo; broken or missing files name themselves."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from canopen.objectdictionary import ObjectDictionary, ODRecord, ODVariable, datatypes
+
+from drivers.cia402 import SUPPORTED_MODE_BITS, Obj, OperationMode
+from drivers.od import DEFAULT_EDS, REQUIRED_OBJECTS, load_od, mapped_variable
+from drivers.pdo import PDO_DISABLED, MappedVariable
+from foilc_hil.errors import EdsError
+
+
+def _var(od: ObjectDictionary, index: int, subindex: int = 0) -> ODVariable:
+    variable = od.get_variable(index, subindex)
+    assert isinstance(variable, ODVariable), f"0x{index:04X}:{subindex:02X} missing"
+    return variable
+
+
+def _default(od: ObjectDictionary, index: int, subindex: int = 0) -> int:
+    value = _var(od, index, subindex).default
+    assert isinstance(value, int)
+    return value
+
+
+def test_shipped_eds_loads_and_describes_a_402_servo() -> None:
+    od = load_od(node_id=5)
+    for index in REQUIRED_OBJECTS:
+        assert index in od
+    assert _var(od, Obj.DEVICE_TYPE).default == 0x00020192
+    identity = od[Obj.IDENTITY]
+    assert isinstance(identity, ODRecord) and all(sub in identity for sub in (1, 2, 3, 4))
+    modes = _default(od, Obj.SUPPORTED_DRIVE_MODES)
+    assert all(modes & SUPPORTED_MODE_BITS[mode] for mode in OperationMode)
+    # limits where they matter
+    assert (_var(od, Obj.MODES_OF_OPERATION).min, _var(od, Obj.MODES_OF_OPERATION).max) == (3, 10)
+    assert (_var(od, Obj.QUICK_STOP_OPTION).min, _var(od, Obj.QUICK_STOP_OPTION).max) == (0, 8)
+    assert _var(od, Obj.MODES_OF_OPERATION).data_type == datatypes.INTEGER8
+    # PDO-mappable where the cyclic path needs it, and the two test objects
+    assert _var(od, Obj.CONTROLWORD).pdo_mappable and _var(od, Obj.CONTROLWORD).writable
+    assert _var(od, Obj.STATUSWORD).pdo_mappable and not _var(od, Obj.STATUSWORD).writable
+    assert not _var(od, 0x2000).writable  # read-only manufacturer object
+    assert _var(od, 0x2001).writable and not _var(od, 0x2001).pdo_mappable
+    # consumer heartbeat is an array with at least one entry
+    assert _var(od, Obj.CONSUMER_HEARTBEAT_TIME, 1).data_type == datatypes.UNSIGNED32
+
+
+def test_default_pdos_match_the_documented_layout() -> None:
+    od = load_od(node_id=5)
+
+    def mapping(index: int) -> list[int]:
+        count = _default(od, index, 0)
+        return [_default(od, index, sub) for sub in range(1, count + 1)]
+
+    assert mapping(0x1600) == [0x60400010, 0x60FF0020]
+    assert mapping(0x1601) == [0x60400010, 0x60710010]
+    assert mapping(0x1A00) == [0x60410010, 0x606C0020]
+    assert mapping(0x1A01) == [0x60770010, 0x60640020]
+    assert _var(od, 0x1800, 1).default == 0x185  # $NODEID resolved
+    assert _default(od, 0x1402, 1) & PDO_DISABLED
+    for com in (0x1400, 0x1401, 0x1800, 0x1801):
+        assert _var(od, com, 2).default == 1  # every SYNC
+    # every default mapping entry names a PDO-mappable object of the size it says
+    for index in (0x1600, 0x1601, 0x1A00, 0x1A01):
+        for entry in mapping(index):
+            target = _var(od, entry >> 16, (entry >> 8) & 0xFF)
+            assert target.pdo_mappable
+            assert len(target) == entry & 0xFF
+
+
+def test_mapped_variable_sizes_from_eds_and_standard() -> None:
+    od = load_od()
+    assert mapped_variable(od, Obj.TARGET_VELOCITY) == MappedVariable(0x60FF, 0, 32, signed=True)
+    assert mapped_variable(od, Obj.STATUSWORD) == MappedVariable(0x6041, 0, 16, signed=False)
+    assert mapped_variable(None, Obj.TARGET_TORQUE) == MappedVariable(0x6071, 0, 16, signed=True)
+    with pytest.raises(EdsError, match="0x5FFF:00"):
+        mapped_variable(None, 0x5FFF)
+    with pytest.raises(EdsError, match="not an integer"):
+        mapped_variable(od, 0x1008)  # VISIBLE_STRING
+
+
+def test_missing_file_names_it(tmp_path: Path) -> None:
+    missing = tmp_path / "nope.eds"
+    with pytest.raises(EdsError, match=f"{missing}: EDS file not found"):
+        load_od(missing)
+
+
+@pytest.mark.filterwarnings("ignore:The 'warn' method is deprecated:DeprecationWarning")  # canopen's own logger
+@pytest.mark.parametrize(
+    ("text", "reason"),
+    [
+        ("this is not an ini file\n", "not a valid EDS"),
+        ("[1000]\nParameterName=Device type\n", "not a valid EDS"),  # no DataType / AccessType
+        ("[1018sub1]\nParameterName=x\nDataType=0x0007\nAccessType=ro\n", "not a valid EDS"),  # orphan sub-index
+        ("[1000]\nParameterName=Device type\nObjectType=0x7\nDataType=0x0007\nAccessType=ro\n", "lacks object 0x1001"),
+    ],
+)
+def test_broken_eds_names_the_file(tmp_path: Path, text: str, reason: str) -> None:
+    broken = tmp_path / "broken.eds"
+    broken.write_text(text, encoding="utf-8")
+    with pytest.raises(EdsError, match=reason) as caught:
+        load_od(broken)
+    assert str(broken) in str(caught.value)
+
+
+def test_truncated_copy_of_the_shipped_eds_is_rejected(tmp_path: Path) -> None:
+    text = DEFAULT_EDS.read_text(encoding="utf-8")
+    cut = text[: text.index("[6040]")]  # loses controlword and everything after
+    truncated = tmp_path / "truncated.eds"
+    truncated.write_text(cut, encoding="utf-8")
+    with pytest.raises(EdsError, match="lacks object 0x6040"):
+        load_od(truncated)
