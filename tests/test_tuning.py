@@ -155,6 +155,7 @@ def test_wrapped_plant_phase_with_long_delay() -> None:
     assert result.achieved_phase_margin_deg == pytest.approx(45.0, abs=1e-3)
     kp, r = _closed_form(num, den, delay, wc, 45.0)
     assert result.r == pytest.approx(r, rel=1e-8)
+    assert result.kp == pytest.approx(kp, rel=1e-7)
 
 
 def test_sweep_matches_textbook_margins() -> None:
@@ -232,13 +233,13 @@ def test_flat_phase_with_delay_is_flagged() -> None:
 
 
 def test_bad_parameters_are_named() -> None:
-    with pytest.raises(ConfigError, match="tuning.crossover"):
+    with pytest.raises(ConfigError, match=r"tuning\.crossover"):
         tune_loop(PAPER_NUM, PAPER_DEN, 0.0, -1.0, 45.0)
-    with pytest.raises(ConfigError, match="tuning.phase_margin_deg"):
+    with pytest.raises(ConfigError, match=r"tuning\.phase_margin_deg"):
         tune_loop(PAPER_NUM, PAPER_DEN, 0.0, 10.0, 190.0)
-    with pytest.raises(ConfigError, match="plant.delay"):
+    with pytest.raises(ConfigError, match=r"plant\.delay"):
         tune_loop(PAPER_NUM, PAPER_DEN, -0.1, 10.0, 45.0)
-    with pytest.raises(ConfigError, match="tuning.r"):
+    with pytest.raises(ConfigError, match=r"tuning\.r"):
         evaluate_pair(PAPER_NUM, PAPER_DEN, 0.0, 1.0, 1.0, 2.0)
 
 
@@ -249,9 +250,9 @@ def _config(tmp_path: Path, tuning: str) -> Path:
 
 
 def test_tune_from_config(tmp_path: Path) -> None:
-    with pytest.raises(ConfigError, match="tuning.crossover"):
+    with pytest.raises(ConfigError, match=r"tuning\.crossover"):
         tune(load_config(_config(tmp_path, "{}")))
-    with pytest.raises(ConfigError, match="tuning.phase_margin_deg"):
+    with pytest.raises(ConfigError, match=r"tuning\.phase_margin_deg"):
         tune(load_config(_config(tmp_path, "{crossover: 70}")))
     both = tune(load_config(_config(tmp_path, "{crossover: 70, phase_margin_deg: 70, kp: 1.0, r: 0.5}")))
     assert both.mode == "spec"
