@@ -1,0 +1,125 @@
+"""``plant-emulator``: the virtual CiA 402 servo drive as a process on a CAN bus.
+
+``plant-emulator --config C --bus SPEC [--node-id N] [--mode lockstep|realtime]``
+
+It reads the bench's own config file but validates only the sections it uses -- ``plant``, ``emulator``,
+``sample_time`` and ``drive`` (for ``node_id`` and the ``velocity_scale`` / ``torque_scale`` the master uses, so
+both ends convert units alike) -- and ignores the rest, which the bench validates (layer 2 must not import the
+whole-document model of layer 3). Without ``--config`` it drives a default PMSM axis. Bad input: exit 2 with one
+line on stderr. It runs until SIGINT or SIGTERM (exit 0) and says so on stderr when it is ready.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+from collections.abc import Sequence
+from types import FrameType
+from typing import Any, NoReturn
+
+from pydantic import ConfigDict, Field
+
+from drivers.config import DriveConfig
+from foilc_hil.errors import ExitCode, FoilcHilError, InputError
+from foilc_hil.schema import Section, apply_overrides, load_document, validate
+from plant_emulator.config import PlantConfig
+from plant_emulator.settings import EmulatorConfig
+
+PROG = "plant-emulator"
+
+
+class EmulatorDocument(Section):
+    """The parts of a bench config the emulator uses; every other section is ignored here."""
+
+    model_config = ConfigDict(extra="ignore", frozen=True, populate_by_name=True)
+
+    plant: PlantConfig = PlantConfig(model="pmsm")
+    emulator: EmulatorConfig = EmulatorConfig()
+    sample_time: float = Field(default=0.01, gt=0)
+    drive: DriveConfig = DriveConfig()
+
+
+class _OneLineParser(argparse.ArgumentParser):
+    """argparse with its usage errors on one line and exit code 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(int(ExitCode.USAGE), f"{self.prog}: error: {message}\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``plant-emulator``."""
+    parser = _OneLineParser(prog=PROG, description="A virtual CiA 402 servo drive (plant emulator) on a CAN bus.")
+    parser.add_argument("--config", help="bench config file (YAML); uses plant, emulator, sample_time, drive")
+    parser.add_argument("--bus", required=True, help="INTERFACE:CHANNEL, e.g. socketcan:vcan0, virtual:bench, "
+                        "udp_multicast:239.74.163.2")
+    parser.add_argument("--node-id", type=int, help="CANopen node id (default: drive.node_id, else 1)")
+    parser.add_argument("--mode", choices=("lockstep", "realtime"), help="timing (default: emulator.timing)")
+    return parser
+
+
+def load_settings(path: str | None, overrides: dict[str, Any]) -> EmulatorDocument:
+    """The emulator's view of a config file (``None``: defaults), with dotted-key ``overrides`` on top."""
+    document = load_document(path) if path is not None else {}
+    if path is not None and "plant" not in document:
+        document = {**document, "plant": {"model": "first_order"}}  # a file's default plant is the paper's model
+    document = apply_overrides(document, overrides)
+    return validate(EmulatorDocument, document, source=path or "")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the emulator until SIGINT/SIGTERM; return the process exit code."""
+    args = build_parser().parse_args(argv)
+    try:
+        return _serve(args)
+    except FoilcHilError as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return int(exc.exit_code)
+
+
+def _serve(args: argparse.Namespace) -> int:
+    from drivers.bus import open_bus, parse_bus_spec
+    from plant_emulator.device import VirtualDrive
+    from plant_emulator.physics import build_plant
+
+    if args.node_id is not None and not 1 <= args.node_id <= 127:
+        raise InputError(f"--node-id: {args.node_id} is outside 1..127")
+    settings = load_settings(args.config, {"drive.node_id": args.node_id, "emulator.timing": args.mode})
+    bus_cfg = parse_bus_spec(args.bus)
+    plant = build_plant(settings.plant, seed=settings.plant.seed + settings.emulator.seed)
+    drive = VirtualDrive(
+        plant,
+        node_id=settings.drive.node_id,
+        cycle_period=settings.sample_time,
+        settings=settings.emulator,
+        velocity_scale=settings.drive.velocity_scale,
+        torque_scale=settings.drive.torque_scale,
+    )
+    stop = threading.Event()
+
+    def _on_signal(signum: int, frame: FrameType | None) -> None:
+        stop.set()
+
+    previous = {sig: signal.signal(sig, _on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        drive.start(open_bus(bus_cfg))
+        print(
+            f"{PROG}: ready: node {drive.node_id} on {bus_cfg.interface}:{bus_cfg.channel} "
+            f"({settings.plant.model}, {drive.timing.value}, {settings.sample_time * 1e3:g} ms)",
+            file=sys.stderr,
+            flush=True,
+        )
+        while not stop.wait(0.2):
+            pass
+    finally:
+        drive.stop()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    print(f"{PROG}: stopped after {drive.sync_count} SYNC", file=sys.stderr, flush=True)
+    return int(ExitCode.OK)
+
+
+def run() -> None:
+    """Console-script entry point."""
+    sys.exit(main())
