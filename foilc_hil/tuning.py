@@ -176,6 +176,16 @@ class TuningResult:
     solutions: tuple[LoopSolution, ...] = ()
     checks: dict[str, Any] = field(default_factory=dict)
 
+    @property
+    def plant(self) -> dict[str, Any]:
+        """``{"num", "den", "delay"}`` of the plant the loop was shaped on."""
+        return {"num": list(self.plant_num), "den": list(self.plant_den), "delay": self.plant_delay}
+
+    @property
+    def achieved(self) -> dict[str, float | None]:
+        """``{"crossover", "phase_margin_deg"}`` measured by the dense sweep."""
+        return {"crossover": self.achieved_crossover, "phase_margin_deg": self.achieved_phase_margin_deg}
+
     def to_json(self) -> dict[str, Any]:
         """The interface's ``tune`` document, plus ``mode``, ``flat_phase``, ``solutions`` and ``checks``.
 
