@@ -1,0 +1,173 @@
+"""What logging costs the real-time loop: direct MCAP writing versus the queued writer, side by side.
+
+``python -m benchmarks.bench_logging [--out FILE] [--cycles N]`` prints (or writes) one JSON document:
+
+- ``per_call_ns``: median cost on the caller's thread of one ``log_frame`` and one ``log_sample`` call, direct
+  (JSON + chunk building on the caller) and queued (one tuple on a ``SimpleQueue``);
+- ``drain``: how many messages per second the background thread writes (zstd chunks);
+- ``periodic_loop``: a 1 kHz loop (absolute deadlines, sleep) logging what a bench cycle logs -- 3 frames, one
+  sample, one timing record -- with each writer, an ``end_trial`` every 600 cycles: time spent in the logging
+  calls per cycle and wake-up lateness percentiles (the GIL is shared with the writer thread, so the queued case
+  shows its contention too).
+
+Never asserted in tests (wall-clock numbers depend on the machine); ``make bench`` users read them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import can
+import numpy as np
+
+from foilc_hil.io.mcap_log import McapLogWriter, QueuedLogWriter
+
+CONFIG_YAML = "sample_time: 0.001\n"
+
+
+def _frame(i: int) -> can.Message:
+    return can.Message(arbitration_id=0x201, data=bytes([i & 0xFF, 1, 2, 3]), is_extended_id=False)
+
+
+def _per_call(call: Callable[[int], None], calls: int, batches: int = 7) -> float:
+    """Median over batches of the mean ns per call."""
+    results = []
+    for _ in range(batches):
+        start = time.perf_counter_ns()
+        for i in range(calls):
+            call(i)
+        results.append((time.perf_counter_ns() - start) / calls)
+    return float(statistics.median(results))
+
+
+def per_call_costs(directory: Path, calls: int = 5000) -> dict[str, Any]:
+    msg = _frame(1)
+    document: dict[str, Any] = {}
+    direct = McapLogWriter(directory / "direct.mcap", config_yaml=CONFIG_YAML, fsync=False)
+    queued = QueuedLogWriter.open(directory / "queued.mcap", config_yaml=CONFIG_YAML, fsync=False)
+    try:
+        writers: tuple[tuple[str, McapLogWriter | QueuedLogWriter], ...] = (("direct", direct), ("queued", queued))
+        for name, writer in writers:
+
+            def frame(i: int, writer: McapLogWriter | QueuedLogWriter = writer) -> None:
+                writer.log_frame(msg, "tx")
+
+            def sample(i: int, writer: McapLogWriter | QueuedLogWriter = writer) -> None:
+                writer.log_sample(1, i * 1e-3, 1.0, 0.5, 0.25, 0.5, 0.4)
+
+            frame_ns = _per_call(frame, calls)
+            if isinstance(writer, QueuedLogWriter):
+                writer.sync()  # each measurement starts with an idle writer thread (it still competes during it)
+            sample_ns = _per_call(sample, calls)
+            if isinstance(writer, QueuedLogWriter):
+                writer.sync()
+            document[name] = {"log_frame": frame_ns, "log_sample": sample_ns}
+    finally:
+        queued.close()
+        direct.close()
+    return document
+
+
+def drain_rate(directory: Path, messages: int = 50_000) -> dict[str, Any]:
+    queued = QueuedLogWriter.open(directory / "drain.mcap", config_yaml=CONFIG_YAML, fsync=False)
+    msg = _frame(2)
+    start = time.perf_counter()
+    for i in range(messages // 2):
+        queued.log_frame(msg, "tx")
+        queued.log_sample(1, i * 1e-3, 1.0, 0.5, 0.25, 0.5, 0.4)
+    enqueued = time.perf_counter()
+    queued.sync()
+    done = time.perf_counter()
+    queued.close()
+    return {
+        "messages": messages,
+        "enqueue_s": enqueued - start,
+        "written_s": done - start,
+        "messages_per_s": messages / (done - start),
+    }
+
+
+def _percentiles(values: Sequence[float]) -> dict[str, float]:
+    array = np.asarray(values, dtype=float)
+    return {
+        "p50": float(np.percentile(array, 50)),
+        "p99": float(np.percentile(array, 99)),
+        "p999": float(np.percentile(array, 99.9)),
+        "max": float(array.max()),
+    }
+
+
+def periodic_loop(directory: Path, kind: str, cycles: int, period: float = 1e-3) -> dict[str, Any]:
+    """A 1 kHz loop logging one bench cycle's messages per cycle with the ``kind`` writer."""
+    if kind == "direct":
+        writer: McapLogWriter | QueuedLogWriter = McapLogWriter(directory / "loop-direct.mcap", config_yaml=CONFIG_YAML)
+    elif kind == "queued":
+        writer = QueuedLogWriter.open(directory / "loop-queued.mcap", config_yaml=CONFIG_YAML)
+    else:
+        writer = None  # type: ignore[assignment]
+    frames = [_frame(i) for i in range(3)]
+    logging_us: list[float] = []
+    lateness_us: list[float] = []
+    start = time.perf_counter()
+    for cycle in range(cycles):
+        deadline = start + (cycle + 1) * period
+        remaining = deadline - time.perf_counter()
+        if remaining > 0:
+            time.sleep(remaining)
+        woke = time.perf_counter()
+        lateness_us.append((woke - deadline) * 1e6)
+        if writer is not None:
+            t0 = time.perf_counter()
+            for msg in frames:
+                writer.log_frame(msg, "tx")
+            writer.log_sample(1, cycle * period, 1.0, 0.5, 0.25, 0.5, 0.4, sample=cycle % 600)
+            writer.log_timing(cycle, 1, cycle % 600, lateness_us[-1], period * 1e6, 200.0, False)
+            if cycle % 600 == 599:
+                writer.end_trial()
+            logging_us.append((time.perf_counter() - t0) * 1e6)
+    if writer is not None:
+        writer.close()
+    result: dict[str, Any] = {
+        "cycles": cycles,
+        "period_us": period * 1e6,
+        "wake_lateness_us": _percentiles(lateness_us),
+    }
+    if logging_us:
+        result["logging_call_us_per_cycle"] = _percentiles(logging_us)
+    return result
+
+
+def collect(cycles: int = 3000) -> dict[str, Any]:
+    with tempfile.TemporaryDirectory(prefix="foilc-bench-log-") as name:
+        directory = Path(name)
+        return {
+            "per_call_ns": per_call_costs(directory),
+            "drain": drain_rate(directory),
+            "periodic_loop": {kind: periodic_loop(directory, kind, cycles) for kind in ("none", "direct", "queued")},
+        }
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_logging", description=__doc__)
+    parser.add_argument("--out", help="JSON file to write (default: stdout)")
+    parser.add_argument("--cycles", type=int, default=3000, help="cycles of the 1 kHz loop per writer")
+    args = parser.parse_args(argv)
+    document = json.dumps(collect(args.cycles), indent=2)
+    if args.out:
+        Path(args.out).write_text(document + "\n", encoding="utf-8")
+        sys.stderr.write(f"wrote {args.out}\n")
+    else:
+        sys.stdout.write(document + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
