@@ -778,9 +778,11 @@ def tune(config: Config) -> TuningResult:
     tuning = config.tuning
     has_spec = tuning.crossover is not None and tuning.phase_margin_deg is not None
     has_pair = tuning.kp is not None and tuning.r is not None
+    if tuning.crossover is not None and tuning.phase_margin_deg is None:
+        raise ConfigError("is required with 'crossover' (--phase-margin)", key="tuning.phase_margin_deg")
+    if tuning.phase_margin_deg is not None and tuning.crossover is None:
+        raise ConfigError("is required with 'phase_margin_deg' (--crossover)", key="tuning.crossover")
     if not has_spec and not has_pair:
-        if tuning.crossover is not None:
-            raise ConfigError("is required with 'crossover' (or give 'kp' and 'r')", key="tuning.phase_margin_deg")
         raise ConfigError(
             "is required: give 'crossover' and 'phase_margin_deg' (or 'kp' and 'r') in the tuning section, "
             "or --crossover and --phase-margin",

@@ -254,6 +254,10 @@ def test_tune_from_config(tmp_path: Path) -> None:
         tune(load_config(_config(tmp_path, "{}")))
     with pytest.raises(ConfigError, match=r"tuning\.phase_margin_deg"):
         tune(load_config(_config(tmp_path, "{crossover: 70}")))
+    with pytest.raises(ConfigError, match=r"tuning\.phase_margin_deg"):  # a half spec is never ignored
+        tune(load_config(_config(tmp_path, "{crossover: 70, kp: 1.0, r: 0.5}")))
+    with pytest.raises(ConfigError, match=r"tuning\.crossover"):
+        tune(load_config(_config(tmp_path, "{phase_margin_deg: 45}")))
     both = tune(load_config(_config(tmp_path, "{crossover: 70, phase_margin_deg: 70, kp: 1.0, r: 0.5}")))
     assert both.mode == "spec"
     assert both.checks["configured_pair"]["kp"] == 1.0
