@@ -1,0 +1,261 @@
+"""Faults of the virtual drive: detection, EMCY + 0x603F + 0x1001, the 0x6007 reactions, clearing -- and the
+master (``drivers.cia402_master.Cia402Drive``) turning each into a typed error with the drive left safe."""
+
+from __future__ import annotations
+
+import struct
+import time
+
+import pytest
+
+from drivers.bus import open_bus
+from drivers.cia301 import EmcyCode, ErrorRegister, FunctionCode, NmtCommand, cob_id
+from drivers.cia402 import AbortConnectionOption, Obj, OperationMode, State402
+from drivers.cia402_master import Cia402Drive
+from drivers.config import DriveConfig
+from foilc_hil.errors import DriveError, EmergencyError, HeartbeatLostError
+from plant_emulator.config import PlantConfig, PmsmConfig
+from plant_emulator.device import FaultKind
+from plant_emulator.embedded import EmbeddedEmulator
+from plant_emulator.settings import EmulatorConfig
+from tests.emulator_harness import Harness
+
+pytestmark = pytest.mark.timeout(90)
+
+MASTER_ID = 127
+COUNTS_PER_RPM = 1000
+
+
+def _emcy(frame: bytes) -> tuple[int, int]:
+    code, register = struct.unpack_from("<HB", frame)
+    return code, register
+
+
+def _enable_csv(h: Harness, target_counts: int = 0) -> None:
+    """Operational, CSV, operation enabled through RPDO1 (controlword + target velocity) and SYNC."""
+    h.start()
+    for controlword in (0x06, 0x07, 0x0F):
+        h.send(h.rpdo1, struct.pack("<Hi", controlword, target_counts))
+        h.sync(wait_for=h.tpdo1)
+    assert h.drive.state is State402.OPERATION_ENABLED
+
+
+def _run(h: Harness, cycles: int, target_counts: int) -> None:
+    for _ in range(cycles):
+        h.send(h.rpdo1, struct.pack("<Hi", 0x0F, target_counts))
+        h.sync(wait_for=h.tpdo1)
+        if h.drive.state is not State402.OPERATION_ENABLED:
+            return
+
+
+def _check_latched(h: Harness, code: int, register_bits: int) -> None:
+    frames = h.recorder.wait_count(h.emcy, 1)
+    sent_code, register = _emcy(frames[-1])
+    assert sent_code == code
+    assert register & ErrorRegister.GENERIC and register & register_bits == register_bits
+    assert h.node.sdo[Obj.ERROR_CODE].raw == code
+    assert h.node.sdo[Obj.ERROR_REGISTER].raw == register
+
+
+def _fault_reset_clears(h: Harness) -> None:
+    before = h.recorder.count(h.emcy)
+    h.node.sdo[Obj.CONTROLWORD].raw = 0x00
+    h.node.sdo[Obj.CONTROLWORD].raw = 0x80  # rising edge of bit 7
+    assert h.drive.state is State402.SWITCH_ON_DISABLED
+    frames = h.recorder.wait_count(h.emcy, before + 1)
+    assert _emcy(frames[-1]) == (EmcyCode.NO_ERROR, 0)  # the EMCY "error reset"
+    assert h.node.sdo[Obj.ERROR_CODE].raw == 0
+    assert h.node.sdo[Obj.ERROR_REGISTER].raw == 0
+
+
+@pytest.mark.parametrize(
+    ("kind", "code", "bits"),
+    [
+        (FaultKind.OVER_CURRENT, EmcyCode.OVER_CURRENT, ErrorRegister.CURRENT),
+        (FaultKind.OVER_SPEED, EmcyCode.OVER_SPEED, ErrorRegister.DEVICE_PROFILE),
+        (FaultKind.GENERIC, EmcyCode.GENERIC, 0),
+    ],
+)
+def test_injected_faults_raise_emcy_and_fault(kind: FaultKind, code: int, bits: int) -> None:
+    with Harness() as h:
+        _enable_csv(h)
+        h.drive.inject_fault(kind)
+        _check_latched(h, code, bits)
+        assert h.drive.state is State402.FAULT
+        statusword = h.node.sdo[Obj.STATUSWORD].raw
+        assert statusword & 0x4F == 0x08  # fault
+        _fault_reset_clears(h)
+
+
+def test_over_speed_from_the_plant_limit_flag() -> None:
+    """CST with rated torque and no load accelerates the axis past its speed limit."""
+    pmsm = PmsmConfig(rated_speed=300.0, speed_limit=400.0)
+    with Harness(PlantConfig(model="pmsm", pmsm=pmsm)) as h:
+        h.node.sdo[Obj.MODES_OF_OPERATION].raw = OperationMode.CYCLIC_SYNC_TORQUE
+        _enable_csv(h)
+        rpdo2 = cob_id(FunctionCode.RPDO2, 3)  # default RPDO2: controlword + target torque
+        for _ in range(200):
+            h.send(rpdo2, struct.pack("<Hh", 0x0F, 1000))  # rated torque
+            h.sync(wait_for=h.tpdo1)
+            if h.drive.state is not State402.OPERATION_ENABLED:
+                break
+        _check_latched(h, EmcyCode.OVER_SPEED, ErrorRegister.DEVICE_PROFILE)
+        assert h.drive.state is State402.FAULT
+        _fault_reset_clears(h)
+
+
+def test_sustained_torque_limit_is_an_over_current_fault() -> None:
+    pmsm = PmsmConfig(rated_torque=0.05, torque_limit=0.05)
+    settings = EmulatorConfig(torque_limit_fault_cycles=10)
+    with Harness(PlantConfig(model="pmsm", pmsm=pmsm), settings=settings) as h:
+        _enable_csv(h)
+        h.send(h.rpdo1, struct.pack("<Hi", 0x0F, 2000 * COUNTS_PER_RPM))
+        h.sync(wait_for=h.tpdo1)
+        h.sync(wait_for=h.tpdo1)
+        statusword = struct.unpack_from("<H", h.recorder.frames[h.tpdo1][-1])[0]
+        assert statusword & (1 << 11)  # internal limit active while the torque is clipped
+        _run(h, 30, target_counts=2000 * COUNTS_PER_RPM)
+        _check_latched(h, EmcyCode.OVER_CURRENT, ErrorRegister.CURRENT)
+        assert h.drive.state is State402.FAULT
+
+
+@pytest.mark.parametrize(
+    ("option", "state_after"),
+    [
+        (AbortConnectionOption.NO_ACTION, State402.OPERATION_ENABLED),
+        (AbortConnectionOption.FAULT, State402.FAULT),
+        (AbortConnectionOption.DISABLE_VOLTAGE, State402.SWITCH_ON_DISABLED),
+        (AbortConnectionOption.QUICK_STOP, State402.QUICK_STOP_ACTIVE),
+    ],
+)
+def test_heartbeat_loss_reacts_per_0x6007(option: int, state_after: State402) -> None:
+    with Harness() as h:
+        h.node.sdo[Obj.ABORT_CONNECTION_OPTION].raw = option
+        h.node.sdo[Obj.CONSUMER_HEARTBEAT_TIME][1].raw = (MASTER_ID << 16) | 50  # watch node 127, 50 ms
+        _enable_csv(h)
+        h.send(cob_id(FunctionCode.HEARTBEAT, MASTER_ID), bytes([0x05]))  # the master's one and only beat
+        time.sleep(0.03)
+        assert h.recorder.count(h.emcy) == 0  # within the consumer time: nothing yet
+        frames = h.recorder.wait_count(h.emcy, 1, timeout=2.0)
+        assert _emcy(frames[0])[0] == EmcyCode.HEARTBEAT_LOSS
+        assert h.node.sdo[Obj.ERROR_REGISTER].raw & ErrorRegister.COMMUNICATION
+        assert h.drive.state is state_after
+
+
+def test_sync_loss_in_realtime_mode() -> None:
+    settings = EmulatorConfig(timing="realtime", sync_loss_cycles=5)
+    with Harness(settings=settings) as h:
+        h.node.sdo[Obj.ABORT_CONNECTION_OPTION].raw = AbortConnectionOption.FAULT
+        _enable_csv(h)  # SYNCs arrive every few ms here
+        cycles = h.drive.snapshot().cycles
+        time.sleep(0.2)  # no SYNC for 20 periods; the physics goes on by the wall clock
+        assert h.drive.snapshot().cycles > cycles + 5
+        frames = h.recorder.wait_count(h.emcy, 1)
+        assert _emcy(frames[0])[0] == EmcyCode.SYNC_LOSS
+        assert h.drive.state is State402.FAULT
+
+
+def test_lockstep_has_no_sync_loss() -> None:
+    with Harness() as h:
+        _enable_csv(h)
+        time.sleep(0.2)
+        assert h.recorder.count(h.emcy) == 0
+        assert h.drive.state is State402.OPERATION_ENABLED
+
+
+def test_send_emcy_and_stop_responding() -> None:
+    with Harness() as h:
+        h.drive.send_emcy(0xFF01, 0x80)
+        assert _emcy(h.recorder.wait_count(h.emcy, 1)[0]) == (0xFF01, 0x80)
+        assert h.drive.state is State402.SWITCH_ON_DISABLED  # a bare EMCY changes no state
+        h.node.sdo[Obj.PRODUCER_HEARTBEAT_TIME].raw = 20
+        h.drive.stop_responding()
+        heartbeat = cob_id(FunctionCode.HEARTBEAT, 3)
+        time.sleep(0.05)
+        beats = h.recorder.count(heartbeat)
+        time.sleep(0.15)
+        assert h.recorder.count(heartbeat) == beats  # dead: no heartbeat
+        h.node.sdo.RESPONSE_TIMEOUT = 0.2
+        with pytest.raises(Exception, match="No SDO response"):
+            h.node.sdo.upload(0x1000, 0)
+
+
+# --- the master's view -----------------------------------------------------------------------------------------
+
+
+def _master(emulator: EmbeddedEmulator, **drive: float) -> Cia402Drive:
+    cfg = DriveConfig.model_validate(
+        {"node_id": 2, "heartbeat_producer_ms": 50, "heartbeat_consumer_ms": 200, **drive}
+    )
+    master = Cia402Drive.open(open_bus(emulator.bus_config), cfg, sample_time=0.01)
+    master.connect()
+    master.configure(OperationMode.CYCLIC_SYNC_VELOCITY, 0.01)
+    master.enable()
+    for _ in range(3):
+        master.set_target(100.0)
+        master.sync()
+        master.wait_feedback(1.0)
+    return master
+
+
+def _cycle_until_error(master: Cia402Drive, cycles: int = 50) -> DriveError:
+    for _ in range(cycles):
+        try:
+            master.set_target(100.0)
+            master.sync()
+            master.wait_feedback(1.0)
+        except DriveError as exc:
+            return exc
+    raise AssertionError("the master saw no error")
+
+
+@pytest.mark.parametrize(
+    ("kind", "code"),
+    [
+        (FaultKind.OVER_CURRENT, EmcyCode.OVER_CURRENT),
+        (FaultKind.OVER_SPEED, EmcyCode.OVER_SPEED),
+        (FaultKind.SYNC_LOSS, EmcyCode.SYNC_LOSS),
+        (FaultKind.HEARTBEAT_LOSS, EmcyCode.HEARTBEAT_LOSS),
+    ],
+)
+def test_master_surfaces_each_fault_as_typed_error(kind: FaultKind, code: int) -> None:
+    plant = PlantConfig(model="pmsm")
+    with EmbeddedEmulator(plant, EmulatorConfig(), node_id=2, sample_time=0.01, velocity_scale=1000.0) as emulator:
+        master = _master(emulator, velocity_scale=1000.0, abort_connection_option=1)
+        try:
+            emulator.drive.inject_fault(kind)
+            error = _cycle_until_error(master)
+            assert isinstance(error, EmergencyError)
+            assert error.code == code
+            assert emulator.drive.state in (State402.FAULT, State402.SWITCH_ON_DISABLED,
+                                            State402.QUICK_STOP_ACTIVE)  # not enabled: safe
+            assert emulator.drive.state is State402.FAULT  # 0x6007 = 1: every one of these is a fault
+            master.fault_reset()
+            assert emulator.drive.state is State402.SWITCH_ON_DISABLED
+            assert emulator.drive.snapshot().error_code == 0
+            assert emulator.drive.emcy_log[-1] == (EmcyCode.NO_ERROR, 0)
+        finally:
+            master.safe_stop()
+            master.close()
+
+
+def test_master_detects_a_dead_drive() -> None:
+    plant = PlantConfig(model="pmsm")
+    with EmbeddedEmulator(plant, EmulatorConfig(), node_id=2, sample_time=0.01, velocity_scale=1000.0) as emulator:
+        master = _master(emulator, velocity_scale=1000.0)
+        try:
+            emulator.drive.stop_responding()
+            error = _cycle_until_error(master, cycles=20)
+            assert isinstance(error, (HeartbeatLostError, DriveError))
+            assert not isinstance(error, EmergencyError)
+        finally:
+            master.safe_stop()
+            master.close()
+
+
+def test_nmt_reset_node_restores_the_abort_option() -> None:
+    """Reset node from any master restores the OD: the EMCY-free restart the master's fault_reset relies on."""
+    with Harness() as h:
+        h.node.sdo[Obj.ABORT_CONNECTION_OPTION].raw = 0
+        h.nmt(NmtCommand.RESET_NODE)
+        assert h.node.sdo[Obj.ABORT_CONNECTION_OPTION].raw == 3  # EDS default
