@@ -6,9 +6,10 @@ Start-up follows what real CANopen masters do, using only standard objects, so a
    device), 0x1018:1..4 and 0x6502 over SDO.
 2. ``configure``: start the master's heartbeat producer; for every RPDO/TPDO 1..4: disable it (COB-ID bit 31),
    and for those the mode uses: transmission type 1, mapping count 0, mapping entries, count, COB-ID enabled;
-   then 0x6060 mode, 0x605A, 0x6007, 0x1006 (cycle period in us), 0x1017 (drive heartbeat), 0x1016:1 (drive
-   watches the master); read all of it back (0x6061 must show the mode); NMT start; wait for the operational
-   heartbeat.
+   then 0x6060 mode, 0x605A, 0x6007 (both optional in CiA 402: skipped with a warning when the drive lacks
+   them), 0x1006 (cycle period in us), 0x60C2 (interpolation time period, only if the drive's EDS has it),
+   0x1017 (drive heartbeat), 0x1016:1 (drive watches the master); read all of it back (0x6061 must show the
+   mode); NMT start; wait for the operational heartbeat.
 3. ``enable``: controlword 0x06 / 0x07 / 0x0F through the RPDO, one SYNC each, until the TPDO statusword shows
    OPERATION_ENABLED.
 
@@ -16,6 +17,12 @@ Cyclic path (never SDO): ``set_target`` encodes the RPDO with a precomputed :cla
 sends it; ``sync`` sends a prebuilt SYNC (DLC 0: no counter, so no drive needs 0x1019) and advances the master's
 cycle counter; TPDOs are decoded on the Notifier thread and handed to ``wait_feedback`` through a condition
 variable.
+
+Units: ``set_target`` takes plant units and sends ``round(value * scale)`` after clamping ``|value|`` to
+``velocity_limit`` (CSV, PV; scale ``velocity_scale``) or ``torque_limit`` (CST; scale ``torque_scale``); feedback
+is divided by the same scales. The shipped EDS counts velocity in 0.001 rpm, so a plant in rpm needs
+``velocity_scale: 1000`` (``DriveConfig`` defaults to 1: plant unit = drive unit). Torque is per mille of rated
+torque (CiA 402).
 
 Errors: EMCY -> :class:`~foilc_hil.errors.EmergencyError` (code decoded), statusword fault bit ->
 :class:`~foilc_hil.errors.DriveFaultError`, no heartbeat for ``heartbeat_timeout_factor x 0x1017`` ->
@@ -98,7 +105,7 @@ from foilc_hil.errors import (
     StateTransitionError,
 )
 
-__all__ = ["Cia402Drive", "RxStats", "pdo_layouts"]
+__all__ = ["Cia402Drive", "RxStats", "interpolation_time_period", "pdo_layouts"]
 
 logger = logging.getLogger(__name__)
 
@@ -127,6 +134,20 @@ _ENABLE_PATH: dict[State402, Command402 | None] = {
 
 _U8, _U16, _U32 = ("B", False), ("H", False), ("I", False)
 _I8, _I16 = ("b", True), ("h", True)
+_Setting = tuple[int, int, tuple[str, bool], int, bool]  # index, sub-index, (struct code, signed), value, optional
+
+
+def interpolation_time_period(period: float) -> tuple[int, int]:
+    """0x60C2 encoding of ``period`` seconds: ``(value, exponent)`` with ``period = value * 10**exponent``.
+
+    The largest exponent (-1 .. -6) giving an exact integer ``1 <= value <= 255`` is chosen. Raises
+    :class:`ConfigError` when none does (e.g. 0.3 ms needs value 3, exponent -4: fine; 1.2345 ms: none).
+    """
+    for exponent in range(-1, -7, -1):
+        value = period / 10.0**exponent
+        if 1 <= round(value) <= 255 and abs(value - round(value)) <= 1e-9 * value:
+            return round(value), exponent
+    raise ConfigError(f"{period} s is not expressible in 0x60C2 (1..255 x 10^-1..10^-6 s)", key="sample_time")
 
 
 def pdo_layouts(
@@ -254,6 +275,7 @@ class Cia402Drive(Drive):
         self._controlword = int(Command402.DISABLE_VOLTAGE)
         self._target_raw = 0
         self._operational = False
+        self._connected = False  # a boot-up answered connect(): the drive is there to be stopped over SDO
         self._closed = False
         self._sync_message = can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False)
 
@@ -283,6 +305,7 @@ class Cia402Drive(Drive):
         """NMT reset communication, wait for boot-up, NMT pre-operational, read identity (see module docstring)."""
         self._require_open()
         self._reset_communication()
+        self._connected = True
         self._nmt(NmtCommand.ENTER_PRE_OPERATIONAL)
         device_type = self._read(Obj.DEVICE_TYPE, 0, _U32)
         if device_type & 0xFFFF != CIA402_PROFILE:
@@ -305,7 +328,7 @@ class Cia402Drive(Drive):
 
     def configure(self, mode: OperationMode, cycle_period: float) -> None:
         """Configure PDOs, mode, timing and heartbeats over SDO, verify by reading back, then NMT start."""
-        self._require_open()
+        self._require_connected()
         mode = OperationMode(mode)
         if not (cycle_period > 0 and math.isfinite(cycle_period)):
             raise ConfigError(f"must be a positive number of seconds, got {cycle_period}", key="cycle_period")
@@ -332,23 +355,13 @@ class Cia402Drive(Drive):
                 else:
                     self._disable_pdo(direction, number, cob_id(bases[number - 1], self.node_id))
 
-        cycle_us = round(cycle_period * 1e6)
-        consumer = (self.cfg.master_node_id << 16) | self.cfg.heartbeat_consumer_ms
-        settings: tuple[tuple[int, int, tuple[str, bool], int], ...] = (
-            (Obj.MODES_OF_OPERATION, 0, _I8, int(mode)),
-            (Obj.QUICK_STOP_OPTION, 0, _I16, self.cfg.quick_stop_option),
-            (Obj.ABORT_CONNECTION_OPTION, 0, _I16, self.cfg.abort_connection_option),
-            (Obj.COMMUNICATION_CYCLE_PERIOD, 0, _U32, cycle_us),
-            (Obj.PRODUCER_HEARTBEAT_TIME, 0, _U16, self.cfg.heartbeat_producer_ms),
-            (Obj.CONSUMER_HEARTBEAT_TIME, 1, _U32, consumer),
-        )
-        for index, sub, fmt, value in settings:
-            self._write(index, sub, fmt, value)
+        settings = self._settings(mode, cycle_period)
+        written = [row for row in settings if self._write_setting(row)]
 
         # read everything back: a drive may accept a write and keep another value
         for layout in (*rpdos, *tpdos):
             self._verify_pdo(layout)
-        for index, sub, fmt, value in settings:
+        for index, sub, fmt, value, _ in written:
             self._expect(index, sub, fmt, value)
         self._wait_mode_display(mode)
 
@@ -430,18 +443,18 @@ class Cia402Drive(Drive):
             self._reset_communication()
             self.configure(mode, period)
         self._target_raw = 0
-        self._step(int(Command402.DISABLE_VOLTAGE))  # bit 7 low first: the reset acts on the rising edge
+        self._command_state(int(Command402.DISABLE_VOLTAGE))  # bit 7 low first: the reset acts on the rising edge
         deadline = time.monotonic() + self.cfg.state_timeout
-        state = self._step(int(Command402.FAULT_RESET)).state
+        state = self._command_state(int(Command402.FAULT_RESET))
         while state in (State402.FAULT, State402.FAULT_REACTION_ACTIVE):
             if time.monotonic() > deadline:
-                self._step(int(Command402.DISABLE_VOLTAGE))
+                self._command_state(int(Command402.DISABLE_VOLTAGE))
                 raise StateTransitionError(
                     f"node {self.node_id} stuck in {state.name}: fault reset (controlword 0x80) for "
                     f"{self.cfg.state_timeout} s did not clear it"
                 )
-            state = self._step(int(Command402.FAULT_RESET)).state
-        self._step(int(Command402.DISABLE_VOLTAGE))
+            state = self._command_state(int(Command402.FAULT_RESET))
+        self._command_state(int(Command402.DISABLE_VOLTAGE))
         with self._cv:
             self._errors.clear()
             self._heartbeat_fault = False
@@ -485,8 +498,8 @@ class Cia402Drive(Drive):
 
     def safe_stop(self) -> None:
         """Quick stop, zero target, disable voltage; logs and swallows every failure."""
-        if self._closed:
-            return
+        if self._closed or not self._connected:
+            return  # nothing was ever commanded: no drive answered connect()
         short = min(self.cfg.state_timeout, 0.5)
         for command, goal in (
             (Command402.QUICK_STOP, {State402.QUICK_STOP_ACTIVE, State402.SWITCH_ON_DISABLED, State402.FAULT}),
@@ -677,6 +690,9 @@ class Cia402Drive(Drive):
                     return feedback
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
+                    notifier = self.network.notifier
+                    if notifier is not None and notifier.exception is not None:
+                        raise DriveError(f"the CAN receive thread stopped: {notifier.exception}")
                     raise FeedbackTimeoutError(
                         f"no TPDO set from node {self.node_id} answered SYNC {cycle} within {timeout:.3f} s"
                     )
@@ -781,6 +797,8 @@ class Cia402Drive(Drive):
 
     def _require_connected(self) -> None:
         self._require_open()
+        if not self._connected:
+            raise DriveError(f"node {self.node_id} is not connected; call connect() first")
 
     def _require_operational(self) -> None:
         self._require_open()
@@ -813,6 +831,39 @@ class Cia402Drive(Drive):
         period = self.cfg.heartbeat_consumer_ms / 1000 / MASTER_HEARTBEATS_PER_CONSUMER_TIME
         self._producer = HeartbeatProducer(self._bus, self.cfg.master_node_id, period)
         self._producer.start()
+
+    def _settings(self, mode: OperationMode, cycle_period: float) -> list[_Setting]:
+        """The objects ``configure`` writes after the PDOs, in order: (index, sub, format, value, optional)."""
+        consumer = (self.cfg.master_node_id << 16) | self.cfg.heartbeat_consumer_ms
+        rows: list[_Setting] = [
+            (Obj.MODES_OF_OPERATION, 0, _I8, int(mode), False),
+            (Obj.QUICK_STOP_OPTION, 0, _I16, self.cfg.quick_stop_option, True),  # optional in CiA 402
+            (Obj.ABORT_CONNECTION_OPTION, 0, _I16, self.cfg.abort_connection_option, True),  # optional
+            (Obj.COMMUNICATION_CYCLE_PERIOD, 0, _U32, round(cycle_period * 1e6), False),
+        ]
+        if Obj.INTERPOLATION_TIME_PERIOD in self.od:  # cyclic synchronous modes take their cycle from here
+            value, exponent = interpolation_time_period(cycle_period)
+            rows += [
+                (Obj.INTERPOLATION_TIME_PERIOD, 1, _U8, value, True),
+                (Obj.INTERPOLATION_TIME_PERIOD, 2, _I8, exponent, True),
+            ]
+        rows += [
+            (Obj.PRODUCER_HEARTBEAT_TIME, 0, _U16, self.cfg.heartbeat_producer_ms, False),
+            (Obj.CONSUMER_HEARTBEAT_TIME, 1, _U32, consumer, False),
+        ]
+        return rows
+
+    def _write_setting(self, row: _Setting) -> bool:
+        """Write one setting; an optional object the drive lacks is skipped (False) with a warning."""
+        index, sub, fmt, value, optional = row
+        try:
+            self._write(index, sub, fmt, value)
+        except SdoError as exc:
+            if optional and exc.abort_code in (SdoAbortCode.NO_OBJECT, SdoAbortCode.NO_SUBINDEX):
+                logger.warning("node %d lacks optional object 0x%04X:%02X; not configured", self.node_id, index, sub)
+                return False
+            raise
+        return True
 
     def _supported_modes(self) -> tuple[OperationMode, ...]:
         try:

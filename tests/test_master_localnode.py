@@ -9,11 +9,13 @@ disabled, only PDO-mappable objects, EDS limits). The fault tests reuse it with 
 
 from __future__ import annotations
 
+import re
 import struct
 import threading
 import time
 import uuid
 from collections.abc import Iterator
+from pathlib import Path
 
 import can
 import canopen
@@ -40,7 +42,7 @@ from drivers.cia402 import (
     Statusword,
     decode_command,
 )
-from drivers.cia402_master import Cia402Drive
+from drivers.cia402_master import Cia402Drive, interpolation_time_period
 from drivers.config import DriveConfig
 from drivers.od import DEFAULT_EDS
 from drivers.pdo import PDO_DISABLED
@@ -89,11 +91,11 @@ def _transition(state: State402, controlword: int, previous_controlword: int) ->
 class MiniServo:
     """A CiA 402 slave on canopen's LocalNode, answering in lockstep (TPDOs on every SYNC)."""
 
-    def __init__(self, channel: str, node_id: int = NODE_ID) -> None:
+    def __init__(self, channel: str, node_id: int = NODE_ID, eds: Path = DEFAULT_EDS) -> None:
         self.bus = can.Bus(interface="virtual", channel=channel)
         self.network = canopen.Network(self.bus)
         self.network.NOTIFIER_CYCLE = 0.1  # quick teardown
-        self.node: canopen.LocalNode = self.network.create_node(node_id, str(DEFAULT_EDS))
+        self.node: canopen.LocalNode = self.network.create_node(node_id, str(eds))
         self.node_id = node_id
         self.lock = threading.Lock()
         self.state = State402.SWITCH_ON_DISABLED
@@ -379,3 +381,75 @@ def test_responder_follows_the_402_table() -> None:
     assert _transition(State402.OPERATION_ENABLED, 0x02, 0x0F) is State402.QUICK_STOP_ACTIVE
     assert _transition(State402.FAULT, 0x80, 0x80) is State402.FAULT  # no rising edge
     assert _transition(State402.FAULT, 0x80, 0x00) is State402.SWITCH_ON_DISABLED
+
+
+INTERPOLATION_TIME_PERIOD_EDS = """
+[60C2]
+ParameterName=Interpolation time period
+ObjectType=0x9
+SubNumber=3
+
+[60C2sub0]
+ParameterName=Highest sub-index supported
+ObjectType=0x7
+DataType=0x0005
+AccessType=ro
+DefaultValue=2
+PDOMapping=0
+
+[60C2sub1]
+ParameterName=Interpolation time period value
+ObjectType=0x7
+DataType=0x0005
+AccessType=rw
+DefaultValue=1
+PDOMapping=0
+
+[60C2sub2]
+ParameterName=Interpolation time index
+ObjectType=0x7
+DataType=0x0002
+AccessType=rw
+DefaultValue=-3
+PDOMapping=0
+"""
+
+
+def test_other_drive_without_optional_objects_but_with_0x60c2(channel: str, tmp_path: Path) -> None:
+    """A different 402 drive: no 0x6007 / 0x605A (optional), but 0x60C2 for the cyclic modes."""
+    text = DEFAULT_EDS.read_text(encoding="utf-8")
+    for section in ("6007", "605A"):
+        text = re.sub(rf"\[{section}\]\n(?:[^\[\n].*\n)*", "", text)  # the section up to its blank line
+    eds = tmp_path / "other_drive.eds"
+    eds.write_text(text + INTERPOLATION_TIME_PERIOD_EDS, encoding="utf-8")
+    slave = MiniServo(channel, eds=eds)
+    bus = can.Bus(interface="virtual", channel=channel)
+    try:
+        assert Obj.ABORT_CONNECTION_OPTION not in slave.node.object_dictionary
+        with Cia402Drive.open(bus, drive_config(eds=str(eds)), sample_time=0.0005) as drive:
+            drive.connect()
+            drive.configure(OperationMode.CYCLIC_SYNC_TORQUE, 0.0005)
+            assert (slave.value(0x60C2, 1), slave.value(0x60C2, 2)) == (5, -4)  # 5 x 10^-4 s
+            assert slave.value(0x1600, 2) == 0x60710010  # CST maps target torque
+            drive.enable()
+            sent = drive.set_target(250.0)
+            drive.sync()
+            assert drive.wait_feedback(0.5).torque == sent == 250.0
+    finally:
+        bus.shutdown()
+        slave.close()
+
+
+@pytest.mark.parametrize(
+    ("period", "encoded"),
+    [(0.002, (2, -3)), (0.001, (1, -3)), (0.0005, (5, -4)), (0.3, (3, -1)), (0.000125, (125, -6)), (0.01, (1, -2))],
+)
+def test_interpolation_time_period(period: float, encoded: tuple[int, int]) -> None:
+    value, exponent = interpolation_time_period(period)
+    assert (value, exponent) == encoded
+    assert value * 10.0**exponent == pytest.approx(period, rel=1e-12)
+
+
+def test_interpolation_time_period_rejects_unencodable() -> None:
+    with pytest.raises(ConfigError, match="0x60C2"):
+        interpolation_time_period(0.0012345)
