@@ -27,7 +27,8 @@ torque (CiA 402).
 Errors: EMCY -> :class:`~foilc_hil.errors.EmergencyError` (code decoded), statusword fault bit ->
 :class:`~foilc_hil.errors.DriveFaultError`, no heartbeat for ``heartbeat_timeout_factor x 0x1017`` ->
 :class:`~foilc_hil.errors.HeartbeatLostError` (checked by ``wait_feedback`` and by a watchdog thread), no TPDO set
-in time -> :class:`~foilc_hil.errors.FeedbackTimeoutError`, SDO abort -> :class:`~foilc_hil.errors.SdoError`.
+in time -> :class:`~foilc_hil.errors.FeedbackTimeoutError`, SDO abort -> :class:`~foilc_hil.errors.SdoError`
+(abort code decoded), no SDO answer -> :class:`~foilc_hil.errors.DriveTimeoutError`.
 Before any of these leaves ``wait_feedback`` the master commands quick stop (controlword 0x02, target 0, one SYNC).
 Received frames: a TPDO/EMCY/heartbeat of the drive with the wrong DLC is a
 :class:`~foilc_hil.errors.ProtocolError` (raised by the next ``wait_feedback``); a frame with a COB-ID nobody
@@ -942,7 +943,10 @@ class Cia402Drive(Drive):
         except SdoAbortedError as exc:
             raise SdoError(index, subindex, exc.code, sdo_abort_text(exc.code)) from exc
         except SdoCommunicationError as exc:
-            raise SdoError(index, subindex, 0, f"no valid SDO response: {exc}") from exc
+            raise DriveTimeoutError(
+                f"node {self.node_id}: no valid SDO response for 0x{index:04X}:{subindex:02X} within "
+                f"{self.cfg.sdo_timeout} s ({exc})"
+            ) from exc
         except can.CanError as exc:
             raise DriveError(f"SDO upload 0x{index:04X}:{subindex:02X} could not be sent: {exc}") from exc
         if len(data) < size:
@@ -961,7 +965,10 @@ class Cia402Drive(Drive):
         except SdoAbortedError as exc:
             raise SdoError(index, subindex, exc.code, sdo_abort_text(exc.code)) from exc
         except SdoCommunicationError as exc:
-            raise SdoError(index, subindex, 0, f"no valid SDO response: {exc}") from exc
+            raise DriveTimeoutError(
+                f"node {self.node_id}: no valid SDO response for 0x{index:04X}:{subindex:02X} within "
+                f"{self.cfg.sdo_timeout} s ({exc})"
+            ) from exc
         except can.CanError as exc:
             raise DriveError(f"SDO download 0x{index:04X}:{subindex:02X} could not be sent: {exc}") from exc
 

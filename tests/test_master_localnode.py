@@ -453,3 +453,11 @@ def test_interpolation_time_period(period: float, encoded: tuple[int, int]) -> N
 def test_interpolation_time_period_rejects_unencodable() -> None:
     with pytest.raises(ConfigError, match="0x60C2"):
         interpolation_time_period(0.0012345)
+
+
+def test_silent_sdo_server_is_a_timeout_naming_the_object(servo: MiniServo, master_bus: can.BusABC) -> None:
+    with Cia402Drive.open(master_bus, drive_config(sdo_timeout=0.05), sample_time=0.002) as drive:
+        drive.connect()
+        servo.network.unsubscribe(servo.node.sdo.rx_cobid, servo.node.sdo.on_request)  # the SDO server goes quiet
+        with pytest.raises(DriveTimeoutError, match=r"no valid SDO response for 0x6061:00 within 0.05 s"):
+            drive.read_object(Obj.MODES_OF_OPERATION_DISPLAY)
