@@ -13,10 +13,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from drivers.bus import open_bus  # noqa: E402  (after the path fix: run as a script)
-from drivers.cia402 import OperationMode  # noqa: E402
-from drivers.cia402_master import Cia402Drive  # noqa: E402
-from drivers.config import BusConfig, DriveConfig  # noqa: E402
+from drivers.bus import open_bus
+from drivers.cia402 import OperationMode
+from drivers.cia402_master import Cia402Drive
+from drivers.config import BusConfig, DriveConfig
 
 TARGET_RPM = 300.0
 CYCLES = 200
