@@ -18,7 +18,10 @@ import pytest
 from drivers.cia301 import RPDO_BASES, SYNC_COB_ID, EmcyCode, FunctionCode, cob_id
 from drivers.cia402 import Command402, OperationMode, State402
 from drivers.cia402_master import Cia402Drive
+from drivers.emcy import decode_emcy
+from drivers.heartbeat import HeartbeatMonitor
 from foilc_hil.errors import (
+    DriveError,
     DriveFaultError,
     EmergencyError,
     FeedbackTimeoutError,
@@ -195,3 +198,60 @@ def test_unknown_cob_ids_are_ignored_and_counted(rig: tuple[MiniServo, Cia402Dri
         time.sleep(0.01)
     assert drive.stats.unknown_frames == before + 2
     assert drive.stats.bad_frames == 0
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_heartbeat_monitor_declares_loss_after_the_timeout_only_when_armed() -> None:
+    clock = FakeClock()
+    monitor = HeartbeatMonitor(NODE_ID, clock=clock)
+    clock.now += 10.0
+    monitor.check()  # unarmed: never lost
+    monitor.arm(0.3)
+    clock.now += 0.29
+    monitor.check()  # a full window after arming, even with no heartbeat yet
+    monitor.beat(0x05)
+    clock.now += 0.3
+    monitor.check()  # exactly at the timeout: not yet
+    clock.now += 0.001
+    with pytest.raises(HeartbeatLostError, match=r"none for 0.301 s \(timeout 0.300 s\)"):
+        monitor.check()
+    monitor.beat(0x85)  # toggle bit masked
+    assert monitor.last_state == 0x05
+    monitor.check()
+    monitor.disarm()
+    clock.now += 5.0
+    monitor.check()
+
+
+def test_emcy_decoding() -> None:
+    emergency = decode_emcy(bytes([0x30, 0x81, 0x11, 0, 0, 0, 0, 0]), 1.0)
+    assert (emergency.code, emergency.register, emergency.is_reset) == (0x8130, 0x11, False)
+    assert "heartbeat" in emergency.text
+    assert isinstance(emergency.error(), EmergencyError) and emergency.error().code == 0x8130
+    assert decode_emcy(bytes(8), 2.0).is_reset
+    with pytest.raises(ProtocolError, match="DLC 7"):
+        decode_emcy(bytes(7), 3.0)
+
+
+def test_non_402_device_is_refused() -> None:
+    channel = f"test-faults-{uuid.uuid4()}"
+    servo = MiniServo(channel)
+    # a CiA 401 I/O module answers 0x1000 (a read callback survives the NMT reset that restores defaults)
+    servo.node.add_read_callback(lambda index, subindex, od: 0x00000191 if index == 0x1000 else None)
+    bus = can.Bus(interface="virtual", channel=channel)
+    try:
+        with (
+            Cia402Drive.open(bus, drive_config(), sample_time=0.002) as drive,
+            pytest.raises(DriveError, match="not a CiA 402 drive: device type 0x00000191"),
+        ):
+            drive.connect()
+    finally:
+        bus.shutdown()
+        servo.close()
