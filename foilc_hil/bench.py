@@ -598,7 +598,8 @@ class _McapSink:
                 message["E"],
                 sample=message["sample"],
             )
-        self.writer.log_trial(record.metrics, clamped=record.clamped)
+        # final_output = y(N Ts): with the rows' outputs it rebuilds the trial's output array (replay --verify)
+        self.writer.log_trial(record.metrics, clamped=record.clamped, final_output=float(record.seen[-1]))
         self.writer.end_trial()
 
     def timing(self, records: Iterator[dict[str, Any]]) -> None:
@@ -616,6 +617,21 @@ class _McapSink:
                 record["feedback_latency_us"],
                 record["skipped_deadlines"] > 0,
             )
+
+
+def emulator_settings(config: Any) -> Any:
+    """The embedded emulator's ``EmulatorConfig`` from the bench config's ``emulator:`` section (``timing``,
+    ``seed`` and the free-form ``options``, which the emulator validates)."""
+    from foilc_hil.errors import ConfigError
+    from plant_emulator.settings import EmulatorConfig
+
+    section = config.emulator
+    document = {"timing": section.timing, "seed": section.seed, **section.options}
+    try:
+        return EmulatorConfig.model_validate(document)
+    except ValueError as exc:  # pydantic's ValidationError
+        first = str(exc).splitlines()[1] if len(str(exc).splitlines()) > 1 else str(exc)
+        raise ConfigError(f"not a valid emulator setting: {first}", key="emulator.options") from None
 
 
 _MODES = {"csv": "CYCLIC_SYNC_VELOCITY", "cst": "CYCLIC_SYNC_TORQUE", "pv": "PROFILE_VELOCITY"}
@@ -668,7 +684,10 @@ def run_bench(request: RunRequest) -> RunReport:
         if bus_cfg.interface == "embedded":
             from plant_emulator.embedded import EmbeddedEmulator
 
-            emulator = stack.enter_context(EmbeddedEmulator(config))
+            emulator = EmbeddedEmulator.for_drive(
+                config.plant, emulator_settings(config), config.drive, sample_time=config.sample_time
+            )
+            stack.enter_context(emulator)
             bus_cfg = emulator.bus_config
             before_trial = getattr(emulator, "begin_trial", None)
         bus = open_bus(bus_cfg)

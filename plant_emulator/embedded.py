@@ -1,12 +1,13 @@
 """The in-process emulator behind ``--emulator embedded``: a virtual drive on its own ``virtual`` CAN channel.
 
->>> with EmbeddedEmulator(plant_cfg, EmulatorConfig(), node_id=1, sample_time=0.01) as emulator:  # doctest: +SKIP
+>>> with EmbeddedEmulator.for_drive(plant, EmulatorConfig(), drive, sample_time=0.01) as emulator:  # doctest: +SKIP
 ...     bus = drivers.bus.open_bus(emulator.bus_config)   # the master's end of the same channel
 """
 
 from __future__ import annotations
 
 import uuid
+from typing import Protocol
 
 import can
 
@@ -16,13 +17,29 @@ from plant_emulator.device import VirtualDrive
 from plant_emulator.physics import build_plant
 from plant_emulator.settings import EmulatorConfig
 
-__all__ = ["EmbeddedEmulator"]
+__all__ = ["BenchDocument", "EmbeddedEmulator"]
 
 CHANNEL_PREFIX = "foilc-hil-embedded"
 
 
+class BenchDocument(Protocol):
+    """The parts of the bench's whole config (``foilc_hil.config.Config``, layer 3) the emulator reads."""
+
+    @property
+    def plant(self) -> PlantConfig: ...
+
+    @property
+    def emulator(self) -> EmulatorConfig: ...
+
+    @property
+    def drive(self) -> DriveConfig: ...
+
+    @property
+    def sample_time(self) -> float: ...
+
+
 class EmbeddedEmulator:
-    """A :class:`~plant_emulator.device.VirtualDrive` on a fresh, unique ``virtual`` channel, as a context manager.
+    """A :class:`~plant_emulator.device.VirtualDrive` on a ``virtual`` channel, as a context manager.
 
     Parameters
     ----------
@@ -37,11 +54,14 @@ class EmbeddedEmulator:
     velocity_scale, torque_scale
         Plant units -> drive units; pass the bench's ``drive.velocity_scale`` / ``drive.torque_scale`` so both
         ends agree (None: the drive's defaults, see :class:`VirtualDrive`).
+    channel
+        The ``virtual`` channel; default: a fresh unique name.
 
     Notes
     -----
     The seed of the physics is ``plant.seed + settings.seed``. The drive runs in canopen's notifier thread of
     its own bus (and, in realtime mode, a physics thread); :meth:`close` stops them and shuts its bus down.
+    Build it from the bench's whole config with :meth:`from_config`, or from its sections with :meth:`for_drive`.
     """
 
     def __init__(
@@ -53,8 +73,9 @@ class EmbeddedEmulator:
         sample_time: float,
         velocity_scale: float | None = None,
         torque_scale: float | None = None,
+        channel: str | None = None,
     ) -> None:
-        self.channel = f"{CHANNEL_PREFIX}-{uuid.uuid4().hex}"
+        self.channel = channel if channel is not None else f"{CHANNEL_PREFIX}-{uuid.uuid4().hex}"
         self.drive = VirtualDrive(
             build_plant(plant, seed=plant.seed + settings.seed),
             node_id=node_id,
@@ -67,7 +88,13 @@ class EmbeddedEmulator:
 
     @classmethod
     def for_drive(
-        cls, plant: PlantConfig, settings: EmulatorConfig, drive: DriveConfig, *, sample_time: float
+        cls,
+        plant: PlantConfig,
+        settings: EmulatorConfig,
+        drive: DriveConfig,
+        *,
+        sample_time: float,
+        channel: str | None = None,
     ) -> EmbeddedEmulator:
         """The emulator matching the bench's ``drive:`` section (node id, velocity and torque scales)."""
         return cls(
@@ -77,12 +104,28 @@ class EmbeddedEmulator:
             sample_time=sample_time,
             velocity_scale=drive.velocity_scale,
             torque_scale=drive.torque_scale,
+            channel=channel,
         )
+
+    @classmethod
+    def from_config(cls, config: BenchDocument, *, channel: str | None = None) -> EmbeddedEmulator:
+        """The emulator for the bench's whole config: its ``plant``, ``emulator``, ``drive`` and ``sample_time``."""
+        return cls.for_drive(config.plant, config.emulator, config.drive, sample_time=config.sample_time,
+                             channel=channel)
+
+    @property
+    def device(self) -> VirtualDrive:
+        """The virtual drive (same as :attr:`drive`)."""
+        return self.drive
 
     @property
     def bus_config(self) -> BusConfig:
         """Where the master connects: ``BusConfig(interface="virtual", channel=<this emulator's channel>)``."""
         return BusConfig(interface="virtual", channel=self.channel)
+
+    def begin_trial(self, trial: int) -> None:
+        """Start trial ``trial`` of the physics (see :meth:`VirtualDrive.begin_trial`)."""
+        self.drive.begin_trial(trial)
 
     def start(self) -> EmbeddedEmulator:
         """Open the drive's end of the channel and boot the drive (boot-up, pre-operational)."""
