@@ -230,6 +230,9 @@ class Cia402Drive(Drive):
     ) -> None:
         if not (sample_time > 0 and math.isfinite(sample_time)):
             raise ConfigError(f"must be a positive number of seconds, got {sample_time}", key="sample_time")
+        if cfg.master_node_id == cfg.node_id:
+            raise ConfigError(f"must differ from drive.node_id ({cfg.node_id}): both would send heartbeats on "
+                              f"0x{cob_id(FunctionCode.HEARTBEAT, cfg.node_id):03X}", key="drive.master_node_id")
         self.cfg = cfg
         self.node_id = check_node_id(cfg.node_id)
         self.sample_time = sample_time
@@ -286,7 +289,12 @@ class Cia402Drive(Drive):
         self.network.unsubscribe(emcy_cob, self.node.emcy.on_emcy)
         self.network.subscribe(emcy_cob, self._on_emcy)
         self.network.subscribers[cob_id(FunctionCode.HEARTBEAT, self.node_id)].insert(0, self._on_heartbeat)
-        self.network.connect()  # starts the Notifier with canopen's listener, the tap and the counter
+        try:
+            self.network.connect()  # starts the Notifier with canopen's listener, the tap and the counter
+        except ValueError as exc:  # python-can allows one active Notifier per bus
+            self._tap.detach()
+            raise DriveError(f"cannot listen on the bus: {exc}; the drive object must own the bus's Notifier "
+                             "(use add_frame_listener to see frames)") from exc
         self.heartbeat.start_watchdog(self._on_heartbeat_lost, poll=0.05)
 
     # --- construction -----------------------------------------------------------------------------------------

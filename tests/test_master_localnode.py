@@ -46,7 +46,7 @@ from drivers.cia402_master import Cia402Drive, interpolation_time_period
 from drivers.config import DriveConfig
 from drivers.od import DEFAULT_EDS
 from drivers.pdo import PDO_DISABLED
-from foilc_hil.errors import ConfigError, DriveTimeoutError, SdoError
+from foilc_hil.errors import ConfigError, DriveError, DriveTimeoutError, SdoError
 
 NODE_ID = 5
 VELOCITY_SCALE = 1000.0  # plant unit rpm -> 0.001 rpm counts, as the EDS documents
@@ -461,3 +461,18 @@ def test_silent_sdo_server_is_a_timeout_naming_the_object(servo: MiniServo, mast
         servo.network.unsubscribe(servo.node.sdo.rx_cobid, servo.node.sdo.on_request)  # the SDO server goes quiet
         with pytest.raises(DriveTimeoutError, match=r"no valid SDO response for 0x6061:00 within 0.05 s"):
             drive.read_object(Obj.MODES_OF_OPERATION_DISPLAY)
+
+
+def test_bus_with_a_foreign_notifier_is_refused_cleanly(master_bus: can.BusABC) -> None:
+    notifier = can.Notifier(master_bus, [], timeout=0.05)
+    try:
+        with pytest.raises(DriveError, match="cannot listen on the bus"):
+            Cia402Drive.open(master_bus, drive_config(), sample_time=0.002)
+        assert "send" not in vars(master_bus)  # the frame tap was taken off again
+    finally:
+        notifier.stop()
+
+
+def test_master_and_drive_node_ids_must_differ(master_bus: can.BusABC) -> None:
+    with pytest.raises(ConfigError, match=r"drive\.master_node_id: must differ from drive\.node_id"):
+        Cia402Drive.open(master_bus, drive_config(master_node_id=NODE_ID), sample_time=0.002)
