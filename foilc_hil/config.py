@@ -16,6 +16,7 @@ from pydantic import Field, model_validator
 from drivers.config import BusConfig, DriveConfig
 from foilc_hil.schema import Section, apply_overrides, load_document, validate
 from plant_emulator.config import PlantConfig
+from plant_emulator.settings import EmulatorConfig
 
 
 class Segment(Section):
@@ -93,12 +94,8 @@ class BenchConfig(Section):
     settle_tolerance: float = Field(default=1.0, ge=0)  # |y| below this counts as at rest
 
 
-class EmulatorSection(Section):
-    """Virtual drive settings (see ``plant_emulator``); kept open here, validated by the emulator."""
-
-    timing: Literal["lockstep", "realtime"] = "lockstep"
-    seed: int = 0
-    options: dict[str, Any] = Field(default_factory=dict)
+EmulatorSection = EmulatorConfig
+"""The ``emulator:`` section is the emulator's own :class:`plant_emulator.settings.EmulatorConfig`."""
 
 
 class Config(Section):
@@ -114,7 +111,7 @@ class Config(Section):
     bus: BusConfig = BusConfig()
     drive: DriveConfig = DriveConfig()
     bench: BenchConfig = BenchConfig()
-    emulator: EmulatorSection = EmulatorSection()
+    emulator: EmulatorConfig = EmulatorConfig()
 
 
 def load_config(path: str | Path | None, overrides: Mapping[str, Any] | None = None) -> Config:

@@ -418,6 +418,25 @@ class VirtualDrive:
             self._publish_status()
             self._send_event_tpdos()
 
+    def begin_trial(self, trial: int) -> None:
+        """Start trial ``trial`` (1-based) of the physics: ``plant.reset(trial)``.
+
+        The plant returns to its initial condition and its trial-dependent parts (the disturbance from
+        ``plant.disturbance.start_trial`` on, per-trial noise and drift) follow ``trial``. The bench calls this
+        between trials of an embedded run, when the axis has settled; a real drive has no such hook, so a
+        cross-process run keeps one continuous trial-1 physics.
+        """
+        with self._lock:
+            self.plant.reset(trial)
+            y = np.asarray(self.plant.output(), dtype=float).reshape(-1)
+            axis = self._axis
+            axis.velocity = self._counts(float(y[0]))
+            axis.profile_velocity = axis.ramp_velocity = axis.velocity
+            plant_position = getattr(self.plant, "position_counts", None)
+            axis.position = float(plant_position) if plant_position is not None else 0.0
+            self._put(Obj.VELOCITY_ACTUAL_VALUE, axis.velocity)
+            self._put(Obj.POSITION_ACTUAL_VALUE, axis.position)
+
     def stop_responding(self) -> None:
         """Simulate the drive dying: no heartbeat, no SDO answers, no PDOs, no physics, from now on."""
         with self._lock:
