@@ -1,0 +1,212 @@
+"""The bench under faults, each mid-trial: the emulator stops answering, the drive faults, the user presses Ctrl-C.
+
+Each must end with a safe drive (the last controlword the bench sent is QUICK STOP or DISABLE VOLTAGE, and the
+drive is not OPERATION ENABLED), a log the standard ``mcap`` reader opens holding every trial completed before the
+fault, and one clear line on stderr with the right exit code (1 for faults, 130 for SIGINT).
+
+The emulator here is the real one (``plant_emulator``), either started by the test on its own ``virtual`` channel
+(so the test can hurt it) with the CLI pointed at ``--bus virtual:<channel>``, or embedded in a CLI subprocess.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from mcap.reader import make_reader
+
+from drivers.cia301 import FunctionCode, cob_id
+from drivers.cia402 import Command402, State402, decode_state
+from foilc_hil.cli import main
+from foilc_hil.config import load_config
+from tests.test_bench_e2e import NODE, SAMPLES, bench_config
+
+ROOT = Path(__file__).resolve().parents[1]
+SAFE_CONTROLWORDS = {int(Command402.QUICK_STOP), int(Command402.DISABLE_VOLTAGE)}
+
+
+def read_log(path: Path) -> dict[str, list[dict[str, Any]]]:
+    """Every message by topic, through the standard mcap reader (it must open the file as it is)."""
+    by_topic: dict[str, list[dict[str, Any]]] = {}
+    with path.open("rb") as stream:
+        reader = make_reader(stream)
+        for _, channel, message in reader.iter_messages(log_time_order=False):
+            by_topic.setdefault(channel.topic, []).append(json.loads(message.data))
+    return by_topic
+
+
+def last_word(frames: list[dict[str, Any]], cob: int) -> int:
+    words = [int.from_bytes(base64.b64decode(f["data"])[:2], "little") for f in frames if f["id"] == cob]
+    assert words, f"no frames with COB-ID 0x{cob:X} in the log"
+    return words[-1]
+
+
+def assert_completed_trials_intact(topics: dict[str, list[dict[str, Any]]], minimum: int) -> list[int]:
+    """At least ``minimum`` trials completed; each has its /ilc/trial record and all its samples."""
+    trials = [t["trial"] for t in topics.get("/ilc/trial", [])]
+    assert len(trials) >= minimum, f"only {trials} completed"
+    assert trials == list(range(1, len(trials) + 1))
+    samples = topics.get("/ilc/sample", [])
+    for k in trials:
+        assert sum(1 for s in samples if s["trial"] == k) == SAMPLES
+    return trials
+
+
+@pytest.fixture
+def emulator_on_channel(tmp_path: Path) -> Iterator[tuple[Any, str, Path]]:
+    """The real emulator on a fresh virtual channel, outside the bench (so the test can stop or fault it)."""
+    from foilc_hil.bench import emulator_settings
+    from plant_emulator.embedded import EmbeddedEmulator
+
+    config_path = bench_config(tmp_path, watchdog_cycles=3)
+    config = load_config(config_path)
+    emulator = EmbeddedEmulator.for_drive(
+        config.plant, emulator_settings(config), config.drive, sample_time=config.sample_time
+    )
+    with emulator:
+        yield emulator, emulator.channel, config_path
+
+
+def when_cycles_pass(emulator: Any, cycles: int, action: Callable[[], None]) -> threading.Thread:
+    """Run ``action`` once the emulated drive has seen ``cycles`` SYNCs (polled; mid-trial for short trials)."""
+
+    def watch() -> None:
+        deadline = time.monotonic() + 60.0
+        while emulator.drive.sync_count < cycles and time.monotonic() < deadline:
+            time.sleep(0.0005)
+        action()
+
+    thread = threading.Thread(target=watch, daemon=True)
+    thread.start()
+    return thread
+
+
+def run_cli(config_path: Path, channel: str, out: Path, trials: int) -> int:
+    return main(
+        [
+            "run",
+            "--config",
+            str(config_path),
+            "--bus",
+            f"virtual:{channel}",
+            "--trials",
+            str(trials),
+            "--out",
+            str(out),
+            "--quiet",
+        ]
+    )
+
+
+def mid_trial_cycle(trial: int) -> int:
+    """A SYNC count well inside trial ``trial`` (start-up, settle phases and N + 1 cycles per trial before it)."""
+    return 10 + trial * (SAMPLES + 1) + 2 * 20 + SAMPLES // 2
+
+
+def test_emulator_stops_responding_mid_trial(
+    emulator_on_channel: tuple[Any, str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    emulator, channel, config_path = emulator_on_channel
+    out = tmp_path / "dead.mcap"
+    watcher = when_cycles_pass(emulator, mid_trial_cycle(2), emulator.drive.stop_responding)
+    code = run_cli(config_path, channel, out, trials=20)
+    watcher.join(timeout=5)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1
+    assert len(err) == 1 and err[0].startswith("foilc-hil run: ")
+    assert "feedback" in err[0] or "heartbeat" in err[0]
+    topics = read_log(out)
+    trials = assert_completed_trials_intact(topics, 2)
+    assert len(trials) < 20
+    assert last_word(topics["/can"], cob_id(FunctionCode.RPDO1, NODE)) in SAFE_CONTROLWORDS
+
+
+def test_drive_fault_mid_trial(
+    emulator_on_channel: tuple[Any, str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    emulator, channel, config_path = emulator_on_channel
+    out = tmp_path / "fault.mcap"
+    watcher = when_cycles_pass(emulator, mid_trial_cycle(2), lambda: emulator.drive.inject_fault("over-current"))
+    code = run_cli(config_path, channel, out, trials=20)
+    watcher.join(timeout=5)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1
+    assert len(err) == 1 and err[0].startswith("foilc-hil run: ")
+    assert "EMCY" in err[0] or "fault" in err[0]
+    topics = read_log(out)
+    trials = assert_completed_trials_intact(topics, 2)
+    assert len(trials) < 20
+    assert last_word(topics["/can"], cob_id(FunctionCode.RPDO1, NODE)) in SAFE_CONTROLWORDS
+    assert emulator.drive.state != State402.OPERATION_ENABLED
+    assert decode_state(last_word(topics["/can"], cob_id(FunctionCode.TPDO1, NODE))) != State402.OPERATION_ENABLED
+
+
+def test_sigint_mid_trial_in_a_subprocess(tmp_path: Path) -> None:
+    config_path = bench_config(tmp_path)
+    out = tmp_path / "interrupted.mcap"
+    command = [
+        sys.executable,
+        "-m",
+        "foilc_hil.cli",
+        "run",
+        "--config",
+        str(config_path),
+        "--emulator",
+        "embedded",
+        "--trials",
+        "200",
+        "--out",
+        str(out),
+        "--quiet",
+    ]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=ROOT)
+    try:
+        # wait until at least two trials are on disk (the writer flushes a chunk at every trial end)
+        deadline = time.monotonic() + 120.0
+        completed = 0
+        while time.monotonic() < deadline and process.poll() is None:
+            completed = _completed_trials_on_disk(out)
+            if completed >= 2:
+                break
+            time.sleep(0.05)
+        assert process.poll() is None, process.communicate()
+        assert completed >= 2
+        process.send_signal(signal.SIGINT)
+        _stdout, stderr = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+    assert process.returncode == 130, stderr
+    lines = [line for line in stderr.strip().splitlines() if line]
+    assert len(lines) == 1 and lines[0].startswith("foilc-hil run: ") and "SIGINT" in lines[0]
+    topics = read_log(out)
+    trials = assert_completed_trials_intact(topics, 2)
+    assert len(trials) < 200
+    rpdo1 = cob_id(FunctionCode.RPDO1, NODE)
+    assert last_word(topics["/can"], rpdo1) in SAFE_CONTROLWORDS
+    assert decode_state(last_word(topics["/can"], cob_id(FunctionCode.TPDO1, NODE))) != State402.OPERATION_ENABLED
+
+
+def _completed_trials_on_disk(path: Path) -> int:
+    """Completed trials in a log still being written (F's damage-tolerant reader reads up to the last chunk)."""
+    if not path.exists():
+        return 0
+    from foilc_hil.io.mcap_log import McapLogReader
+
+    try:
+        with McapLogReader(path) as reader:
+            return len(reader.read().completed_trials)
+    except Exception:  # a file in the middle of its first write
+        return 0
