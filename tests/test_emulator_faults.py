@@ -259,3 +259,13 @@ def test_nmt_reset_node_restores_the_abort_option() -> None:
         h.node.sdo[Obj.ABORT_CONNECTION_OPTION].raw = 0
         h.nmt(NmtCommand.RESET_NODE)
         assert h.node.sdo[Obj.ABORT_CONNECTION_OPTION].raw == 3  # EDS default
+
+
+def test_short_rpdo_is_refused_with_emcy() -> None:
+    with Harness() as h:
+        h.start()
+        h.send(h.rpdo1, struct.pack("<H", 0x06))  # RPDO1 maps 6 bytes; 2 arrive
+        h.sync(wait_for=h.tpdo1)
+        frames = h.recorder.wait_count(h.emcy, 1)
+        assert _emcy(frames[0])[0] == EmcyCode.PDO_LENGTH
+        assert h.drive.state is State402.SWITCH_ON_DISABLED  # the frame was not applied

@@ -9,8 +9,9 @@ import struct
 import pytest
 
 from drivers.cia301 import FunctionCode, cob_id
-from drivers.cia402 import State402
+from drivers.cia402 import Obj, OperationMode, State402
 from plant_emulator.config import PlantConfig
+from plant_emulator.settings import EmulatorConfig
 from tests.emulator_harness import NODE_ID, Harness
 
 pytestmark = pytest.mark.timeout(120)
@@ -75,3 +76,30 @@ def test_same_seed_gives_identical_feedback() -> None:
     assert first != other  # the noise is seeded: a different seed changes the feedback
     velocities = [_velocity(frame) for frame in first[:120]]
     assert max(velocities) > 100_000  # the axis really moved (> 100 rpm)
+
+
+def test_profile_velocity_ramps_with_0x6083_and_reports_target_reached() -> None:
+    """PV: the set-point ramps linearly at 0x6083; a fast first-order plant (tau 1 ms) follows it; bit 10 is set
+    once the velocity is within the window of the target."""
+    a, b = -1000.0, 1000.0  # unit DC gain, 1 ms time constant
+    accel_counts, target_counts = 50_000, 2_000  # 0.5 plant units per 10 ms cycle, target 2 plant units
+    plant = PlantConfig(model="first_order", a=a, b=b, c=1.0)
+    settings = EmulatorConfig(velocity_window=0.01)
+    with Harness(plant, settings=settings, cycle_period=PERIOD, velocity_scale=SCALE) as h:
+        h.node.sdo[Obj.MODES_OF_OPERATION].raw = OperationMode.PROFILE_VELOCITY
+        h.node.sdo[Obj.PROFILE_ACCELERATION].raw = accel_counts
+        _enable(h)
+        h.send(h.rpdo1, struct.pack("<Hi", 0x0F, target_counts))
+        frames = []
+        for _ in range(9):
+            h.sync(wait_for=h.tpdo1)
+            frames.append(struct.unpack_from("<Hi", h.recorder.frames[h.tpdo1][-1]))
+    decay = math.exp(a * PERIOD)
+    y, expected = 0.0, [0.0]
+    for j in range(1, 9):
+        u = min(j * accel_counts * PERIOD, target_counts) / SCALE  # the linear ramp of CiA 402 PV
+        y = decay * y + (1.0 - decay) * u
+        expected.append(y)
+    assert [v for _, v in frames] == [round(v * SCALE) for v in expected]
+    reached = [bool(sw & (1 << 10)) for sw, _ in frames]
+    assert reached[:4] == [False] * 4 and reached[-1]
