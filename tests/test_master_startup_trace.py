@@ -1,7 +1,7 @@
 """The master's start-up, frame by frame: what a CiA 402 master says to a drive before the first cycle.
 
 Read :data:`EXPECTED` top to bottom: it is the whole conversation of ``connect()``, ``configure(CSV, 2 ms)`` and
-``enable()`` with drive node 5 (master node 127, drive heartbeat 50 ms, drive watching the master at 200 ms),
+``enable()`` with drive node 5 (master node 127, drive heartbeat 100 ms, drive watching the master at 200 ms),
 captured with the master's frame tap and decoded by :func:`drivers.trace.describe_frame`. Heartbeats (the drive's
 and the master's) are periodic and interleave at random; they are left out, except the boot-up. Run with ``-s`` to
 see the table of frames.
@@ -95,7 +95,7 @@ EXPECTED: list[Line] = [
     *download("0x605A:00", "0x0002"),  # quick stop option: quick stop ramp, then disable
     *download("0x6007:00", "0x0003"),  # abort connection option: quick stop
     *download("0x1006:00", "0x000007D0"),  # communication cycle period 2000 us
-    *download("0x1017:00", "0x0032"),  # drive heartbeat every 50 ms
+    *download("0x1017:00", "0x0064"),  # drive heartbeat every 100 ms
     *download("0x1016:01", "0x007F00C8"),  # drive watches node 127 (the master) with 200 ms
     # read back everything written
     *verify_pdo(0x1400, 0x205, RPDO1_MAP),
@@ -105,7 +105,7 @@ EXPECTED: list[Line] = [
     *upload("0x605A:00", "0x0002"),
     *upload("0x6007:00", "0x0003"),
     *upload("0x1006:00", "0x000007D0"),
-    *upload("0x1017:00", "0x0032"),
+    *upload("0x1017:00", "0x0064"),
     *upload("0x1016:01", "0x007F00C8"),
     *upload("0x6061:00", "0x09"),  # modes of operation display confirms the mode
     ("tx", "NMT start node 5"),
