@@ -37,7 +37,9 @@ class DriveConfig(Section):
     eds: str | None = None  # object dictionary of the drive; None: the shipped configs/foilc_servo.eds
     velocity_limit: float = Field(default=3000.0, gt=0)  # |target velocity| clamp, in velocity units (rpm)
     torque_limit: float = Field(default=1000.0, gt=0)  # |target torque| clamp, per mille of rated torque
-    velocity_scale: float = Field(default=1.0, gt=0)  # plant output unit -> drive velocity unit (0x60FF/0x606C)
+    # Drive velocity counts (0x60FF/0x606C) per plant output unit. The shipped EDS counts 0.001 rpm (object
+    # 0x2000), so 1000 makes the plant unit rpm; set 1 for a drive that counts whole rpm.
+    velocity_scale: float = Field(default=1000.0, gt=0)
     torque_scale: float = Field(default=1.0, gt=0)  # plant input unit -> drive torque unit (0x6071)
     heartbeat_producer_ms: int = Field(default=100, ge=0, le=65535)  # the drive's 0x1017
     heartbeat_consumer_ms: int = Field(default=500, ge=0, le=65535)  # the drive watching the master
