@@ -1,0 +1,361 @@
+"""``foilc-hil commission scan|info|enable|disable|fault-reset|params|identify``: drive commissioning.
+
+Every action takes ``--bus INTERFACE:CHANNEL`` (default: ``--emulator embedded``, the in-process emulator),
+``--node-id N`` (default: ``drive.node_id`` of ``--config``), ``--config C`` (drive settings, ``sample_time``; and
+for the embedded emulator its ``plant:``/``emulator:``) and ``--json``. ``--emulator-config C`` makes the embedded
+emulator emulate the plant of another config (e.g. a known first-order plant); ``--emulated-nodes 1,5,9`` puts
+several emulated drives on its bus. See :mod:`foilc_hil.commission` for what each action does.
+
+JSON documents:
+
+- ``scan``: ``{"bus", "nodes": [{"node_id", "found_by", "nmt_state", "device_type", "profile", "identity": {...}}],
+  "node_range", "listen_seconds", "nmt_reset"}``
+- ``info``: ``{"node_id", "device_type", "identity", "nmt_state", "supported_modes", "mode", "statusword",
+  "error_register", "error_code", "pdos": [...], "dbc"?}``
+- ``enable``/``disable``/``fault-reset``: ``{"action", "node_id", "final_state", "transitions": [{"t", "state",
+  "statusword", "controlword"}], "notes"}``
+- ``params read``: ``{"parameters": [{"name", "index", "subindex", "value", "unit"}]}``; ``params write``:
+  ``{"ok", "changes": [{"name", "index", "subindex", "old", "new", "status"}], "error", "refused", "rolled_back",
+  "not_restored"}`` (exit 1 when not ok)
+- ``identify``: ``{"plant": {"a", "b", "c", "num", "den", "delay"}, "uncertainty": {"G1", "H1", "G2", "H2", ...},
+  "fit": {...}, "campaign": {...}, "out", "plot"}``
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from foilc_hil.commands import CommandResult
+from foilc_hil.errors import ExitCode, InputError
+
+if TYPE_CHECKING:
+    from drivers.cia402_master import Cia402Drive
+    from drivers.config import DriveConfig
+    from foilc_hil.commission.target import CommissionTarget
+    from foilc_hil.config import Config
+
+HELP = "scan, inspect, enable, parameterise and identify a drive"
+
+ACTIONS = ("scan", "info", "enable", "disable", "fault-reset", "params", "identify")
+
+
+def _common(parser: argparse.ArgumentParser) -> None:
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--bus", metavar="SPEC", help="INTERFACE:CHANNEL, e.g. socketcan:vcan0 (default: embedded)")
+    where.add_argument("--emulator", choices=["embedded"], help="the in-process emulator (the default)")
+    parser.add_argument("--node-id", type=int, metavar="N", help="the drive's node id (default: drive.node_id)")
+    parser.add_argument("--config", metavar="C", help="config YAML: drive settings, sample_time, emulated plant")
+    parser.add_argument("--emulator-config", metavar="C",
+                        help="config whose plant:/emulator: the embedded emulator runs (default: --config)")
+    parser.add_argument("--emulated-nodes", metavar="LIST",
+                        help="node ids of the embedded emulator's drives, e.g. 1,5,9 (default: --node-id)")
+    parser.add_argument("--json", action="store_true", default=argparse.SUPPRESS,
+                        help="print one JSON document on stdout")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The ``commission`` actions and their options."""
+    parser.add_argument("--json", action="store_true", default=False, help="print one JSON document on stdout")
+    actions = parser.add_subparsers(dest="action", required=True, metavar="ACTION")
+
+    scan = actions.add_parser("scan", help="find the nodes on the bus (heartbeat, boot-up, SDO probe)")
+    _common(scan)
+    scan.add_argument("--timeout", type=float, default=1.2, metavar="S", help="seconds to listen (default 1.2)")
+    scan.add_argument("--node-range", default="1-127", metavar="LO-HI", help="node ids to look for (default 1-127)")
+    scan.add_argument("--nmt-reset", action="store_true",
+                      help="broadcast NMT reset communication first (resets every node's PDO/heartbeat settings)")
+
+    info = actions.add_parser("info", help="identity, modes, 402 state, errors and PDO mapping of a drive")
+    _common(info)
+    info.add_argument("--dbc", metavar="FILE", help="also write the configured PDO mapping as a DBC (canmatrix)")
+
+    for name, text in (
+        ("enable", "walk the 402 state machine to OPERATION ENABLED"),
+        ("disable", "disable voltage (to SWITCH ON DISABLED)"),
+        ("fault-reset", "clear a fault (NMT reset communication first after a heartbeat/SYNC fault)"),
+    ):
+        power = actions.add_parser(name, help=text)
+        _common(power)
+        power.add_argument("--state-timeout", type=float, metavar="S",
+                           help="seconds per transition (default: drive.state_timeout)")
+
+    params = actions.add_parser("params", help="read or write a parameter set over SDO")
+    params.add_argument("operation", choices=["read", "write"])
+    params.add_argument("file", nargs="?", metavar="FILE.yaml",
+                        help="parameter set (write: required; read: the entries to read, default all EDS parameters)")
+    _common(params)
+    params.add_argument("--out", metavar="FILE.yaml", help="read: write the values there (default: stdout)")
+    params.add_argument("--skip-eds-check", action="store_true",
+                        help="write: send the set even where the EDS says the drive will refuse it")
+
+    identify = actions.add_parser("identify", help="step tests and a fitted plant model with uncertainty bounds")
+    _common(identify)
+    identify.add_argument("--mode", choices=["csv", "cst"], help="csv: velocity steps, cst: torque steps "
+                          "(default: drive.mode, pv -> csv)")
+    identify.add_argument("--model", choices=["first-order", "first-order-delay", "second-order"],
+                          default="first-order", help="model structure (default first-order b/(s - a))")
+    identify.add_argument("--amplitudes", metavar="LIST",
+                          help="step sizes in plant units, e.g. 300,600 (default: 10/20/30 %% of the velocity "
+                          "limit in csv, 2/4 %% of the torque limit in cst)")
+    identify.add_argument("--hold", type=float, metavar="S", help="seconds each step is held (csv 1.0, cst 0.2)")
+    identify.add_argument("--rest", type=float, metavar="S", help="seconds of rest between steps (default 1.0)")
+    identify.add_argument("--repetitions", type=int, default=2, metavar="N", help="campaign repetitions (default 2)")
+    identify.add_argument("--output-limit", type=float, metavar="Y",
+                          help="abort (safe stop) when |velocity| exceeds this (default: drive.velocity_limit)")
+    identify.add_argument("--uncertainty-margin", type=float, default=1.25, metavar="M",
+                          help="factor on the observed parameter spread (default 1.25)")
+    identify.add_argument("--out", metavar="FILE.yaml", help="write the plant: section (plus --config's other "
+                          "sections) for tune/synthesize/run")
+    identify.add_argument("--plot", metavar="FILE.png", help="plot measured steps against the fitted model")
+    identify.add_argument("--quiet", action="store_true", help="no progress on stderr")
+
+
+# --- shared plumbing ----------------------------------------------------------------------------------------------
+
+
+def _positive(value: float | None, option: str) -> None:
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise InputError(f"{option}: must be a positive number, got {value}")
+
+
+def _load(args: argparse.Namespace) -> tuple[Config, Config | None, DriveConfig]:
+    from drivers.cia301 import NODE_ID_MAX, NODE_ID_MIN
+    from foilc_hil.config import load_config
+
+    config = load_config(args.config)
+    emulator_config = load_config(args.emulator_config) if args.emulator_config else None
+    node_id = args.node_id if args.node_id is not None else config.drive.node_id
+    if not NODE_ID_MIN <= node_id <= NODE_ID_MAX:
+        raise InputError(f"--node-id: {node_id} is outside {NODE_ID_MIN}..{NODE_ID_MAX}")
+    return config, emulator_config, config.drive.model_copy(update={"node_id": node_id})
+
+
+def _target(args: argparse.Namespace, config: Config, emulator_config: Config | None,
+            node_id: int) -> CommissionTarget:
+    from drivers.bus import parse_bus_spec
+    from foilc_hil.commission.target import CommissionTarget, parse_node_list
+
+    bus = parse_bus_spec(args.bus, bitrate=config.bus.bitrate) if args.bus else None
+    if bus is None and args.emulator is None and config.bus.interface != "embedded" and args.config:
+        bus = config.bus  # the config names a real bus and the command line does not override it
+    nodes = parse_node_list(args.emulated_nodes, option="--emulated-nodes") if args.emulated_nodes else (node_id,)
+    return CommissionTarget(config, bus, emulated_nodes=nodes, emulator_config=emulator_config)
+
+
+def _open_drive(target: CommissionTarget, drive_cfg: DriveConfig, sample_time: float) -> Cia402Drive:
+    from drivers.cia402_master import Cia402Drive
+
+    return Cia402Drive.open(target.bus, drive_cfg, sample_time=sample_time)
+
+
+def execute(args: argparse.Namespace) -> CommandResult:
+    """Dispatch to the action."""
+    handlers = {
+        "scan": _scan,
+        "info": _info,
+        "enable": _power,
+        "disable": _power,
+        "fault-reset": _power,
+        "params": _params,
+        "identify": _identify,
+    }
+    return handlers[args.action](args)
+
+
+# --- actions ------------------------------------------------------------------------------------------------------
+
+
+def _scan(args: argparse.Namespace) -> CommandResult:
+    from foilc_hil.commission.scan import render_scan, scan_bus
+    from foilc_hil.commission.target import parse_node_list
+
+    _positive(args.timeout, "--timeout")
+    nodes = parse_node_list(args.node_range, option="--node-range")
+    config, emulator_config, drive_cfg = _load(args)
+    with _target(args, config, emulator_config, drive_cfg.node_id) as target:
+        result = scan_bus(target.bus, nodes=nodes, listen=args.timeout, nmt_reset=args.nmt_reset,
+                          sdo_timeout=min(config.drive.sdo_timeout, 0.5))
+        document = {"bus": target.description, **result.to_json()}
+    return CommandResult(document, f"bus {document['bus']}\n{render_scan(result)}")
+
+
+def _info(args: argparse.Namespace) -> CommandResult:
+    from foilc_hil.commission.info import export_dbc, read_info, render_info
+
+    config, emulator_config, drive_cfg = _load(args)
+    if args.dbc and Path(args.dbc).suffix.lower() not in (".dbc", ".dbf", ".kcd", ".arxml", ".sym", ".json",
+                                                          ".xls", ".xlsx", ".yaml"):
+        raise InputError(f"--dbc: {args.dbc!r} needs a suffix canmatrix writes (.dbc, .kcd, .arxml, .sym, ...)")
+    with _target(args, config, emulator_config, drive_cfg.node_id) as target:
+        drive = _open_drive(target, drive_cfg, config.sample_time)
+        try:
+            document = read_info(drive).to_json()
+            if args.dbc:
+                document["dbc"] = export_dbc(drive, args.dbc)
+        finally:
+            drive.close()
+    return CommandResult(document, render_info(document))
+
+
+def _power(args: argparse.Namespace) -> CommandResult:
+    from foilc_hil.commission import power
+
+    _positive(args.state_timeout, "--state-timeout")
+    config, emulator_config, drive_cfg = _load(args)
+    timeout = args.state_timeout if args.state_timeout is not None else drive_cfg.state_timeout
+    walk = {"enable": power.enable, "disable": power.disable, "fault-reset": power.fault_reset}[args.action]
+    with _target(args, config, emulator_config, drive_cfg.node_id) as target:
+        drive = _open_drive(target, drive_cfg, config.sample_time)
+        try:
+            report = walk(drive, state_timeout=timeout)
+        finally:
+            drive.close()
+    return CommandResult(report.to_json(), report.render())
+
+
+def _params(args: argparse.Namespace) -> CommandResult:
+    from foilc_hil.commission import params
+
+    if args.operation == "write" and not args.file:
+        raise InputError("params write: give the parameter set FILE.yaml")
+    if args.operation == "write" and args.out:
+        raise InputError("--out: only for params read")
+    parameter_set = params.load_parameter_set(args.file, need_values=args.operation == "write") if args.file else None
+    config, emulator_config, drive_cfg = _load(args)
+    with _target(args, config, emulator_config, drive_cfg.node_id) as target:
+        drive = _open_drive(target, drive_cfg, config.sample_time)
+        try:
+            if args.operation == "read":
+                entries = parameter_set.parameters if parameter_set else params.eds_parameters(drive)
+                values = params.read_parameters(drive, entries)
+            else:
+                assert parameter_set is not None
+                report = params.write_parameters(drive, parameter_set.parameters,
+                                                 eds_check=not args.skip_eds_check)
+        finally:
+            drive.close()
+    if args.operation == "read":
+        text = params.dump_parameter_set(values)
+        if args.out:
+            try:
+                Path(args.out).write_text(text, encoding="utf-8")
+            except OSError as exc:
+                raise InputError(f"--out: cannot write {args.out}: {exc}") from exc
+            text = f"{len(values)} parameters written to {args.out}"
+        return CommandResult({"parameters": values, "out": args.out}, text)
+    document = report.to_json()
+    if not report.ok:
+        return CommandResult(document, report.render(), exit_code=ExitCode.RUNTIME_FAILURE, message=report.error)
+    return CommandResult(document, report.render())
+
+
+def _identify(args: argparse.Namespace) -> CommandResult:
+    import numpy as np
+    import yaml
+
+    from drivers.cia402 import OperationMode
+    from foilc_hil.commission import identify
+    from foilc_hil.schema import load_document
+
+    config, emulator_config, drive_cfg = _load(args)
+    mode = args.mode or ("cst" if drive_cfg.mode == "cst" else "csv")
+    for option, value in (("--hold", args.hold), ("--rest", args.rest), ("--output-limit", args.output_limit)):
+        _positive(value, option)
+    limit = drive_cfg.torque_limit if mode == "cst" else drive_cfg.velocity_limit
+    if args.amplitudes:
+        try:
+            amplitudes = tuple(float(x) for x in args.amplitudes.split(",") if x.strip())
+        except ValueError:
+            raise InputError(f"--amplitudes: {args.amplitudes!r} is not a comma-separated list of numbers") from None
+    else:
+        amplitudes = tuple(f * limit for f in ((0.02, 0.04) if mode == "cst" else (0.1, 0.2, 0.3)))
+    spec = identify.CampaignSpec(
+        amplitudes=amplitudes,
+        hold=args.hold if args.hold is not None else (0.2 if mode == "cst" else 1.0),
+        rest=args.rest if args.rest is not None else 1.0,
+        repetitions=args.repetitions,
+        limit=limit,
+        pattern="doublet" if mode == "cst" else "pulse",
+    )
+    output_limit = args.output_limit if args.output_limit is not None else drive_cfg.velocity_limit
+    sample_time = config.sample_time
+    command = identify.build_campaign(spec, sample_time)
+    base = load_document(args.config) if args.config else None
+    drive_cfg = drive_cfg.model_copy(update={"mode": mode})
+    with _target(args, config, emulator_config, drive_cfg.node_id) as target:
+        drive = _open_drive(target, drive_cfg, sample_time)
+        with drive:  # safe stop and close on every exit path
+            drive.connect()
+            operation = OperationMode.CYCLIC_SYNC_TORQUE if mode == "cst" else OperationMode.CYCLIC_SYNC_VELOCITY
+            drive.configure(operation, sample_time)
+            drive.enable()
+            progress = None if (args.quiet or args.json) else identify.stderr_progress("identify")
+            record = identify.run_campaign(
+                drive,
+                command,
+                sample_time=sample_time,
+                output_limit=output_limit,
+                feedback_timeout=max(0.5, 20 * sample_time),
+                progress=progress,
+            )
+            drive.disable()
+    fit = identify.fit_model(record, args.model)
+    uncertainty = identify.uncertainty_bounds(fit, margin=args.uncertainty_margin)
+    campaign = {
+        "mode": mode,
+        "pattern": spec.pattern,
+        "amplitudes": list(spec.amplitudes),
+        "hold": spec.hold,
+        "rest": spec.rest,
+        "repetitions": spec.repetitions,
+        "cycles": int(command.shape[0]),
+        "sample_time": sample_time,
+        "output_quantum": 1.0 / drive_cfg.velocity_scale,
+        "max_abs_output": float(np.max(np.abs(record.output))),
+    }
+    document = identify.identification_document(fit, uncertainty, campaign)
+    if args.out:
+        fragment = identify.fragment_document(document, sample_time, base)
+        header = (
+            f"# written by `foilc-hil commission identify` ({fit.kind}, {mode}, R^2 = {fit.r2:.5f});\n"
+            "# plant.a/b/c/num/den/delay/uncertainty identified, other sections from --config\n"
+        )
+        try:
+            Path(args.out).write_text(header + yaml.safe_dump(fragment, sort_keys=False), encoding="utf-8")
+        except OSError as exc:
+            raise InputError(f"--out: cannot write {args.out}: {exc}") from exc
+    if args.plot:
+        identify.plot_fit(record, fit, args.plot)
+    document["out"] = args.out
+    document["plot"] = args.plot
+    return CommandResult(document, _render_identify(document))
+
+
+def _render_identify(document: dict[str, Any]) -> str:
+    fit = document["fit"]
+    plant = document["plant"]
+    unc = document["uncertainty"]
+    lines = [
+        f"model {fit['model']}: " + ", ".join(
+            f"{k} = {v:.6g} +- {fit['standard_errors'][k]:.2g}" for k, v in fit["parameters"].items()
+        ),
+        f"G(s) = {plant['num']} / {plant['den']}" + (f" * exp(-{plant['delay']:.4g} s)" if plant["delay"] else ""),
+        f"fit: R^2 = {fit['r2']:.5f}, residual std {fit['residual_std']:.4g}",
+        f"{'step':>4} {'from':>10} {'to':>10} {'R^2':>8} {'NRMSE':>8}  per-step parameters",
+    ]
+    for number, step in enumerate(fit["steps"]):
+        params = ", ".join(f"{k} {v:.5g}" for k, v in step["parameters"].items())
+        lines.append(f"{number:>4} {step['from']:>10.4g} {step['to']:>10.4g} {step['r2']:>8.4f} "
+                     f"{step['nrmse']:>8.4f}  {params}")
+    lines.append(
+        f"uncertainty (discrete, Ts = {document['campaign']['sample_time']}): rho_A = {unc['rho_A']:.3g} "
+        f"(observed {unc['observed_max_dA']:.3g}), rho_B = {unc['rho_B']:.3g} (observed {unc['observed_max_dB']:.3g})"
+    )
+    if document.get("out"):
+        lines.append(f"plant section written to {document['out']}")
+    if document.get("plot"):
+        lines.append(f"plot written to {document['plot']}")
+    return "\n".join(lines)

@@ -1,0 +1,301 @@
+"""``commission info``: what a drive is and how it is configured, read over SDO without changing anything.
+
+Read: 0x1000 device type, 0x1018 identity, the NMT state (its next heartbeat, when 0x1017 is non-zero), 0x6502
+supported drive modes (every CiA 402-2 bit decoded), 0x6061 the mode it is in, 0x6041 statusword decoded into the
+402 state and its flags, 0x1001 error register (bits named), 0x603F error code (decoded like an EMCY code), and the
+PDO mapping as configured now: for RPDO/TPDO 1..4 the COB-ID (valid or not), the transmission type and the mapped
+objects with their EDS names.
+
+:func:`export_dbc` writes that mapping as a DBC (or any format canmatrix knows, by the file's suffix) through
+canopen: ``node.tpdo.read(); node.rpdo.read(); node.pdo.export(path)`` (``canopen.pdo.base.PdoBase.export`` builds
+a ``canmatrix.CanMatrix`` with one frame per PDO and one signal per mapped object). PDOs that are not valid (COB-ID
+bit 31) are left out of the file: they are not on the bus.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from canopen.objectdictionary import INTEGER_TYPES, SIGNED_TYPES, ODVariable
+
+from drivers.cia301 import ErrorRegister, NmtState, SdoAbortCode, emcy_text
+from drivers.cia402 import IdentitySub, Obj, Statusword, decode_state
+from drivers.cia402_master import Cia402Drive
+from foilc_hil.errors import InputError, SdoError
+
+__all__ = ["MODE_NAMES", "SUPPORTED_MODE_BITS_402", "DriveInfo", "PdoReport", "export_dbc", "read_info"]
+
+#: 0x6502 bit -> (mode of operation number, name), CiA 402-2
+SUPPORTED_MODE_BITS_402: dict[int, tuple[int, str]] = {
+    0: (1, "profile position (pp)"),
+    1: (2, "velocity (vl)"),
+    2: (3, "profile velocity (pv)"),
+    3: (4, "profile torque (tq)"),
+    5: (6, "homing (hm)"),
+    6: (7, "interpolated position (ip)"),
+    7: (8, "cyclic synchronous position (csp)"),
+    8: (9, "cyclic synchronous velocity (csv)"),
+    9: (10, "cyclic synchronous torque (cst)"),
+}
+MODE_NAMES: dict[int, str] = {number: name for number, name in SUPPORTED_MODE_BITS_402.values()}
+PDO_INVALID_BIT = 1 << 31
+PDO_COB_ID_MASK = 0x7FF
+PDO_COUNT = 4
+HEARTBEAT_WAIT_FACTOR = 1.5
+
+
+@dataclass(frozen=True)
+class PdoReport:
+    """One PDO as the drive has it configured."""
+
+    direction: str  # "RPDO" or "TPDO"
+    number: int
+    cob_id: int
+    valid: bool
+    transmission_type: int
+    mapped: tuple[dict[str, Any], ...]
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "direction": self.direction,
+            "number": self.number,
+            "cob_id": self.cob_id,
+            "valid": self.valid,
+            "transmission_type": self.transmission_type,
+            "mapped": list(self.mapped),
+        }
+
+
+@dataclass(frozen=True)
+class DriveInfo:
+    """Everything ``info`` reads."""
+
+    node_id: int
+    document: dict[str, Any]
+
+    def to_json(self) -> dict[str, Any]:
+        return dict(self.document)
+
+
+def _object_name(drive: Cia402Drive, index: int, subindex: int) -> str:
+    try:
+        obj = drive.od[index]
+    except KeyError:
+        return f"0x{index:04X}:{subindex:02X}"
+    if isinstance(obj, ODVariable):
+        return str(obj.name)
+    try:
+        return f"{obj.name}.{obj[subindex].name}"
+    except KeyError:
+        return f"{obj.name}.{subindex}"
+
+
+def _optional(drive: Cia402Drive, index: int, subindex: int = 0) -> int | None:
+    """The object's value, or None when the drive does not have it (abort 'no object / sub-index')."""
+    try:
+        return drive.read_object(index, subindex)
+    except SdoError as exc:
+        if exc.abort_code in (SdoAbortCode.NO_OBJECT, SdoAbortCode.NO_SUBINDEX):
+            return None
+        raise
+
+
+def decode_statusword(statusword: int) -> dict[str, Any]:
+    """Statusword -> its 402 state and the names of the bits set."""
+    try:
+        state: str = decode_state(statusword).name
+    except ValueError:
+        state = "invalid"
+    flags = [flag.name for flag in Statusword if statusword & flag and flag.name]
+    return {"value": statusword, "hex": f"0x{statusword:04X}", "state": state, "flags": flags}
+
+
+def decode_error_register(register: int) -> dict[str, Any]:
+    """0x1001 -> the names of the bits set."""
+    bits = [bit.name.lower() for bit in ErrorRegister if register & bit]
+    return {"value": register, "hex": f"0x{register:02X}", "bits": bits}
+
+
+def read_pdos(drive: Cia402Drive) -> tuple[PdoReport, ...]:
+    """RPDO and TPDO 1..4 as configured (communication and mapping parameters over SDO)."""
+    reports: list[PdoReport] = []
+    for direction, com_base, map_base in (
+        ("RPDO", Obj.RPDO_COMMUNICATION, Obj.RPDO_MAPPING),
+        ("TPDO", Obj.TPDO_COMMUNICATION, Obj.TPDO_MAPPING),
+    ):
+        for number in range(1, PDO_COUNT + 1):
+            com, mapping = com_base + number - 1, map_base + number - 1
+            raw_cob = _optional(drive, com, 1)
+            if raw_cob is None:
+                continue  # the drive has fewer PDOs
+            transmission = _optional(drive, com, 2)
+            count = _optional(drive, mapping, 0) or 0
+            mapped = []
+            for sub in range(1, count + 1):
+                entry = drive.read_object(mapping, sub)
+                index, subindex, bits = entry >> 16, (entry >> 8) & 0xFF, entry & 0xFF
+                mapped.append(
+                    {
+                        "index": index,
+                        "subindex": subindex,
+                        "bits": bits,
+                        "name": _object_name(drive, index, subindex),
+                    }
+                )
+            reports.append(
+                PdoReport(
+                    direction=direction,
+                    number=number,
+                    cob_id=raw_cob & PDO_COB_ID_MASK,
+                    valid=not raw_cob & PDO_INVALID_BIT,
+                    transmission_type=transmission if transmission is not None else -1,
+                    mapped=tuple(mapped),
+                )
+            )
+    return tuple(reports)
+
+
+def _nmt_state(drive: Cia402Drive, producer_ms: int | None) -> str:
+    if not producer_ms:
+        return "unknown"
+    state = drive.heartbeat.wait_for(lambda _: True, 0, timeout=HEARTBEAT_WAIT_FACTOR * producer_ms / 1000)
+    if state is None:
+        return "no heartbeat"
+    try:
+        return NmtState(state).name
+    except ValueError:
+        return f"0x{state:02X}"
+
+
+def read_info(drive: Cia402Drive) -> DriveInfo:
+    """Read identity, modes, state, errors and PDO mapping of ``drive`` (see the module docstring)."""
+    device_type = drive.read_object(Obj.DEVICE_TYPE)
+    identity = {sub.name.lower(): drive.read_object(Obj.IDENTITY, sub) for sub in IdentitySub}
+    supported_bits = _optional(drive, Obj.SUPPORTED_DRIVE_MODES)
+    supported = (
+        [
+            {"mode": number, "name": name}
+            for bit, (number, name) in SUPPORTED_MODE_BITS_402.items()
+            if supported_bits & (1 << bit)
+        ]
+        if supported_bits is not None
+        else []
+    )
+    mode = _optional(drive, Obj.MODES_OF_OPERATION_DISPLAY)
+    statusword = drive.read_object(Obj.STATUSWORD)
+    register = drive.read_object(Obj.ERROR_REGISTER)
+    error_code = _optional(drive, Obj.ERROR_CODE)
+    producer_ms = _optional(drive, Obj.PRODUCER_HEARTBEAT_TIME)
+    started = time.monotonic()
+    nmt = _nmt_state(drive, producer_ms)
+    document: dict[str, Any] = {
+        "node_id": drive.node_id,
+        "device_type": device_type,
+        "profile": device_type & 0xFFFF,
+        "identity": identity,
+        "nmt_state": nmt,
+        "heartbeat_producer_ms": producer_ms,
+        "supported_modes": {
+            "value": supported_bits,
+            "hex": None if supported_bits is None else f"0x{supported_bits:08X}",
+            "modes": supported,
+        },
+        "mode": {"value": mode, "name": MODE_NAMES.get(mode, "unknown") if mode is not None else None},
+        "statusword": decode_statusword(statusword),
+        "error_register": decode_error_register(register),
+        "error_code": None
+        if error_code is None
+        else {
+            "value": error_code,
+            "hex": f"0x{error_code:04X}",
+            "text": "no error" if error_code == 0 else emcy_text(error_code),
+        },
+        "pdos": [pdo.to_json() for pdo in read_pdos(drive)],
+        "heartbeat_wait_seconds": round(time.monotonic() - started, 3),
+    }
+    return DriveInfo(drive.node_id, document)
+
+
+def export_dbc(drive: Cia402Drive, path: str | Path) -> dict[str, Any]:
+    """Write the drive's configured PDO mapping through canopen + canmatrix; return what was written.
+
+    Raises
+    ------
+    InputError
+        When canmatrix cannot write the file (unknown suffix, unwritable path).
+    """
+    node = drive.node
+    node.tpdo.read()
+    node.rpdo.read()
+    maps = [pdo_map for pdos in (node.tpdo.map, node.rpdo.map) if pdos is not None for pdo_map in pdos.values()]
+    for pdo_map in maps:
+        if not pdo_map.enabled or not pdo_map.map:
+            pdo_map.cob_id = None  # canopen's export skips maps without a COB-ID: keep only PDOs on the bus
+            continue
+        for variable in pdo_map.map:
+            _give_type_limits(variable.od)
+    target = Path(path)
+    try:
+        db = node.pdo.export(str(target))
+    except NotImplementedError as exc:
+        raise InputError(f"--dbc: {exc}") from exc
+    except (OSError, KeyError, ValueError) as exc:
+        raise InputError(f"--dbc: cannot write {target}: {exc}") from exc
+    if not target.is_file():
+        raise InputError(f"--dbc: canmatrix wrote nothing to {target} (is the suffix a format it knows?)")
+    frames = [
+        {"name": frame.name, "arbitration_id": frame.arbitration_id.id, "signals": [s.name for s in frame.signals]}
+        for frame in db.frames
+    ]
+    return {"file": str(target), "frames": frames}
+
+
+def _give_type_limits(variable: ODVariable) -> None:
+    """canmatrix's DBC writer compares every signal's min/max; an EDS object without LowLimit/HighLimit gets the
+    range of its data type (what the object can hold anyway)."""
+    if variable.data_type not in INTEGER_TYPES or (variable.min is not None and variable.max is not None):
+        return
+    bits = len(variable)
+    signed = variable.data_type in SIGNED_TYPES
+    low, high = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if signed else (0, (1 << bits) - 1)
+    if variable.min is None:
+        variable.min = low
+    if variable.max is None:
+        variable.max = high
+
+
+def render_info(document: dict[str, Any]) -> str:
+    """The human-readable rendering of :func:`read_info`'s document."""
+    identity = document["identity"]
+    lines = [
+        f"node {document['node_id']}: device type 0x{document['device_type']:08X} (profile {document['profile']}), "
+        f"NMT {document['nmt_state']}",
+        "identity: " + ", ".join(f"{key} 0x{value:08X}" for key, value in identity.items()),
+    ]
+    modes = document["supported_modes"]
+    names = ", ".join(f"{m['mode']} {m['name']}" for m in modes["modes"]) or "not given (0x6502 absent)"
+    lines.append(f"supported modes ({modes['hex']}): {names}")
+    mode = document["mode"]
+    lines.append(f"mode of operation (0x6061): {mode['value']} {mode['name']}")
+    status = document["statusword"]
+    lines.append(f"statusword {status['hex']}: {status['state']} [{', '.join(status['flags'])}]")
+    register = document["error_register"]
+    lines.append(f"error register {register['hex']}: {', '.join(register['bits']) or 'no error'}")
+    code = document["error_code"]
+    if code is not None:
+        lines.append(f"error code (0x603F) {code['hex']}: {code['text']}")
+    lines.append("PDO mapping:")
+    for pdo in document["pdos"]:
+        mapped = ", ".join(f"0x{m['index']:04X}:{m['subindex']:02X}/{m['bits']} {m['name']}" for m in pdo["mapped"])
+        state = "valid" if pdo["valid"] else "not valid"
+        lines.append(
+            f"  {pdo['direction']}{pdo['number']} COB-ID 0x{pdo['cob_id']:03X} ({state}), "
+            f"transmission type {pdo['transmission_type']}: {mapped or '(nothing mapped)'}"
+        )
+    if "dbc" in document:
+        lines.append(f"DBC written to {document['dbc']['file']} ({len(document['dbc']['frames'])} frames)")
+    return "\n".join(lines)
+
