@@ -20,7 +20,7 @@ class EmulatorConfig(Section):
     timing: Literal["lockstep", "realtime"] = "lockstep"
     seed: int = 0  # physics noise seed (the plant's own ``seed`` is added to it)
     eds: str | None = None  # object dictionary; None: the shipped configs/foilc_servo.eds
-    sync_loss_cycles: float = Field(default=5.0, gt=1)  # realtime: no SYNC for this many periods -> SYNC loss
+    sync_loss_cycles: float = Field(default=10.0, gt=1)  # realtime: no SYNC for this many periods -> SYNC loss
     torque_limit_fault_cycles: int = Field(default=200, ge=0)  # torque limited this long -> over-current; 0: never
     velocity_window: float = Field(default=10.0, ge=0)  # target reached window (drive velocity units), PV mode
     standstill_velocity: float = Field(default=1.0, ge=0)  # |v| below this ends a quick stop ramp (drive units)
