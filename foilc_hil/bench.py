@@ -18,6 +18,10 @@ Timing modes (:mod:`foilc_hil.scheduler`): ``lockstep`` sends the next SYNC as s
 previous one is out; ``realtime`` releases each SYNC on an absolute deadline (period ``sample_time``), measures
 lateness, feedback latency and missed deadlines, and logs one ``/timing`` record per cycle.
 
+The between-trial update (``law.end_trial``, metrics, the trial's log messages, the divergence check) runs in a
+helper thread while the next settle phase keeps the cyclic path going, so SYNC never pauses between trials (a
+real drive's SYNC-loss supervision would fault on a pause); the next trial starts only after the update is done.
+
 Hot path: the per-trial arrays are allocated before the trial; per cycle the loop only writes into them, calls
 the law and the drive, and the frame tap enqueues CAN frames for the log writer thread. ``/ilc/sample``,
 ``/ilc/trial`` and ``/timing`` messages are built after the trial.
@@ -44,6 +48,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -61,7 +66,14 @@ from foilc_hil.errors import (
 )
 from foilc_hil.metrics import TrialMetrics, trial_metrics
 from foilc_hil.progress import UPDATES_PER_TRIAL, NullProgress, ProgressView
-from foilc_hil.safety import CommandLimiter, DivergenceGuard, FeedbackWatchdog, StopRequest, require_finite
+from foilc_hil.safety import (
+    CommandLimiter,
+    DivergenceGuard,
+    DivergenceVerdict,
+    FeedbackWatchdog,
+    StopRequest,
+    require_finite,
+)
 from foilc_hil.scheduler import DeadlineScheduler, TimingRecorder, TimingSummary
 
 __all__ = [
@@ -216,6 +228,45 @@ class LoopSettings:
         return math.ceil(max(SETTLE_TIMEOUT_FACTOR * self.settle_time, MIN_SETTLE_TIMEOUT) / self.period)
 
 
+@dataclass(frozen=True)
+class _RawTrial:
+    """What the hot path of one trial produced, before the between-trial update."""
+
+    trial: int
+    seen: np.ndarray
+    control: np.ndarray
+    applied: np.ndarray
+    sync_times: np.ndarray
+    clamped: int
+    feedforward_used: np.ndarray
+
+
+class _TrialUpdateThread:
+    """Runs :meth:`TrialLoop._finish_trial` in a thread while the loop settles the axis for the next trial."""
+
+    def __init__(self, loop: TrialLoop, raw: _RawTrial) -> None:
+        self._loop = loop
+        self._raw = raw
+        self._verdict: DivergenceVerdict | None = None
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._work, name=f"foilc-hil-trial-{raw.trial}-update", daemon=True)
+        self._thread.start()
+
+    def _work(self) -> None:
+        try:
+            self._verdict = self._loop._finish_trial(self._raw)
+        except BaseException as exc:  # handed to the loop's thread by result()
+            self._error = exc
+
+    def result(self) -> DivergenceVerdict:
+        """Wait for the update; re-raise its error in the caller's thread."""
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        assert self._verdict is not None
+        return self._verdict
+
+
 # --- the loop -----------------------------------------------------------------------------------------------------
 
 
@@ -315,27 +366,35 @@ class TrialLoop:
             raise ValueError(f"trials must be >= 1, got {trials}")
         if self.scheduler is not None:
             self.scheduler.start()
+        update: _TrialUpdateThread | None = None
         try:
             for trial in range(1, trials + 1):
+                # the previous trial's update (law, metrics, log) runs in `update` while the axis settles, so
+                # SYNC keeps flowing on its period between trials
                 self._settle(trial)
+                if update is not None:
+                    verdict = update.result()
+                    update = None
+                    if verdict.diverged:
+                        self._stop_learning(verdict)
+                        break
                 if self._before_trial is not None:
                     self._before_trial(trial)
-                record = self._run_trial(trial, trials)
-                self.outcome.trials.append(record.metrics)
-                self.progress.end_trial(trial, record.metrics.sse, record.metrics.rmse, record.metrics.max_abs_error)
-                if self.log is not None:
-                    self.log.trial_finished(record)
-                verdict = self.guard.check(trial, record.metrics.sse, self._feedforward_used)
+                raw = self._run_trial(trial, trials)
+                update = _TrialUpdateThread(self, raw)
+            if update is not None:
+                verdict = update.result()
+                update = None
                 if verdict.diverged:
-                    self.law.restore(self.guard.best_feedforward())
-                    self.outcome.stopped = verdict.message
-                    self.outcome.diverged = True
-                    self._quick_stop()
-                    break
+                    self._stop_learning(verdict)
         except (DriveError, LearningDivergedError, RunInterruptedError):
             self._quick_stop()
             raise
         finally:
+            if update is not None:
+                # an abort during the settle phase: the trial before it did complete, so finish logging it
+                with contextlib.suppress(Exception):
+                    update.result()
             self.outcome.clamped_commands = self.limiter.clamped_count
             self.outcome.timing = self.timing.summary(
                 self.scheduler.missed_deadlines if self.scheduler is not None else 0
@@ -368,7 +427,8 @@ class TrialLoop:
             f"bench.settle_tolerance {tolerance:g} for {limit} cycles ({limit * self.settings.period:g} s)"
         )
 
-    def _run_trial(self, trial: int, total_trials: int) -> TrialRecord:
+    def _run_trial(self, trial: int, total_trials: int) -> _RawTrial:
+        """The trial's N + 1 cycles (hot path); returns the raw arrays."""
         n = self.reference.shape[0]
         seen = np.empty(n + 1)
         control = np.empty(n)
@@ -406,26 +466,45 @@ class TrialLoop:
         finally:
             self._flush_timing(first_cycle)
         self.progress.advance(n)
-        output = seen[1:].copy()
-        update = law.end_trial(self.reference, output)
+        return _RawTrial(
+            trial, seen, control, applied, sync_times, limiter.clamped_count - clamped_before, self._feedforward_used
+        )
+
+    def _finish_trial(self, raw: _RawTrial) -> DivergenceVerdict:
+        """Between trials (off the hot path): the law's update, metrics, progress, log, divergence check."""
+        n = self.reference.shape[0]
+        output = raw.seen[1:].copy()
+        update = self.law.end_trial(self.reference, output)
         error = np.asarray(update.error, dtype=float).reshape(n)
         E_raw = getattr(update, "E", None)
         E = None if E_raw is None else np.asarray(E_raw, dtype=float).reshape(n)
-        metrics = trial_metrics(trial, error)
-        return TrialRecord(
-            trial=trial,
+        metrics = trial_metrics(raw.trial, error)
+        record = TrialRecord(
+            trial=raw.trial,
             sample_time=self.settings.period,
             reference=self.reference,
-            seen=seen,
-            control=control,
-            applied=applied,
+            seen=raw.seen,
+            control=raw.control,
+            applied=raw.applied,
             output=output,
             error=error,
             E=E,
             metrics=metrics,
-            sync_times=sync_times,
-            clamped=limiter.clamped_count - clamped_before,
+            sync_times=raw.sync_times,
+            clamped=raw.clamped,
         )
+        self.outcome.trials.append(metrics)
+        self.progress.end_trial(raw.trial, metrics.sse, metrics.rmse, metrics.max_abs_error)
+        if self.log is not None:
+            self.log.trial_finished(record)
+        return self.guard.check(raw.trial, metrics.sse, raw.feedforward_used)
+
+    def _stop_learning(self, verdict: DivergenceVerdict) -> None:
+        """The divergence guard tripped: restore the best feedforward, stop the axis, say why."""
+        self.law.restore(self.guard.best_feedforward())
+        self.outcome.stopped = verdict.message
+        self.outcome.diverged = True
+        self._quick_stop()
 
     # -- one cycle -----------------------------------------------------------------------------------------------
 
