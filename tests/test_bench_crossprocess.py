@@ -114,7 +114,7 @@ def test_realtime_run_across_processes_over_udp_multicast(tmp_path: Path) -> Non
     # one /timing record per cycle, and the log agrees with the JSON on the missed deadlines
     records = []
     with out.open("rb") as stream:
-        for _, channel, message in make_reader(stream).iter_messages(topics=["/timing"]):
+        for _schema, _channel, message in make_reader(stream).iter_messages(topics=["/timing"]):
             records.append(json.loads(message.data))
     assert len(records) == timing["cycles"]
     assert [r["cycle"] for r in records] == list(range(timing["cycles"]))
