@@ -103,3 +103,42 @@ def test_profile_velocity_ramps_with_0x6083_and_reports_target_reached() -> None
     assert [v for _, v in frames] == [round(v * SCALE) for v in expected]
     reached = [bool(sw & (1 << 10)) for sw, _ in frames]
     assert reached[:4] == [False] * 4 and reached[-1]
+
+
+@pytest.mark.parametrize(("option", "after_ramp"), [(2, State402.SWITCH_ON_DISABLED), (6, State402.QUICK_STOP_ACTIVE)])
+def test_quick_stop_ramps_at_0x6085(option: int, after_ramp: State402) -> None:
+    """Quick stop ramps the set-point linearly to zero at 0x6085, then disables (option 2) or holds (option 6,
+    which allows transition 16 back to operation enabled)."""
+    a, b = -1000.0, 1000.0
+    decel_counts = 50_000  # 0.5 plant units per 10 ms cycle
+    plant = PlantConfig(model="first_order", a=a, b=b, c=1.0)
+    settings = EmulatorConfig(standstill_velocity=0.001)
+    with Harness(plant, settings=settings, cycle_period=PERIOD, velocity_scale=SCALE) as h:
+        h.node.sdo[Obj.QUICK_STOP_OPTION].raw = option
+        h.node.sdo[Obj.QUICK_STOP_DECELERATION].raw = decel_counts
+        _enable(h)
+        for _ in range(20):
+            h.send(h.rpdo1, struct.pack("<Hi", 0x0F, 2000))
+            h.sync(wait_for=h.tpdo1)
+        h.send(h.rpdo1, struct.pack("<Hi", 0x02, 2000))  # quick stop (target left at 2000: ignored)
+        h.sync(wait_for=h.tpdo1)
+        assert h.drive.state is State402.QUICK_STOP_ACTIVE
+        velocities = []
+        for _ in range(6):
+            h.sync(wait_for=h.tpdo1)
+            velocities.append(struct.unpack_from("<Hi", h.recorder.frames[h.tpdo1][-1])[1])
+        assert h.drive.state is after_ramp
+        if option == 6:
+            statusword = struct.unpack_from("<H", h.recorder.frames[h.tpdo1][-1])[0]
+            assert statusword & 0x6F == 0x07 and statusword & (1 << 10)  # quick stop active, target reached
+            h.send(h.rpdo1, struct.pack("<Hi", 0x0F, 0))
+            h.sync(wait_for=h.tpdo1)
+            assert h.drive.state is State402.OPERATION_ENABLED  # transition 16
+    decay = math.exp(a * PERIOD)
+    y = 2.0  # at rest at 2 units (20 cycles of a 1 ms lag: exact to 1e-80)
+    expected = []
+    for step in range(1, 7):
+        u = max(2.0 - step * decel_counts * PERIOD / SCALE, 0.0)  # the linear ramp to zero
+        y = decay * y + (1.0 - decay) * u
+        expected.append(round(y * SCALE))
+    assert velocities == expected
