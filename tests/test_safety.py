@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import os
 import signal
+from typing import Any
 
 import numpy as np
 import pytest
@@ -82,3 +83,92 @@ def test_stop_request_turns_sigint_into_a_flag_and_restores_the_handler() -> Non
         with pytest.raises(KeyboardInterrupt):  # a second Ctrl-C is not swallowed
             os.kill(os.getpid(), signal.SIGINT)
     assert signal.getsignal(signal.SIGINT) is before
+
+
+# --- the trial loop's safety reactions, on an in-memory drive (no CAN) ------------------------------------------
+
+
+class _InMemoryDrive:
+    """ZOH first-order axis answering each SYNC at once, with the CAN loop's one-cycle command delay."""
+
+    def __init__(self, *, output_override: float | None = None, fault_at_cycle: int | None = None) -> None:
+        self.a_d = math.exp(-1.23 * 0.01)
+        self.b_d = (1.0 - self.a_d) / 1.23 * 1.68
+        self.y = 0.0
+        self.active = 0.0
+        self.pending = 0.0
+        self.count = 0
+        self.output_override = output_override
+        self.fault_at_cycle = fault_at_cycle
+        self.quick_stops = 0
+
+    def sync(self) -> int:
+        self.count += 1
+        self.y = self.a_d * self.y + self.b_d * self.active
+        self.active = self.pending
+        return self.count
+
+    def wait_feedback(self, timeout: float) -> Any:
+        from drivers.cia402 import State402
+        from drivers.drive import Feedback
+
+        state = State402.OPERATION_ENABLED
+        if self.fault_at_cycle is not None and self.count >= self.fault_at_cycle:
+            state = State402.FAULT
+        y = self.y if self.output_override is None or self.count < 50 else self.output_override
+        return Feedback(self.count, 0x27, state, y, 0.0, 0, 0.0)
+
+    def set_target(self, value: float) -> float:
+        self.pending = value
+        return value
+
+    def quick_stop(self) -> None:
+        self.quick_stops += 1
+
+
+def _loop(drive: _InMemoryDrive, gain: float, factor: float = 3.0) -> Any:
+    from foilc_hil.bench import LoopSettings, TrialLoop
+    from foilc_hil.laws import PType
+
+    a_d, b_d = drive.a_d, drive.b_d
+    A = np.array([[a_d, b_d], [0.0, 0.0]])
+    B = np.array([[0.0], [1.0]])
+    C = np.array([[1.0, 0.0]])
+    law = PType(A, B, C, 100, input_delay=1, gain=gain)
+    settings = LoopSettings(period=0.01, settle_time=0.01, settle_tolerance=1e9, divergence_factor=factor)
+    return TrialLoop(drive, law, np.ones(100), CommandLimiter(-1e9, 1e9), settings), law
+
+
+def test_loop_stops_learning_that_diverges_and_restores_the_best_feedforward() -> None:
+    drive = _InMemoryDrive()
+    loop, law = _loop(drive, gain=-40.0)  # the wrong sign: every update makes the error grow
+    outcome = loop.run(10)
+    assert outcome.diverged
+    assert "diverged" in (outcome.stopped or "")
+    sse = [m.sse for m in outcome.trials]
+    assert len(sse) < 10
+    best = min(sse[:-1])
+    assert sse[-1] > 3.0 * best  # the trial that tripped the guard
+    assert all(later <= 3.0 * min(sse[: i + 1]) for i, later in enumerate(sse[1:-1], start=1))
+    # the law now holds the feedforward that produced the best trial (trial 1: zeros)
+    np.testing.assert_array_equal(law.feedforward, np.zeros_like(law.feedforward))
+    assert drive.quick_stops == 1
+
+
+def test_loop_aborts_on_non_finite_feedback_after_quick_stop() -> None:
+    drive = _InMemoryDrive(output_override=math.nan)
+    loop, _ = _loop(drive, gain=1.0)
+    with pytest.raises(LearningDivergedError, match="non-finite drive feedback"):
+        loop.run(3)
+    assert drive.quick_stops == 1
+
+
+def test_loop_aborts_when_the_drive_leaves_operation_enabled() -> None:
+    from foilc_hil.errors import DriveFaultError
+
+    drive = _InMemoryDrive(fault_at_cycle=150)
+    loop, _ = _loop(drive, gain=1.0)
+    with pytest.raises(DriveFaultError, match="FAULT"):
+        loop.run(5)
+    assert drive.quick_stops == 1
+    assert len(loop.outcome.trials) == 1  # trial 1 (cycles 2..102) completed before the fault
