@@ -9,7 +9,8 @@ What this module adds, because ``LocalNode`` has none of it:
 - a SYNC consumer (``LocalNode`` does not subscribe to SYNC at all);
 - a PDO engine driven by the mapping in the OD (0x1400/0x1600 RPDO, 0x1800/0x1A00 TPDO), rebuilt whenever the
   master rewrites it over SDO, with transmission types 0 (acyclic synchronous), 1..240 (every n-th SYNC) and
-  254/255 (event-driven; the event timer 0x18xx:05 is honoured, the inhibit time is not);
+  254/255 (event-driven; the event timer 0x18xx:05 is honoured, the inhibit time is not). The SYNC counter byte
+  and the SYNC start value (0x18xx:06) are ignored: every SYNC counts;
 - SDO write validation (range from the EDS limits, PDO mapping checks, supported modes) -- through
   ``LocalNode``'s write callbacks, which run before the value is stored and may raise ``SdoAbortedError``;
 - a post-write hook (``_EmulatedNode.set_data``): canopen calls write callbacks *before* storing, but a PDO
@@ -517,7 +518,7 @@ class VirtualDrive:
         for index in list(store):
             if area is None or index in area:
                 del store[index]
-        for index in self.od.indices if hasattr(self.od, "indices") else list(self.od.keys()):
+        for index in list(self.od.indices):
             if area is not None and index not in area:
                 continue
             obj = self.od[index]
