@@ -80,3 +80,17 @@ def test_divergence_exits_1_with_document(tmp_path: Path, capsys: pytest.Capture
     assert "diverged" in document["stopped"]
     assert 1 <= len(document["trials"]) < 20
     assert "diverged" in captured.err
+
+
+def test_foilc_runs_through_tuning_free_synthesis(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    text = CONFIG.replace("law: {kind: p-type, p_type_gain: 0.5}", "tuning: {kp: 0.2, r: 0.5}")
+    code = main(["simulate", "--config", str(_write(tmp_path, text)), "--trials", "3", "--json"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    document = json.loads(captured.out)
+    assert document["law"] == "foilc"
+    assert document["design"]["kp"] == 0.2 and document["design"]["r"] == 0.5
+    assert "spectral_radius" in document["certificates"]
+    sse = [t["sse"] for t in document["trials"]]
+    assert sse[0] == pytest.approx(20.0)  # trial 1 measures the plant under u = 0
+    assert sse[2] < sse[0]
