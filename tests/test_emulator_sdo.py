@@ -197,3 +197,27 @@ def test_heartbeat_producer_follows_0x1017() -> None:
         stopped_at = h.recorder.count(heartbeat)
         time.sleep(0.2)
         assert h.recorder.count(heartbeat) == stopped_at
+
+
+def test_canopen_pdo_save_remaps_the_drive() -> None:
+    """canopen's own PdoMap.save() (an independent master's remapping code) works on the shipped EDS.
+
+    It needs the mapping objects 0x1600.. / 0x1A00.. declared as RECORDs (CiA 306); as ARRAYs canopen zeroes
+    sub-index 0, reads it back to count the entries and writes none.
+    """
+    with Harness() as h:
+        h.node.tpdo.read()
+        tpdo1 = h.node.tpdo[1]
+        tpdo1.clear()
+        tpdo1.add_variable(0x6041)
+        tpdo1.add_variable(0x6061)
+        tpdo1.trans_type = 1
+        tpdo1.enabled = True
+        tpdo1.save()
+        assert h.node.sdo.upload(0x1A00, 0) == b"\x02"
+        assert h.node.sdo.upload(0x1A00, 2) == struct.pack("<I", 0x60610008)
+
+        h.start()
+        h.sync(wait_for=h.tpdo1)
+        frame = h.recorder.wait_count(h.tpdo1, 1)[-1]
+        assert len(frame) == 3  # statusword (2 bytes) + mode display (1 byte)
