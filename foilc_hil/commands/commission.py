@@ -264,6 +264,8 @@ def _identify(args: argparse.Namespace) -> CommandResult:
     mode = args.mode or ("cst" if drive_cfg.mode == "cst" else "csv")
     for option, value in (("--hold", args.hold), ("--rest", args.rest), ("--output-limit", args.output_limit)):
         _positive(value, option)
+    if not (math.isfinite(args.uncertainty_margin) and args.uncertainty_margin >= 1):
+        raise InputError(f"--uncertainty-margin: must be >= 1, got {args.uncertainty_margin}")
     limit = drive_cfg.torque_limit if mode == "cst" else drive_cfg.velocity_limit
     if args.amplitudes:
         try:

@@ -1,9 +1,9 @@
 """Where commissioning talks to: a python-can bus given by ``--bus``, or the embedded emulator.
 
 ``--bus INTERFACE:CHANNEL`` opens that bus with :func:`drivers.bus.open_bus`. Without it (``--emulator embedded``,
-the default), :class:`CommissionTarget` starts one :class:`plant_emulator.device.VirtualDrive` per emulated node id
-on a private ``virtual`` channel (unique per process) and opens the master's side of that channel, so every
-command works on a fresh machine. The emulated drives take their plant, physics seed and timing from the config
+the default), :class:`CommissionTarget` starts one :class:`plant_emulator.embedded.EmbeddedEmulator` per emulated
+node id, all on one private ``virtual`` channel (unique per process), and opens the master's side of that channel,
+so every command works on a fresh machine. The emulated drives take their plant, physics seed and timing from the config
 (``plant:``, ``emulator:``; a config that names no plant gets the default PMSM axis) and the same unit scales as
 the master (``drive.velocity_scale`` / ``drive.torque_scale``), as ``foilc-hil run --emulator embedded`` does.
 """
@@ -80,7 +80,7 @@ class CommissionTarget:
     bus_config: BusConfig | None = None
     emulated_nodes: Sequence[int] = ()
     emulator_config: Config | None = None
-    drives: list[VirtualDrive] = field(default_factory=list)
+    drives: list[VirtualDrive] = field(default_factory=list)  # the emulated drives (embedded only)
     _bus: can.BusABC | None = None
     _channel: str = ""
     _stack: ExitStack = field(default_factory=ExitStack)
@@ -133,29 +133,25 @@ class CommissionTarget:
         self._stack.close()
 
     def _start_emulators(self) -> None:
-        from plant_emulator.device import VirtualDrive
-        from plant_emulator.physics import build_plant
-        from plant_emulator.settings import EmulatorConfig
+        from plant_emulator.embedded import EmbeddedEmulator
 
         source = self.emulator_config if self.emulator_config is not None else self.config
         nodes = tuple(self.emulated_nodes) or (self.config.drive.node_id,)
-        settings = EmulatorConfig(timing=source.emulator.timing, seed=source.emulator.seed)
         plant_cfg = source.plant
         if plant_cfg.model == "first_order" and all(
             value is None for value in (plant_cfg.a, plant_cfg.b, plant_cfg.num, plant_cfg.den)
         ):
-            # a config that names no plant: emulate the default PMSM axis, as the test harness and demo do
+            # a config that names no plant: emulate the default PMSM axis, as the test harness does
             plant_cfg = plant_cfg.model_copy(update={"model": "pmsm"})
         for node_id in nodes:
-            plant = build_plant(plant_cfg, seed=plant_cfg.seed + source.emulator.seed)
-            drive = VirtualDrive(
-                plant,
+            emulator = EmbeddedEmulator(
+                plant_cfg,
+                source.emulator,
                 node_id=node_id,
-                cycle_period=self.config.sample_time,
-                settings=settings,
+                sample_time=self.config.sample_time,
                 velocity_scale=self.config.drive.velocity_scale,
                 torque_scale=self.config.drive.torque_scale,
+                channel=self._channel,
             )
-            drive.start(can.Bus(interface="virtual", channel=self._channel))
-            self._stack.callback(drive.stop)
-            self.drives.append(drive)
+            self._stack.enter_context(emulator)
+            self.drives.append(emulator.drive)
