@@ -15,6 +15,7 @@ bit 31) are left out of the file: they are not on the bus.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -239,7 +240,10 @@ def export_dbc(drive: Cia402Drive, path: str | Path) -> dict[str, Any]:
             _give_type_limits(variable.od)
     target = Path(path)
     try:
-        db = node.pdo.export(str(target))
+        with warnings.catch_warnings():
+            # canopen imports canmatrix.canmatrix, which canmatrix deprecates; not ours to fix
+            warnings.simplefilter("ignore", DeprecationWarning)
+            db = node.pdo.export(str(target))
     except NotImplementedError as exc:
         raise InputError(f"--dbc: {exc}") from exc
     except (OSError, KeyError, ValueError) as exc:

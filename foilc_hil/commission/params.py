@@ -49,6 +49,7 @@ from canopen.sdo import SdoAbortedError, SdoCommunicationError
 from pydantic import Field, field_validator
 
 from drivers.cia301 import SdoAbortCode, sdo_abort_text
+from drivers.cia402 import Obj
 from drivers.cia402_master import Cia402Drive
 from foilc_hil.errors import ConfigError, DriveError, SdoError
 from foilc_hil.schema import Section, load_document, validate
@@ -67,6 +68,7 @@ __all__ = [
 
 _WRITABLE = frozenset({"rw", "wo", "rww", "rwr"})
 _PARAMETER_AREA = range(0x2000, 0xA000)  # manufacturer + device profile objects (not communication 0x1xxx)
+_PROCESS_DATA = frozenset({Obj.CONTROLWORD, Obj.TARGET_VELOCITY, Obj.TARGET_TORQUE})  # commands, not settings
 
 
 def _index(value: Any) -> Any:
@@ -281,7 +283,7 @@ def read_parameters(drive: Cia402Drive, entries: list[ParameterEntry]) -> list[d
 
 def eds_parameters(drive: Cia402Drive) -> list[ParameterEntry]:
     """Every writable numeric object of the EDS outside the communication area (0x2000..0x9FFF) that is not
-    process data (not PDO-mappable)."""
+    process data (controlword, targets)."""
     entries: list[ParameterEntry] = []
     for index in sorted(drive.od.indices if hasattr(drive.od, "indices") else drive.od.keys()):
         if index not in _PARAMETER_AREA:
@@ -290,8 +292,7 @@ def eds_parameters(drive: Cia402Drive) -> list[ParameterEntry]:
         variables = [obj] if isinstance(obj, ODVariable) else [v for v in obj.values() if isinstance(v, ODVariable)]
         for variable in variables:
             numeric = variable.data_type in INTEGER_TYPES or variable.data_type in FLOAT_TYPES
-            # PDO-mappable objects are process data (controlword, targets), not settings
-            if variable.access_type in _WRITABLE and numeric and not variable.pdo_mappable:
+            if variable.access_type in _WRITABLE and numeric and index not in _PROCESS_DATA:
                 name = variable.name if isinstance(obj, ODVariable) else f"{obj.name}.{variable.name}"
                 slug = "_".join(name.lower().replace(".", " ").split())
                 entries.append(ParameterEntry(name=slug, index=variable.index, subindex=variable.subindex,
