@@ -294,11 +294,13 @@ def test_identify_bad_arguments_exit_2(extra: list[str], capsys: pytest.CaptureF
     assert err and "Traceback" not in err and len(err.splitlines()) == 1
 
 
-def test_text_output_names_the_model(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
-    config = _write(tmp_path / "plant.yaml", {"plant": {"a": -5.0, "b": 5.0}, "sample_time": TS})
-    code = main(["commission", "identify", "--config", config, "--amplitudes", "100", "--hold", "1.0",
+def test_emulator_config_sets_the_emulated_plant(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    """--emulator-config gives the embedded emulator its plant; the text output names the model and its fit."""
+    plant = _write(tmp_path / "plant.yaml", {"plant": {"a": -5.0, "b": 5.0}, "sample_time": TS})
+    code = main(["commission", "identify", "--emulator-config", plant, "--amplitudes", "100", "--hold", "1.0",
                  "--rest", "1.0", "--repetitions", "1", "--quiet"])
     assert code == 0
     text = capsys.readouterr().out
-    assert "model first-order" in text and "R^2" in text and "rho_A" in text
+    assert "model first-order" in text and "rho_A" in text
+    assert float(text.split("a = ")[1].split()[0]) == pytest.approx(-5.0, rel=1e-3)
     assert not math.isnan(float(text.split("R^2 = ")[1].split(",")[0]))
