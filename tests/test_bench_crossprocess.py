@@ -50,7 +50,14 @@ def _config(tmp_path: Path) -> Path:
         "sample_time": SAMPLE_TIME,
         "trials": TRIALS,
         "tuning": {"kp": 0.2, "r": 0.5},
-        "drive": {"node_id": 1, "mode": "csv", "velocity_scale": 1000.0, "velocity_limit": 500.0},
+        "drive": {
+            "node_id": 1,
+            "mode": "csv",
+            "velocity_scale": 1000.0,
+            "velocity_limit": 500.0,
+            "heartbeat_timeout_factor": 10.0,  # the shared test machine can stall a process for a while
+            "heartbeat_consumer_ms": 2000,
+        },
         "bench": {"settle_time": 0.02, "settle_tolerance": 0.05, "watchdog_cycles": 20},
         "emulator": {"timing": "realtime"},
     }

@@ -46,7 +46,15 @@ def bench_config(tmp_path: Path, **bench: Any) -> Path:
         "sample_time": SAMPLE_TIME,
         "trials": 4,
         "tuning": {"kp": 0.2, "r": 0.5},
-        "drive": {"node_id": NODE, "mode": "csv", "velocity_scale": 1000.0, "velocity_limit": 500.0},
+        "drive": {
+            "node_id": NODE,
+            "mode": "csv",
+            "velocity_scale": 1000.0,
+            "velocity_limit": 500.0,
+            # generous heartbeat supervision: the test machine is shared and can stall a process for a while
+            "heartbeat_timeout_factor": 10.0,
+            "heartbeat_consumer_ms": 2000,
+        },
         "bench": {"settle_time": 0.02, "settle_tolerance": 0.05, **bench},
     }
     path = tmp_path / "bench.yaml"
@@ -174,9 +182,7 @@ def test_drive_ends_disabled(bench_run: dict[str, Any]) -> None:
     frames = bench_run["topics"]["/can"]
     rpdo1 = cob_id(FunctionCode.RPDO1, NODE)
     tpdo1 = cob_id(FunctionCode.TPDO1, NODE)
-    controlwords = [
-        int.from_bytes(base64.b64decode(f["data"])[:2], "little") for f in frames if f["id"] == rpdo1
-    ]
+    controlwords = [int.from_bytes(base64.b64decode(f["data"])[:2], "little") for f in frames if f["id"] == rpdo1]
     assert controlwords[-1] == Command402.DISABLE_VOLTAGE
     statuswords = [int.from_bytes(base64.b64decode(f["data"])[:2], "little") for f in frames if f["id"] == tpdo1]
     assert decode_state(statuswords[-1]) != State402.OPERATION_ENABLED
