@@ -754,6 +754,8 @@ def run_bench(request: RunRequest) -> RunReport:
     )
     design_json = design.to_json()
     before_trial: Callable[[int], None] | None = None
+    where = "the embedded emulator" if bus_cfg.interface == "embedded" else f"{bus_cfg.interface}:{bus_cfg.channel}"
+    title = request.title or f"{law_kind.upper()} on {where}"
     with ExitStack() as stack:
         sink: _McapSink | None = None
         if request.out is not None:
@@ -777,9 +779,7 @@ def run_bench(request: RunRequest) -> RunReport:
             drive.add_frame_listener(sink.writer.log_frame)
         # LIFO: safe_stop runs before the drive is closed and before the log is closed, so its frames are logged
         stack.callback(drive.safe_stop)
-        progress = make_progress(
-            request.title or f"{law_kind} on {bus_cfg.interface}:{bus_cfg.channel}", quiet=request.quiet
-        )
+        progress = make_progress(title, quiet=request.quiet)
         stack.callback(progress.close)
         stop = stack.enter_context(StopRequest())
         drive.connect()
