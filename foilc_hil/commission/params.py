@@ -51,7 +51,7 @@ from pydantic import Field, field_validator
 from drivers.cia301 import SdoAbortCode, sdo_abort_text
 from drivers.cia402 import Obj
 from drivers.cia402_master import Cia402Drive
-from foilc_hil.errors import ConfigError, DriveError, SdoError
+from foilc_hil.errors import ConfigError, DriveError, DriveTimeoutError, SdoError
 from foilc_hil.schema import Section, load_document, validate
 
 __all__ = [
@@ -227,6 +227,13 @@ def check_against_eds(drive: Cia402Drive, entries: list[ParameterEntry]) -> list
 # --- SDO access -------------------------------------------------------------------------------------------------
 
 
+def _no_answer(drive: Cia402Drive, entry: ParameterEntry, exc: Exception) -> DriveTimeoutError:
+    return DriveTimeoutError(
+        f"no SDO answer from node {drive.node_id} for {entry.address} ({exc}): is the drive on this bus with this "
+        "node id?"
+    )
+
+
 def _upload(drive: Cia402Drive, entry: ParameterEntry) -> int | float:
     variable = _variable(drive, entry)
     try:
@@ -234,7 +241,7 @@ def _upload(drive: Cia402Drive, entry: ParameterEntry) -> int | float:
     except SdoAbortedError as exc:
         raise SdoError(entry.index, entry.subindex, exc.code, sdo_abort_text(exc.code)) from exc
     except SdoCommunicationError as exc:
-        raise SdoError(entry.index, entry.subindex, 0, f"no valid SDO response: {exc}") from exc
+        raise _no_answer(drive, entry, exc) from exc
     except can.CanError as exc:
         raise DriveError(f"SDO upload {entry.address} could not be sent: {exc}") from exc
     if variable is None:  # not in the EDS (only with --skip-eds-check): read as a little-endian integer
@@ -265,7 +272,7 @@ def _download(drive: Cia402Drive, entry: ParameterEntry, value: int | float) -> 
     except SdoAbortedError as exc:
         raise SdoError(entry.index, entry.subindex, exc.code, sdo_abort_text(exc.code)) from exc
     except SdoCommunicationError as exc:
-        raise SdoError(entry.index, entry.subindex, 0, f"no valid SDO response: {exc}") from exc
+        raise _no_answer(drive, entry, exc) from exc
     except can.CanError as exc:
         raise DriveError(f"SDO download {entry.address} could not be sent: {exc}") from exc
 
