@@ -21,8 +21,7 @@ variable.
 Units: ``set_target`` takes plant units and sends ``round(value * scale)`` after clamping ``|value|`` to
 ``velocity_limit`` (CSV, PV; scale ``velocity_scale``) or ``torque_limit`` (CST; scale ``torque_scale``); feedback
 is divided by the same scales. The shipped EDS counts velocity in 0.001 rpm, so a plant in rpm needs
-``velocity_scale`` (``DriveConfig`` defaults to 1000, matching the shipped EDS's 0.001 rpm counts). Torque is per mille of rated
-torque (CiA 402).
+``velocity_scale: 1000``, the ``DriveConfig`` default. Torque is per mille of rated torque (CiA 402).
 
 Errors: EMCY -> :class:`~foilc_hil.errors.EmergencyError` (code decoded), statusword fault bit ->
 :class:`~foilc_hil.errors.DriveFaultError`, no heartbeat for ``heartbeat_timeout_factor x 0x1017`` ->
