@@ -71,12 +71,15 @@ def _first_order_config(sample_time: float, duration: float) -> Any:
             "plant.b": 1.68,
             "sample_time": sample_time,
             "reference.profile": "piecewise",
-            "reference.segments": [{"duration": duration, "start": 1.0}],
+            "reference.segments": [{"duration": duration, "start": 0.0, "end": 30.0}],
             "tuning.kp": 0.05,
             "tuning.r": 0.5,
             "bench.settle_time": 5 * sample_time,
-            "bench.settle_tolerance": 0.01,
-            "drive.velocity_limit": 1.0e9,
+            "bench.settle_tolerance": 0.05,
+            "drive.velocity_scale": 1000.0,
+            "drive.velocity_limit": 1.0e4,
+            "drive.heartbeat_timeout_factor": 10.0,
+            "drive.heartbeat_consumer_ms": 2000,
         },
     )
 
