@@ -1,16 +1,18 @@
 """``foilc-hil demo``: FOILC and IOILC side by side over CAN on the embedded emulator (``make demo``).
 
-What runs: the plant emulator in this process (a PMSM axis with drawn parameter uncertainty, an inertia drift and a
-load disturbance from the 5th trial, ``configs/demo.yaml``) behind a CiA 402 virtual drive on a python-can
-``virtual`` bus; the bench commissions it over SDO and runs the paper's experiment profile (eq. 52, 400 -> 600 rpm
-over 6 s) for 30 trials with each law, in lockstep -- the CAN path, not the offline simulator. Each run writes an
-MCAP log and a report (PNG plots + summary) and the command prints a side-by-side table at the end.
+What runs: the plant emulator in this process (a PMSM axis behind a PI velocity loop, with drawn parameter
+uncertainty, an inertia drift and a load-torque disturbance from the 5th trial, ``configs/demo.yaml``) behind a
+CiA 402 virtual drive on a python-can ``virtual`` bus; the bench commissions it over SDO and runs the paper's
+experiment profile (eq. 52, 400 -> 600 rpm over 6 s) for 30 trials with each law, in lockstep -- the CAN path, not
+the offline simulator. Each run writes an MCAP log and a report (PNG plots + summary, :mod:`foilc_hil.report`) and
+the command prints a side-by-side table at the end. The designs of both laws are computed first, in parallel.
 
-Sample time: the demo uses ``Ts = 10 ms`` (600 samples per 6 s trial, 2 x 30 trials = 36k trial cycles plus the
-settle cycles between trials). The embedded CAN path (SYNC, RPDO, TPDOs through python-can's virtual bus and the
-canopen stacks on both sides, plus the PMSM's 50 us physics sub-steps) runs a few thousand lockstep cycles per
-second on one core of the reference machine (``make bench`` measures it), so the demo fits in a few minutes on two
-cores. A 1 ms cycle would be 10x the work for no visible difference on a 0.2 s velocity loop.
+Sample time: ``Ts = 10 ms`` (600 samples per 6 s trial; 2 x 30 x (601 trial + ~100 settle) ~= 41k cycles). The
+embedded CAN path with the PMSM physics (200 sub-steps of 50 us per 10 ms cycle) runs about 550-700 lockstep
+cycles/s on the shared two-core reference machine, and 2600-3800 cycles/s with a first-order plant (``make bench``
+measures the latter), so the whole demo takes about 1.5 minutes there (measured 94 s: 17 s of design, 36 s FOILC,
+31 s IOILC). A 5 ms cycle gives the same cycle count per second of physics but twice the cycles, about 3 minutes;
+10 ms keeps the demo short while the velocity loop's 10 ms time constant is still one sample.
 """
 
 from __future__ import annotations
