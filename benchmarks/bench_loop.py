@@ -119,7 +119,7 @@ def loop_only(samples: int = 2000, trials: int = 5) -> dict[str, Any]:
     }
 
 
-def can_lockstep(logged: bool, *, sample_time: float = 0.005, duration: float = 2.0, trials: int = 3) -> dict[str, Any]:
+def can_lockstep(logged: bool, *, sample_time: float = 0.005, duration: float = 2.0, trials: int = 5) -> dict[str, Any]:
     """Lockstep run over the embedded emulator (virtual bus), with or without the MCAP log."""
     from drivers.config import BusConfig
     from foilc_hil.bench import RunRequest, run_bench
