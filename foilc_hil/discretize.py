@@ -133,16 +133,26 @@ class DiscreteModel:
 
 @dataclass(frozen=True)
 class Uncertainty:
-    """Norm-bounded uncertainty ``dA = G1 Delta1 H1``, ``dB = G2 Delta2 H2``, ``||Delta_i|| <= 1``."""
+    """Norm-bounded uncertainty ``dA = G1 Delta1 H1``, ``dB = G2 Delta2 H2``, ``||Delta_i|| <= 1``.
+
+    ``state_blocks`` splits ``Delta1`` into independent diagonal blocks (their sizes, summing to the columns of
+    ``G1``); empty means one block. Delay augmentation uses it to keep the plant's ``dA`` and the delayed ``dB``
+    as separate channels, each with its own multiplier in the LMI (a shared one would be needlessly conservative).
+    """
 
     G1: np.ndarray
     H1: np.ndarray
     G2: np.ndarray
     H2: np.ndarray
+    state_blocks: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         for name in ("G1", "H1", "G2", "H2"):
             object.__setattr__(self, name, _ssmatrix(getattr(self, name), name))
+        blocks = tuple(int(b) for b in self.state_blocks)
+        if blocks and (any(b < 1 for b in blocks) or sum(blocks) != self.G1.shape[1]):
+            raise InputError(f"state_blocks: must be positive sizes summing to {self.G1.shape[1]}, got {blocks}")
+        object.__setattr__(self, "state_blocks", blocks)
         if self.G1.shape[1] != self.H1.shape[0]:
             raise InputError(
                 f"G1/H1: Delta must fit between them: G1 has {self.G1.shape[1]} columns, H1 {self.H1.shape[0]} rows"
@@ -169,6 +179,21 @@ class Uncertainty:
         for name, actual, expected, what in checks:
             if actual != expected:
                 raise ConfigError(f"must have {expected} {what}, got {actual}", key=f"plant.uncertainty.{name}")
+
+    def channels(self) -> list[tuple[str, np.ndarray, np.ndarray]]:
+        """The independent non-zero channels ``(kind, G, H)``: kind ``"state"`` (``G Delta H`` adds to ``A``)
+        or ``"input"`` (adds to ``B``). Channels with ``G = 0`` or ``H = 0`` are left out."""
+        result: list[tuple[str, np.ndarray, np.ndarray]] = []
+        sizes = self.state_blocks or (self.G1.shape[1],)
+        start = 0
+        for size in sizes:
+            G, H = self.G1[:, start : start + size], self.H1[start : start + size, :]
+            start += size
+            if np.any(G) and np.any(H):
+                result.append(("state", G, H))
+        if np.any(self.G2) and np.any(self.H2):
+            result.append(("input", self.G2, self.H2))
+        return result
 
     @property
     def is_zero(self) -> bool:
@@ -303,4 +328,5 @@ def augment_input_delay(
     H1z[: H1.shape[0]] = H1
     H1z[H1.shape[0] :] = H2_as_state
     augmented = DiscreteModel(Az, Bz, C_ahead, model.sample_time, input_delay=d, C_measured=C_measured)
-    return augmented, Uncertainty(G1z, H1z, np.zeros((nz, 1)), np.zeros((1, m)))
+    blocks = (H1.shape[0], H2_as_state.shape[0])
+    return augmented, Uncertainty(G1z, H1z, np.zeros((nz, 1)), np.zeros((1, m)), state_blocks=blocks)

@@ -1,0 +1,596 @@
+"""LMI synthesis of the learning gain ``P = (p1 p2)`` (paper section 4.2, Theorem 1, LMI (31); Remark 1).
+
+The 2D Roesser model, derived
+-----------------------------
+For the discrete plant ``x(t+1) = (A + dA) x(t) + (B + dB) u(t) + d(t)``, ``y = C x`` run trial after trial with
+``u_k(t) = u_{k-1}(t) + r_k(t)``, the state difference ``dx_k(t) = x_k(t) - x_{k-1}(t)`` obeys (paper (11))::
+
+    dx_k(t+1) = (A + dA) dx_k(t) + (B + dB) r_k(t) + phi_k(t)
+
+(``phi`` collects the trial-to-trial change of ``dA``, ``dB`` and ``d``). The tracking error
+``e = y_r - y`` satisfies ``e_k(t+1) = e_{k-1}(t+1) - C dx_k(t+1)`` because ``y_r`` repeats and ``y = C x``, so
+
+    e_k(t+1) = e_{k-1}(t+1) - C (A + dA) dx_k(t) - C (B + dB) r_k(t) - C phi_k(t).
+
+The paper's (14) prints ``+ C (B + dB) r`` and ``+ C phi``; the signs above follow from (10)-(13). With the
+state ``(dx_k(t), E_{k-1}(t+1))`` of the Roesser model (18) and ``E`` in place of ``e`` (the fractional filter's
+residual ``v`` joins the disturbance),
+
+    Abar = [[A, 0], [-C A, I]],  Bbar = [[B], [-C B]],
+    dAbar = [[G1], [-C G1]] Delta1 [H1 0],  dBbar = [[G2], [-C G2]] Delta2 H2.
+
+The paper prints the lower-left block of ``Abar`` as ``-A``; that only agrees with the derivation when ``C = I``.
+The disturbance ``w = (phi, v)`` (``n + p`` entries) enters through ``Dbar = [[I, 0], [-C, I]]``; the printed
+``D = diag(C, I)`` has ``2p`` rows for an ``(n + p)``-dimensional state, which does not fit. The performance
+output is the error state, ``z = Cz (dx, E) = E`` with ``Cz = [0 I]`` (the print's ``C Q`` cannot multiply
+an ``(n + p)``-square ``Q`` either).
+
+The LMI
+-------
+With ``Q = diag(Qb, Qt) > 0``, ``Q(tau, theta) = diag(tau Qb, theta Qt)``, ``J = P Q`` and Lemma 2 applied to
+each uncertainty channel (``sigma1, sigma2 > 0``)::
+
+    [ -Q(tau,theta)  *                                   *        *        *     *   ]
+    [ Abar Q+Bbar J  -Q + s1 G1b G1b' + s2 G2b G2b'      *        *        *     *   ]
+    [ H1b Q          0                                  -s1 I     *        *     *   ]  < 0
+    [ H2 J           0                                   0       -s2 I     *     *   ]
+    [ Cz Q           0                                   0        0      -g I    *   ]
+    [ 0              Dbar'                               0        0        0   -g I  ]
+
+(``G1b = [G1; -C G1]``, ``H1b = [H1 0]``, ``G2b = [G2; -C G2]``), minimising ``gamma`` (Remark 1);
+``P = J Q^-1``. Strictness is enforced with margins: the LMI ``<= -margin I``, ``Qb, Qt >= margin I``,
+``sigma >= margin``.
+
+Independent checks (numpy, after the solve)
+-------------------------------------------
+* the LMI matrix rebuilt in numpy from the solved values has largest eigenvalue ``< 0``;
+* ``Qb, Qt`` have smallest eigenvalue ``> 0``;
+* at every uncertainty vertex (``Delta = +-1`` for scalars; for matrices the sign-diagonal partial isometries and
+  seeded random ones, all extreme points of the unit spectral-norm ball), the closed loop
+  ``Acl = Abar + Bbar P + dAbar + dBbar P`` satisfies the Lyapunov decrease
+  ``Acl' Q^-1 Acl - diag(tau Qb^-1, theta Qt^-1) < 0`` and its 1D conditions: spectral radius of the time
+  block ``A + dA + (B + dB) p1`` and of the trial block ``I - C (B + dB) p2`` below one.
+
+A failing check raises :class:`~foilc_hil.errors.LmiInfeasibleError` naming the condition (CLI exit 3).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Literal
+
+import numpy as np
+
+from foilc_hil.design import Design
+from foilc_hil.discretize import DiscreteModel, Uncertainty, augment_input_delay, discretize, uncertainty_from_config
+from foilc_hil.errors import ConfigError, InputError, LmiInfeasibleError
+
+if TYPE_CHECKING:
+    from foilc_hil.config import Config
+
+__all__ = [
+    "LmiSolution",
+    "RoesserModel",
+    "lmi_matrix",
+    "roesser_model",
+    "solve_lmi",
+    "synthesize",
+    "synthesize_from_config",
+    "uncertainty_vertices",
+    "verify_lmi_solution",
+]
+
+Solver = Literal["CLARABEL", "SCS"]
+_SOLVERS: tuple[Solver, ...] = ("CLARABEL", "SCS")
+
+#: Cap on sampled vertices per uncertainty channel (matrix Delta), and on vertex combinations overall.
+MAX_VERTICES_PER_CHANNEL = 8
+MAX_VERTEX_COMBINATIONS = 32
+
+
+@dataclass(frozen=True)
+class Channel:
+    """One independent uncertainty channel of the Roesser model: ``Gbar Delta Hbar`` adds to ``Abar``
+    (``kind="state"``, ``Hbar = [H 0]`` multiplies ``Q``) or ``Gbar Delta H P`` (``kind="input"``, ``H``
+    multiplies ``J``)."""
+
+    kind: str
+    Gbar: np.ndarray
+    H: np.ndarray
+
+
+@dataclass(frozen=True)
+class RoesserModel:
+    """The 2D Roesser model (18) as derived in the module notes; all blocks for state ``(dx, E)``."""
+
+    Abar: np.ndarray
+    Bbar: np.ndarray
+    channels: tuple[Channel, ...]
+    Dbar: np.ndarray
+    Cz: np.ndarray
+    n_states: int
+    n_outputs: int
+
+
+def roesser_model(model: DiscreteModel, uncertainty: Uncertainty) -> RoesserModel:
+    """Build ``Abar, Bbar``, the uncertainty channels ``[G; -C G] Delta [H 0]`` / ``[G; -C G] Delta H P``,
+    ``Dbar`` and ``Cz`` (module notes)."""
+    uncertainty.check_against(model)
+    A, B, C = model.A, model.B, model.C
+    n, p = model.n_states, model.n_outputs
+    Abar = np.block([[A, np.zeros((n, p))], [-C @ A, np.eye(p)]])
+    Bbar = np.vstack([B, -C @ B])
+    channels = []
+    for kind, G, H in uncertainty.channels():
+        Gbar = np.vstack([G, -C @ G])
+        Hbar = np.hstack([H, np.zeros((H.shape[0], p))]) if kind == "state" else H
+        channels.append(Channel(kind, Gbar, Hbar))
+    Dbar = np.block([[np.eye(n), np.zeros((n, p))], [-C, np.eye(p)]])
+    Cz = np.hstack([np.zeros((p, n)), np.eye(p)])
+    return RoesserModel(Abar, Bbar, tuple(channels), Dbar, Cz, n, p)
+
+
+@dataclass(frozen=True)
+class LmiSolution:
+    """Solved values of LMI (31) and how they were obtained."""
+
+    P: np.ndarray
+    Qb: np.ndarray
+    Qt: np.ndarray
+    J: np.ndarray
+    sigmas: tuple[float, ...]
+    gamma: float
+    solver: str
+    status: str
+    checks: dict[str, Any] = field(default_factory=dict)
+
+
+def lmi_matrix(
+    roesser: RoesserModel,
+    *,
+    Qb: Any,
+    Qt: Any,
+    J: Any,
+    sigmas: Sequence[Any],
+    gamma: Any,
+    tau: float,
+    theta: float,
+    bmat: Any,
+) -> Any:
+    """The LMI (31) matrix from values (``bmat=np.block``) or cvxpy expressions (``bmat=cp.bmat``).
+
+    One row/column block per uncertainty channel (``sigmas[i]`` its multiplier); laid out as in the module
+    notes. The one function builds both, so the numpy check evaluates exactly the matrix handed to the solver.
+    """
+    n, p = roesser.n_states, roesser.n_outputs
+    nb = n + p
+    nw = roesser.Dbar.shape[1]
+    Z = np.zeros
+    Q = bmat([[Qb, Z((n, p))], [Z((p, n)), Qt]])
+    Qw = bmat([[tau * Qb, Z((n, p))], [Z((p, n)), theta * Qt]])
+    AQ = roesser.Abar @ Q + roesser.Bbar @ J
+    CzQ = roesser.Cz @ Q
+    sizes = [channel.H.shape[0] for channel in roesser.channels]
+    HQ = [channel.H @ (Q if channel.kind == "state" else J) for channel in roesser.channels]
+    second = -Q
+    for sigma, channel in zip(sigmas, roesser.channels, strict=True):
+        second = second + sigma * (channel.Gbar @ channel.Gbar.T)
+    rows: list[list[Any]] = [
+        [-Qw, AQ.T, *[h.T for h in HQ], CzQ.T, Z((nb, nw))],
+        [AQ, second, *[Z((nb, q)) for q in sizes], Z((nb, p)), roesser.Dbar],
+    ]
+    for i, (sigma, q) in enumerate(zip(sigmas, sizes, strict=True)):
+        row = [HQ[i], Z((q, nb))]
+        row += [-sigma * np.eye(q) if j == i else Z((q, sizes[j])) for j in range(len(sizes))]
+        row += [Z((q, p)), Z((q, nw))]
+        rows.append(row)
+    rows.append([CzQ, Z((p, nb)), *[Z((p, q)) for q in sizes], -gamma * np.eye(p), Z((p, nw))])
+    rows.append([Z((nw, nb)), roesser.Dbar.T, *[Z((nw, q)) for q in sizes], Z((nw, p)), -gamma * np.eye(nw)])
+    return bmat(rows)
+
+
+def _check_rates(tau: float, theta: float, margin: float) -> None:
+    for name, value in (("tau", tau), ("theta", theta)):
+        if not (isinstance(value, (int, float)) and 0.0 < value < 1.0):
+            raise ConfigError(f"must satisfy 0 < {name} < 1, got {value!r}", key=f"synthesis.{name}")
+    if not (isinstance(margin, (int, float)) and math.isfinite(margin) and margin > 0):
+        raise ConfigError(f"must be positive, got {margin!r}", key="synthesis.margin")
+
+
+def _solve_once(
+    roesser: RoesserModel, tau: float, theta: float, solver: Solver, margin: float
+) -> tuple[str, dict[str, Any] | None]:
+    import cvxpy as cp
+
+    n, p = roesser.n_states, roesser.n_outputs
+    m = roesser.Bbar.shape[1]
+    Qb = cp.Variable((n, n), symmetric=True, name="Qb")
+    Qt = cp.Variable((p, p), symmetric=True, name="Qt")
+    J = cp.Variable((m, n + p), name="J")
+    sigmas = [cp.Variable(name=f"sigma{i + 1}") for i in range(len(roesser.channels))]
+    gamma = cp.Variable(name="gamma")
+    M = lmi_matrix(roesser, Qb=Qb, Qt=Qt, J=J, sigmas=sigmas, gamma=gamma, tau=tau, theta=theta, bmat=cp.bmat)
+    size = M.shape[0]
+    # The blocks above are symmetric by construction; cvxpy's PSD constraint still wants a symmetric
+    # expression, so symmetrise explicitly (a no-op on the exact value).
+    M_sym = (M + M.T) / 2
+    constraints = [
+        M_sym << -margin * np.eye(size),
+        Qb >> margin * np.eye(n),
+        Qt >> margin * np.eye(p),
+        gamma >= margin,
+        *[sigma >= margin for sigma in sigmas],
+    ]
+    problem = cp.Problem(cp.Minimize(gamma), constraints)
+    try:
+        problem.solve(solver=solver)
+    except cp.error.SolverError as exc:
+        return f"solver error: {exc}".splitlines()[0], None
+    status = str(problem.status)
+    if status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or Qb.value is None or J.value is None:
+        return status, None
+    assert Qt.value is not None and gamma.value is not None
+    return status, {
+        "Qb": np.asarray(Qb.value, dtype=float),
+        "Qt": np.asarray(Qt.value, dtype=float),
+        "J": np.asarray(J.value, dtype=float),
+        "sigmas": tuple(float(sigma.value) for sigma in sigmas if sigma.value is not None),
+        "gamma": float(gamma.value),
+    }
+
+
+def _orthonormal_extreme(rows: int, cols: int, rng: np.random.Generator) -> np.ndarray:
+    """A random extreme point of the unit spectral-norm ball: all singular values one."""
+    k = max(rows, cols)
+    q, r = np.linalg.qr(rng.standard_normal((k, k)))
+    q = q @ np.diag(np.sign(np.diag(r)))
+    return np.asarray(q[:rows, :cols])
+
+
+def _channel_vertices(rows: int, cols: int, seed: int) -> list[np.ndarray]:
+    """Extreme points of ``{Delta : ||Delta||_2 <= 1}`` (``rows x cols``) to check at.
+
+    ``1 x 1``: exactly ``{-1, +1}``. Otherwise the ball has a continuum of extreme points (the partial
+    isometries); we take the sign-diagonal ones ``diag(+-1)`` (all of them when there are at most
+    ``MAX_VERTICES_PER_CHANNEL``) plus seeded random orthonormal ones, up to the cap. This samples, it does not
+    enumerate: the LMI itself covers the whole ball, the vertex checks are an independent spot check.
+    """
+    if rows == 1 and cols == 1:
+        return [np.array([[-1.0]]), np.array([[1.0]])]
+    k = min(rows, cols)
+    vertices: list[np.ndarray] = []
+    for signs in itertools.product((-1.0, 1.0), repeat=k):
+        if len(vertices) >= MAX_VERTICES_PER_CHANNEL // 2:
+            break
+        delta = np.zeros((rows, cols))
+        delta[np.arange(k), np.arange(k)] = signs
+        vertices.append(delta)
+    rng = np.random.default_rng(seed)
+    while len(vertices) < MAX_VERTICES_PER_CHANNEL:
+        vertices.append(_orthonormal_extreme(rows, cols, rng))
+    return vertices
+
+
+def uncertainty_vertices(uncertainty: Uncertainty, *, seed: int = 0) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """``(dA, dB)`` at the uncertainty vertices (see :func:`_channel_vertices`); nothing when uncertainty is zero.
+
+    Each independent channel (:meth:`Uncertainty.channels`) takes its extreme points; the combinations are
+    produced sign-diagonal ones first, at most :data:`MAX_VERTEX_COMBINATIONS` of them.
+    """
+    n, m = uncertainty.G1.shape[0], uncertainty.H2.shape[1]
+    per_channel: list[list[tuple[np.ndarray, np.ndarray]]] = []
+    for index, (kind, G, H) in enumerate(uncertainty.channels()):
+        options = []
+        for delta in _channel_vertices(G.shape[1], H.shape[0], seed + index):
+            term = G @ delta @ H
+            options.append((term, np.zeros((n, m))) if kind == "state" else (np.zeros((n, n)), term))
+        per_channel.append(options)
+    if not per_channel:
+        return
+    for count, combination in enumerate(itertools.product(*per_channel)):
+        if count >= MAX_VERTEX_COMBINATIONS:
+            return
+        dA = sum((term[0] for term in combination), np.zeros((n, n)))
+        dB = sum((term[1] for term in combination), np.zeros((n, m)))
+        yield dA, dB
+
+
+def _spectral_radius(matrix: np.ndarray) -> float:
+    return float(np.max(np.abs(np.linalg.eigvals(matrix)))) if matrix.size else 0.0
+
+
+def verify_lmi_solution(
+    model: DiscreteModel,
+    uncertainty: Uncertainty,
+    values: dict[str, Any],
+    *,
+    tau: float,
+    theta: float,
+) -> dict[str, Any]:
+    """The independent numpy checks of the module notes. Returns the measured numbers.
+
+    Raises
+    ------
+    foilc_hil.errors.LmiInfeasibleError
+        Naming the first condition that fails.
+    """
+    roesser = roesser_model(model, uncertainty)
+    n = model.n_states
+    Qb, Qt, J = values["Qb"], values["Qt"], values["J"]
+    Qb = (Qb + Qb.T) / 2
+    Qt = (Qt + Qt.T) / 2
+    M = lmi_matrix(
+        roesser,
+        Qb=Qb,
+        Qt=Qt,
+        J=J,
+        sigmas=values["sigmas"],
+        gamma=values["gamma"],
+        tau=tau,
+        theta=theta,
+        bmat=np.block,
+    )
+    if not np.allclose(M, M.T, rtol=0, atol=1e-12 * max(1.0, float(np.max(np.abs(M))))):
+        raise LmiInfeasibleError("LMI (31): the assembled matrix is not symmetric (internal error)")
+    lmi_max = float(np.max(np.linalg.eigvalsh((M + M.T) / 2)))
+    qb_min = float(np.min(np.linalg.eigvalsh(Qb)))
+    qt_min = float(np.min(np.linalg.eigvalsh(Qt)))
+    checks: dict[str, Any] = {"lmi_max_eigenvalue": lmi_max, "Qb_min_eigenvalue": qb_min, "Qt_min_eigenvalue": qt_min}
+    if not lmi_max < 0:
+        raise LmiInfeasibleError(f"LMI (31): largest eigenvalue of the solved matrix is {lmi_max:.3g}, not < 0")
+    if not (qb_min > 0 and qt_min > 0):
+        raise LmiInfeasibleError(f"LMI (31): Q is not positive definite (min eigenvalues {qb_min:.3g}, {qt_min:.3g})")
+    Q = np.block([[Qb, np.zeros((n, Qt.shape[0]))], [np.zeros((Qt.shape[0], n)), Qt]])
+    P = np.linalg.solve(Q.T, J.T).T  # J Q^-1
+    Qinv = np.linalg.inv(Q)
+    rates = np.block(
+        [[tau * np.linalg.inv(Qb), np.zeros((n, Qt.shape[0]))], [np.zeros((Qt.shape[0], n)), theta * np.linalg.inv(Qt)]]
+    )
+    p1, p2 = P[:, :n], P[:, n:]
+    worst = {"lyapunov_max_eigenvalue": -math.inf, "time_radius": 0.0, "trial_radius": 0.0}
+    cases: list[tuple[np.ndarray, np.ndarray]] = [(np.zeros_like(model.A), np.zeros_like(model.B))]
+    cases.extend(uncertainty_vertices(uncertainty))
+    for index, (dA, dB) in enumerate(cases):
+        A_v, B_v = model.A + dA, model.B + dB
+        Abar_v = np.block([[A_v, np.zeros((n, model.n_outputs))], [-model.C @ A_v, np.eye(model.n_outputs)]])
+        Bbar_v = np.vstack([B_v, -model.C @ B_v])
+        Acl = Abar_v + Bbar_v @ P
+        lyapunov = float(np.max(np.linalg.eigvalsh(Acl.T @ Qinv @ Acl - rates)))
+        time_radius = _spectral_radius(A_v + B_v @ p1)
+        trial_radius = _spectral_radius(np.eye(model.n_outputs) - model.C @ B_v @ p2)
+        where = "the nominal model" if index == 0 else f"uncertainty vertex {index}"
+        if not lyapunov < 0:
+            raise LmiInfeasibleError(f"Theorem 1: Lyapunov decrease fails at {where} (max eigenvalue {lyapunov:.3g})")
+        if not time_radius < 1:
+            raise LmiInfeasibleError(f"Theorem 1: time-direction block unstable at {where} (radius {time_radius:.4g})")
+        if not trial_radius < 1:
+            raise LmiInfeasibleError(
+                f"Theorem 1: trial-direction block unstable at {where} (radius {trial_radius:.4g})"
+            )
+        worst["lyapunov_max_eigenvalue"] = max(worst["lyapunov_max_eigenvalue"], lyapunov)
+        worst["time_radius"] = max(worst["time_radius"], time_radius)
+        worst["trial_radius"] = max(worst["trial_radius"], trial_radius)
+    checks.update(worst)
+    checks["vertices_checked"] = len(cases) - 1
+    checks["P"] = P
+    return checks
+
+
+def solve_lmi(
+    model: DiscreteModel,
+    uncertainty: Uncertainty,
+    *,
+    tau: float,
+    theta: float,
+    solver: Solver = "CLARABEL",
+    margin: float = 1e-6,
+) -> LmiSolution:
+    """Solve LMI (31) minimising ``gamma`` and verify the solution independently (module notes).
+
+    The requested solver is tried first, then the other one if it fails to solve or its solution fails a
+    check; the solution records which solver produced it.
+
+    Raises
+    ------
+    foilc_hil.errors.LmiInfeasibleError
+        When no solver yields a solution that passes every check; the message names the failing condition.
+    """
+    _check_rates(tau, theta, margin)
+    if solver not in _SOLVERS:
+        raise ConfigError(f"must be one of {', '.join(_SOLVERS)}, got {solver!r}", key="synthesis.solver")
+    roesser = roesser_model(model, uncertainty)
+    order = [solver, *[s for s in _SOLVERS if s != solver]]
+    failures: list[str] = []
+    for name in order:
+        status, values = _solve_once(roesser, tau, theta, name, margin)
+        if values is None:
+            failures.append(f"{name}: {status}")
+            continue
+        try:
+            checks = verify_lmi_solution(model, uncertainty, values, tau=tau, theta=theta)
+        except LmiInfeasibleError as exc:
+            failures.append(f"{name}: {exc}")
+            continue
+        P = checks.pop("P")
+        return LmiSolution(
+            P=P,
+            Qb=(values["Qb"] + values["Qb"].T) / 2,
+            Qt=(values["Qt"] + values["Qt"].T) / 2,
+            J=values["J"],
+            sigmas=tuple(values["sigmas"]),
+            gamma=float(values["gamma"]),
+            solver=name,
+            status=status,
+            checks={**checks, "solver_failures": failures},
+        )
+    raise LmiInfeasibleError(f"LMI (31) infeasible for tau={tau:g}, theta={theta:g} ({'; '.join(failures)})")
+
+
+def synthesize(
+    model: DiscreteModel,
+    uncertainty: Uncertainty | None = None,
+    *,
+    tau: float = 0.868,
+    theta: float = 0.868,
+    kp: float = 0.0,
+    r: float = 1.0,
+    law: str = "foilc",
+    n_samples: int,
+    solver: Solver = "CLARABEL",
+    margin: float = 1e-6,
+    on_divergent_filter: str = "rescale",
+    q_filter: np.ndarray | None = None,
+    require_monotonic: bool = True,
+    growth_horizon: int = 10,
+) -> Design:
+    """Solve Theorem 1 for ``P`` on ``model`` and certify the law as it runs (fractional filter included).
+
+    Parameters
+    ----------
+    model
+        The discrete design model (already delay-augmented if the loop has input delay).
+    uncertainty
+        Its norm-bounded uncertainty; ``None``: none.
+    tau, theta
+        Convergence indices along time and trials, in ``(0, 1)``.
+    kp, r
+        The fractional PD function ``E = (I + kp D^r) e``; ``kp = 0`` for IOILC.
+    law
+        ``"foilc"`` or ``"ioilc"`` (IOILC forces ``kp = 0``).
+    n_samples
+        Samples per trial ``N`` (the lifted certificates act on whole trials).
+    solver, margin
+        cvxpy solver tried first and the LMI strictness margin.
+    on_divergent_filter
+        ``"rescale"``, ``"augment"`` or ``"refuse"`` (see :func:`foilc_hil.certificates.certify`).
+    q_filter
+        Optional ``N x N`` zero-phase Q-filter matrix applied to the feedforward between trials.
+    require_monotonic
+        Demand a monotonic (induced 2-norm) certificate, not only an asymptotic (spectral radius) one.
+    growth_horizon
+        Trials over which the error-growth bound is reported when only asymptotic convergence is certified.
+
+    Raises
+    ------
+    foilc_hil.errors.LmiInfeasibleError
+        The LMI has no solution passing the checks (exit 3).
+    foilc_hil.errors.ConvergenceCertificateError
+        The law as it runs is not certified and could not be fixed (exit 3).
+    """
+    from foilc_hil.certificates import certify
+
+    started = time.perf_counter()
+    if law not in ("foilc", "ioilc"):
+        raise InputError(f"law: synthesize designs 'foilc' or 'ioilc', got {law!r}")
+    if law == "ioilc":
+        kp = 0.0
+    if not (isinstance(n_samples, int) and n_samples > model.input_delay + 1):
+        raise InputError(f"n_samples: must be an integer above {model.input_delay + 1}, got {n_samples!r}")
+    unc = uncertainty if uncertainty is not None else Uncertainty.none(model.n_states, model.n_inputs)
+    solution = solve_lmi(model, unc, tau=tau, theta=theta, solver=solver, margin=margin)
+    lmi_seconds = time.perf_counter() - started
+    outcome = certify(
+        model,
+        unc,
+        solution.P,
+        kp=kp,
+        r=r,
+        n_samples=n_samples,
+        on_divergent_filter=on_divergent_filter,
+        q_filter=q_filter,
+        require_monotonic=require_monotonic,
+        growth_horizon=growth_horizon,
+    )
+    certificates: dict[str, Any] = {
+        **outcome.certificates,
+        "lmi": {
+            "solver": solution.solver,
+            "status": solution.status,
+            "sigmas": list(solution.sigmas),
+            **solution.checks,
+            "P_lmi": solution.P,
+        },
+        "seconds": {"lmi": lmi_seconds, "total": time.perf_counter() - started},
+    }
+    return Design(
+        law=law,
+        A=model.A,
+        B=model.B,
+        C=model.C,
+        G1=unc.G1,
+        H1=unc.H1,
+        G2=unc.G2,
+        H2=unc.H2,
+        P=outcome.P,
+        Qb=solution.Qb,
+        Qt=solution.Qt,
+        gamma=solution.gamma,
+        tau=float(tau),
+        theta=float(theta),
+        kp=float(kp),
+        r=float(r),
+        sample_time=model.sample_time,
+        input_delay=model.input_delay,
+        gain_scale=outcome.gain_scale,
+        certificates=certificates,
+        C_measured=model.measured_output,
+    )
+
+
+def _trial_samples(config: Config) -> int:
+    try:
+        from foilc_hil.references import trial_samples
+    except ImportError:  # pragma: no cover - references.py ships with the product
+        raise ConfigError("foilc_hil.references is missing", key="reference") from None
+    return int(trial_samples(config.reference, config.sample_time))
+
+
+def design_model(config: Config, *, input_delay: int = 0) -> tuple[DiscreteModel, Uncertainty]:
+    """The discrete (optionally delay-augmented) design model and uncertainty of ``config``."""
+    from plant_emulator.linear import continuous_model
+
+    continuous = continuous_model(config.plant)
+    discrete = discretize(continuous, config.sample_time, config.synthesis.discretization)
+    uncertainty = uncertainty_from_config(config.plant.uncertainty, discrete.n_states, discrete.n_inputs)
+    return augment_input_delay(discrete, input_delay, uncertainty)
+
+
+def synthesize_from_config(
+    config: Config,
+    *,
+    law: str,
+    kp: float,
+    r: float,
+    input_delay: int = 0,
+    n_samples: int | None = None,
+    tau: float | None = None,
+    theta: float | None = None,
+    q_filter: np.ndarray | None = None,
+) -> Design:
+    """:func:`synthesize` with everything taken from ``config`` (``synthesis:``, ``plant:``, ``reference:``).
+
+    ``n_samples`` defaults to the reference's trial length; ``tau``/``theta`` to ``synthesis.tau/theta``.
+    """
+    model, uncertainty = design_model(config, input_delay=input_delay)
+    settings = config.synthesis
+    samples = n_samples if n_samples is not None else _trial_samples(config)
+    return synthesize(
+        model,
+        uncertainty,
+        tau=settings.tau if tau is None else tau,
+        theta=settings.theta if theta is None else theta,
+        kp=kp,
+        r=r,
+        law=law,
+        n_samples=samples,
+        solver=settings.solver,
+        margin=settings.margin,
+        on_divergent_filter=settings.on_divergent_filter,
+        require_monotonic=settings.require_monotonic,
+        growth_horizon=config.trials,
+        q_filter=q_filter,
+    )
