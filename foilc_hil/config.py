@@ -67,6 +67,8 @@ class SynthesisConfig(Section):
     solver: Literal["CLARABEL", "SCS"] = "CLARABEL"
     margin: float = Field(default=1e-6, gt=0)  # strictness margin of the LMIs
     on_divergent_filter: Literal["rescale", "augment", "refuse"] = "rescale"
+    # Certify monotonic convergence (induced 2-norm of the lifted trial map < 1), not only asymptotic (radius < 1).
+    require_monotonic: bool = True
 
 
 class QFilterConfig(Section):
