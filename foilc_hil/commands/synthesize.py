@@ -1,0 +1,94 @@
+"""``foilc-hil synthesize``: the learning gain of Theorem 1 and the certificates of the law as it runs.
+
+JSON (``--json``): ``{"A", "B", "C", "G1", "H1", "G2", "H2", "P", "Qb", "Qt", "gamma", "tau", "theta", "kp", "r",
+"sample_time", "certificates": {...}}`` plus ``law``, ``input_delay``, ``gain_scale``, ``p1``, ``p2`` and
+``C_measured`` (:meth:`foilc_hil.design.Design.to_json`). ``kp``/``r`` come from ``tuning.kp``/``tuning.r`` when
+given, else from the tuner. An infeasible LMI or an uncertifiable law exits 3.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import TYPE_CHECKING
+
+from foilc_hil.commands import CommandResult
+
+if TYPE_CHECKING:
+    from foilc_hil.config import Config
+    from foilc_hil.design import Design
+
+HELP = "solve the LMI of Theorem 1 for the learning gain P"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``synthesize``."""
+    parser.add_argument("--config", required=True, help="YAML configuration file")
+    parser.add_argument("--tau", type=float, default=None, help="convergence index along time, 0 < tau < 1")
+    parser.add_argument("--theta", type=float, default=None, help="convergence index along trials, 0 < theta < 1")
+    parser.add_argument(
+        "--law", choices=("foilc", "ioilc"), default="foilc", help="2D law to design (IOILC: kp = 0; default foilc)"
+    )
+    parser.add_argument(
+        "--input-delay",
+        type=int,
+        default=0,
+        metavar="CYCLES",
+        help="cycles of input delay folded into the design model (1 for the SYNC-driven CAN loop)",
+    )
+    parser.add_argument("--json", action="store_true", help="print one JSON document on stdout")
+
+
+def _fractional_parameters(config: Config, law: str) -> tuple[float, float]:
+    """``kp, r``: given in ``tuning:``, else tuned (IOILC: ``kp = 0``, ``r`` recorded but unused)."""
+    kp, r = config.tuning.kp, config.tuning.r
+    if law == "ioilc":
+        return 0.0, 1.0 if r is None else float(r)
+    if kp is None or r is None:
+        from foilc_hil.tuning import tune
+
+        tuned = tune(config)
+        kp, r = tuned.kp, tuned.r
+    return float(kp), float(r)
+
+
+def _text(design: Design) -> str:
+    certificates = design.certificates
+    lines = [
+        f"law {design.law}: kp = {design.kp:.6g}, r = {design.r:.6g}, Ts = {design.sample_time:g} s, "
+        f"input delay {design.input_delay} cycle(s)",
+        f"gamma = {design.gamma:.6g} (tau = {design.tau:g}, theta = {design.theta:g}; "
+        f"solver {certificates['lmi']['solver']})",
+        f"p1 = {design.p1.tolist()}",
+        f"p2 = {design.p2.tolist()}" + (f"  (rescaled by {design.gain_scale:.6g})" if design.gain_scale != 1 else ""),
+        f"lifted trial map ({certificates['n_samples']} samples, {certificates['vertices']} uncertainty vertices): "
+        f"spectral radius {certificates['spectral_radius']:.6g}, induced 2-norm {certificates['norm_2']:.6g}"
+        f" -> {'monotonic' if certificates.get('monotonic') else 'asymptotic only'}",
+        f"as designed (before any rescale): spectral radius {certificates['designed']['spectral_radius']:.6g}; "
+        f"without the fractional filter: {certificates['naive_without_filter']['spectral_radius']:.6g}; "
+        f"filter first weight 1 + kp h^-r = {certificates['filter_first_weight']:.6g}",
+    ]
+    growth = certificates.get("growth_bound")
+    if growth is not None:
+        lines.append(f"error growth bound over {growth['trials']} trials: {growth['bound']:.6g}")
+    return "\n".join(lines)
+
+
+def execute(args: argparse.Namespace) -> CommandResult:
+    """Load the config, get ``kp``/``r``, solve LMI (31), certify the law as it runs, print the design."""
+    from foilc_hil.config import load_config
+    from foilc_hil.errors import InputError
+    from foilc_hil.synthesis import synthesize_from_config
+
+    if args.input_delay < 0:
+        raise InputError(f"--input-delay: must be >= 0, got {args.input_delay}")
+    config = load_config(args.config, {"synthesis.tau": args.tau, "synthesis.theta": args.theta})
+    kp, r = _fractional_parameters(config, args.law)
+    q_matrix = None
+    if config.law.q_filter is not None:
+        from foilc_hil.qfilter import QFilter
+        from foilc_hil.references import trial_samples
+
+        q_filter = QFilter(config.law.q_filter.cutoff, config.law.q_filter.order, config.sample_time)
+        q_matrix = q_filter.matrix(trial_samples(config.reference, config.sample_time))
+    design = synthesize_from_config(config, law=args.law, kp=kp, r=r, input_delay=args.input_delay, q_filter=q_matrix)
+    return CommandResult(document=design.to_json(), text=_text(design))
