@@ -280,3 +280,48 @@ def test_make_law_with_q_filter_stores_filtered_feedforward() -> None:
     np.testing.assert_allclose(law.feedforward[:, 0], law.q_filter.apply(commands[-1][:, 0]), atol=1e-14)
     with pytest.raises(ConfigError, match=r"law\.kind"):
         make_law("pid", design, LawConfig(), n)
+
+
+@pytest.mark.parametrize("delay", [0, 1, 2])
+def test_law_obeys_the_certificates_lifted_error_map(delay: int) -> None:
+    """A second, independent derivation: the certificates' dense trial map T predicts the law's error updates."""
+    from foilc_hil.certificates import dense_error_map
+
+    n = 25
+    A, B, C = _first_order(0.1)
+    model, _ = augment_input_delay(DiscreteModel(A, B, C, 0.1), delay)
+    P = np.hstack([np.full((1, model.n_states), -0.4), [[3.0]]])
+    P[0, 0] = -5.0
+    design = Design(
+        law="foilc",
+        A=model.A,
+        B=model.B,
+        C=model.C,
+        G1=np.zeros((model.n_states, 1)),
+        H1=np.zeros((1, model.n_states)),
+        G2=np.zeros((model.n_states, 1)),
+        H2=np.zeros((1, 1)),
+        P=P,
+        Qb=np.eye(model.n_states),
+        Qt=np.eye(1),
+        gamma=1.0,
+        tau=0.868,
+        theta=0.868,
+        kp=0.15,
+        r=0.6,
+        sample_time=0.1,
+        input_delay=delay,
+        C_measured=model.measured_output,
+    )
+    law = Foilc(design, n)
+    ref = np.sin(np.arange(1, n + 1) * 0.2) + 0.5
+    errors = []
+    for _ in range(4):
+        law.begin_trial()
+        _, outputs, _ = _run_plant(A, B, C, [0.3], lambda t, y: law.command(t, y).copy(), n, delay)
+        errors.append(law.end_trial(ref, outputs).error[:, 0])
+    F = FractionalPD(0.15, 0.6, 0.1).matrix(n)
+    T = dense_error_map(model.A, model.B, model.measured_output, design.p1, design.p2, F, lead=delay)
+    for k in range(1, 3):
+        np.testing.assert_allclose(errors[k + 1] - errors[k], T @ (errors[k] - errors[k - 1]), atol=1e-10)
+    assert np.linalg.norm(errors[2] - errors[1]) > 1e-3  # the check is not vacuous
