@@ -40,7 +40,7 @@ def default_config_path() -> Path:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", metavar="C", help="demo config (default: configs/demo.yaml)")
-    parser.add_argument("--out", default="demo-output", metavar="DIR", help="directory for logs and reports")
+    parser.add_argument("--out", default="out/demo", metavar="DIR", help="directory for logs and reports (out/demo)")
     parser.add_argument("--trials", type=int, metavar="N", help="trials per law (default: config 'trials', 30)")
     parser.add_argument("--no-report", action="store_true", help="skip the PNG reports")
     parser.add_argument("--quiet", action="store_true", help="no progress view on stderr")
