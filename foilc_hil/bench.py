@@ -724,17 +724,22 @@ def run_bench(request: RunRequest) -> RunReport:
     raise -- the report's ``outcome.stopped`` says why and ``outcome.diverged`` is set.
     """
     from contextlib import ExitStack
+    from pathlib import Path
 
     from drivers.bus import open_bus
     from drivers.cia402 import OperationMode
     from drivers.cia402_master import Cia402Drive
     from foilc_hil.config import dump_config
+    from foilc_hil.errors import LogFormatError
     from foilc_hil.io.mcap_log import QueuedLogWriter
     from foilc_hil.laws import make_law
     from foilc_hil.progress import make_progress
     from foilc_hil.references import reference_profile
 
     config = request.config
+    if request.out is not None and not Path(request.out).resolve().parent.is_dir():
+        # before the (possibly slow) design: a log that cannot be written is a usage error
+        raise LogFormatError(f"{request.out}: cannot create: no such directory {Path(request.out).resolve().parent}")
     law_kind = request.law or config.law.kind
     trials = request.trials or config.trials
     mode: TimingMode = request.mode or config.bench.mode
