@@ -76,6 +76,7 @@ __all__ = [
     "dense_error_map",
     "dense_input_map",
     "lifted_error_map",
+    "lifted_input_map",
     "map_certificate",
 ]
 
@@ -431,7 +432,7 @@ def dense_input_map(
 
 
 @dataclass(frozen=True)
-class _InputMap:
+class LiftedInputMap:
     """``M`` of the module notes via fast products; ``u`` flat, sample-major, ``m`` channels."""
 
     Gz: _BlockToeplitz  # u -> z (strictly causal: block 0 is zero)
@@ -466,6 +467,27 @@ class _InputMap:
         return (self.Q.T @ Y - learning - self.Gz.rmatvec(Y @ self.p1)).ravel()
 
 
+def lifted_input_map(
+    A: np.ndarray,
+    B: np.ndarray,
+    C_measured: np.ndarray,
+    p1: np.ndarray,
+    p2: np.ndarray,
+    *,
+    kp: float,
+    r: float,
+    sample_time: float,
+    Q: np.ndarray,
+    lead: int = 0,
+) -> LiftedInputMap:
+    """The input map ``M`` (with the ``N x N`` Q-filter matrix ``Q``) as fast ``matvec``/``rmatvec`` products."""
+    n_samples = Q.shape[0]
+    filt, fpd = _fractional_filter(kp, r, sample_time, n_samples)
+    if filt is None:
+        filt = _ScalarFilter(np.zeros(n_samples), np.asarray(fpd.matrix(n_samples), dtype=float))
+    return _input_map(A, B, C_measured, p1, p2, filt, Q, lead)
+
+
 def _input_map(
     A: np.ndarray,
     B: np.ndarray,
@@ -475,7 +497,7 @@ def _input_map(
     F: _ScalarFilter,
     Q: np.ndarray,
     lead: int,
-) -> _InputMap:
+) -> LiftedInputMap:
     n = Q.shape[0]
     ns, m = B.shape
     p = C_measured.shape[0]
@@ -486,7 +508,7 @@ def _input_map(
     r_blocks = np.zeros((n, m, m))
     r_blocks[0] = np.eye(m)
     r_blocks[1:] = _markov_blocks(A_cl, B, p1, 0, n - 1)
-    return _InputMap(
+    return LiftedInputMap(
         _BlockToeplitz(z_blocks), _BlockToeplitz(y_blocks), _BlockToeplitz(r_blocks), F, Q, p1, p2, lead, n, m, p
     )
 

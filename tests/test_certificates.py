@@ -1,0 +1,244 @@
+"""Lifted trial-to-trial map of the law as it runs, checked against brute-force trial-by-trial simulation."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from foilc_hil.certificates import (
+    DENSE_LIMIT,
+    certify,
+    dense_error_map,
+    dense_input_map,
+    lifted_error_map,
+    lifted_input_map,
+    map_certificate,
+)
+from foilc_hil.discretize import DiscreteModel, Uncertainty, augment_input_delay, discretize
+from foilc_hil.errors import ConvergenceCertificateError
+from foilc_hil.fractional import FractionalPD
+from foilc_hil.qfilter import QFilter
+from foilc_hil.synthesis import solve_lmi
+from plant_emulator.linear import ContinuousModel
+from tests.test_synthesis import _mimo
+
+pytestmark = pytest.mark.filterwarnings("ignore:Solution may be inaccurate")
+
+
+def _run_trials(
+    A: np.ndarray,
+    B: np.ndarray,
+    C: np.ndarray,
+    p1: np.ndarray,
+    p2: np.ndarray,
+    fpd: FractionalPD,
+    reference: np.ndarray,
+    lead: int,
+    trials: int,
+    Q: np.ndarray | None = None,
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Plain loops: trial 1 only measures; then u_k(t) = ff(t) + p1 (x_k(t) - x_{k-1}(t)) + p2 E_{k-1}[t + lead],
+    ff = u_{k-1} (or Q u_{k-1}); e[i] = r[i] - C x(i + 1). Returns the errors and inputs of every trial."""
+    n_samples, m = reference.shape[0], B.shape[1]
+    feedforward = np.zeros((n_samples, m))
+    x_prev: np.ndarray | None = None
+    E_prev: np.ndarray | None = None
+    errors, inputs = [], []
+    for _ in range(trials):
+        x = np.zeros(A.shape[0])
+        states, us, ys = [], [], []
+        for t in range(n_samples):
+            states.append(x.copy())
+            u = feedforward[t].copy()
+            if x_prev is not None and E_prev is not None:
+                u += p1 @ (x - x_prev[t])
+                if t + lead < n_samples:
+                    u += p2 @ E_prev[t + lead]
+            us.append(u)
+            x = A @ x + B @ u
+            ys.append(C @ x)
+        e = reference - np.array(ys)
+        E = np.column_stack([fpd.apply(e[:, j]) for j in range(e.shape[1])])
+        u_trial = np.array(us)
+        errors.append(e)
+        inputs.append(u_trial)
+        x_prev, E_prev = np.array(states), E
+        feedforward = u_trial if Q is None else Q @ u_trial
+    return errors, inputs
+
+
+def _plant(n: int, m: int, p: int, seed: int, lead: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((n, n))
+    A *= 0.8 / max(abs(np.linalg.eigvals(A)))  # stable: lifted maps stay well scaled over long trials
+    B = rng.standard_normal((n, m))
+    C = rng.standard_normal((p, n))
+    if lead:
+        augmented, _ = augment_input_delay(DiscreteModel(A, B, C, 0.05), lead)
+        return augmented.A, augmented.B, augmented.measured_output
+    return A, B, C
+
+
+CASES = [
+    # n, m, p, lead, kp, r
+    (1, 1, 1, 0, 0.3, 0.6),
+    (1, 1, 1, 0, 0.05, 1.4),
+    (2, 1, 1, 1, 0.2, 0.8),
+    (2, 1, 1, 2, 0.1, 1.2),
+    (3, 2, 2, 0, 0.2, 0.7),
+    (3, 2, 2, 1, 0.0, 1.0),
+]
+
+
+@pytest.mark.parametrize(("n", "m", "p", "lead", "kp", "r"), CASES)
+def test_lifted_map_matches_brute_force_trials(n: int, m: int, p: int, lead: int, kp: float, r: float) -> None:
+    A, B, C = _plant(n, m, p, seed=n + 10 * lead, lead=lead)
+    rng = np.random.default_rng(5)
+    p1 = 0.1 * rng.standard_normal((m, A.shape[0]))
+    p2 = 0.05 * rng.standard_normal((m, p))
+    h, n_samples = 0.05, 40
+    reference = np.cumsum(rng.standard_normal((n_samples, p)), axis=0) * 0.1
+    errors, _ = _run_trials(A, B, C, p1, p2, FractionalPD(kp, h=h, r=r), reference, lead, trials=5)
+    T = lifted_error_map(A, B, C, p1, p2, kp=kp, r=r, sample_time=h, n_samples=n_samples, lead=lead)
+    for k in range(2, 5):
+        before = (errors[k - 1] - errors[k - 2])[lead:].ravel()
+        after = (errors[k] - errors[k - 1])[lead:].ravel()
+        scale = max(1.0, float(np.max(np.abs(after))))
+        assert float(np.max(np.abs(T.matvec(before) - after))) <= 1e-9 * scale
+        # The first `lead` error samples never change.
+        np.testing.assert_allclose(errors[k][:lead], errors[0][:lead], atol=1e-12)
+
+
+@pytest.mark.parametrize(("n", "m", "p", "lead", "kp", "r"), CASES)
+def test_fast_operator_matches_the_dense_second_method(n: int, m: int, p: int, lead: int, kp: float, r: float) -> None:
+    A, B, C = _plant(n, m, p, seed=3, lead=lead)
+    rng = np.random.default_rng(9)
+    p1 = 0.1 * rng.standard_normal((m, A.shape[0]))
+    p2 = 0.05 * rng.standard_normal((m, p))
+    h, n_samples = 0.05, 30
+    T = lifted_error_map(A, B, C, p1, p2, kp=kp, r=r, sample_time=h, n_samples=n_samples, lead=lead)
+    full = dense_error_map(A, B, C, p1, p2, FractionalPD(kp, r, h).matrix(n_samples), lead)
+    np.testing.assert_allclose(full[: lead * p, :], np.eye(n_samples * p)[: lead * p], atol=1e-15)
+    sub = full[lead * p :, lead * p :]
+    np.testing.assert_allclose(T.to_dense(), sub, atol=1e-10 * max(1.0, float(np.max(np.abs(sub)))))
+    x, y = rng.standard_normal(T.size), rng.standard_normal(T.size)
+    assert float(np.dot(T.matvec(x), y)) == pytest.approx(float(np.dot(x, T.rmatvec(y))), rel=1e-9, abs=1e-9)
+
+
+def test_spectral_radius_is_read_off_the_block_triangular_structure() -> None:
+    A, B, C = _plant(3, 2, 2, seed=4)
+    rng = np.random.default_rng(2)
+    p1, p2 = 0.1 * rng.standard_normal((2, 3)), 0.3 * rng.standard_normal((2, 2))
+    kp, r, h, n_samples = 0.1, 1.3, 0.05, 30
+    T = lifted_error_map(A, B, C, p1, p2, kp=kp, r=r, sample_time=h, n_samples=n_samples)
+    dense = dense_error_map(A, B, C, p1, p2, FractionalPD(kp, r, h).matrix(n_samples))
+    # Dense eigvals of a defective triangular matrix are inaccurate; read the blocks from the dense matrix instead.
+    k = 4 * 2  # the leading samples where the Caputo corrections sit
+    assert np.all(dense[:k, k:] == 0)
+    strictly_upper = np.triu(dense[k:, k:], 1)
+    for i in range(0, dense.shape[0] - k, 2):  # only the 2x2 diagonal blocks may stick above the diagonal
+        strictly_upper[i, i + 1] = 0.0
+    assert np.all(strictly_upper == 0)
+    diagonal_blocks = [dense[k + i : k + i + 2, k + i : k + i + 2] for i in range(0, dense.shape[0] - k, 2)]
+    expected = max(max(abs(np.linalg.eigvals(blk))) for blk in [dense[:k, :k], *diagonal_blocks])
+    assert T.spectral_radius() == pytest.approx(expected, rel=1e-10)
+
+
+def test_iterative_norm_matches_dense_svd() -> None:
+    model = discretize(ContinuousModel(np.array([[-1.23]]), np.array([[1.68]]), np.array([[1.0]])), 0.01)
+    p1, p2 = -model.A / model.B, 0.3 / model.B
+    n_samples = DENSE_LIMIT + 200
+    result = map_certificate(model.A, model.B, model.C, p1, p2, kp=0.05, r=0.8, sample_time=0.01, n_samples=n_samples)
+    dense = dense_error_map(model.A, model.B, model.C, p1, p2, FractionalPD(0.05, 0.8, 0.01).matrix(n_samples))
+    assert result["norm_2_method"] == "svds"
+    assert result["norm_2"] == pytest.approx(np.linalg.norm(dense, 2), rel=1e-7)
+    assert result["spectral_radius"] < 1
+
+
+def test_q_filter_input_map_matches_brute_force_and_the_operator() -> None:
+    A, B, C = _plant(2, 1, 1, seed=8)
+    kp, r, h, n_samples = 0.1, 0.7, 0.05, 40
+    first_weight = 1 + kp * h**-r
+    p1, p2 = np.array([[0.05, -0.02]]), 0.5 / (C @ B * first_weight)  # a convergent law
+    Q = QFilter(cutoff=20.0, order=2, sample_time=h).matrix(n_samples)
+    rng = np.random.default_rng(1)
+    reference = np.cumsum(rng.standard_normal((n_samples, 1)), axis=0) * 0.1
+    _, inputs = _run_trials(A, B, C, p1, p2, FractionalPD(kp, r, h), reference, 0, trials=5, Q=Q)
+    M = dense_input_map(A, B, C, p1, p2, FractionalPD(kp, r, h).matrix(n_samples), Q)
+    for k in range(2, 5):
+        before = (inputs[k - 1] - inputs[k - 2]).ravel()
+        after = (inputs[k] - inputs[k - 1]).ravel()
+        np.testing.assert_allclose(M @ before, after, atol=1e-10 * max(1.0, float(np.max(np.abs(after)))))
+    # The fast operator agrees with the dense map, forward and adjoint.
+    operator = lifted_input_map(A, B, C, p1, p2, kp=kp, r=r, sample_time=h, Q=Q)
+    x, y = rng.standard_normal(n_samples), rng.standard_normal(n_samples)
+    np.testing.assert_allclose(operator.matvec(x), M @ x, atol=1e-10 * np.max(np.abs(M @ x)))
+    np.testing.assert_allclose(operator.rmatvec(y), M.T @ y, atol=1e-10 * np.max(np.abs(M.T @ y)))
+    # On a large trial the certificate's numbers agree with dense linear algebra.
+    n_large = DENSE_LIMIT + 100
+    Q_large = QFilter(cutoff=20.0, order=2, sample_time=h).matrix(n_large)
+    fast = map_certificate(A, B, C, p1, p2, kp=kp, r=r, sample_time=h, n_samples=n_large, q_filter=Q_large)
+    M_large = dense_input_map(A, B, C, p1, p2, FractionalPD(kp, r, h).matrix(n_large), Q_large)
+    assert fast["map"] == "input (Q-filter)"
+    # M is far from normal: its eigenvalues are ill-conditioned, so ARPACK and LAPACK agree only roughly.
+    assert fast["spectral_radius"] == pytest.approx(max(abs(np.linalg.eigvals(M_large))), rel=5e-2)
+
+
+def _paper_model(ts: float) -> DiscreteModel:
+    return discretize(ContinuousModel(np.array([[-1.23]]), np.array([[1.68]]), np.array([[1.0]])), ts)
+
+
+def test_rescale_fixes_a_filter_that_breaks_the_naive_gain_and_refuse_raises() -> None:
+    model = _paper_model(0.01)
+    unc = Uncertainty.none(1, 1)
+    P = solve_lmi(model, unc, tau=0.868, theta=0.868).P
+    kp, r, n_samples = 0.05, 0.8, 300
+    fpd_matrix = FractionalPD(kp, r, 0.01).matrix(n_samples)
+    designed = dense_error_map(model.A, model.B, model.C, P[:, :1], P[:, 1:], fpd_matrix)
+    naive = dense_error_map(model.A, model.B, model.C, P[:, :1], P[:, 1:], np.eye(n_samples))
+    assert np.linalg.norm(naive, 2) < 1  # the LMI gain is fine without the filter ...
+    assert max(abs(np.diag(designed))) > 1  # ... and diverges with it (triangular: the diagonal is the spectrum)
+    with pytest.raises(ConvergenceCertificateError, match="refuse"):
+        certify(model, unc, P, kp=kp, r=r, n_samples=n_samples, on_divergent_filter="refuse")
+    outcome = certify(model, unc, P, kp=kp, r=r, n_samples=n_samples, on_divergent_filter="rescale")
+    assert 0 < outcome.gain_scale < 1
+    assert outcome.certificates["action"] == "rescale"
+    assert outcome.certificates["monotonic"] is True
+    np.testing.assert_allclose(outcome.P[:, 1:], outcome.gain_scale * P[:, 1:])
+    np.testing.assert_array_equal(outcome.P[:, :1], P[:, :1])
+    rescaled = dense_error_map(model.A, model.B, model.C, outcome.P[:, :1], outcome.P[:, 1:], fpd_matrix)
+    assert np.linalg.norm(rescaled, 2) < 1
+    assert outcome.certificates["norm_2"] == pytest.approx(np.linalg.norm(rescaled, 2), rel=1e-9)
+    assert outcome.certificates["largest_admissible_scale"] >= outcome.gain_scale
+
+
+def test_r_above_one_has_no_monotonic_certificate() -> None:
+    model = _paper_model(0.01)
+    unc = Uncertainty.none(1, 1)
+    P = solve_lmi(model, unc, tau=0.868, theta=0.868).P
+    kp, r, n_samples = 2.6315, 1.0778, 200
+    with pytest.raises(ConvergenceCertificateError, match="monotonically"):
+        certify(model, unc, P, kp=kp, r=r, n_samples=n_samples)
+    outcome = certify(model, unc, P, kp=kp, r=r, n_samples=n_samples, require_monotonic=False)
+    assert outcome.certificates["monotonic"] is False
+    assert outcome.certificates["spectral_radius"] < 1
+    rescaled = dense_error_map(
+        model.A, model.B, model.C, outcome.P[:, :1], outcome.P[:, 1:], FractionalPD(kp, r, 0.01).matrix(n_samples)
+    )
+    assert np.linalg.norm(rescaled, 2) > 1
+    assert outcome.certificates["growth_bound"]["bound"] >= 1
+
+
+def test_certify_covers_uncertainty_vertices_and_mimo() -> None:
+    model = _mimo()
+    unc = Uncertainty(0.01 * np.eye(3), np.eye(3), 0.01 * model.B, np.eye(2))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        P = solve_lmi(model, unc, tau=0.868, theta=0.868).P
+    outcome = certify(model, unc, P, kp=0.0, r=1.0, n_samples=60)
+    assert outcome.certificates["vertices"] > 0
+    assert len(outcome.certificates["plants"]) == outcome.certificates["vertices"] + 1
+    assert all(entry["spectral_radius"] < 1 for entry in outcome.certificates["plants"])
+    assert outcome.certificates["monotonic"] is True
