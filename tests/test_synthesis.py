@@ -112,7 +112,9 @@ def test_mimo_dimensions() -> None:
 
 def test_uncertain_plant_is_robust_at_every_vertex() -> None:
     model = _paper_plant(0.01)
-    unc = Uncertainty(np.array([[0.1 * model.A[0, 0]]]), np.array([[1.0]]), np.array([[0.2 * model.B[0, 0]]]), [[1.0]])
+    unc = Uncertainty(
+        np.array([[0.1 * model.A[0, 0]]]), np.array([[1.0]]), np.array([[0.2 * model.B[0, 0]]]), np.array([[1.0]])
+    )
     solution = solve_lmi(model, unc, tau=0.868, theta=0.868)
     vertices = list(uncertainty_vertices(unc))
     assert len(vertices) == 4
