@@ -57,6 +57,7 @@ from typing import Any, Literal, Protocol
 import numpy as np
 
 from drivers.cia402 import State402
+from foilc_hil.config import Config
 from foilc_hil.errors import (
     DriveError,
     DriveFaultError,
@@ -75,6 +76,7 @@ from foilc_hil.safety import (
     require_finite,
 )
 from foilc_hil.scheduler import DeadlineScheduler, TimingRecorder, TimingSummary
+from plant_emulator.settings import EmulatorConfig
 
 __all__ = [
     "MIN_SETTLE_TIMEOUT",
@@ -698,19 +700,9 @@ class _McapSink:
             )
 
 
-def emulator_settings(config: Any) -> Any:
-    """The embedded emulator's ``EmulatorConfig`` from the bench config's ``emulator:`` section (``timing``,
-    ``seed`` and the free-form ``options``, which the emulator validates)."""
-    from foilc_hil.errors import ConfigError
-    from plant_emulator.settings import EmulatorConfig
-
-    section = config.emulator
-    document = {"timing": section.timing, "seed": section.seed, **section.options}
-    try:
-        return EmulatorConfig.model_validate(document)
-    except ValueError as exc:  # pydantic's ValidationError
-        first = str(exc).splitlines()[1] if len(str(exc).splitlines()) > 1 else str(exc)
-        raise ConfigError(f"not a valid emulator setting: {first}", key="emulator.options") from None
+def emulator_settings(config: Config) -> EmulatorConfig:
+    """The embedded emulator's settings: the bench config's ``emulator:`` section is the emulator's own schema."""
+    return config.emulator
 
 
 _MODES = {"csv": "CYCLIC_SYNC_VELOCITY", "cst": "CYCLIC_SYNC_TORQUE", "pv": "PROFILE_VELOCITY"}

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Literal
 
 from pydantic import Field
 
@@ -24,4 +24,3 @@ class EmulatorConfig(Section):
     torque_limit_fault_cycles: int = Field(default=200, ge=0)  # torque limited this long -> over-current; 0: never
     velocity_window: float = Field(default=10.0, ge=0)  # target reached window (drive velocity units), PV mode
     standstill_velocity: float = Field(default=1.0, ge=0)  # |v| below this ends a quick stop ramp (drive units)
-    options: dict[str, Any] = Field(default_factory=dict)  # free-form extras (the bench merges them in; see bench)

@@ -59,15 +59,12 @@ def _config(tmp_path: Path) -> Path:
             "heartbeat_consumer_ms": 2000,
         },
         "bench": {"settle_time": 0.02, "settle_tolerance": 0.05, "watchdog_cycles": 20},
-        "emulator": {"timing": "realtime"},
+        # SYNC loss only after 40 periods: this shared test machine can stall a process for tens of milliseconds;
+        # the test is about the plumbing, not the machine.
+        "emulator": {"timing": "realtime", "sync_loss_cycles": 40},
     }
     path = tmp_path / "xproc.yaml"
     path.write_text(yaml.safe_dump(document), encoding="utf-8")
-    # The emulator's own view of the file adds its supervision setting (the bench's schema keeps emulator settings
-    # other than timing/seed under emulator.options): SYNC loss only after 40 periods, because this shared test
-    # machine can stall a process for tens of milliseconds; the test is about the plumbing, not the machine.
-    emulator_document = {**document, "emulator": {"timing": "realtime", "sync_loss_cycles": 40}}
-    (tmp_path / "xproc-emulator.yaml").write_text(yaml.safe_dump(emulator_document), encoding="utf-8")
     return path
 
 
@@ -80,7 +77,7 @@ def test_realtime_run_across_processes_over_udp_multicast(tmp_path: Path) -> Non
     emulator_log = tmp_path / "emulator.stderr"
     bus = f"udp_multicast:{GROUP}"
     python = shlex.quote(sys.executable)
-    emulator_config = tmp_path / "xproc-emulator.yaml"
+    emulator_config = config
     emulator = f"{python} -m plant_emulator --config {shlex.quote(str(emulator_config))} --bus {bus} --mode realtime"
     bench = (
         f"{python} -m foilc_hil.cli run --config {shlex.quote(str(config))} --bus {bus} --mode realtime "
