@@ -242,3 +242,15 @@ def test_certify_covers_uncertainty_vertices_and_mimo() -> None:
     assert len(outcome.certificates["plants"]) == outcome.certificates["vertices"] + 1
     assert all(entry["spectral_radius"] < 1 for entry in outcome.certificates["plants"])
     assert outcome.certificates["monotonic"] is True
+
+
+@pytest.mark.parametrize(("n", "m", "p", "lead", "kp", "r"), CASES)
+def test_norm_upper_bound_bounds_the_dense_norm(n: int, m: int, p: int, lead: int, kp: float, r: float) -> None:
+    A, B, C = _plant(n, m, p, seed=11, lead=lead)
+    rng = np.random.default_rng(4)
+    p1 = 0.1 * rng.standard_normal((m, A.shape[0]))
+    p2 = 0.05 * rng.standard_normal((m, p))
+    T = lifted_error_map(A, B, C, p1, p2, kp=kp, r=r, sample_time=0.05, n_samples=30, lead=lead)
+    dense_norm = float(np.linalg.norm(T.to_dense(), 2))
+    assert T.norm_upper_bound() >= dense_norm * (1 - 1e-12)
+    assert T.symbol_norm() <= T.norm_upper_bound() * (1 + 1e-12)
