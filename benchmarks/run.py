@@ -1,4 +1,5 @@
-"""``make bench``: run the bench-loop benchmarks and write one JSON document (``--out``, default stdout).
+"""``make bench``: science (fractional derivative, LMI solvers), logging and bench-loop benchmarks in one JSON document
+(``--out``, default stdout); peers run side by side in the same process.
 
 ``python -m benchmarks.run --out benchmarks/results.json``
 """
@@ -23,7 +24,10 @@ def _median_run(runs: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def collect(repeats: int = 3) -> dict[str, Any]:
-    from benchmarks import bench_loop
+    import tempfile
+    from pathlib import Path
+
+    from benchmarks import bench_logging, bench_loop, bench_science
 
     bench_loop.can_lockstep(logged=False, trials=1)  # warm-up: imports, EDS parsing, first design
     no_log: list[dict[str, Any]] = []
@@ -32,13 +36,17 @@ def collect(repeats: int = 3) -> dict[str, Any]:
         no_log.append(bench_loop.can_lockstep(logged=False))
         logged.append(bench_loop.can_lockstep(logged=True))
     without, with_log = _median_run(no_log), _median_run(logged)
+    with tempfile.TemporaryDirectory() as directory:
+        logging_costs = bench_logging.per_call_costs(Path(directory))
     return {
+        "logging_per_call": logging_costs,
         "machine": {
             "python": platform.python_version(),
             "platform": platform.platform(),
             "cpus": os.cpu_count(),
             "load_average_1min": os.getloadavg()[0],
         },
+        "science": bench_science.collect(),
         "loop_only": bench_loop.loop_only(),
         "can_lockstep_virtual": {
             "without_logging": without,
