@@ -38,9 +38,12 @@ SIGINT/SIGTERM stop the loop at the next cycle. Every abort quick-stops the driv
 
 What ``/ilc/sample`` holds (the contract with ``replay --verify``): row ``i`` of trial ``k`` has
 ``output = y_i`` -- exactly the float64 the law was given at sample ``i`` -- and ``control = u_i``, the law's
-command *before* clamping (what the law computed, so ``replay --verify`` can reproduce it bit for bit; the
-clamped, quantised value actually sent is kept in :attr:`TrialRecord.applied`, and ``/ilc/trial`` counts the
-clamped commands in ``clamped``). ``reference``, ``error`` and ``E`` are row ``i`` of the trial
+command before the bench's limiter (what the law computed, so ``replay --verify`` can reproduce it bit for bit;
+the clamped, quantised value actually sent is kept in :attr:`TrialRecord.applied`, and ``/ilc/trial`` counts the
+clamped commands in ``clamped``). The law is built with the limiter's limits (``make_law(..., limits=...)``) and
+clamps internally, so it learns from the input that was applied (saturation-aware learning, see
+:mod:`foilc_hil.laws`); the limiter stays as the safety layer and is normally a no-op. ``/ilc/trial`` records
+those limits as ``command_limits: [lower, upper]`` so that ``replay --verify`` rebuilds the same law. ``reference``, ``error`` and ``E`` are row ``i`` of the trial
 arrays (``error[i] = reference[i] - y_{i+1}``), so the SSE of a trial is the sum of the squared ``error`` fields.
 """
 
@@ -170,7 +173,7 @@ class TrialRecord:
     sample_time: float
     reference: np.ndarray  # (N,)
     seen: np.ndarray  # (N + 1,): y_i the law was given at cycle i (y_N only read)
-    control: np.ndarray  # (N,): the law's command u_i, before clamping
+    control: np.ndarray  # (N,): the law's command u_i (clamped by the law itself), before the limiter
     applied: np.ndarray  # (N,): what was sent to the drive (plant units)
     output: np.ndarray  # (N,): trial output array, output[i] = y_{i+1}
     error: np.ndarray  # (N,)
@@ -663,8 +666,9 @@ def command_limiter(config: Any) -> CommandLimiter:
 class _McapSink:
     """Adapter from the loop's :class:`LogSink` to the queued MCAP writer (enqueues; the writer thread writes)."""
 
-    def __init__(self, writer: Any) -> None:
+    def __init__(self, writer: Any, command_limits: tuple[float, float]) -> None:
         self.writer = writer
+        self.command_limits = [float(command_limits[0]), float(command_limits[1])]
 
     def trial_finished(self, record: TrialRecord) -> None:
         log_sample = self.writer.log_sample
@@ -680,7 +684,13 @@ class _McapSink:
                 sample=message["sample"],
             )
         # final_output = y(N Ts): with the rows' outputs it rebuilds the trial's output array (replay --verify)
-        self.writer.log_trial(record.metrics, clamped=record.clamped, final_output=float(record.seen[-1]))
+        # command_limits: the limits the law clamped to (replay --verify rebuilds the law with them)
+        self.writer.log_trial(
+            record.metrics,
+            clamped=record.clamped,
+            final_output=float(record.seen[-1]),
+            command_limits=self.command_limits,
+        )
         self.writer.end_trial()
 
     def timing(self, records: Iterator[dict[str, Any]]) -> None:
@@ -739,8 +749,9 @@ def run_bench(request: RunRequest) -> RunReport:
     reference = reference_profile(config.reference, config.sample_time)
     n_samples = int(reference.shape[0])
     design = request.design if request.design is not None else build_design(config, law_kind, n_samples)
-    law = make_law(law_kind, design, config.law, n_samples)
     limiter = command_limiter(config)
+    # The law clamps to the limiter's limits and learns from what is applied; the limiter stays as the safety layer.
+    law = make_law(law_kind, design, config.law, n_samples, limits=(limiter.lower, limiter.upper))
     settings = LoopSettings(
         period=config.sample_time,
         mode=mode,
@@ -758,7 +769,7 @@ def run_bench(request: RunRequest) -> RunReport:
         if request.out is not None:
             writer = QueuedLogWriter.open(request.out, config_yaml=dump_config(config), design=design_json)
             stack.callback(writer.close)
-            sink = _McapSink(writer)
+            sink = _McapSink(writer, (limiter.lower, limiter.upper))
         if bus_cfg.interface == "embedded":
             from plant_emulator.embedded import EmbeddedEmulator
 

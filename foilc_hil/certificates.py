@@ -14,7 +14,10 @@ Sample alignment is that of :mod:`foilc_hil.references`: a trial issues ``u[i] =
 first moves ``e[i + d]`` and the law is
 
     u_k[i] = u_{k-1}[i] + p1 (z_k[i] - z_{k-1}[i]) + p2 E_{k-1}[i + d]      (E[j] = 0 for j >= N),
-    E = F e,  F = FractionalPD(kp, r, h).matrix(N) acting on each output channel.
+    E = F e  acting on each output channel, with F the law's operator (``law.fractional_memory``):
+      "controllable" (default): F = diag(I_d, F_c), F_c = FractionalPD(kp, r, h, history="zero").matrix(N - d),
+                                a pure lower-triangular Toeplitz operator on e[d:] (zero history before it);
+      "trial" (paper-literal):  F = FractionalPD(kp, r, h).matrix(N), Caputo over the whole trial.
 
 The first ``d`` error samples cannot be moved by any input (they repeat every trial), so the trial-to-trial map
 acts on ``e~ = e[d:]`` (``L = N - d`` samples). Writing ``A_cl = A + B p1``, the learning update
@@ -22,7 +25,11 @@ acts on ``e~ = e[d:]`` (``L = N - d`` samples). Writing ``A_cl = A + B p1``, the
 
     e~_k - e~* = T (e~_{k-1} - e~*),   T = I - H F',
     H = block lower-triangular Toeplitz with blocks h_j = C_measured A_cl^(j + d) B p2  (j = 0..L-1),
-    F' = F[d:, d:]  (only columns >= d matter: the first d error samples never change).
+    F' = F[d:, d:]  (only columns >= d matter: the first d error samples never change) -- F_c itself in
+                    "controllable" mode, where this is also the whole affine part: E[d:] depends on e[d:] only,
+                    so the law's fixed point e~* = 0 (in "trial" mode F[d:, :d] e[:d] is a constant offset
+                    that moves the fixed point to a nonzero Mittag-Leffler-like tail; the map T of differences
+                    is still exact).
 
 ``T`` is the map of the law as it runs: an exact identity on trial-to-trial error differences (the tests check
 it against a brute-force trial-by-trial simulation), not a bound.
@@ -37,9 +44,11 @@ with ``Gz``, ``Gy`` the lifted input-to-state and input-to-output maps and ``S``
 
 What is exact and what is estimated
 -----------------------------------
-* Spectral radius of ``T`` (asymptotic convergence): EXACT. ``F`` is lower-triangular Toeplitz except its first
-  few columns (the Caputo correction for ``e(0)`` and, for ``r > 1``, ``e'(0)``), which makes ``T`` block lower
-  triangular with one small leading block; the eigenvalues are those of that block and of the diagonal block
+* Spectral radius of ``T`` (asymptotic convergence): EXACT. In "controllable" mode ``F'`` is lower-triangular
+  Toeplitz, so ``T`` is block lower-triangular Toeplitz and its eigenvalues are those of ``I - h_0 w_0``. In
+  "trial" mode ``F`` is lower-triangular Toeplitz except its first few columns (the Caputo correction for
+  ``e(0)`` and, for ``r > 1``, ``e'(0)``), which makes ``T`` block lower triangular with one small leading block;
+  the eigenvalues are those of that block and of the diagonal block
   ``I - h_0 w_0`` (``w_0 = 1 + kp h^-r``). The Toeplitz-plus-columns decomposition of ``F`` is verified on a
   random probe against ``FractionalPD.apply``; if it does not hold, ``T`` is built densely instead.
 * Induced 2-norm of ``T`` (monotonic convergence in l2): computed by ARPACK (``scipy.sparse.linalg.svds``) with
@@ -75,6 +84,7 @@ __all__ = [
     "certify",
     "dense_error_map",
     "dense_input_map",
+    "law_filter_matrix",
     "lifted_error_map",
     "lifted_input_map",
     "map_certificate",
@@ -127,11 +137,14 @@ class _BlockToeplitz:
 class _ScalarFilter:
     """A scalar lifted filter ``F`` (acting on every channel) as Toeplitz weights plus a few dense columns.
 
-    ``F = Toeplitz(weights) + sum_j corrections[:, j] e_j^T`` for ``j < corrections.shape[1]``.
+    ``F = Toeplitz(weights) + sum_j corrections[:, j] e_j^T`` for ``j < corrections.shape[1]``. With
+    ``window = w > 0`` that operator acts on samples ``w:`` only and the first ``w`` samples pass unchanged
+    (``F = diag(I_w, F_window)``: the law's "controllable" fractional memory).
     """
 
-    weights: np.ndarray  # (N,)
-    corrections: np.ndarray  # (N, K)
+    weights: np.ndarray  # (N - window,)
+    corrections: np.ndarray  # (N - window, K)
+    window: int = 0
 
     def sub(self, lead: int) -> _ScalarFilter:
         """``F[lead:, lead:]`` in the same form."""
@@ -142,17 +155,23 @@ class _ScalarFilter:
         return _ScalarFilter(self.weights[: n - lead], corrections)
 
     def dense(self) -> np.ndarray:
-        from scipy.linalg import toeplitz
+        from scipy.linalg import block_diag, toeplitz
 
         n = self.weights.shape[0]
         matrix = toeplitz(self.weights, np.zeros(n))
         k = self.corrections.shape[1]
         matrix[:, :k] += self.corrections
+        if self.window:
+            return np.asarray(block_diag(np.eye(self.window), matrix))
         return np.asarray(matrix)
 
     def matvec(self, x: np.ndarray) -> np.ndarray:
         from scipy.signal import fftconvolve
 
+        if self.window:
+            out = np.array(x, dtype=float, copy=True)
+            out[self.window :] = self._unwindowed().matvec(x[self.window :])
+            return out
         n = self.weights.shape[0]
         out = np.asarray(fftconvolve(self.weights[:, None], x, axes=0)[:n])
         k = self.corrections.shape[1]
@@ -160,15 +179,72 @@ class _ScalarFilter:
             out = out + self.corrections @ x[:k]
         return out
 
+    def _unwindowed(self) -> _ScalarFilter:
+        return _ScalarFilter(self.weights, self.corrections)
+
     def rmatvec(self, y: np.ndarray) -> np.ndarray:
         from scipy.signal import fftconvolve
 
+        if self.window:
+            out = np.array(y, dtype=float, copy=True)
+            out[self.window :] = self._unwindowed().rmatvec(y[self.window :])
+            return out
         n = self.weights.shape[0]
         out = np.asarray(fftconvolve(self.weights[:, None], y[::-1], axes=0)[:n][::-1])
         k = self.corrections.shape[1]
         if k:
             out[:k] += self.corrections.T @ y
         return out
+
+
+def _check_memory(fractional_memory: str) -> str:
+    if fractional_memory not in ("controllable", "trial"):
+        raise ConfigError(
+            f"must be 'controllable' or 'trial', got {fractional_memory!r}", key="law.fractional_memory"
+        )
+    return fractional_memory
+
+
+def _zero_history_filter(kp: float, r: float, h: float, n: int) -> _ScalarFilter:
+    """``FractionalPD(kp, r, h, history="zero")`` on ``n`` samples: pure lower-triangular Toeplitz."""
+    from foilc_hil.fractional import FractionalPD, gl_weights
+
+    FractionalPD(kp, r, h, history="zero")  # validates kp, r, h
+    weights = kp * h**-r * gl_weights(r, n)
+    weights[0] += 1.0
+    return _ScalarFilter(weights, np.zeros((n, 0)))
+
+
+def _law_filter(kp: float, r: float, h: float, n: int, lead: int, fractional_memory: str) -> _ScalarFilter:
+    """The ``N x N`` operator ``E = F e`` (per channel) that :mod:`foilc_hil.laws` applies, as a filter.
+
+    ``"controllable"``: ``diag(I_lead, Toeplitz)`` (zero-history GL on ``e[lead:]``); ``"trial"``: the Caputo
+    ``FractionalPD`` on the whole trial (Toeplitz plus correction columns, or dense columns if that fails).
+    """
+    if _check_memory(fractional_memory) == "controllable":
+        return _windowed(kp, r, h, n, lead)
+    filt, fpd = _fractional_filter(kp, r, h, n)
+    if filt is None:
+        filt = _ScalarFilter(np.zeros(n), np.asarray(fpd.matrix(n), dtype=float))
+    return filt
+
+
+def _windowed(kp: float, r: float, h: float, n: int, lead: int) -> _ScalarFilter:
+    inner = _zero_history_filter(kp, r, h, n - lead)
+    return _ScalarFilter(inner.weights, inner.corrections, window=lead)
+
+
+def law_filter_matrix(
+    kp: float, r: float, sample_time: float, n_samples: int, lead: int = 0, fractional_memory: str = "controllable"
+) -> np.ndarray:
+    """The dense ``(N, N)`` matrix ``F`` of ``E = F e`` as :class:`foilc_hil.laws.Foilc` computes it per channel.
+
+    ``fractional_memory="controllable"``: ``diag(I_lead, I + kp h^-r T)`` with ``T`` the GL Toeplitz matrix on
+    ``N - lead`` samples; ``"trial"``: ``FractionalPD(kp, r, h).matrix(N)`` (Caputo over the whole trial).
+    """
+    if not (isinstance(n_samples, int) and n_samples > lead >= 0):
+        raise InputError(f"n_samples: must be an integer above lead={lead}, got {n_samples!r}")
+    return _law_filter(kp, r, sample_time, n_samples, lead, fractional_memory).dense()
 
 
 def _fractional_filter(kp: float, r: float, h: float, n: int) -> tuple[_ScalarFilter | None, Any]:
@@ -340,6 +416,7 @@ def lifted_error_map(
     sample_time: float,
     n_samples: int,
     lead: int = 0,
+    fractional_memory: str = "controllable",
 ) -> LiftedErrorMap:
     """The trial-to-trial error map ``T`` of the law as it runs (module notes).
 
@@ -355,7 +432,12 @@ def lifted_error_map(
         ``N``, samples per trial.
     lead
         The input delay ``d`` in samples (the law uses ``E[i + d]``).
+    fractional_memory
+        The law's ``law.fractional_memory``: ``"controllable"`` (``F'`` is the zero-history Toeplitz operator
+        on the ``N - lead`` controllable samples) or ``"trial"`` (``F' = F[lead:, lead:]`` of the Caputo
+        operator over the whole trial).
     """
+    _check_memory(fractional_memory)
     n_out = C_measured.shape[0]
     if not (isinstance(n_samples, int) and n_samples > lead + 1):
         raise InputError(f"n_samples: must be an integer above {lead + 1}, got {n_samples!r}")
@@ -363,11 +445,17 @@ def lifted_error_map(
     A_cl = A + B @ p1
     blocks = _markov_blocks(A_cl, B @ p2, C_measured, lead, length)
     H = _BlockToeplitz(np.nan_to_num(blocks, nan=0.0) if np.all(np.isfinite(blocks)) else blocks)
-    filt, fpd = _fractional_filter(kp, r, sample_time, n_samples)
-    if filt is not None and np.all(np.isfinite(blocks)):
-        return LiftedErrorMap(H, filt.sub(lead), None, n_out, length)
+    if fractional_memory == "controllable":
+        window = _zero_history_filter(kp, r, sample_time, length)
+        if np.all(np.isfinite(blocks)):
+            return LiftedErrorMap(H, window, None, n_out, length)
+        F_dense = window.dense()
+    else:
+        filt, fpd = _fractional_filter(kp, r, sample_time, n_samples)
+        if filt is not None and np.all(np.isfinite(blocks)):
+            return LiftedErrorMap(H, filt.sub(lead), None, n_out, length)
+        F_dense = np.asarray(fpd.matrix(n_samples), dtype=float)[lead:, lead:]
     # Dense path: exact, O(N^2) memory.
-    F_dense = np.asarray(fpd.matrix(n_samples), dtype=float)[lead:, lead:]
     H_dense = _dense_block_toeplitz(blocks)
     T = np.eye(length * n_out) - H_dense @ np.kron(F_dense, np.eye(n_out))
     return LiftedErrorMap(H, None, T, n_out, length)
@@ -504,12 +592,14 @@ def lifted_input_map(
     sample_time: float,
     Q: np.ndarray,
     lead: int = 0,
+    fractional_memory: str = "controllable",
 ) -> LiftedInputMap:
-    """The input map ``M`` (with the ``N x N`` Q-filter matrix ``Q``) as fast ``matvec``/``rmatvec`` products."""
+    """The input map ``M`` (with the ``N x N`` Q-filter matrix ``Q``) as fast ``matvec``/``rmatvec`` products.
+
+    ``fractional_memory`` as in :func:`lifted_error_map` (the operator is :func:`law_filter_matrix`'s).
+    """
     n_samples = Q.shape[0]
-    filt, fpd = _fractional_filter(kp, r, sample_time, n_samples)
-    if filt is None:
-        filt = _ScalarFilter(np.zeros(n_samples), np.asarray(fpd.matrix(n_samples), dtype=float))
+    filt = _law_filter(kp, r, sample_time, n_samples, lead, fractional_memory)
     return _input_map(A, B, C_measured, p1, p2, filt, Q, lead)
 
 
@@ -620,15 +710,27 @@ def map_certificate(
     n_samples: int,
     lead: int = 0,
     q_filter: np.ndarray | None = None,
+    fractional_memory: str = "controllable",
 ) -> dict[str, Any]:
     """Spectral radius and induced 2-norm of the lifted trial-to-trial map for one plant (module notes).
 
     When the spectral radius is not below one the 2-norm is not computed: ``norm_2`` then holds the radius,
-    a lower bound (``||T|| >= rho(T)``), and ``norm_2_method`` says so.
+    a lower bound (``||T|| >= rho(T)``), and ``norm_2_method`` says so. ``fractional_memory``: the law's
+    ``law.fractional_memory`` (see :func:`lifted_error_map`).
     """
     if q_filter is None:
         T = lifted_error_map(
-            A, B, C_measured, p1, p2, kp=kp, r=r, sample_time=sample_time, n_samples=n_samples, lead=lead
+            A,
+            B,
+            C_measured,
+            p1,
+            p2,
+            kp=kp,
+            r=r,
+            sample_time=sample_time,
+            n_samples=n_samples,
+            lead=lead,
+            fractional_memory=fractional_memory,
         )
         if not np.all(np.isfinite(T.H.blocks)):
             return {"map": "error", "spectral_radius": math.inf, "norm_2": math.inf, "norm_2_method": "overflow"}
@@ -646,9 +748,7 @@ def map_certificate(
     Q = np.asarray(q_filter, dtype=float)
     if Q.shape != (n_samples, n_samples):
         raise InputError(f"q_filter: must be {n_samples}x{n_samples} (one trial), got {Q.shape}")
-    filt, fpd = _fractional_filter(kp, r, sample_time, n_samples)
-    if filt is None:
-        filt = _ScalarFilter(np.zeros(n_samples), np.asarray(fpd.matrix(n_samples), dtype=float))
+    filt = _law_filter(kp, r, sample_time, n_samples, lead, fractional_memory)
     M = _input_map(A, B, C_measured, p1, p2, filt, Q, lead)
 
     def dense() -> np.ndarray:
@@ -713,6 +813,7 @@ def certify(
     q_filter: np.ndarray | None = None,
     require_monotonic: bool = True,
     growth_horizon: int = 10,
+    fractional_memory: str = "controllable",
 ) -> Certification:
     """Certify the law with gain ``P`` as it runs, nominal and at the uncertainty vertices; fix or refuse.
 
@@ -736,11 +837,15 @@ def certify(
         not available: designing on a model augmented with the filter's dynamics is not implemented; raises
         :class:`ConvergenceCertificateError` saying so (use ``rescale``).
 
+    ``fractional_memory`` is the law's ``law.fractional_memory``; the certificate is of that operator and is
+    recorded as ``certificates["fractional_memory"]`` (the law refuses a design certified with another one).
+
     Raises
     ------
     foilc_hil.errors.ConvergenceCertificateError
         When the law is not certified and cannot be fixed (exit 3).
     """
+    _check_memory(fractional_memory)
     if on_divergent_filter not in ("rescale", "augment", "refuse"):
         raise ConfigError(
             f"must be 'rescale', 'augment' or 'refuse', got {on_divergent_filter!r}",
@@ -769,6 +874,7 @@ def certify(
                 n_samples=n_samples,
                 lead=lead,
                 q_filter=q_filter if with_q else None,
+                fractional_memory=fractional_memory,
             )
             entries.append({"plant": name, **entry})
         return entries
@@ -786,6 +892,7 @@ def certify(
         "monotonic_required": require_monotonic,
         "n_samples": n_samples,
         "lead": lead,
+        "fractional_memory": fractional_memory,
         "filter_first_weight": 1.0 + kp * h**-r,
         "naive_without_filter": {
             "spectral_radius": _worst(naive, "spectral_radius"),

@@ -21,6 +21,18 @@ difference ``(-3 f_0 + 4 f_1 - f_2) / (2 h)`` (error ``O(h^2)``; with two sample
 ``(f_1 - f_0) / h``; with one sample 0). Because that estimate is linear in the samples, the whole map
 ``f -> D^r f`` is linear and :meth:`FractionalPD.matrix` returns it exactly as a matrix.
 
+Memory (``history``)
+--------------------
+:class:`FractionalPD` offers two lower terminals for that memory:
+
+* ``history="caputo"`` (default): the Caputo derivative above, memory from the first sample of the array, with
+  the correction for ``f(0)`` (and ``f'(0)``) -- the paper's literal operator over a whole trial.
+* ``history="zero"``: the GL sum of ``f`` itself, i.e. the signal is taken to be zero (with zero slope) before
+  the first sample. The operator is then a pure lower-triangular Toeplitz matrix ``I + kp h^-r T`` with diagonal
+  ``1 + kp h^-r`` (invertible). For a signal that really starts from rest (``f(0) = 0``, and ``f'(0) = 0`` for
+  ``r > 1``), Grünwald–Letnikov, Riemann–Liouville and Caputo agree, so both modes give the same derivative.
+  The learning law uses this mode on the controllable part of the error (:mod:`foilc_hil.laws`).
+
 The sum is a *linear* (not circular) convolution of the weights with ``g``. Short signals use a direct
 convolution, long ones a zero-padded FFT (``scipy.signal.fftconvolve``, which pads to the full ``2N - 1``
 length). The third-party ``differint`` package's GL uses an unpadded (circular) FFT and is only right at the
@@ -39,8 +51,10 @@ from foilc_hil.errors import ConfigError, InputError
 __all__ = [
     "FFT_THRESHOLD",
     "FractionalPD",
+    "History",
     "caputo_derivative",
     "estimate_initial_slope",
+    "gl_derivative",
     "gl_weights",
 ]
 
@@ -48,6 +62,8 @@ __all__ = [
 FFT_THRESHOLD = 512
 
 ConvolutionMethod = Literal["auto", "direct", "fft"]
+#: Lower terminal of the fractional memory (module notes).
+History = Literal["caputo", "zero"]
 
 
 def _check_order(r: float) -> float:
@@ -133,6 +149,22 @@ def _linear_convolution(weights: np.ndarray, g: np.ndarray, method: ConvolutionM
     return np.asarray(full[:n])
 
 
+def gl_derivative(
+    f: np.ndarray | list[float], r: float, h: float, *, method: ConvolutionMethod = "auto"
+) -> np.ndarray:
+    """Grünwald–Letnikov derivative of order ``r`` with zero history: ``h^-r sum_{j<=n} w_j f(t_{n-j})``.
+
+    The signal is taken to be zero before its first sample (the GL sum of the samples themselves, no Caputo
+    correction). Shapes, errors and ``method`` as in :func:`caputo_derivative`.
+    """
+    r = _check_order(r)
+    h = _check_step(h)
+    samples = _check_signal(f, "f")
+    if method not in ("auto", "direct", "fft"):
+        raise InputError(f"method: must be 'auto', 'direct' or 'fft', got {method!r}")
+    return _linear_convolution(gl_weights(r, samples.shape[0]), samples, method) * h**-r
+
+
 def caputo_derivative(
     f: np.ndarray | list[float],
     r: float,
@@ -203,29 +235,37 @@ class FractionalPD:
         Order, ``0 < r < 2``.
     h
         Sample step (seconds), ``h > 0``.
+    history
+        ``"caputo"`` (default): Caputo derivative with memory from the first sample (corrections for ``e(0)``
+        and, for ``r > 1``, ``e'(0)``). ``"zero"``: Grünwald–Letnikov with zero history before the first
+        sample -- a pure lower-triangular Toeplitz operator (module notes).
 
     Notes
     -----
     ``f'(0)`` for ``1 < r < 2`` is always estimated from the samples here, so :meth:`apply` is linear in ``e``
-    and equal to ``matrix(n) @ e``.
+    and equal to ``matrix(n) @ e`` in both modes.
     """
 
-    def __init__(self, kp: float, r: float, h: float) -> None:
+    def __init__(self, kp: float, r: float, h: float, history: History = "caputo") -> None:
         if not (isinstance(kp, (int, float)) and math.isfinite(kp) and kp >= 0.0):
             raise ConfigError(f"must be a finite gain >= 0, got {kp!r}", key="kp")
+        if history not in ("caputo", "zero"):
+            raise ConfigError(f"must be 'caputo' or 'zero', got {history!r}", key="history")
         self.kp = float(kp)
         self.r = _check_order(r)
         self.h = _check_step(h)
+        self.history: History = history
 
     def __repr__(self) -> str:
-        return f"FractionalPD(kp={self.kp!r}, r={self.r!r}, h={self.h!r})"
+        return f"FractionalPD(kp={self.kp!r}, r={self.r!r}, h={self.h!r}, history={self.history!r})"
 
     @property
     def first_weight(self) -> float:
         """``1 + kp * h^-r``: the GL sum's instantaneous gain on the newest sample (errata item 4).
 
-        The Caputo corrections subtract ``f(0)`` (and ``f'(0) t``), so the lifted matrix's diagonal differs
-        from this at the first samples; from ``t_3`` on the diagonal entry is exactly this value.
+        With ``history="caputo"`` the corrections subtract ``f(0)`` (and ``f'(0) t``), so the lifted matrix's
+        diagonal differs from this at the first samples; from ``t_3`` on the diagonal entry is exactly this value.
+        With ``history="zero"`` every diagonal entry is this value.
         """
         return 1.0 + self.kp * self.h**-self.r
 
@@ -234,15 +274,17 @@ class FractionalPD:
         samples = _check_signal(e, "e")
         if self.kp == 0.0:
             return samples.copy()
+        if self.history == "zero":
+            return samples + self.kp * gl_derivative(samples, self.r, self.h, method=method)
         return samples + self.kp * caputo_derivative(samples, self.r, self.h, method=method)
 
     def matrix(self, n: int) -> np.ndarray:
         """The lifted ``(n, n)`` matrix ``M`` with ``M @ e == apply(e)`` for every ``e`` of length ``n``.
 
-        ``M = I + kp h^-r T (I - 1 e_0^T - t c^T)``: ``T`` the lower-triangular Toeplitz matrix of GL weights,
-        ``1 e_0^T`` removes ``e(0)``, and for ``1 < r < 2`` ``t c^T`` removes ``e'(0) t`` with ``c`` the
-        one-sided difference row. The correction columns make ``M`` lower triangular only up to its first
-        three columns.
+        ``history="caputo"``: ``M = I + kp h^-r T (I - 1 e_0^T - t c^T)``: ``T`` the lower-triangular Toeplitz
+        matrix of GL weights, ``1 e_0^T`` removes ``e(0)``, and for ``1 < r < 2`` ``t c^T`` removes ``e'(0) t``
+        with ``c`` the one-sided difference row. The correction columns make ``M`` lower triangular only up to
+        its first three columns. ``history="zero"``: ``M = I + kp h^-r T``, lower-triangular Toeplitz.
         """
         from scipy.linalg import toeplitz
 
@@ -253,6 +295,8 @@ class FractionalPD:
             return identity
         weights = gl_weights(self.r, n)
         lower = toeplitz(weights, np.zeros(n))
+        if self.history == "zero":
+            return np.asarray(identity + self.kp * self.h**-self.r * lower)
         remove = identity.copy()
         remove[:, 0] -= 1.0
         if self.r > 1.0:

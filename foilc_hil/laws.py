@@ -22,6 +22,25 @@ the design's augmented state is ``[x; u(t-d); ...; u(t-1)]`` (:func:`foilc_hil.d
 oldest input first), whose extra entries are the law's own past commands of this trial (zero before the trial
 starts, as the plant rests). The lead ``d`` is ``design.error_lead``.
 
+Fractional memory (``law.fractional_memory``)
+---------------------------------------------
+The first ``d`` error samples ``error[0:d]`` cannot be moved by any input of the trial (``u(0)`` first reaches
+the output at ``(1 + d) Ts``). By default (``"controllable"``) the fractional operator's memory starts at the
+first controllable sample: ``E[d:] = (I + kp D^r) g`` with ``g = error[d:]`` and ``D^r`` the Grünwald–Letnikov
+derivative with zero history before ``g`` (``FractionalPD(..., history="zero")``, a lower-triangular Toeplitz
+operator with diagonal ``1 + kp h^-r``); ``E[0:d] = error[0:d]`` is only logged, never used. At the law's fixed
+point ``E[d:] = 0`` and the operator is invertible, so the converged error is zero on the controllable samples.
+``"trial"`` is the paper-literal operator: the Caputo derivative over the whole trial error, which subtracts
+``e(0)``; with ``e(0) != 0`` its fixed point ``e + kp D^r e = 0`` is a Mittag-Leffler decay of ``e``, not zero
+(kept for comparison). :mod:`foilc_hil.certificates` certifies the same operator (``fractional_memory``).
+
+Saturation-aware learning
+-------------------------
+Given command ``limits`` (``make_law(..., limits=(lower, upper))``, the bench's drive and plant limits), the law
+clamps each command before storing it, so the feedforward learned for the next trial is the input that was
+applied, not a command the drive never executed (anti-windup: without it the stored feedforward can keep
+growing while the drive saturates). The bench's limiter stays as the safety layer with the same limits.
+
 P-type (Arimoto): ``u_k(t) = u_{k-1}(t) + Gamma e_{k-1}[t + d]``.
 
 First trial and restore
@@ -55,9 +74,11 @@ from foilc_hil.metrics import TrialMetrics, trial_metrics
 if TYPE_CHECKING:
     from foilc_hil.config import LawConfig
     from foilc_hil.design import Design
+    from foilc_hil.fractional import FractionalPD
     from foilc_hil.qfilter import QFilter
 
 __all__ = [
+    "FRACTIONAL_MEMORY",
     "Foilc",
     "Ioilc",
     "LearningLaw",
@@ -68,6 +89,19 @@ __all__ = [
     "p_type_certificates",
     "p_type_default_gain",
 ]
+
+
+#: Values of ``law.fractional_memory`` (module notes).
+FRACTIONAL_MEMORY = ("controllable", "trial")
+
+
+def _check_limits(limits: tuple[float, float] | None) -> tuple[float, float] | None:
+    if limits is None:
+        return None
+    lower, upper = (float(value) for value in limits)
+    if not (math.isfinite(lower) and math.isfinite(upper) and lower < upper):
+        raise InputError(f"limits: must be finite with lower < upper, got {limits!r}")
+    return lower, upper
 
 
 @dataclass(frozen=True)
@@ -126,6 +160,7 @@ class LearningLaw(ABC):
         input_delay: int,
         error_gain: np.ndarray,
         q_filter: QFilter | None,
+        limits: tuple[float, float] | None = None,
     ) -> None:
         if n_samples < 1:
             raise InputError(f"n_samples: must be >= 1, got {n_samples}")
@@ -137,6 +172,8 @@ class LearningLaw(ABC):
         self.input_delay = int(input_delay)
         self.trial = 0
         self.q_filter = q_filter
+        #: ``(lower, upper)`` every command is clamped to before it is stored and returned; ``None``: no clamp.
+        self.limits = _check_limits(limits)
         self._error_gain = np.array(error_gain, dtype=float, copy=True)  # m x p: p2 or Gamma
         if self._error_gain.shape != (self.n_inputs, self.n_outputs):
             raise InputError(
@@ -235,6 +272,7 @@ class LearningLaw(ABC):
             "trial": self.trial,
             "input_delay": self.input_delay,
             "has_record": self._has_record,
+            "limits": None if self.limits is None else list(self.limits),
             "feedforward": self._feedforward.tolist(),
             "learned": self._learned.tolist(),
         }
@@ -254,7 +292,10 @@ class LearningLaw(ABC):
         y[:] = output  # raises if the shape does not fit (p,)
         if not math.isfinite(float(y.sum())):  # a scalar check: no temporary array in the real-time path
             raise LearningDivergedError(f"trial {self.trial + 1}, sample {t}: the measured output is not finite")
-        self._command(t, y, self._u[t])
+        u_out = self._u[t]
+        self._command(t, y, u_out)
+        if self.limits is not None:  # learn from what is applied (module notes); in place, no allocation
+            np.clip(u_out, self.limits[0], self.limits[1], out=u_out)
         self._next_sample = t + 1
         return self._u_readonly[t]
 
@@ -291,11 +332,24 @@ class Foilc(LearningLaw):
         ``N``, samples per trial.
     q_filter
         Optional zero-phase Q-filter for the feedforward.
+    fractional_memory
+        ``"controllable"`` (default) or ``"trial"``: where the fractional operator's memory starts (module
+        notes). Must match the memory the design was certified with, when the design records it.
+    limits
+        Optional ``(lower, upper)`` command limits (module notes: saturation-aware learning).
     """
 
     kind = "foilc"
 
-    def __init__(self, design: Design, n_samples: int, *, q_filter: QFilter | None = None) -> None:
+    def __init__(
+        self,
+        design: Design,
+        n_samples: int,
+        *,
+        q_filter: QFilter | None = None,
+        fractional_memory: str = "controllable",
+        limits: tuple[float, float] | None = None,
+    ) -> None:
         from foilc_hil.fractional import FractionalPD
 
         n, m, p, d = design.n_states, design.n_inputs, design.n_outputs, design.error_lead
@@ -306,11 +360,27 @@ class Foilc(LearningLaw):
             input_delay=d,
             error_gain=design.p2,
             q_filter=q_filter,
+            limits=limits,
         )
+        if fractional_memory not in FRACTIONAL_MEMORY:
+            raise ConfigError(
+                f"must be 'controllable' or 'trial', got {fractional_memory!r}", key="law.fractional_memory"
+            )
         self.design = design
         self.kp = self._kp(design)
         self.r = design.r
-        self._fractional = FractionalPD(self.kp, design.r, design.sample_time) if self.kp > 0 else None
+        self.fractional_memory = fractional_memory
+        certified = design.certificates.get("fractional_memory") if self.kp > 0 else None
+        if certified is not None and certified != fractional_memory:
+            raise ConfigError(
+                f"is {fractional_memory!r} but the design was certified with {certified!r}: the certificate would "
+                "not be of the law that runs; re-synthesize or set the same memory",
+                key="law.fractional_memory",
+            )
+        self._fractional: FractionalPD | None = None
+        if self.kp > 0:
+            history = "zero" if fractional_memory == "controllable" else "caputo"
+            self._fractional = FractionalPD(self.kp, design.r, design.sample_time, history=history)
         n_plant = n - d * m
         if n_plant < 1:
             raise InputError(f"design: {n} states cannot hold {d} delayed copies of {m} inputs")
@@ -339,7 +409,14 @@ class Foilc(LearningLaw):
     def _learning_signal(self, error: np.ndarray) -> np.ndarray:
         if self._fractional is None:
             return error.copy()
-        return np.asarray(self._fractional.apply(error), dtype=float).reshape(error.shape)
+        if self.fractional_memory == "trial":
+            return np.asarray(self._fractional.apply(error), dtype=float).reshape(error.shape)
+        # Memory from the first controllable sample, zero history before it; E[:d] = e[:d] is never used.
+        d = self.input_delay
+        learned = error.copy()
+        if d < error.shape[0]:
+            learned[d:] = np.asarray(self._fractional.apply(error[d:]), dtype=float).reshape(error[d:].shape)
+        return learned
 
     def _begin_state(self) -> None:
         self._x.fill(0.0)
@@ -368,7 +445,14 @@ class Foilc(LearningLaw):
 
     def state_dict(self) -> dict[str, Any]:
         state = super().state_dict()
-        state.update({"kp": self.kp, "r": self.r, "previous_state": self._x_prev.tolist()})
+        state.update(
+            {
+                "kp": self.kp,
+                "r": self.r,
+                "fractional_memory": self.fractional_memory,
+                "previous_state": self._x_prev.tolist(),
+            }
+        )
         return state
 
 
@@ -399,6 +483,8 @@ class PType(LearningLaw):
         :func:`p_type_default_gain`.
     q_filter
         Optional zero-phase Q-filter.
+    limits
+        Optional ``(lower, upper)`` command limits (saturation-aware learning, module notes).
     """
 
     kind = "p-type"
@@ -413,6 +499,7 @@ class PType(LearningLaw):
         input_delay: int = 0,
         gain: float | np.ndarray | None = None,
         q_filter: QFilter | None = None,
+        limits: tuple[float, float] | None = None,
     ) -> None:
         A = np.asarray(A, dtype=float)
         B = np.asarray(B, dtype=float)
@@ -432,6 +519,7 @@ class PType(LearningLaw):
             input_delay=input_delay,
             error_gain=gamma,
             q_filter=q_filter,
+            limits=limits,
         )
         self.A, self.B, self.C = A, B, C
         self.gain = self._error_gain.copy()
@@ -547,22 +635,31 @@ def p_type_certificates(law: PType) -> dict[str, float]:
 # --- factory ----------------------------------------------------------------------------------------------------
 
 
-def make_law(kind: str, design: Design, law_cfg: LawConfig, n_samples: int) -> LearningLaw:
+def make_law(
+    kind: str,
+    design: Design,
+    law_cfg: LawConfig,
+    n_samples: int,
+    *,
+    limits: tuple[float, float] | None = None,
+) -> LearningLaw:
     """Build the law ``kind`` (``foilc``, ``ioilc``, ``p-type``) for ``n_samples`` samples per trial.
 
     ``design`` gives the gain (2D laws) or the nominal model and input delay (P-type: ``law_cfg.p_type_gain``,
     a scalar ``Gamma = g I``, or the default of :func:`p_type_default_gain`); ``law_cfg.q_filter`` adds a
-    Q-filter.
+    Q-filter; ``law_cfg.fractional_memory`` picks the fractional operator's memory (FOILC). ``limits``: the
+    command limits the law clamps to and learns from (module notes; the bench passes its limiter's).
     """
     q_filter = None
     if law_cfg.q_filter is not None:
         from foilc_hil.qfilter import QFilter
 
         q_filter = QFilter(law_cfg.q_filter.cutoff, law_cfg.q_filter.order, design.sample_time)
+    memory = law_cfg.fractional_memory
     if kind == "foilc":
-        return Foilc(design, n_samples, q_filter=q_filter)
+        return Foilc(design, n_samples, q_filter=q_filter, fractional_memory=memory, limits=limits)
     if kind == "ioilc":
-        return Ioilc(design, n_samples, q_filter=q_filter)
+        return Ioilc(design, n_samples, q_filter=q_filter, fractional_memory=memory, limits=limits)
     if kind == "p-type":
         return PType(
             design.A,
@@ -572,5 +669,6 @@ def make_law(kind: str, design: Design, law_cfg: LawConfig, n_samples: int) -> L
             input_delay=design.input_delay,
             gain=law_cfg.p_type_gain,
             q_filter=q_filter,
+            limits=limits,
         )
     raise ConfigError(f"unknown law {kind!r}; choose foilc, ioilc or p-type", key="law.kind")

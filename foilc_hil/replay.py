@@ -230,8 +230,9 @@ def _output_for_error(reference: float, error: float) -> float | None:
 def law_from_log(contents: LogContents, n_samples: int) -> LawLike:
     """Rebuild the run's law from the log's metadata.
 
-    With a ``foilc_hil.design`` record: ``make_law(design.law, design, config.law, n_samples)`` (the design names
-    the law that ran; the bench may override the config's ``law.kind``). Without one (an offline P-type run):
+    With a ``foilc_hil.design`` record: ``make_law(design.law, design, config.law, n_samples, limits=...)`` (the
+    design names the law that ran; the bench may override the config's ``law.kind``), with the command limits the
+    bench logged in ``/ilc/trial`` (``command_limits``; none in offline logs, whose laws do not clamp). Without one (an offline P-type run):
     the P-type law of the config's nominal model (:func:`foilc_hil.simulation.build_law`, no input delay).
 
     Raises
@@ -271,7 +272,20 @@ def law_from_log(contents: LogContents, n_samples: int) -> LawLike:
         design = Design.from_json(design_doc)
     except InputError as exc:
         raise LogFormatError(f"{contents.path}: metadata foilc_hil.design: {exc}") from None
-    return make_law(design.law, design, config.law, n_samples)
+    return make_law(design.law, design, config.law, n_samples, limits=_logged_limits(contents))
+
+
+def _logged_limits(contents: LogContents) -> tuple[float, float] | None:
+    """The ``command_limits`` the bench logged with each trial (the same for all), or ``None`` (offline run)."""
+    found = {tuple(trial["command_limits"]) for trial in contents.trials if "command_limits" in trial}
+    if not found:
+        return None
+    if len(found) > 1:
+        raise LogFormatError(f"{contents.path}: /ilc/trial command_limits differ between trials: {sorted(found)}")
+    limits = found.pop()
+    if len(limits) != 2 or not all(isinstance(value, (int, float)) for value in limits):
+        raise LogFormatError(f"{contents.path}: /ilc/trial command_limits must be [lower, upper], got {list(limits)}")
+    return float(limits[0]), float(limits[1])
 
 
 def _group_samples(samples: Sequence[Mapping[str, Any]]) -> dict[int, list[Mapping[str, Any]]]:

@@ -446,6 +446,7 @@ def synthesize(
     q_filter: np.ndarray | None = None,
     require_monotonic: bool = True,
     growth_horizon: int = 10,
+    fractional_memory: str = "controllable",
 ) -> Design:
     """Solve Theorem 1 for ``P`` on ``model`` and certify the law as it runs (fractional filter included).
 
@@ -473,6 +474,9 @@ def synthesize(
         Demand a monotonic (induced 2-norm) certificate, not only an asymptotic (spectral radius) one.
     growth_horizon
         Trials over which the error-growth bound is reported when only asymptotic convergence is certified.
+    fractional_memory
+        The law's ``law.fractional_memory`` (``"controllable"`` or ``"trial"``): the certificate is of the
+        operator the law applies (:mod:`foilc_hil.laws`), and is recorded in ``certificates``.
 
     Raises
     ------
@@ -504,6 +508,7 @@ def synthesize(
         q_filter=q_filter,
         require_monotonic=require_monotonic,
         growth_horizon=growth_horizon,
+        fractional_memory=fractional_memory,
     )
     certificates: dict[str, Any] = {
         **outcome.certificates,
@@ -573,7 +578,8 @@ def synthesize_from_config(
 ) -> Design:
     """:func:`synthesize` with everything taken from ``config`` (``synthesis:``, ``plant:``, ``reference:``).
 
-    ``n_samples`` defaults to the reference's trial length; ``tau``/``theta`` to ``synthesis.tau/theta``.
+    ``n_samples`` defaults to the reference's trial length; ``tau``/``theta`` to ``synthesis.tau/theta``; the
+    fractional memory certified is ``law.fractional_memory``.
     """
     model, uncertainty = design_model(config, input_delay=input_delay)
     settings = config.synthesis
@@ -593,4 +599,5 @@ def synthesize_from_config(
         require_monotonic=settings.require_monotonic,
         growth_horizon=config.trials,
         q_filter=q_filter,
+        fractional_memory=config.law.fractional_memory,
     )

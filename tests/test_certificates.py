@@ -38,9 +38,22 @@ def _run_trials(
     lead: int,
     trials: int,
     Q: np.ndarray | None = None,
+    memory: str = "trial",
 ) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Plain loops: trial 1 only measures; then u_k(t) = ff(t) + p1 (x_k(t) - x_{k-1}(t)) + p2 E_{k-1}[t + lead],
-    ff = u_{k-1} (or Q u_{k-1}); e[i] = r[i] - C x(i + 1). Returns the errors and inputs of every trial."""
+    ff = u_{k-1} (or Q u_{k-1}); e[i] = r[i] - C x(i + 1). Returns the errors and inputs of every trial.
+
+    ``memory="trial"``: E = fpd(e) over the whole trial; ``"controllable"``: E[lead:] = zero-history fpd(e[lead:]).
+    """
+    zero = FractionalPD(fpd.kp, fpd.r, fpd.h, history="zero")
+
+    def learning_signal(e: np.ndarray) -> np.ndarray:
+        if memory == "trial":
+            return np.column_stack([fpd.apply(e[:, j]) for j in range(e.shape[1])])
+        out = e.copy()
+        out[lead:] = np.column_stack([zero.apply(e[lead:, j]) for j in range(e.shape[1])])
+        return out
+
     n_samples, m = reference.shape[0], B.shape[1]
     feedforward = np.zeros((n_samples, m))
     x_prev: np.ndarray | None = None
@@ -60,7 +73,7 @@ def _run_trials(
             x = A @ x + B @ u
             ys.append(C @ x)
         e = reference - np.array(ys)
-        E = np.column_stack([fpd.apply(e[:, j]) for j in range(e.shape[1])])
+        E = learning_signal(e)
         u_trial = np.array(us)
         errors.append(e)
         inputs.append(u_trial)
@@ -92,16 +105,33 @@ CASES = [
 ]
 
 
+def _law_operator(kp: float, r: float, h: float, n_samples: int, lead: int, memory: str) -> np.ndarray:
+    """The law's E = F e as a dense matrix, built from FractionalPD (the operator tested in test_fractional)."""
+    if memory == "trial":
+        return FractionalPD(kp, r, h).matrix(n_samples)
+    F = np.eye(n_samples)
+    F[lead:, lead:] = FractionalPD(kp, r, h, history="zero").matrix(n_samples - lead)
+    return F
+
+
+MEMORIES = ["controllable", "trial"]
+
+
+@pytest.mark.parametrize("memory", MEMORIES)
 @pytest.mark.parametrize(("n", "m", "p", "lead", "kp", "r"), CASES)
-def test_lifted_map_matches_brute_force_trials(n: int, m: int, p: int, lead: int, kp: float, r: float) -> None:
+def test_lifted_map_matches_brute_force_trials(
+    n: int, m: int, p: int, lead: int, kp: float, r: float, memory: str
+) -> None:
     A, B, C = _plant(n, m, p, seed=n + 10 * lead, lead=lead)
     rng = np.random.default_rng(5)
     p1 = 0.1 * rng.standard_normal((m, A.shape[0]))
     p2 = 0.05 * rng.standard_normal((m, p))
     h, n_samples = 0.05, 40
     reference = np.cumsum(rng.standard_normal((n_samples, p)), axis=0) * 0.1
-    errors, _ = _run_trials(A, B, C, p1, p2, FractionalPD(kp, h=h, r=r), reference, lead, trials=5)
-    T = lifted_error_map(A, B, C, p1, p2, kp=kp, r=r, sample_time=h, n_samples=n_samples, lead=lead)
+    errors, _ = _run_trials(A, B, C, p1, p2, FractionalPD(kp, h=h, r=r), reference, lead, trials=5, memory=memory)
+    T = lifted_error_map(
+        A, B, C, p1, p2, kp=kp, r=r, sample_time=h, n_samples=n_samples, lead=lead, fractional_memory=memory
+    )
     for k in range(2, 5):
         before = (errors[k - 1] - errors[k - 2])[lead:].ravel()
         after = (errors[k] - errors[k - 1])[lead:].ravel()
@@ -111,15 +141,20 @@ def test_lifted_map_matches_brute_force_trials(n: int, m: int, p: int, lead: int
         np.testing.assert_allclose(errors[k][:lead], errors[0][:lead], atol=1e-12)
 
 
+@pytest.mark.parametrize("memory", MEMORIES)
 @pytest.mark.parametrize(("n", "m", "p", "lead", "kp", "r"), CASES)
-def test_fast_operator_matches_the_dense_second_method(n: int, m: int, p: int, lead: int, kp: float, r: float) -> None:
+def test_fast_operator_matches_the_dense_second_method(
+    n: int, m: int, p: int, lead: int, kp: float, r: float, memory: str
+) -> None:
     A, B, C = _plant(n, m, p, seed=3, lead=lead)
     rng = np.random.default_rng(9)
     p1 = 0.1 * rng.standard_normal((m, A.shape[0]))
     p2 = 0.05 * rng.standard_normal((m, p))
     h, n_samples = 0.05, 30
-    T = lifted_error_map(A, B, C, p1, p2, kp=kp, r=r, sample_time=h, n_samples=n_samples, lead=lead)
-    full = dense_error_map(A, B, C, p1, p2, FractionalPD(kp, r, h).matrix(n_samples), lead)
+    T = lifted_error_map(
+        A, B, C, p1, p2, kp=kp, r=r, sample_time=h, n_samples=n_samples, lead=lead, fractional_memory=memory
+    )
+    full = dense_error_map(A, B, C, p1, p2, _law_operator(kp, r, h, n_samples, lead, memory), lead)
     np.testing.assert_allclose(full[: lead * p, :], np.eye(n_samples * p)[: lead * p], atol=1e-15)
     sub = full[lead * p :, lead * p :]
     np.testing.assert_allclose(T.to_dense(), sub, atol=1e-10 * max(1.0, float(np.max(np.abs(sub)))))
@@ -132,7 +167,7 @@ def test_spectral_radius_is_read_off_the_block_triangular_structure() -> None:
     rng = np.random.default_rng(2)
     p1, p2 = 0.1 * rng.standard_normal((2, 3)), 0.3 * rng.standard_normal((2, 2))
     kp, r, h, n_samples = 0.1, 1.3, 0.05, 30
-    T = lifted_error_map(A, B, C, p1, p2, kp=kp, r=r, sample_time=h, n_samples=n_samples)
+    T = lifted_error_map(A, B, C, p1, p2, kp=kp, r=r, sample_time=h, n_samples=n_samples, fractional_memory="trial")
     dense = dense_error_map(A, B, C, p1, p2, FractionalPD(kp, r, h).matrix(n_samples))
     # Dense eigvals of a defective triangular matrix are inaccurate; read the blocks from the dense matrix instead.
     k = 4 * 2  # the leading samples where the Caputo corrections sit
@@ -146,18 +181,31 @@ def test_spectral_radius_is_read_off_the_block_triangular_structure() -> None:
     assert T.spectral_radius() == pytest.approx(expected, rel=1e-10)
 
 
-def test_iterative_norm_matches_dense_svd() -> None:
+@pytest.mark.parametrize("memory", MEMORIES)
+def test_iterative_norm_matches_dense_svd(memory: str) -> None:
     model = discretize(ContinuousModel(np.array([[-1.23]]), np.array([[1.68]]), np.array([[1.0]])), 0.01)
     p1, p2 = -model.A / model.B, 0.3 / model.B
     n_samples = DENSE_LIMIT + 200
-    result = map_certificate(model.A, model.B, model.C, p1, p2, kp=0.05, r=0.8, sample_time=0.01, n_samples=n_samples)
-    dense = dense_error_map(model.A, model.B, model.C, p1, p2, FractionalPD(0.05, 0.8, 0.01).matrix(n_samples))
+    result = map_certificate(
+        model.A,
+        model.B,
+        model.C,
+        p1,
+        p2,
+        kp=0.05,
+        r=0.8,
+        sample_time=0.01,
+        n_samples=n_samples,
+        fractional_memory=memory,
+    )
+    dense = dense_error_map(model.A, model.B, model.C, p1, p2, _law_operator(0.05, 0.8, 0.01, n_samples, 0, memory))
     assert result["norm_2_method"] == "svds"
     assert result["norm_2"] == pytest.approx(np.linalg.norm(dense, 2), rel=1e-7)
     assert result["spectral_radius"] < 1
 
 
-def test_q_filter_input_map_matches_brute_force_and_the_operator() -> None:
+@pytest.mark.parametrize("memory", MEMORIES)
+def test_q_filter_input_map_matches_brute_force_and_the_operator(memory: str) -> None:
     A, B, C = _plant(2, 1, 1, seed=8)
     kp, r, h, n_samples = 0.1, 0.7, 0.05, 40
     first_weight = 1 + kp * h**-r
@@ -165,22 +213,24 @@ def test_q_filter_input_map_matches_brute_force_and_the_operator() -> None:
     Q = QFilter(cutoff=20.0, order=2, sample_time=h).matrix(n_samples)
     rng = np.random.default_rng(1)
     reference = np.cumsum(rng.standard_normal((n_samples, 1)), axis=0) * 0.1
-    _, inputs = _run_trials(A, B, C, p1, p2, FractionalPD(kp, r, h), reference, 0, trials=5, Q=Q)
-    M = dense_input_map(A, B, C, p1, p2, FractionalPD(kp, r, h).matrix(n_samples), Q)
+    _, inputs = _run_trials(A, B, C, p1, p2, FractionalPD(kp, r, h), reference, 0, trials=5, Q=Q, memory=memory)
+    M = dense_input_map(A, B, C, p1, p2, _law_operator(kp, r, h, n_samples, 0, memory), Q)
     for k in range(2, 5):
         before = (inputs[k - 1] - inputs[k - 2]).ravel()
         after = (inputs[k] - inputs[k - 1]).ravel()
         np.testing.assert_allclose(M @ before, after, atol=1e-10 * max(1.0, float(np.max(np.abs(after)))))
     # The fast operator agrees with the dense map, forward and adjoint.
-    operator = lifted_input_map(A, B, C, p1, p2, kp=kp, r=r, sample_time=h, Q=Q)
+    operator = lifted_input_map(A, B, C, p1, p2, kp=kp, r=r, sample_time=h, Q=Q, fractional_memory=memory)
     x, y = rng.standard_normal(n_samples), rng.standard_normal(n_samples)
     np.testing.assert_allclose(operator.matvec(x), M @ x, atol=1e-10 * np.max(np.abs(M @ x)))
     np.testing.assert_allclose(operator.rmatvec(y), M.T @ y, atol=1e-10 * np.max(np.abs(M.T @ y)))
     # On a large trial the certificate's numbers agree with dense linear algebra.
     n_large = DENSE_LIMIT + 100
     Q_large = QFilter(cutoff=20.0, order=2, sample_time=h).matrix(n_large)
-    fast = map_certificate(A, B, C, p1, p2, kp=kp, r=r, sample_time=h, n_samples=n_large, q_filter=Q_large)
-    M_large = dense_input_map(A, B, C, p1, p2, FractionalPD(kp, r, h).matrix(n_large), Q_large)
+    fast = map_certificate(
+        A, B, C, p1, p2, kp=kp, r=r, sample_time=h, n_samples=n_large, q_filter=Q_large, fractional_memory=memory
+    )
+    M_large = dense_input_map(A, B, C, p1, p2, _law_operator(kp, r, h, n_large, 0, memory), Q_large)
     assert fast["map"] == "input (Q-filter)"
     # M is far from normal: its eigenvalues are ill-conditioned, so ARPACK and LAPACK agree only roughly.
     assert fast["spectral_radius"] == pytest.approx(max(abs(np.linalg.eigvals(M_large))), rel=5e-2)
@@ -190,19 +240,25 @@ def _paper_model(ts: float) -> DiscreteModel:
     return discretize(ContinuousModel(np.array([[-1.23]]), np.array([[1.68]]), np.array([[1.0]])), ts)
 
 
-def test_rescale_fixes_a_filter_that_breaks_the_naive_gain_and_refuse_raises() -> None:
+@pytest.mark.parametrize("memory", MEMORIES)
+def test_rescale_fixes_a_filter_that_breaks_the_naive_gain_and_refuse_raises(memory: str) -> None:
     model = _paper_model(0.01)
     unc = Uncertainty.none(1, 1)
     P = solve_lmi(model, unc, tau=0.868, theta=0.868).P
     kp, r, n_samples = 0.05, 0.8, 300
-    fpd_matrix = FractionalPD(kp, r, 0.01).matrix(n_samples)
+    fpd_matrix = _law_operator(kp, r, 0.01, n_samples, 0, memory)
     designed = dense_error_map(model.A, model.B, model.C, P[:, :1], P[:, 1:], fpd_matrix)
     naive = dense_error_map(model.A, model.B, model.C, P[:, :1], P[:, 1:], np.eye(n_samples))
     assert np.linalg.norm(naive, 2) < 1  # the LMI gain is fine without the filter ...
     assert max(abs(np.diag(designed))) > 1  # ... and diverges with it (triangular: the diagonal is the spectrum)
     with pytest.raises(ConvergenceCertificateError, match="refuse"):
-        certify(model, unc, P, kp=kp, r=r, n_samples=n_samples, on_divergent_filter="refuse")
-    outcome = certify(model, unc, P, kp=kp, r=r, n_samples=n_samples, on_divergent_filter="rescale")
+        certify(
+            model, unc, P, kp=kp, r=r, n_samples=n_samples, on_divergent_filter="refuse", fractional_memory=memory
+        )
+    outcome = certify(
+        model, unc, P, kp=kp, r=r, n_samples=n_samples, on_divergent_filter="rescale", fractional_memory=memory
+    )
+    assert outcome.certificates["fractional_memory"] == memory
     assert 0 < outcome.gain_scale < 1
     assert outcome.certificates["action"] == "rescale"
     assert outcome.certificates["monotonic"] is True
@@ -220,8 +276,10 @@ def test_r_above_one_has_no_monotonic_certificate() -> None:
     P = solve_lmi(model, unc, tau=0.868, theta=0.868).P
     kp, r, n_samples = 2.6315, 1.0778, 200
     with pytest.raises(ConvergenceCertificateError, match="monotonically"):
-        certify(model, unc, P, kp=kp, r=r, n_samples=n_samples)
-    outcome = certify(model, unc, P, kp=kp, r=r, n_samples=n_samples, require_monotonic=False)
+        certify(model, unc, P, kp=kp, r=r, n_samples=n_samples, fractional_memory="trial")
+    outcome = certify(
+        model, unc, P, kp=kp, r=r, n_samples=n_samples, require_monotonic=False, fractional_memory="trial"
+    )
     assert outcome.certificates["monotonic"] is False
     assert outcome.certificates["spectral_radius"] < 1
     rescaled = dense_error_map(
@@ -244,13 +302,18 @@ def test_certify_covers_uncertainty_vertices_and_mimo() -> None:
     assert outcome.certificates["monotonic"] is True
 
 
+@pytest.mark.parametrize("memory", MEMORIES)
 @pytest.mark.parametrize(("n", "m", "p", "lead", "kp", "r"), CASES)
-def test_norm_upper_bound_bounds_the_dense_norm(n: int, m: int, p: int, lead: int, kp: float, r: float) -> None:
+def test_norm_upper_bound_bounds_the_dense_norm(
+    n: int, m: int, p: int, lead: int, kp: float, r: float, memory: str
+) -> None:
     A, B, C = _plant(n, m, p, seed=11, lead=lead)
     rng = np.random.default_rng(4)
     p1 = 0.1 * rng.standard_normal((m, A.shape[0]))
     p2 = 0.05 * rng.standard_normal((m, p))
-    T = lifted_error_map(A, B, C, p1, p2, kp=kp, r=r, sample_time=0.05, n_samples=30, lead=lead)
+    T = lifted_error_map(
+        A, B, C, p1, p2, kp=kp, r=r, sample_time=0.05, n_samples=30, lead=lead, fractional_memory=memory
+    )
     dense_norm = float(np.linalg.norm(T.to_dense(), 2))
     assert T.norm_upper_bound() >= dense_norm * (1 - 1e-12)
     assert T.symbol_norm() <= T.norm_upper_bound() * (1 + 1e-12)

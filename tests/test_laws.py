@@ -67,10 +67,26 @@ def _run_plant(A, B, C, x0, u_of, n, delay=0):
     return np.array(feedback), np.array(outputs), np.array(commands)
 
 
-def _brute_force_foilc(A, B, C, P, kp, r, ref, trials, n, x0, delay=0):
+def _controllable_operator(kp, r, h, n, delay):
+    """``diag(I_d, I + kp h^-r T)``, ``T`` the GL Toeplitz matrix from ``(-1)^j binom(r, j)`` (scipy.special)."""
+    from scipy.linalg import block_diag, toeplitz
+    from scipy.special import binom
+
+    length = n - delay
+    j = np.arange(length)
+    weights = (-1.0) ** j * binom(r, j)
+    return block_diag(np.eye(delay), np.eye(length) + kp * h**-r * toeplitz(weights, np.zeros(length)))
+
+
+def _brute_force_foilc(A, B, C, P, kp, r, ref, trials, n, x0, delay=0, memory="controllable"):
     """The 2D law written out from eq. (21) with lists and a dense fractional matrix (no shared buffers)."""
     m = B.shape[1]
-    M = FractionalPD(kp, r, TS).matrix(n) if kp > 0 else np.eye(n)
+    if kp == 0:
+        M = np.eye(n)
+    elif memory == "trial":
+        M = FractionalPD(kp, r, TS).matrix(n)
+    else:
+        M = _controllable_operator(kp, r, TS, n, delay)
     u_prev = np.zeros((n, m))
     x_prev = None
     E_prev = None
@@ -117,18 +133,20 @@ def _reference(n, p):
     return np.column_stack([np.sin(t * (k + 1)) for k in range(p)])
 
 
-def test_foilc_matches_brute_force() -> None:
+@pytest.mark.parametrize("memory", ["controllable", "trial"])
+def test_foilc_matches_brute_force(memory: str) -> None:
     n = 40
     ref = _reference(n, 2)
     design = _design(A2, B2, C2, P2, kp=0.3, r=0.7)
-    got = _run_law(Foilc(design, n), A2, B2, C2, ref, 4, n, x0=[0.1, -0.2])
-    want = _brute_force_foilc(A2, B2, C2, P2, 0.3, 0.7, ref, 4, n, x0=[0.1, -0.2])
+    got = _run_law(Foilc(design, n, fractional_memory=memory), A2, B2, C2, ref, 4, n, x0=[0.1, -0.2])
+    want = _brute_force_foilc(A2, B2, C2, P2, 0.3, 0.7, ref, 4, n, x0=[0.1, -0.2], memory=memory)
     for k in range(4):
         np.testing.assert_allclose(got[k], want[k], rtol=1e-12, atol=1e-12)
     assert np.any(got[-1] != 0)  # the law did learn something
 
 
-def test_foilc_with_input_delay_matches_brute_force() -> None:
+@pytest.mark.parametrize("memory", ["controllable", "trial"])
+def test_foilc_with_input_delay_matches_brute_force(memory: str) -> None:
     n, d = 30, 1
     ref = _reference(n, 2)
     augmented, _ = augment_input_delay(DiscreteModel(A2, B2, C2, TS), d)
@@ -136,8 +154,8 @@ def test_foilc_with_input_delay_matches_brute_force() -> None:
     design = _design(
         augmented.A, augmented.B, augmented.C, P, kp=0.2, r=1.3, input_delay=d, C_measured=augmented.measured_output
     )
-    got = _run_law(Foilc(design, n), A2, B2, C2, ref, 3, n, x0=[0.0, 0.0], delay=d)
-    want = _brute_force_foilc(A2, B2, C2, P, 0.2, 1.3, ref, 3, n, x0=[0.0, 0.0], delay=d)
+    got = _run_law(Foilc(design, n, fractional_memory=memory), A2, B2, C2, ref, 3, n, x0=[0.0, 0.0], delay=d)
+    want = _brute_force_foilc(A2, B2, C2, P, 0.2, 1.3, ref, 3, n, x0=[0.0, 0.0], delay=d, memory=memory)
     for k in range(3):
         np.testing.assert_allclose(got[k], want[k], rtol=1e-12, atol=1e-12)
 
@@ -282,8 +300,9 @@ def test_make_law_with_q_filter_stores_filtered_feedforward() -> None:
         make_law("pid", design, LawConfig(), n)
 
 
+@pytest.mark.parametrize("memory", ["controllable", "trial"])
 @pytest.mark.parametrize("delay", [0, 1, 2])
-def test_law_obeys_the_certificates_lifted_error_map(delay: int) -> None:
+def test_law_obeys_the_certificates_lifted_error_map(delay: int, memory: str) -> None:
     """A second, independent derivation: the certificates' dense trial map T predicts the law's error updates."""
     from foilc_hil.certificates import dense_error_map
 
@@ -313,15 +332,36 @@ def test_law_obeys_the_certificates_lifted_error_map(delay: int) -> None:
         input_delay=delay,
         C_measured=model.measured_output,
     )
-    law = Foilc(design, n)
+    law = Foilc(design, n, fractional_memory=memory)
     ref = np.sin(np.arange(1, n + 1) * 0.2) + 0.5
     errors = []
     for _ in range(4):
         law.begin_trial()
         _, outputs, _ = _run_plant(A, B, C, [0.3], lambda t, y: law.command(t, y).copy(), n, delay)
         errors.append(law.end_trial(ref, outputs).error[:, 0])
-    F = FractionalPD(0.15, 0.6, 0.1).matrix(n)
+    if memory == "trial":
+        F = FractionalPD(0.15, 0.6, 0.1).matrix(n)
+    else:
+        F = _controllable_operator(0.15, 0.6, 0.1, n, delay)
     T = dense_error_map(model.A, model.B, model.measured_output, design.p1, design.p2, F, lead=delay)
     for k in range(1, 3):
         np.testing.assert_allclose(errors[k + 1] - errors[k], T @ (errors[k] - errors[k - 1]), atol=1e-10)
     assert np.linalg.norm(errors[2] - errors[1]) > 1e-3  # the check is not vacuous
+    # The certificate's fast map is the same operator as the law's (fractional_memory passed through).
+    from foilc_hil.certificates import law_filter_matrix, lifted_error_map
+
+    np.testing.assert_allclose(law_filter_matrix(0.15, 0.6, 0.1, n, delay, memory), F, atol=1e-12)
+    fast = lifted_error_map(
+        model.A,
+        model.B,
+        model.measured_output,
+        design.p1,
+        design.p2,
+        kp=0.15,
+        r=0.6,
+        sample_time=0.1,
+        n_samples=n,
+        lead=delay,
+        fractional_memory=memory,
+    )
+    np.testing.assert_allclose(fast.to_dense(), T[delay:, delay:], atol=1e-10)
