@@ -47,7 +47,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from enum import Enum
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -118,14 +118,14 @@ _PDO_AREAS = (
 )
 
 
-class TimingMode(str, Enum):
+class TimingMode(StrEnum):
     """How the physics clock is driven."""
 
     LOCKSTEP = "lockstep"  # one cycle period per SYNC: deterministic, as fast as the bus allows
     REALTIME = "realtime"  # wall clock in its own thread: late/missing SYNC look as on hardware
 
 
-class FaultKind(str, Enum):
+class FaultKind(StrEnum):
     """Faults the drive detects (and tests can inject)."""
 
     OVER_CURRENT = "over-current"

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from queue import SimpleQueue
 from types import TracebackType
-from typing import IO, Any, Final, Literal
+from typing import IO, Any, Final, Literal, Self
 
 import can
 import numpy as np
@@ -134,7 +134,29 @@ def _scalar_or_list(value: Any) -> Any:
 # --- writer ---------------------------------------------------------------------------------------------------
 
 
-class McapLogWriter(can.Listener):
+class _ClosingListener(can.Listener):
+    """A log writer's lifecycle: python-can's ``stop()`` and the context manager both mean :meth:`close`."""
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def stop(self) -> None:
+        """python-can listener hook: same as :meth:`close`."""
+        self.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc_value: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+class McapLogWriter(_ClosingListener):
     """Writes one bench run as MCAP.
 
     A :class:`can.Listener`: attach it to a :class:`can.Notifier` and every received frame is logged with
@@ -340,21 +362,6 @@ class McapLogWriter(can.Listener):
             finally:
                 self._close_stream()
 
-    def stop(self) -> None:
-        """python-can listener hook: same as :meth:`close`."""
-        self.close()
-
-    def __enter__(self) -> McapLogWriter:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc_value: BaseException | None,
-        traceback: TracebackType | None,
-    ) -> None:
-        self.close()
-
     @property
     def closed(self) -> bool:
         return self._closed
@@ -404,7 +411,7 @@ _SYNC: Final = 5
 _STOP: Final = 6
 
 
-class QueuedLogWriter(can.Listener):
+class QueuedLogWriter(_ClosingListener):
     """:class:`McapLogWriter` behind a queue: the caller only enqueues, a background thread writes.
 
     Same logging methods as :class:`McapLogWriter`. Each one stamps the time (``time.time_ns()``), puts a small
@@ -522,21 +529,6 @@ class QueuedLogWriter(can.Listener):
             self.writer.close()
         finally:
             self._raise_pending()
-
-    def stop(self) -> None:
-        """python-can listener hook: same as :meth:`close`."""
-        self.close()
-
-    def __enter__(self) -> QueuedLogWriter:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc_value: BaseException | None,
-        traceback: TracebackType | None,
-    ) -> None:
-        self.close()
 
     # -- background thread ---------------------------------------------------------------------------------
 
