@@ -159,6 +159,18 @@ class Command402(IntEnum):
     FAULT_RESET = 0x80  # rising edge: FAULT -> SWITCH_ON_DISABLED (15)
 
 
+#: The command that leaves each state on the way to OPERATION_ENABLED (None: the drive leaves it by itself;
+#: FAULT is absent: leaving it takes a fault reset, which enabling must not do silently).
+ENABLE_PATH: dict[State402, Command402 | None] = {
+    State402.NOT_READY_TO_SWITCH_ON: None,
+    State402.SWITCH_ON_DISABLED: Command402.SHUTDOWN,
+    State402.READY_TO_SWITCH_ON: Command402.SWITCH_ON,
+    State402.SWITCHED_ON: Command402.ENABLE_OPERATION,
+    State402.QUICK_STOP_ACTIVE: Command402.DISABLE_VOLTAGE,
+    State402.FAULT_REACTION_ACTIVE: None,
+}
+
+
 def decode_command(controlword: int) -> Command402 | None:
     """The device control command a controlword encodes (CiA 402-2 command coding), or None if none.
 

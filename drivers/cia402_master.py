@@ -77,6 +77,7 @@ from drivers.cia301 import (
     sdo_abort_text,
 )
 from drivers.cia402 import (
+    ENABLE_PATH,
     SUPPORTED_MODE_BITS,
     Command402,
     IdentitySub,
@@ -122,15 +123,6 @@ _FEEDBACK_OBJECTS = (
     Obj.POSITION_ACTUAL_VALUE,
 )
 
-# The command that leaves each state on the way to OPERATION_ENABLED (None: the drive leaves it by itself).
-_ENABLE_PATH: dict[State402, Command402 | None] = {
-    State402.NOT_READY_TO_SWITCH_ON: None,
-    State402.SWITCH_ON_DISABLED: Command402.SHUTDOWN,
-    State402.READY_TO_SWITCH_ON: Command402.SWITCH_ON,
-    State402.SWITCHED_ON: Command402.ENABLE_OPERATION,
-    State402.QUICK_STOP_ACTIVE: Command402.DISABLE_VOLTAGE,
-    State402.FAULT_REACTION_ACTIVE: None,
-}
 
 _U8, _U16, _U32 = ("B", False), ("H", False), ("I", False)
 _I8, _I16 = ("b", True), ("h", True)
@@ -410,7 +402,7 @@ class Cia402Drive(Drive):
                         f"node {self.node_id} is in FAULT; fault_reset() first "
                         f"(statusword 0x{self._statusword():04X})"
                     )
-                state = self._leave(state, _ENABLE_PATH[state], goal=State402.OPERATION_ENABLED)
+                state = self._leave(state, ENABLE_PATH[state], goal=State402.OPERATION_ENABLED)
             raise StateTransitionError(
                 f"node {self.node_id} never reached OPERATION_ENABLED (last state {state.name})"
             )

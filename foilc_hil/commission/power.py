@@ -27,7 +27,7 @@ from typing import Any
 import can
 
 from drivers.cia301 import EmcyCode, NmtCommand, NmtState, emcy_text
-from drivers.cia402 import Command402, Obj, State402, decode_state
+from drivers.cia402 import ENABLE_PATH, Command402, Obj, State402, decode_state
 from drivers.cia402_master import Cia402Drive
 from foilc_hil.errors import DriveError, DriveFaultError, DriveTimeoutError, ProtocolError, StateTransitionError
 
@@ -36,15 +36,6 @@ __all__ = ["PowerReport", "Transition", "disable", "enable", "fault_reset"]
 POLL_PERIOD = 0.01  # s between statusword reads while waiting for a transition
 COMMUNICATION_FAULTS = frozenset({int(EmcyCode.HEARTBEAT_LOSS), int(EmcyCode.SYNC_LOSS)})
 
-# the command that leaves each state on the way to OPERATION ENABLED (None: the drive leaves it by itself)
-_ENABLE_PATH: dict[State402, Command402 | None] = {
-    State402.NOT_READY_TO_SWITCH_ON: None,
-    State402.SWITCH_ON_DISABLED: Command402.SHUTDOWN,
-    State402.READY_TO_SWITCH_ON: Command402.SWITCH_ON,
-    State402.SWITCHED_ON: Command402.ENABLE_OPERATION,
-    State402.QUICK_STOP_ACTIVE: Command402.DISABLE_VOLTAGE,
-    State402.FAULT_REACTION_ACTIVE: None,
-}
 
 
 @dataclass(frozen=True)
@@ -159,7 +150,7 @@ def enable(drive: Cia402Drive, *, state_timeout: float) -> PowerReport:
                 f"node {drive.node_id} is in FAULT (0x603F 0x{code:04X}: {emcy_text(code)}); "
                 "run `foilc-hil commission fault-reset` first"
             )
-        walker.leave(_ENABLE_PATH[state], "OPERATION_ENABLED")
+        walker.leave(ENABLE_PATH[state], "OPERATION_ENABLED")
     raise StateTransitionError(f"node {drive.node_id} never reached OPERATION_ENABLED (last state {walker.state.name})")
 
 
