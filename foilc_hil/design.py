@@ -58,14 +58,14 @@ def _rows(array: np.ndarray) -> list[list[float]]:
     return [[float(x) for x in row] for row in np.asarray(array, dtype=float)]
 
 
-def _jsonable(value: Any) -> Any:
+def jsonable(value: Any) -> Any:
     """Certificates as plain JSON values (numpy scalars/arrays converted, non-finite floats as strings)."""
     if isinstance(value, Mapping):
-        return {str(k): _jsonable(v) for k, v in value.items()}
+        return {str(k): jsonable(v) for k, v in value.items()}
     if isinstance(value, np.ndarray):
-        return _jsonable(value.tolist())
+        return jsonable(value.tolist())
     if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
+        return [jsonable(v) for v in value]
     if isinstance(value, (bool, np.bool_)):
         return bool(value)
     if isinstance(value, (int, np.integer)):
@@ -232,7 +232,7 @@ class Design:
                 "kp": self.kp,
                 "r": self.r,
                 "sample_time": self.sample_time,
-                "certificates": _jsonable(self.certificates),
+                "certificates": jsonable(self.certificates),
                 "law": self.law,
                 "input_delay": self.input_delay,
                 "gain_scale": self.gain_scale,

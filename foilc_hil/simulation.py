@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from foilc_hil.design import jsonable
 from foilc_hil.errors import ConfigError, LearningDivergedError
 from foilc_hil.metrics import TrialMetrics
 
@@ -92,7 +93,7 @@ class SimulationResult:
     def to_json(self) -> dict[str, Any]:
         """The ``simulate --json`` document: ``{"law", "trials": [...]}`` plus ``certificates``/``stopped``."""
         document: dict[str, Any] = {"law": self.law, "trials": [m.to_json() for m in self.metrics]}
-        document["certificates"] = _jsonable(self.certificates)
+        document["certificates"] = jsonable(self.certificates)
         if self.design is not None:
             document["design"] = {
                 "kp": self.design.kp,
@@ -105,23 +106,6 @@ class SimulationResult:
         if self.stopped:
             document["stopped"] = self.stopped
         return document
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _jsonable(value.tolist())
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, (int, np.integer)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        number = float(value)
-        return number if math.isfinite(number) else str(number)
-    return value
 
 
 # --- design and law ---------------------------------------------------------------------------------------------
