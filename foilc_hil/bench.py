@@ -43,7 +43,8 @@ the clamped, quantised value actually sent is kept in :attr:`TrialRecord.applied
 clamped commands in ``clamped``). The law is built with the limiter's limits (``make_law(..., limits=...)``) and
 clamps internally, so it learns from the input that was applied (saturation-aware learning, see
 :mod:`foilc_hil.laws`); the limiter stays as the safety layer and is normally a no-op. ``/ilc/trial`` records
-those limits as ``command_limits: [lower, upper]`` so that ``replay --verify`` rebuilds the same law. ``reference``, ``error`` and ``E`` are row ``i`` of the trial
+those limits as ``command_limits: [lower, upper]`` so that ``replay --verify`` rebuilds the same law.
+``reference``, ``error`` and ``E`` are row ``i`` of the trial
 arrays (``error[i] = reference[i] - y_{i+1}``), so the SSE of a trial is the sum of the squared ``error`` fields.
 """
 

@@ -232,8 +232,9 @@ def law_from_log(contents: LogContents, n_samples: int) -> LawLike:
 
     With a ``foilc_hil.design`` record: ``make_law(design.law, design, config.law, n_samples, limits=...)`` (the
     design names the law that ran; the bench may override the config's ``law.kind``), with the command limits the
-    bench logged in ``/ilc/trial`` (``command_limits``; none in offline logs, whose laws do not clamp). Without one (an offline P-type run):
-    the P-type law of the config's nominal model (:func:`foilc_hil.simulation.build_law`, no input delay).
+    bench logged in ``/ilc/trial`` (``command_limits``; none in offline logs, whose laws do not clamp). Without
+    one (an offline P-type run): the P-type law of the config's nominal model
+    (:func:`foilc_hil.simulation.build_law`, no input delay).
 
     Raises
     ------

@@ -220,3 +220,11 @@ def test_replay_verify_passes(bench_run: dict[str, Any], capsys: pytest.CaptureF
     assert code == 0, document
     assert document["verified"] is True
     assert document["samples_checked"] == 4 * SAMPLES
+
+
+def test_trials_log_the_command_limits_the_law_clamps_to(bench_run: dict[str, Any]) -> None:
+    """The law is built with the limiter's limits (drive.velocity_limit 500); replay --verify rebuilds it with them."""
+    trials = bench_run["topics"]["/ilc/trial"]
+    assert trials and all(record["command_limits"] == [-500.0, 500.0] for record in trials)
+    controls = [s["control"] for s in bench_run["topics"]["/ilc/sample"]]
+    assert max(abs(c) for c in controls) <= 500.0

@@ -252,9 +252,7 @@ def test_rescale_fixes_a_filter_that_breaks_the_naive_gain_and_refuse_raises(mem
     assert np.linalg.norm(naive, 2) < 1  # the LMI gain is fine without the filter ...
     assert max(abs(np.diag(designed))) > 1  # ... and diverges with it (triangular: the diagonal is the spectrum)
     with pytest.raises(ConvergenceCertificateError, match="refuse"):
-        certify(
-            model, unc, P, kp=kp, r=r, n_samples=n_samples, on_divergent_filter="refuse", fractional_memory=memory
-        )
+        certify(model, unc, P, kp=kp, r=r, n_samples=n_samples, on_divergent_filter="refuse", fractional_memory=memory)
     outcome = certify(
         model, unc, P, kp=kp, r=r, n_samples=n_samples, on_divergent_filter="rescale", fractional_memory=memory
     )

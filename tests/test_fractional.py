@@ -27,6 +27,7 @@ from foilc_hil.fractional import (
     FractionalPD,
     caputo_derivative,
     estimate_initial_slope,
+    gl_derivative,
     gl_weights,
 )
 
@@ -192,9 +193,10 @@ def test_gl_weights_are_signed_binomials() -> None:
     r=st.floats(0.05, 1.95),
     n=st.integers(1, 80),
     seed=st.integers(0, 2**16),
+    history=st.sampled_from(["caputo", "zero"]),
 )
-def test_matrix_equals_apply(kp: float, r: float, n: int, seed: int) -> None:
-    pd = FractionalPD(kp, r, 0.01)
+def test_matrix_equals_apply(kp: float, r: float, n: int, seed: int, history: str) -> None:
+    pd = FractionalPD(kp, r, 0.01, history=history)  # type: ignore[arg-type]
     e = np.random.default_rng(seed).standard_normal(n)
     matrix = pd.matrix(n)
     expected = pd.apply(e)
@@ -241,3 +243,62 @@ def test_bad_inputs_are_named() -> None:
     with pytest.raises(InputError, match="shape"):
         caputo_derivative(np.zeros((2, 2, 2)), 0.5, 0.1)
     assert issubclass(ConfigError, ValueError)
+
+
+# --- zero history (the law's operator on the controllable samples) ------------------------------------------------
+
+
+@pytest.mark.parametrize("r", [0.3, 0.8, 1.0, 1.4, 1.9])
+def test_zero_history_is_the_plain_gl_convolution(r: float) -> None:
+    """Second method: the GL sum written out with scipy's binomials, no shared code with the module."""
+    from scipy.special import binom
+
+    h, n = 0.02, 60
+    f = np.random.default_rng(3).standard_normal(n) + 1.0  # f(0) != 0: no Caputo correction may be applied
+    expected = np.array([sum((-1) ** j * binom(r, j) * f[i - j] for j in range(i + 1)) for i in range(n)]) * h**-r
+    np.testing.assert_allclose(gl_derivative(f, r, h), expected, rtol=1e-10, atol=1e-10 * np.max(np.abs(expected)))
+    pd = FractionalPD(0.7, r, h, history="zero")
+    np.testing.assert_allclose(pd.apply(f), f + 0.7 * expected, rtol=1e-10, atol=1e-10 * np.max(np.abs(expected)))
+    # Caputo differs on this signal (it subtracts f(0)): the modes are really different operators.
+    assert np.max(np.abs(FractionalPD(0.7, r, h).apply(f) - pd.apply(f))) > 1e-3
+
+
+@pytest.mark.parametrize("r", [0.4, 1.0, 1.3, 1.8])
+def test_zero_history_equals_caputo_for_a_signal_starting_from_rest(r: float) -> None:
+    """f(0) = 0 and f'(0) = 0: GL = Riemann-Liouville = Caputo, at every sample."""
+    h, n = 0.01, 300
+    t = np.arange(n) * h
+    f = t**2 * np.sin(3 * t) + 0.5 * t**3  # f(0) = 0, f'(0) = 0
+    caputo = caputo_derivative(f, r, h, df0=0.0)
+    zero = gl_derivative(f, r, h)
+    np.testing.assert_allclose(zero, caputo, rtol=1e-12, atol=1e-12 * np.max(np.abs(caputo)))
+    if r <= 1.0:  # no slope correction: FractionalPD's Caputo mode agrees as well
+        np.testing.assert_allclose(
+            FractionalPD(0.5, r, h, history="zero").apply(f), FractionalPD(0.5, r, h).apply(f), rtol=1e-12, atol=1e-12
+        )
+    assert np.max(np.abs(zero)) > 0.1  # not a vacuous comparison of zeros
+
+
+@pytest.mark.parametrize(("r", "p"), [(0.3, 1.5), (0.7, 2.0), (1.2, 2.5), (1.6, 3.0)])
+def test_zero_history_power_law_first_order(r: float, p: float) -> None:
+    """t^p with p >= r + 1 (and p >= 2 for r > 1) starts from rest: D^r t^p = Gamma(p+1)/Gamma(p+1-r) t^(p-r)."""
+    errors = []
+    for n in (101, 201, 401):
+        h = 2.0 / (n - 1)
+        t = np.arange(n) * h
+        truth = gamma(p + 1) / gamma(p + 1 - r) * t ** (p - r)
+        errors.append(np.max(np.abs(gl_derivative(t**p, r, h) - truth)))
+    orders = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
+    assert np.all(np.abs(orders - 1.0) < 0.1), orders
+    assert errors[-1] < 0.05
+
+
+def test_zero_history_matrix_is_lower_triangular_toeplitz_with_the_first_weight() -> None:
+    pd = FractionalPD(2.0, 1.3, 0.01, history="zero")
+    m = pd.matrix(25)
+    np.testing.assert_allclose(np.diag(m), pd.first_weight, rtol=1e-14)
+    assert np.all(np.triu(m, 1) == 0)
+    for k in range(1, 25):  # constant along every subdiagonal
+        np.testing.assert_allclose(np.diag(m, -k), np.diag(m, -k)[0], rtol=1e-13)
+    with pytest.raises(ConfigError, match="history"):
+        FractionalPD(1.0, 0.5, 0.1, history="riemann")  # type: ignore[arg-type]

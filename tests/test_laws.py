@@ -288,6 +288,18 @@ def test_q_filter_is_zero_phase_low_pass() -> None:
         QFilter(cutoff=400.0, order=2, sample_time=ts)  # above Nyquist (314 rad/s)
 
 
+@pytest.mark.parametrize(
+    ("cutoff", "order", "ts", "n"),
+    [(20.0, 2, 0.01, 300), (5.0, 4, 0.01, 300), (2.0, 1, 0.01, 200), (50.0, 8, 0.005, 400), (100.0, 6, 0.001, 800)],
+)
+def test_q_filter_never_amplifies(cutoff: float, order: int, ts: float, n: int) -> None:
+    """||Q||_2 <= 1: a Q-filter with a larger norm can break monotonic convergence (filtfilt's padding did)."""
+    Q = QFilter(cutoff=cutoff, order=order, sample_time=ts).matrix(n)
+    assert np.linalg.norm(Q, 2) <= 1.0 + 1e-12
+    np.testing.assert_allclose(Q, Q.T, atol=1e-12)  # H^T H: symmetric ...
+    assert np.min(np.linalg.eigvalsh((Q + Q.T) / 2)) >= -1e-12  # ... positive semidefinite
+
+
 def test_make_law_with_q_filter_stores_filtered_feedforward() -> None:
     n = 80
     design = _design(A2, B2, C2, P2, kp=0.0)
@@ -365,3 +377,55 @@ def test_law_obeys_the_certificates_lifted_error_map(delay: int, memory: str) ->
         fractional_memory=memory,
     )
     np.testing.assert_allclose(fast.to_dense(), T[delay:, delay:], atol=1e-10)
+
+
+# --- saturation-aware learning ----------------------------------------------------------------------------------
+
+
+def _saturated_run(law, A, B, C, ref, trials, n, limit):
+    """The plant only ever receives clamp(u, -limit, limit) (the drive saturates); returns feedforwards, RMSEs."""
+    feedforwards, rmses = [], []
+    for _ in range(trials):
+        law.begin_trial()
+        _, outputs, _ = _run_plant(A, B, C, [0.0], lambda t, y: np.clip(law.command(t, y), -limit, limit), n)
+        update = law.end_trial(ref, outputs)
+        feedforwards.append(law.feedforward.copy())
+        rmses.append(update.metrics.rmse)
+    return feedforwards, rmses
+
+
+@pytest.mark.parametrize("kind", ["foilc", "p-type"])
+def test_law_with_limits_learns_from_what_is_applied(kind: str) -> None:
+    """A reference the saturated actuator cannot reach (DC gain b/|a| = 1.37, limit 0.5, reference 1)."""
+    ts, n, limit, trials = 0.1, 40, 0.5, 30
+    A, B, C = _first_order(ts)
+    ref = np.ones((n, 1))
+    model = DiscreteModel(A, B, C, ts)
+    P = np.array([[-0.5, 0.8 / float(B[0, 0])]])
+    design = _design(model.A, model.B, model.C, P, kp=0.05, r=0.6)
+
+    def build(limits):
+        if kind == "p-type":
+            return PType(A, B, C, n, gain=0.8 / float(B[0, 0]), limits=limits)
+        return Foilc(design, n, limits=limits)
+
+    clamped_ff, clamped_rmse = _saturated_run(build((-limit, limit)), A, B, C, ref, trials, n, limit)
+    free_ff, _ = _saturated_run(build(None), A, B, C, ref, trials, n, limit)
+    for ff in clamped_ff:
+        assert np.max(np.abs(ff)) <= limit  # the stored feedforward never exceeds the limit
+    assert max(clamped_rmse) <= clamped_rmse[0] * 1.0001  # the error does not blow up over the trials
+    # After learning, the law commands the limit where the reference is out of reach (it learned saturation).
+    assert np.max(clamped_ff[-1]) == limit
+    # Without limits the unclamped feedforward winds up far past what the drive can apply (the defect fixed).
+    assert np.max(free_ff[-1]) > 5 * limit
+
+
+def test_limits_are_validated_and_logged() -> None:
+    design = _design(A2, B2, C2, P2)
+    with pytest.raises(InputError, match="limits"):
+        Foilc(design, 10, limits=(1.0, -1.0))
+    law = make_law("foilc", design, LawConfig(), 10, limits=(-2.0, 3.0))
+    assert law.limits == (-2.0, 3.0)
+    assert law.state_dict()["limits"] == [-2.0, 3.0]
+    law.begin_trial()
+    assert float(law.command(0, np.array([0.0, 0.0]))[0]) == 0.0

@@ -363,3 +363,59 @@ def test_replay_of_a_truncated_log_says_so_and_uses_what_it_has(
     assert document["truncated"] is True and "footer" in document["damage"]
     assert 0 < document["frames_sent"] <= 3 * 2 * N
     assert "before its footer" in captured.err
+
+
+def test_verify_rebuilds_a_clamping_law_with_the_logged_command_limits(tmp_path: Path) -> None:
+    """A run whose law clamped to limits verifies bit for bit only with the logged limits (saturation-aware law)."""
+    from foilc_hil.config import Config, dump_config
+    from foilc_hil.design import Design
+    from foilc_hil.laws import make_law
+
+    design = Design(
+        law="ioilc",
+        A=np.array([[0.9]]),
+        B=np.array([[0.1]]),
+        C=np.array([[1.0]]),
+        G1=np.array([[0.0]]),
+        H1=np.array([[0.0]]),
+        G2=np.array([[0.0]]),
+        H2=np.array([[0.0]]),
+        P=np.array([[-0.4, 5.0]]),
+        Qb=np.array([[1.0]]),
+        Qt=np.array([[1.0]]),
+        gamma=1.0,
+        tau=0.868,
+        theta=0.868,
+        kp=0.0,
+        r=1.0,
+        sample_time=0.01,
+    )
+    limits = (-0.8, 0.8)
+    law = make_law("ioilc", design, Config().law, N, limits=limits)
+    reference = np.full(N, 5.0)  # out of reach with |u| <= 0.8 (DC gain 1): the law saturates
+    path = tmp_path / "clamped.mcap"
+    clamped_any = False
+    with McapLogWriter(path, config_yaml=dump_config(Config()), design=design.to_json()) as writer:
+        for trial in range(1, 4):
+            law.begin_trial()
+            x, seen, control = 0.0, np.zeros(N + 1), np.zeros(N)
+            for i in range(N):
+                seen[i] = x
+                control[i] = float(law.command(i, np.array([x]))[0])
+                x = 0.9 * x + 0.1 * control[i]
+            seen[N] = x
+            clamped_any = clamped_any or bool(np.any(np.abs(control) == 0.8))
+            update = law.end_trial(reference, seen[1:])
+            error, learned = np.asarray(update.error).ravel(), np.asarray(update.E).ravel()
+            for i in range(N):
+                writer.log_sample(
+                    trial, i * 0.01, reference[i], seen[i], control[i], error[i], learned[i], sample=i
+                )
+            writer.log_trial(update.metrics, final_output=float(seen[N]), command_limits=list(limits))
+            writer.end_trial()
+    assert clamped_any  # the limits were active, so the check below can fail
+    contents = read_log(path)
+    assert verify_log(contents).first_divergence is None
+    for record in contents.trials:  # without the logged limits the rebuilt law does not clamp: it diverges
+        del record["command_limits"]
+    assert verify_log(contents).first_divergence is not None

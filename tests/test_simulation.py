@@ -82,7 +82,8 @@ def test_foilc_trials_1_and_2_match_closed_form(tmp_path: Path) -> None:
     np.testing.assert_allclose(result.outputs[0, :, 0], y1, rtol=1e-12, atol=1e-13)
     np.testing.assert_allclose(result.reference[:, 0], _reference(), atol=1e-12)
     e1 = _reference() - y1
-    E1 = FractionalPD(kp, r, TS).matrix(N) @ e1
+    # d = 0: the whole trial is controllable; the law's memory starts at e1[0] with zero history before it.
+    E1 = FractionalPD(kp, r, TS, history="zero").matrix(N) @ e1
     # trial 2: dx(t+1) = (Ad + Bd p1) dx(t) + Bd p2 E1[t], dx(0) = 0 (same x0), y2 = y1 + dx
     ad, bd = _zoh()
     dx = np.zeros(N + 1)
@@ -171,3 +172,82 @@ def test_paper_table_numbers_come_from_runs(tmp_path: Path) -> None:
         assert float(cells[5]) == pytest.approx(result.metrics[2].sse, rel=1e-3)  # SSE at the disturbance trial
     assert "The paper's claims" in table
     assert ("-> holds" in table) or ("-> does not hold" in table)
+
+
+# --- fractional memory: the converged error with an uncontrollable first sample ------------------------------------
+
+
+def _delayed_design(kp: float, r: float) -> Design:
+    from foilc_hil.discretize import DiscreteModel, augment_input_delay
+
+    ad, bd = _zoh()
+    aug, _ = augment_input_delay(DiscreteModel(np.array([[ad]]), np.array([[bd]]), np.array([[1.0]]), TS), 1)
+    first_weight = 1.0 + kp * TS**-r
+    n = aug.n_states
+    return Design(
+        law="foilc",
+        A=aug.A,
+        B=aug.B,
+        C=aug.C,
+        G1=np.zeros((n, 1)),
+        H1=np.zeros((1, n)),
+        G2=np.zeros((n, 1)),
+        H2=np.zeros((1, 1)),
+        P=np.array([[-0.5 * ad / bd, 0.0, 0.7 / (bd * first_weight)]]),
+        Qb=np.eye(n),
+        Qt=np.eye(1),
+        gamma=1.0,
+        tau=0.868,
+        theta=0.868,
+        kp=kp,
+        r=r,
+        sample_time=TS,
+        input_delay=1,
+        C_measured=aug.measured_output,
+    )
+
+
+def _step_config(tmp_path: Path, memory: str) -> Config:
+    path = tmp_path / f"step_{memory}.yaml"
+    path.write_text(
+        f"""
+plant: {{a: {A_C}, b: {B_C}, c: 1.0}}
+reference: {{profile: piecewise, segments: [{{duration: {N * TS}, start: 1.0}}]}}
+sample_time: {TS}
+law: {{fractional_memory: {memory}}}
+""",
+        encoding="utf-8",
+    )
+    return load_config(path)
+
+
+def test_controllable_memory_removes_the_mittag_leffler_tail(tmp_path: Path) -> None:
+    """d = 1, a unit step from rest: e(Ts) = 1 can never be moved. With the memory on the controllable samples the
+    learned error goes to zero; with the paper-literal Caputo memory over the whole trial (which subtracts e(Ts))
+    it converges to the fixed point e + kp D^r e = 0, a Mittag-Leffler decay ~ E_r(-t^r / kp), not to zero."""
+    from scipy.special import rgamma
+
+    kp, r, trials = 0.3, 0.6, 80
+    finals = {}
+    for memory in ("controllable", "trial"):
+        result = simulate(
+            _step_config(tmp_path, memory), law="foilc", trials=trials, design=_delayed_design(kp, r), input_delay=1
+        )
+        assert not result.stopped
+        error = result.errors[-1][:, 0]
+        assert error[0] == pytest.approx(1.0)  # the uncontrollable sample: the plant rests until u(0) arrives
+        finals[memory] = error
+    controllable_rmse = float(np.sqrt(np.mean(finals["controllable"][1:] ** 2)))
+    assert controllable_rmse < 1e-6  # relative to the unit step
+    tail = finals["trial"][1:]
+    assert float(np.sqrt(np.mean(tail**2))) > 0.1  # the defect: a persistent offset
+    # Its shape: the continuous fixed point e(tau) = e(Ts) E_r(-tau^r / kp), tau = time since the first sample
+    # (Mittag-Leffler by its power series), matched up to the O(h) Grunwald-Letnikov error of the discrete law.
+    tau = np.arange(N) * TS
+    z = -(tau**r) / kp
+    mittag_leffler = sum(z**k * rgamma(r * k + 1) for k in range(200))
+    np.testing.assert_allclose(finals["trial"], mittag_leffler, atol=0.08)
+    # ... and exactly the discrete fixed point F[1:, 1:] e[1:] = -F[1:, 0] e[0] of the Caputo operator.
+    F = FractionalPD(kp, r, TS).matrix(N)
+    fixed = -np.linalg.solve(F[1:, 1:], F[1:, :1] @ finals["trial"][:1])
+    np.testing.assert_allclose(tail, fixed, atol=1e-6)
