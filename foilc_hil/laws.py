@@ -74,7 +74,7 @@ from foilc_hil.metrics import TrialMetrics, trial_metrics
 if TYPE_CHECKING:
     from foilc_hil.config import LawConfig
     from foilc_hil.design import Design
-    from foilc_hil.fractional import FractionalPD
+    from foilc_hil.fractional import FractionalPD, History
     from foilc_hil.qfilter import QFilter
 
 __all__ = [
@@ -379,7 +379,8 @@ class Foilc(LearningLaw):
             )
         self._fractional: FractionalPD | None = None
         if self.kp > 0:
-            history = "zero" if fractional_memory == "controllable" else "caputo"
+            # "controllable": zero history before e[d] (applied to e[d:]); "trial": Caputo over the whole trial
+            history: History = "zero" if fractional_memory == "controllable" else "caputo"
             self._fractional = FractionalPD(self.kp, design.r, design.sample_time, history=history)
         n_plant = n - d * m
         if n_plant < 1:

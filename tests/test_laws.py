@@ -429,3 +429,15 @@ def test_limits_are_validated_and_logged() -> None:
     assert law.state_dict()["limits"] == [-2.0, 3.0]
     law.begin_trial()
     assert float(law.command(0, np.array([0.0, 0.0]))[0]) == 0.0
+
+
+def test_law_refuses_a_design_certified_for_another_fractional_memory() -> None:
+    design = _design(A2, B2, C2, P2)
+    design.certificates["fractional_memory"] = "trial"
+    with pytest.raises(ConfigError, match=r"law\.fractional_memory"):
+        Foilc(design, 10)  # default "controllable": the certificate would not be of this law
+    assert Foilc(design, 10, fractional_memory="trial").fractional_memory == "trial"
+    with pytest.raises(ConfigError, match=r"law\.fractional_memory"):
+        Foilc(_design(A2, B2, C2, P2), 10, fractional_memory="whole")
+    # IOILC has no fractional operator: any recorded memory is fine
+    assert Ioilc(design, 10).kp == 0.0
