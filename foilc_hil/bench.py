@@ -143,6 +143,8 @@ class TrialUpdateLike(Protocol):
 class LawLike(Protocol):
     """The subset of ``foilc_hil.laws.LearningLaw`` the loop uses."""
 
+    input_delay: int
+
     def begin_trial(self) -> None: ...
 
     def command(self, t: int, output: np.ndarray) -> np.ndarray: ...
@@ -484,7 +486,7 @@ class TrialLoop:
         error = np.asarray(update.error, dtype=float).reshape(n)
         E_raw = getattr(update, "E", None)
         E = None if E_raw is None else np.asarray(E_raw, dtype=float).reshape(n)
-        metrics = trial_metrics(raw.trial, error)
+        metrics = trial_metrics(raw.trial, error, first_learnable=min(self.law.input_delay, n - 1))
         record = TrialRecord(
             trial=raw.trial,
             sample_time=self.settings.period,

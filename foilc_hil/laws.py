@@ -250,7 +250,8 @@ class LearningLaw(ABC):
         self._has_record = True
         self._in_trial = False
         self.trial += 1
-        return TrialUpdate(self.trial, error, learned.copy(), trial_metrics(self.trial, error))
+        metrics = trial_metrics(self.trial, error, first_learnable=min(self.input_delay, self.n_samples - 1))
+        return TrialUpdate(self.trial, error, learned.copy(), metrics)
 
     def restore(self, feedforward: np.ndarray) -> None:
         """Divergence guard: continue from ``feedforward`` (e.g. the best trial's); the next trial re-measures."""

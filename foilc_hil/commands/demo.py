@@ -132,20 +132,28 @@ def _write_report(log_path: Path, report_dir: Path) -> str:
 
 
 def render_table(runs: dict[str, dict[str, Any]], total_seconds: float, design_seconds: float = 0.0) -> str:
-    """The side-by-side summary: RMSE per reported trial, per law, then timing."""
+    """The side-by-side summary: RMSE per reported trial, per law (over all samples and over the samples an input
+    can move), then timing."""
     laws = list(runs)
     trials_run = max((len(run["trials"]) for run in runs.values()), default=0)
     rows = [k for k in REPORTED_TRIALS if k <= trials_run]
     if trials_run and trials_run not in rows:
         rows.append(trials_run)
-    header = f"{'trial':>6}" + "".join(f"{law.upper() + ' RMSE':>16}" for law in laws)
+    header = f"{'trial':>6}" + "".join(f"{law.upper() + ' RMSE':>16}{'learnable':>12}" for law in laws)
     lines = ["FOILC vs IOILC over CAN (embedded emulator, eq. 52 profile, rpm)", header]
     for k in rows:
         cells = []
         for law in laws:
             trials = runs[law]["trials"]
-            cells.append(f"{trials[k - 1]['rmse']:>16.4g}" if k <= len(trials) else f"{'-':>16}")
+            if k <= len(trials):
+                cells.append(f"{trials[k - 1]['rmse']:>16.4g}{trials[k - 1]['rmse_learnable']:>12.4g}")
+            else:
+                cells.append(f"{'-':>16}{'-':>12}")
         lines.append(f"{k:>6}" + "".join(cells))
+    lines.append(
+        "(learnable: RMSE over the samples an input of the trial can move; the SYNC loop's one-cycle delay leaves "
+        "the first sample's error to the initial condition)"
+    )
     lines.append("")
     for law in laws:
         run = runs[law]
