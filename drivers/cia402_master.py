@@ -48,12 +48,13 @@ Thread safety
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
 import math
 import struct
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import can
@@ -934,11 +935,12 @@ class Cia402Drive(Drive):
         for cob in tpdo_codecs:
             self.network.subscribe(cob, self._on_tpdo)
 
-    def _read(self, index: int, subindex: int, fmt: tuple[str, bool]) -> int:
-        code, signed = fmt
-        size = struct.calcsize(code)
+    @contextlib.contextmanager
+    def _sdo_errors(self, index: int, subindex: int, transfer: str) -> Iterator[None]:
+        """canopen's SDO exceptions as the product's: an abort is an ``SdoError`` with its decoded meaning, no
+        answer is a ``DriveTimeoutError`` naming the object, a frame that cannot be sent is a ``DriveError``."""
         try:
-            data = self.node.sdo.upload(index, subindex)
+            yield
         except SdoAbortedError as exc:
             raise SdoError(index, subindex, exc.code, sdo_abort_text(exc.code)) from exc
         except SdoCommunicationError as exc:
@@ -947,7 +949,13 @@ class Cia402Drive(Drive):
                 f"{self.cfg.sdo_timeout} s ({exc})"
             ) from exc
         except can.CanError as exc:
-            raise DriveError(f"SDO upload 0x{index:04X}:{subindex:02X} could not be sent: {exc}") from exc
+            raise DriveError(f"SDO {transfer} 0x{index:04X}:{subindex:02X} could not be sent: {exc}") from exc
+
+    def _read(self, index: int, subindex: int, fmt: tuple[str, bool]) -> int:
+        code, signed = fmt
+        size = struct.calcsize(code)
+        with self._sdo_errors(index, subindex, "upload"):
+            data = self.node.sdo.upload(index, subindex)
         if len(data) < size:
             raise SdoError(index, subindex, int(SdoAbortCode.LENGTH_TOO_LOW),
                            f"answered {len(data)} bytes, expected {size}")
@@ -959,17 +967,8 @@ class Cia402Drive(Drive):
             data = struct.pack("<" + code, value)
         except struct.error as exc:
             raise ConfigError(f"0x{index:04X}:{subindex:02X} = {value} does not fit its type: {exc}") from exc
-        try:
+        with self._sdo_errors(index, subindex, "download"):
             self.node.sdo.download(index, subindex, data)
-        except SdoAbortedError as exc:
-            raise SdoError(index, subindex, exc.code, sdo_abort_text(exc.code)) from exc
-        except SdoCommunicationError as exc:
-            raise DriveTimeoutError(
-                f"node {self.node_id}: no valid SDO response for 0x{index:04X}:{subindex:02X} within "
-                f"{self.cfg.sdo_timeout} s ({exc})"
-            ) from exc
-        except can.CanError as exc:
-            raise DriveError(f"SDO download 0x{index:04X}:{subindex:02X} could not be sent: {exc}") from exc
 
     def _expect(self, index: int, subindex: int, fmt: tuple[str, bool], value: int, *, mask: int = -1) -> None:
         read = self._read(index, subindex, fmt)
