@@ -17,7 +17,7 @@ from types import ModuleType
 from typing import NoReturn
 
 from foilc_hil import __version__
-from foilc_hil.errors import ExitCode, FoilcHilError, RunInterruptedError
+from foilc_hil.errors import ConfigError, ExitCode, FoilcHilError, RunInterruptedError
 
 #: subcommand name -> (module implementing it, one-line help). Modules are imported only when chosen.
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -75,6 +75,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         error: FoilcHilError = RunInterruptedError("interrupted")
         return _fail(args.command, error)
+    except ConfigError as exc:
+        return _fail(args.command, _with_source(exc, getattr(args, "config", None)))
     except FoilcHilError as exc:
         return _fail(args.command, exc)
     if want_json:
@@ -85,6 +87,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stderr.write(f"foilc-hil {args.command}: {result.message}\n")
     sys.stdout.flush()
     return int(result.exit_code)
+
+
+def _with_source(error: ConfigError, config_path: object) -> ConfigError:
+    """A config error found after loading (by the tuner, the synthesis ...) names the file it came from too."""
+    if error.source or not error.key or not isinstance(config_path, str):
+        return error
+    return type(error)(error.message, key=error.key, source=config_path)
 
 
 def _fail(command: str, error: FoilcHilError) -> int:

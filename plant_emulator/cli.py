@@ -22,7 +22,7 @@ from typing import Any, NoReturn
 from pydantic import ConfigDict, Field
 
 from drivers.config import DriveConfig
-from foilc_hil.errors import ExitCode, FoilcHilError, InputError
+from foilc_hil.errors import ConfigError, ExitCode, FoilcHilError, InputError
 from foilc_hil.schema import Section, apply_overrides, load_document, validate
 from plant_emulator.config import PlantConfig
 from plant_emulator.settings import EmulatorConfig
@@ -74,6 +74,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return _serve(args)
     except FoilcHilError as exc:
+        if isinstance(exc, ConfigError) and exc.key and not exc.source and args.config:
+            exc = ConfigError(exc.message, key=exc.key, source=args.config)  # name the file it came from
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return int(exc.exit_code)
 

@@ -55,3 +55,14 @@ def test_precedence_cli_over_file_over_default(tmp_path: Path) -> None:
 
 def test_config_error_is_a_value_error() -> None:
     assert issubclass(ConfigError, ValueError)
+
+
+def test_errors_found_after_loading_name_the_config_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The tuner finds the missing spec after the file loaded; the CLI still names the file, on one line."""
+    from foilc_hil.cli import main
+
+    path = _write(tmp_path, "plant: {a: -1.0, b: 2.0}\n")
+    assert main(["tune", "--config", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"foilc-hil tune: {path}: tuning.crossover: ")
+    assert err.count("\n") == 1
