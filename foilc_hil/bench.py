@@ -191,7 +191,7 @@ class TrialRecord:
         for i in range(self.control.shape[0]):
             yield {
                 "trial": self.trial,
-                "t": (i + 1) * self.sample_time,
+                "t": i * self.sample_time,  # the instant of the feedback the law saw (as simulate logs it)
                 "sample": i,
                 "reference": float(self.reference[i]),
                 "output": float(self.seen[i]),
