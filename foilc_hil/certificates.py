@@ -444,15 +444,16 @@ def lifted_error_map(
     length = n_samples - lead
     A_cl = A + B @ p1
     blocks = _markov_blocks(A_cl, B @ p2, C_measured, lead, length)
-    H = _BlockToeplitz(np.nan_to_num(blocks, nan=0.0) if np.all(np.isfinite(blocks)) else blocks)
+    H = _BlockToeplitz(blocks)
+    finite = bool(np.all(np.isfinite(blocks)))  # an overflowing plant takes the dense path (caller reports it)
     if fractional_memory == "controllable":
         window = _zero_history_filter(kp, r, sample_time, length)
-        if np.all(np.isfinite(blocks)):
+        if finite:
             return LiftedErrorMap(H, window, None, n_out, length)
         F_dense = window.dense()
     else:
         filt, fpd = _fractional_filter(kp, r, sample_time, n_samples)
-        if filt is not None and np.all(np.isfinite(blocks)):
+        if filt is not None and finite:
             return LiftedErrorMap(H, filt.sub(lead), None, n_out, length)
         F_dense = np.asarray(fpd.matrix(n_samples), dtype=float)[lead:, lead:]
     # Dense path: exact, O(N^2) memory.
