@@ -30,6 +30,7 @@ from typing import Any, Literal, cast
 
 import numpy as np
 
+from foilc_hil.discretize import ssmatrix
 from foilc_hil.errors import InputError
 
 LawKind = Literal["foilc", "ioilc", "p-type"]
@@ -40,17 +41,8 @@ _FLOAT_KEYS = ("gamma", "tau", "theta", "kp", "r", "sample_time", "gain_scale")
 
 
 def _matrix(value: Any, name: str) -> np.ndarray:
-    """``value`` as a finite 2-D float array (a copy, read-only); the error names ``name``."""
-    try:
-        array = np.array(value, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError(f"design.{name}: must be a matrix (list of rows of numbers)") from None
-    if array.ndim != 2:
-        raise InputError(f"design.{name}: must be a 2-D matrix, got {array.ndim} dimension(s)")
-    if not np.all(np.isfinite(array)):
-        raise InputError(f"design.{name}: must be finite")
-    array.setflags(write=False)
-    return array
+    """``value`` as a finite 2-D float array (a copy, read-only); the error names ``design.<name>``."""
+    return ssmatrix(value, f"design.{name}", allow_scalar=False)
 
 
 def _rows(array: np.ndarray) -> list[list[float]]:

@@ -43,13 +43,14 @@ __all__ = [
 Method = Literal["zoh", "euler"]
 
 
-def _ssmatrix(value: object, name: str) -> np.ndarray:
-    """``value`` as a finite 2-D float array; errors name the matrix (python-control's ``_ssmatrix`` style)."""
+def ssmatrix(value: object, name: str, *, allow_scalar: bool = True) -> np.ndarray:
+    """``value`` as a finite, read-only 2-D float array (a copy); errors name the matrix (python-control's
+    ``_ssmatrix`` style). A scalar becomes ``1 x 1`` unless ``allow_scalar`` is false."""
     try:
         array = np.array(value, dtype=float)
     except (TypeError, ValueError):
-        raise InputError(f"{name}: must be a real matrix") from None
-    if array.ndim == 0:
+        raise InputError(f"{name}: must be a real matrix (list of rows of numbers)") from None
+    if array.ndim == 0 and allow_scalar:
         array = array.reshape(1, 1)
     if array.ndim != 2:
         raise InputError(f"{name}: must be a 2-D matrix, got {array.ndim} dimension(s)")
@@ -83,9 +84,9 @@ class DiscreteModel:
     C_measured: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        A = _ssmatrix(self.A, "A")
-        B = _ssmatrix(self.B, "B")
-        C = _ssmatrix(self.C, "C")
+        A = ssmatrix(self.A, "A")
+        B = ssmatrix(self.B, "B")
+        C = ssmatrix(self.C, "C")
         n = A.shape[0]
         if A.shape != (n, n):
             raise InputError(f"A: must be square, got {A.shape[0]}x{A.shape[1]}")
@@ -99,7 +100,7 @@ class DiscreteModel:
             raise InputError(f"sample_time: must be positive, got {self.sample_time}")
         if int(self.input_delay) != self.input_delay or self.input_delay < 0:
             raise InputError(f"input_delay: must be a non-negative integer, got {self.input_delay}")
-        measured = C if self.C_measured is None else _ssmatrix(self.C_measured, "C_measured")
+        measured = C if self.C_measured is None else ssmatrix(self.C_measured, "C_measured")
         if measured.shape != C.shape:
             raise InputError(f"C_measured: must be {C.shape[0]}x{C.shape[1]} like C, got {measured.shape}")
         if self.input_delay == 0 and not np.array_equal(measured, C):
@@ -148,7 +149,7 @@ class Uncertainty:
 
     def __post_init__(self) -> None:
         for name in ("G1", "H1", "G2", "H2"):
-            object.__setattr__(self, name, _ssmatrix(getattr(self, name), name))
+            object.__setattr__(self, name, ssmatrix(getattr(self, name), name))
         blocks = tuple(int(b) for b in self.state_blocks)
         if blocks and (any(b < 1 for b in blocks) or sum(blocks) != self.G1.shape[1]):
             raise InputError(f"state_blocks: must be positive sizes summing to {self.G1.shape[1]}, got {blocks}")
@@ -262,9 +263,9 @@ def discretize(model: ContinuousModel, sample_time: float, method: Method = "zoh
 
     if not (isinstance(sample_time, (int, float)) and math.isfinite(sample_time) and sample_time > 0):
         raise InputError(f"sample_time: must be positive and finite, got {sample_time!r}")
-    a = _ssmatrix(model.a, "a")
-    b = _ssmatrix(model.b, "b")
-    c = _ssmatrix(model.c, "c")
+    a = ssmatrix(model.a, "a")
+    b = ssmatrix(model.b, "b")
+    c = ssmatrix(model.c, "c")
     n, m = a.shape[0], b.shape[1]
     if method == "zoh":
         block = np.zeros((n + m, n + m))
