@@ -15,10 +15,7 @@ Never asserted in tests (wall-clock numbers depend on the machine); ``make bench
 
 from __future__ import annotations
 
-import argparse
-import json
 import statistics
-import sys
 import tempfile
 import time
 from collections.abc import Callable, Sequence
@@ -28,6 +25,7 @@ from typing import Any
 import can
 import numpy as np
 
+from benchmarks.output import emit, json_parser
 from foilc_hil.io.mcap_log import McapLogWriter, QueuedLogWriter
 
 CONFIG_YAML = "sample_time: 0.001\n"
@@ -156,18 +154,11 @@ def collect(cycles: int = 3000) -> dict[str, Any]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_logging", description=__doc__)
-    parser.add_argument("--out", help="JSON file to write (default: stdout)")
+    parser = json_parser("python -m benchmarks.bench_logging", __doc__)
     parser.add_argument("--cycles", type=int, default=3000, help="cycles of the 1 kHz loop per writer")
     args = parser.parse_args(argv)
-    document = json.dumps(collect(args.cycles), indent=2)
-    if args.out:
-        Path(args.out).write_text(document + "\n", encoding="utf-8")
-        sys.stderr.write(f"wrote {args.out}\n")
-    else:
-        sys.stdout.write(document + "\n")
+    emit(collect(args.cycles), args.out)
     return 0
-
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -10,14 +10,14 @@
 
 from __future__ import annotations
 
-import argparse
-import json
 import statistics
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
+
+from benchmarks.output import emit, json_parser
 
 
 def _median_seconds(call: Callable[[], object], repeats: int = 5) -> float:
@@ -102,17 +102,9 @@ def collect() -> dict[str, Any]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_science", description=__doc__)
-    parser.add_argument("--out", help="JSON file to write (default: stdout)")
-    args = parser.parse_args(argv)
-    text = json.dumps(collect(), indent=2)
-    if args.out:
-        with open(args.out, "w", encoding="utf-8") as stream:
-            stream.write(text + "\n")
-    else:
-        print(text)
+    args = json_parser("python -m benchmarks.bench_science", __doc__).parse_args(argv)
+    emit(collect(), args.out)
     return 0
-
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -6,13 +6,12 @@
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import platform
-import sys
 from collections.abc import Sequence
 from typing import Any
+
+from benchmarks.output import emit, json_parser
 
 
 def _median_run(runs: list[dict[str, Any]]) -> dict[str, Any]:
@@ -61,18 +60,9 @@ def collect(repeats: int = 3) -> dict[str, Any]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.run", description=__doc__)
-    parser.add_argument("--out", help="JSON file to write (default: stdout)")
-    args = parser.parse_args(argv)
-    document = json.dumps(collect(), indent=2)
-    if args.out:
-        with open(args.out, "w", encoding="utf-8") as handle:
-            handle.write(document + "\n")
-        sys.stderr.write(f"wrote {args.out}\n")
-    else:
-        sys.stdout.write(document + "\n")
+    args = json_parser("python -m benchmarks.run", __doc__).parse_args(argv)
+    emit(collect(), args.out)
     return 0
-
 
 if __name__ == "__main__":
     raise SystemExit(main())
