@@ -69,7 +69,8 @@ from foilc_hil.errors import (
     LearningDivergedError,
     RunInterruptedError,
 )
-from foilc_hil.metrics import TrialMetrics, trial_metrics
+from foilc_hil.laws import TrialUpdate
+from foilc_hil.metrics import TrialMetrics
 from foilc_hil.progress import UPDATES_PER_TRIAL, NullProgress, ProgressView
 from foilc_hil.safety import (
     CommandLimiter,
@@ -143,13 +144,11 @@ class TrialUpdateLike(Protocol):
 class LawLike(Protocol):
     """The subset of ``foilc_hil.laws.LearningLaw`` the loop uses."""
 
-    input_delay: int
-
     def begin_trial(self) -> None: ...
 
     def command(self, t: int, output: np.ndarray) -> np.ndarray: ...
 
-    def end_trial(self, reference: np.ndarray, output: np.ndarray) -> Any: ...
+    def end_trial(self, reference: np.ndarray, output: np.ndarray) -> TrialUpdate: ...
 
     @property
     def feedforward(self) -> np.ndarray: ...
@@ -180,7 +179,7 @@ class TrialRecord:
     applied: np.ndarray  # (N,): what was sent to the drive (plant units)
     output: np.ndarray  # (N,): trial output array, output[i] = y_{i+1}
     error: np.ndarray  # (N,)
-    E: np.ndarray | None  # (N,) fractional PD function of the error; None for laws without one
+    E: np.ndarray  # (N,) the law's learning signal: FOILC's fractional PD function of the error, else the error
     metrics: TrialMetrics
     sync_times: np.ndarray  # (N + 1,) perf_counter time of each SYNC
     clamped: int = 0  # commands of this trial the limiter clamped
@@ -198,7 +197,7 @@ class TrialRecord:
                 "control": float(self.control[i]),
                 "applied": float(self.applied[i]),
                 "error": float(self.error[i]),
-                "E": None if E is None else float(E[i]),
+                "E": float(E[i]),
             }
 
 
@@ -484,9 +483,8 @@ class TrialLoop:
         output = raw.seen[1:].copy()
         update = self.law.end_trial(self.reference, output)
         error = np.asarray(update.error, dtype=float).reshape(n)
-        E_raw = getattr(update, "E", None)
-        E = None if E_raw is None else np.asarray(E_raw, dtype=float).reshape(n)
-        metrics = trial_metrics(raw.trial, error, first_learnable=min(self.law.input_delay, n - 1))
+        E = np.asarray(update.E, dtype=float).reshape(n)
+        metrics = update.metrics  # the law's metrics: learnable samples counted from its input delay
         record = TrialRecord(
             trial=raw.trial,
             sample_time=self.settings.period,
