@@ -538,6 +538,16 @@ class Cia402Drive(Drive):
 
     # --- SDO access for commissioning (not for the cyclic path) ----------------------------------------------
 
+    def sdo_upload(self, index: int, subindex: int) -> bytes:
+        """Raw SDO upload (start-up and commissioning, never the cyclic path); failures as product errors."""
+        with self._sdo_errors(index, subindex, "upload"):
+            return bytes(self.node.sdo.upload(index, subindex))
+
+    def sdo_download(self, index: int, subindex: int, data: bytes) -> None:
+        """Raw SDO download (start-up and commissioning, never the cyclic path); failures as product errors."""
+        with self._sdo_errors(index, subindex, "download"):
+            self.node.sdo.download(index, subindex, data)
+
     def read_object(self, index: int, subindex: int = 0) -> int:
         """SDO upload of an integer object, typed by the EDS (or the CiA 402 standard); SdoError on abort."""
         variable = mapped_variable(self.od, index, subindex)
@@ -946,7 +956,7 @@ class Cia402Drive(Drive):
         except SdoCommunicationError as exc:
             raise DriveTimeoutError(
                 f"node {self.node_id}: no valid SDO response for 0x{index:04X}:{subindex:02X} within "
-                f"{self.cfg.sdo_timeout} s ({exc})"
+                f"{self.cfg.sdo_timeout} s ({exc}): is the drive on this bus with this node id?"
             ) from exc
         except can.CanError as exc:
             raise DriveError(f"SDO {transfer} 0x{index:04X}:{subindex:02X} could not be sent: {exc}") from exc
@@ -954,8 +964,7 @@ class Cia402Drive(Drive):
     def _read(self, index: int, subindex: int, fmt: tuple[str, bool]) -> int:
         code, signed = fmt
         size = struct.calcsize(code)
-        with self._sdo_errors(index, subindex, "upload"):
-            data = self.node.sdo.upload(index, subindex)
+        data = self.sdo_upload(index, subindex)
         if len(data) < size:
             raise SdoError(index, subindex, int(SdoAbortCode.LENGTH_TOO_LOW),
                            f"answered {len(data)} bytes, expected {size}")
@@ -967,8 +976,7 @@ class Cia402Drive(Drive):
             data = struct.pack("<" + code, value)
         except struct.error as exc:
             raise ConfigError(f"0x{index:04X}:{subindex:02X} = {value} does not fit its type: {exc}") from exc
-        with self._sdo_errors(index, subindex, "download"):
-            self.node.sdo.download(index, subindex, data)
+        self.sdo_download(index, subindex, data)
 
     def _expect(self, index: int, subindex: int, fmt: tuple[str, bool], value: int, *, mask: int = -1) -> None:
         read = self._read(index, subindex, fmt)

@@ -34,7 +34,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import can
 import yaml
 from canopen.objectdictionary import (
     FLOAT_TYPES,
@@ -45,13 +44,12 @@ from canopen.objectdictionary import (
     ODRecord,
     ODVariable,
 )
-from canopen.sdo import SdoAbortedError, SdoCommunicationError
 from pydantic import Field, field_validator
 
 from drivers.cia301 import SdoAbortCode, sdo_abort_text
 from drivers.cia402 import Obj
 from drivers.cia402_master import Cia402Drive
-from foilc_hil.errors import ConfigError, DriveError, DriveTimeoutError, SdoError
+from foilc_hil.errors import ConfigError, DriveError, SdoError
 from foilc_hil.schema import Section, load_document, validate
 
 __all__ = [
@@ -227,23 +225,9 @@ def check_against_eds(drive: Cia402Drive, entries: list[ParameterEntry]) -> list
 # --- SDO access -------------------------------------------------------------------------------------------------
 
 
-def _no_answer(drive: Cia402Drive, entry: ParameterEntry, exc: Exception) -> DriveTimeoutError:
-    return DriveTimeoutError(
-        f"no SDO answer from node {drive.node_id} for {entry.address} ({exc}): is the drive on this bus with this "
-        "node id?"
-    )
-
-
 def _upload(drive: Cia402Drive, entry: ParameterEntry) -> int | float:
     variable = _variable(drive, entry)
-    try:
-        data = drive.node.sdo.upload(entry.index, entry.subindex)
-    except SdoAbortedError as exc:
-        raise SdoError(entry.index, entry.subindex, exc.code, sdo_abort_text(exc.code)) from exc
-    except SdoCommunicationError as exc:
-        raise _no_answer(drive, entry, exc) from exc
-    except can.CanError as exc:
-        raise DriveError(f"SDO upload {entry.address} could not be sent: {exc}") from exc
+    data = drive.sdo_upload(entry.index, entry.subindex)
     if variable is None:  # not in the EDS (only with --skip-eds-check): read as a little-endian integer
         return int.from_bytes(bytes(data), "little", signed=False)
     try:
@@ -267,14 +251,7 @@ def _download(drive: Cia402Drive, entry: ParameterEntry, value: int | float) -> 
         except (struct.error, ValueError, TypeError, ObjectDictionaryError) as exc:  # value outside the type
             raise SdoError(entry.index, entry.subindex, int(SdoAbortCode.INVALID_VALUE),
                            f"{value} does not fit the object's type: {exc}") from exc
-    try:
-        drive.node.sdo.download(entry.index, entry.subindex, data)
-    except SdoAbortedError as exc:
-        raise SdoError(entry.index, entry.subindex, exc.code, sdo_abort_text(exc.code)) from exc
-    except SdoCommunicationError as exc:
-        raise _no_answer(drive, entry, exc) from exc
-    except can.CanError as exc:
-        raise DriveError(f"SDO download {entry.address} could not be sent: {exc}") from exc
+    drive.sdo_download(entry.index, entry.subindex, data)
 
 
 # --- read / write -----------------------------------------------------------------------------------------------
