@@ -8,39 +8,19 @@ import numpy as np
 import pytest
 
 from foilc_hil.config import LawConfig, QFilterConfig
-from foilc_hil.design import Design
 from foilc_hil.discretize import DiscreteModel, augment_input_delay
 from foilc_hil.errors import ConfigError, InputError
 from foilc_hil.fractional import FractionalPD
 from foilc_hil.laws import Foilc, Ioilc, PType, lifted_plant, make_law, p_type_certificates
 from foilc_hil.qfilter import QFilter
+from tests.designs import plain_design
 
 TS = 0.05
 
 
 def _design(A, B, C, P, *, kp=0.3, r=0.7, law="foilc", input_delay=0, C_measured=None):
-    A, B, C, P = (np.atleast_2d(np.asarray(x, dtype=float)) for x in (A, B, C, P))
-    n, m, p = A.shape[0], B.shape[1], C.shape[0]
-    return Design(
-        law=law,
-        A=A,
-        B=B,
-        C=C,
-        G1=np.zeros((n, 1)),
-        H1=np.zeros((1, n)),
-        G2=np.zeros((n, 1)),
-        H2=np.zeros((1, m)),
-        P=P,
-        Qb=np.eye(n),
-        Qt=np.eye(p),
-        gamma=1.0,
-        tau=0.868,
-        theta=0.868,
-        kp=kp,
-        r=r,
-        sample_time=TS,
-        input_delay=input_delay,
-        C_measured=C_measured,
+    return plain_design(
+        A, B, C, P, kp=kp, r=r, law=law, sample_time=TS, input_delay=input_delay, C_measured=C_measured
     )
 
 
@@ -323,25 +303,8 @@ def test_law_obeys_the_certificates_lifted_error_map(delay: int, memory: str) ->
     model, _ = augment_input_delay(DiscreteModel(A, B, C, 0.1), delay)
     P = np.hstack([np.full((1, model.n_states), -0.4), [[3.0]]])
     P[0, 0] = -5.0
-    design = Design(
-        law="foilc",
-        A=model.A,
-        B=model.B,
-        C=model.C,
-        G1=np.zeros((model.n_states, 1)),
-        H1=np.zeros((1, model.n_states)),
-        G2=np.zeros((model.n_states, 1)),
-        H2=np.zeros((1, 1)),
-        P=P,
-        Qb=np.eye(model.n_states),
-        Qt=np.eye(1),
-        gamma=1.0,
-        tau=0.868,
-        theta=0.868,
-        kp=0.15,
-        r=0.6,
-        sample_time=0.1,
-        input_delay=delay,
+    design = plain_design(
+        model.A, model.B, model.C, P, kp=0.15, r=0.6, sample_time=0.1, input_delay=delay,
         C_measured=model.measured_output,
     )
     law = Foilc(design, n, fractional_memory=memory)

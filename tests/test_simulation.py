@@ -12,6 +12,7 @@ from foilc_hil.config import Config, load_config
 from foilc_hil.design import Design
 from foilc_hil.fractional import FractionalPD
 from foilc_hil.simulation import plot_simulation, simulate
+from tests.designs import plain_design
 
 A_C, B_C = -1.23, 1.68
 TS = 0.05
@@ -46,25 +47,7 @@ def _zoh() -> tuple[float, float]:
 
 def _design(p1: float, p2: float, kp: float, r: float) -> Design:
     ad, bd = _zoh()
-    return Design(
-        law="foilc",
-        A=np.array([[ad]]),
-        B=np.array([[bd]]),
-        C=np.array([[1.0]]),
-        G1=np.zeros((1, 1)),
-        H1=np.zeros((1, 1)),
-        G2=np.zeros((1, 1)),
-        H2=np.zeros((1, 1)),
-        P=np.array([[p1, p2]]),
-        Qb=np.eye(1),
-        Qt=np.eye(1),
-        gamma=1.0,
-        tau=0.868,
-        theta=0.868,
-        kp=kp,
-        r=r,
-        sample_time=TS,
-    )
+    return plain_design([[ad]], [[bd]], [[1.0]], [[p1, p2]], kp=kp, r=r, sample_time=TS)
 
 
 def _reference() -> np.ndarray:
@@ -183,27 +166,9 @@ def _delayed_design(kp: float, r: float) -> Design:
     ad, bd = _zoh()
     aug, _ = augment_input_delay(DiscreteModel(np.array([[ad]]), np.array([[bd]]), np.array([[1.0]]), TS), 1)
     first_weight = 1.0 + kp * TS**-r
-    n = aug.n_states
-    return Design(
-        law="foilc",
-        A=aug.A,
-        B=aug.B,
-        C=aug.C,
-        G1=np.zeros((n, 1)),
-        H1=np.zeros((1, n)),
-        G2=np.zeros((n, 1)),
-        H2=np.zeros((1, 1)),
-        P=np.array([[-0.5 * ad / bd, 0.0, 0.7 / (bd * first_weight)]]),
-        Qb=np.eye(n),
-        Qt=np.eye(1),
-        gamma=1.0,
-        tau=0.868,
-        theta=0.868,
-        kp=kp,
-        r=r,
-        sample_time=TS,
-        input_delay=1,
-        C_measured=aug.measured_output,
+    return plain_design(
+        aug.A, aug.B, aug.C, [[-0.5 * ad / bd, 0.0, 0.7 / (bd * first_weight)]], kp=kp, r=r, sample_time=TS,
+        input_delay=1, C_measured=aug.measured_output,
     )
 
 

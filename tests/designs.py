@@ -1,0 +1,54 @@
+"""Test helper: a ``Design`` from a given model and gain, with no uncertainty and placeholder LMI values.
+
+Tests of laws, simulation and replay need a design whose gain they choose themselves; the LMI fields
+(``Qb``, ``Qt``, ``gamma``, ``tau``, ``theta``) are then placeholders the laws never read.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from foilc_hil.design import Design
+
+
+def plain_design(
+    A: Any,
+    B: Any,
+    C: Any,
+    P: Any,
+    *,
+    kp: float,
+    r: float,
+    sample_time: float,
+    law: str = "foilc",
+    input_delay: int = 0,
+    C_measured: Any = None,
+    certificates: dict[str, Any] | None = None,
+) -> Design:
+    """``Design`` of ``(A, B, C)`` with gain ``P``, zero ``G1/H1/G2/H2`` and identity ``Qb``, ``Qt``."""
+    A, B, C, P = (np.atleast_2d(np.asarray(x, dtype=float)) for x in (A, B, C, P))
+    n, m, p = A.shape[0], B.shape[1], C.shape[0]
+    return Design(
+        law=law,
+        A=A,
+        B=B,
+        C=C,
+        G1=np.zeros((n, 1)),
+        H1=np.zeros((1, n)),
+        G2=np.zeros((n, 1)),
+        H2=np.zeros((1, m)),
+        P=P,
+        Qb=np.eye(n),
+        Qt=np.eye(p),
+        gamma=1.0,
+        tau=0.868,
+        theta=0.868,
+        kp=kp,
+        r=r,
+        sample_time=sample_time,
+        input_delay=input_delay,
+        C_measured=C_measured,
+        certificates=certificates or {},
+    )
