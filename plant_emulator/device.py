@@ -863,8 +863,7 @@ class VirtualDrive:
         with self._lock:
             self.sync_count += 1
             self._last_sync = time.monotonic()
-            if self._sync_lost:
-                self._sync_lost = False
+            self._sync_lost = False
             if self.timing is TimingMode.LOCKSTEP:
                 self._tick(self.cycle_period)  # (1) physics with the command that was active
             if self.nmt_state is not NmtState.OPERATIONAL:
