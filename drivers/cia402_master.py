@@ -89,7 +89,7 @@ from drivers.cia402 import (
     decode_state,
 )
 from drivers.config import DriveConfig
-from drivers.drive import DeviceInfo, Drive, Feedback
+from drivers.drive import DISABLED_STATES, DeviceInfo, Drive, Feedback, StopPath, StopReport
 from drivers.emcy import decode_emcy
 from drivers.heartbeat import HeartbeatMonitor, HeartbeatProducer
 from drivers.od import load_od, mapped_variable
@@ -126,6 +126,8 @@ _FEEDBACK_OBJECTS = (
 
 
 _U8, _U16, _U32 = ("B", False), ("H", False), ("I", False)
+_QUICK_STOP_GOAL = frozenset({State402.QUICK_STOP_ACTIVE, State402.SWITCH_ON_DISABLED, State402.FAULT})
+_DISABLE_GOAL = frozenset({State402.SWITCH_ON_DISABLED, State402.FAULT})
 _I8, _I16 = ("b", True), ("h", True)
 _Setting = tuple[int, int, tuple[str, bool], int, bool]  # index, sub-index, (struct code, signed), value, optional
 
@@ -174,6 +176,13 @@ def pdo_layouts(
         ),
     )
     return rpdos, tpdos
+
+
+def _nmt_name(state: int) -> str:
+    try:
+        return NmtState(state).name
+    except ValueError:
+        return f"state 0x{state:02X}"
 
 
 def _format(variable: MappedVariable) -> tuple[str, bool]:
@@ -269,6 +278,7 @@ class Cia402Drive(Drive):
         self._target_limits = (0, 0)
         self._tpdo_codecs: dict[int, PdoCodec] = {}
         self._controlword = int(Command402.DISABLE_VOLTAGE)
+        self._last_statusword = 0  # the statusword of the last state exchange (PDO or SDO)
         self._target_raw = 0
         self._operational = False
         self._connected = False  # a boot-up answered connect(): the drive is there to be stopped over SDO
@@ -415,16 +425,13 @@ class Cia402Drive(Drive):
         """Disable voltage until SWITCH_ON_DISABLED (or FAULT, which disable voltage does not leave)."""
         self._require_connected()
         self._target_raw = 0
-        self._drive_to(Command402.DISABLE_VOLTAGE, {State402.SWITCH_ON_DISABLED, State402.FAULT},
-                       self.cfg.state_timeout)
+        self._drive_to(Command402.DISABLE_VOLTAGE, _DISABLE_GOAL, self.cfg.state_timeout)
 
     def quick_stop(self) -> None:
         """Quick stop until QUICK_STOP_ACTIVE, or SWITCH_ON_DISABLED (quick stop options 0..4, or not enabled)."""
         self._require_connected()
         self._target_raw = 0
-        self._drive_to(Command402.QUICK_STOP,
-                       {State402.QUICK_STOP_ACTIVE, State402.SWITCH_ON_DISABLED, State402.FAULT},
-                       self.cfg.state_timeout)
+        self._drive_to(Command402.QUICK_STOP, _QUICK_STOP_GOAL, self.cfg.state_timeout)
 
     def fault_reset(self) -> None:
         """Rising edge on controlword bit 7 until the drive leaves FAULT.
@@ -497,21 +504,37 @@ class Cia402Drive(Drive):
             self._fail_safe()
             raise
 
-    def safe_stop(self) -> None:
-        """Quick stop, zero target, disable voltage; logs and swallows every failure."""
+    def safe_stop(self) -> StopReport:
+        """Quick stop, zero target, disable voltage, confirmed by reading the drive's statusword; never raises.
+
+        The paths of :class:`~drivers.drive.StopPath` are tried in order until one confirms a disabled power stage:
+        the RPDO (only while the drive's heartbeat says OPERATIONAL: outside it a drive ignores RPDOs), an SDO
+        write of 0x6040 (not in NMT STOPPED), NMT enter pre-operational then SDO (which also triggers the drive's
+        own 0x6007 reaction), and last NMT reset node (an application reset switches the power stage off). The
+        report says what was read back, or that nothing could be.
+        """
         if self._closed or not self._connected:
-            return  # nothing was ever commanded: no drive answered connect()
-        short = min(self.cfg.state_timeout, 0.5)
-        for command, goal in (
-            (Command402.QUICK_STOP, {State402.QUICK_STOP_ACTIVE, State402.SWITCH_ON_DISABLED, State402.FAULT}),
-            (Command402.DISABLE_VOLTAGE, {State402.SWITCH_ON_DISABLED, State402.FAULT}),
-        ):
+            return StopReport(commanded=False, confirmed=False)
+        attempts: list[str] = []
+        statusword: int | None = None
+        state: State402 | None = None
+        for path in StopPath:
             self._target_raw = 0
             try:
-                self._drive_to(command, goal, short)
+                statusword = self._stop_via(path)
+                state = decode_state(statusword)
             except Exception as exc:  # safe_stop never raises: every exit path calls it
-                logger.warning("safe stop: %s of node %d failed: %s", command.name, self.node_id, exc)
-                self._fail_safe(command)
+                attempts.append(f"{path}: {exc}")
+                logger.warning("safe stop of node %d via %s failed: %s", self.node_id, path, exc)
+                continue
+            if state in DISABLED_STATES:
+                report = StopReport(True, True, state, statusword, path, tuple(attempts), self._pending_faults())
+                logger.info("%s", report.describe(self.node_id))
+                return report
+            attempts.append(f"{path}: drive still {state.name}")
+        report = StopReport(True, False, state, statusword, None, tuple(attempts), self._pending_faults())
+        logger.error("%s", report.describe(self.node_id))
+        return report
 
     def close(self) -> None:
         """NMT pre-operational and consumer heartbeat off (best effort), then release the Notifier, producer, tap."""
@@ -678,13 +701,13 @@ class Cia402Drive(Drive):
 
     # --- cyclic helpers ---------------------------------------------------------------------------------------
 
-    def _await_feedback(self, timeout: float, *, raise_on_fault: bool) -> Feedback:
+    def _await_feedback(self, timeout: float, *, raise_on_fault: bool, raise_errors: bool = True) -> Feedback:
         deadline = time.monotonic() + timeout
         poll = 0.05
         with self._cv:
             cycle = self._cycle
             while True:
-                if self._errors:
+                if self._errors and raise_errors:
                     raise self._errors.popleft()
                 try:
                     self.heartbeat.check()
@@ -712,7 +735,7 @@ class Cia402Drive(Drive):
     def _exchange_timeout(self) -> float:
         return min(self.cfg.state_timeout, max(0.2, 10 * self._cycle_period))
 
-    def _step(self, controlword: int) -> Feedback:
+    def _step(self, controlword: int, *, ignore_errors: bool = False) -> Feedback:
         """One cycle with ``controlword``: RPDO, SYNC, feedback (paced at the cycle period)."""
         start = time.monotonic()
         self._controlword = controlword
@@ -720,7 +743,7 @@ class Cia402Drive(Drive):
         self._send(can.Message(arbitration_id=self._rpdo_cob(), data=codec.encode(controlword, self._target_raw),
                                is_extended_id=False))
         self.sync()
-        feedback = self._await_feedback(self._exchange_timeout(), raise_on_fault=False)
+        feedback = self._await_feedback(self._exchange_timeout(), raise_on_fault=False, raise_errors=not ignore_errors)
         rest = self._cycle_period - (time.monotonic() - start)
         if rest > 0:
             time.sleep(rest)
@@ -741,11 +764,16 @@ class Cia402Drive(Drive):
                     f"leave it (wanted {goal.name})"
                 )
 
-    def _drive_to(self, command: Command402, goal: set[State402], timeout: float) -> None:
-        """Send ``command`` until the drive is in one of ``goal`` (over PDO when operational, else SDO)."""
+    def _drive_to(self, command: Command402, goal: frozenset[State402], timeout: float, *,
+                  ignore_errors: bool = False) -> None:
+        """Send ``command`` until the drive is in one of ``goal`` (over PDO when operational, else SDO).
+
+        ``ignore_errors``: errors the drive reported earlier (already raised to the caller, or about to be in the
+        stop report) do not interrupt the exchange; a stop must go on through them.
+        """
         deadline = time.monotonic() + timeout
         while True:
-            state = self._command_state(int(command))
+            state = self._command_state(int(command), ignore_errors=ignore_errors)
             if state in goal:
                 return
             if time.monotonic() > deadline:
@@ -755,17 +783,60 @@ class Cia402Drive(Drive):
                     f"({command.name}) for {timeout} s did not reach {names}"
                 )
 
-    def _command_state(self, controlword: int) -> State402:
+    def _command_state(self, controlword: int, *, ignore_errors: bool = False) -> State402:
         if self._operational and self._rpdo_codec is not None:
-            return self._step(controlword).state
+            feedback = self._step(controlword, ignore_errors=ignore_errors)
+            self._last_statusword = feedback.statusword
+            return feedback.state
         self._controlword = controlword
         self._write(Obj.CONTROLWORD, 0, _U16, controlword)
         time.sleep(self._cycle_period)
         statusword = self._read(Obj.STATUSWORD, 0, _U16)
+        self._last_statusword = statusword
         try:
             return decode_state(statusword)
         except ValueError as exc:
             raise ProtocolError(f"node {self.node_id}: {exc}") from exc
+
+    def _stop_via(self, path: StopPath) -> int:
+        """Quick stop then disable voltage through ``path``; the statusword read back afterwards."""
+        short = min(self.cfg.state_timeout, 0.5)
+        nmt = self.heartbeat.last_state
+        if path is StopPath.PDO:
+            if not self._operational or self._rpdo_codec is None:
+                raise DriveError("no PDO path (the drive was never started)")
+            if nmt is not None and nmt != NmtState.OPERATIONAL:
+                raise DriveError(f"the drive reports NMT {_nmt_name(nmt)}: it ignores RPDOs")
+        elif path is StopPath.SDO:
+            if nmt == NmtState.STOPPED:
+                raise DriveError("the drive reports NMT STOPPED: it answers no SDO")
+            self._operational = False  # from here on, commands go over SDO
+        elif path is StopPath.NMT_SDO:
+            self._operational = False
+            self._enter_nmt(NmtCommand.ENTER_PRE_OPERATIONAL, (NmtState.PRE_OPERATIONAL,), short)
+        else:
+            self._operational = False
+            self._enter_nmt(NmtCommand.RESET_NODE, (NmtState.INITIALISING, NmtState.PRE_OPERATIONAL),
+                            self.cfg.state_timeout)
+            return self._read(Obj.STATUSWORD, 0, _U16)  # the application reset itself disabled the power stage
+        self._drive_to(Command402.QUICK_STOP, _QUICK_STOP_GOAL, short, ignore_errors=True)
+        self._drive_to(Command402.DISABLE_VOLTAGE, _DISABLE_GOAL, short, ignore_errors=True)
+        return self._last_statusword
+
+    def _enter_nmt(self, command: NmtCommand, states: tuple[NmtState, ...], timeout: float) -> None:
+        """Send NMT ``command`` and wait (bounded) for a heartbeat in one of ``states``; a missing heartbeat is
+        not an error here: the SDO read that follows is what confirms."""
+        self.heartbeat.disarm()
+        beats_before = self.heartbeat.beats
+        self._nmt(command)
+        self.heartbeat.wait_for(lambda s: s in states, beats_before, timeout=timeout)
+
+    def _pending_faults(self) -> tuple[str, ...]:
+        """Errors the drive reported that nobody raised yet (e.g. an EMCY during the final stop)."""
+        with self._cv:
+            pending = tuple(str(error) for error in self._errors)
+            self._errors.clear()
+        return pending
 
     def _fail_safe(self, command: Command402 = Command402.QUICK_STOP) -> None:
         """Best effort: command ``command`` with target 0 and apply it with one SYNC; never raises."""

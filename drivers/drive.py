@@ -10,6 +10,7 @@ carrying the set-point goes out first, the SYNC makes the drive apply it and ans
 
 from __future__ import annotations
 
+import enum
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -21,9 +22,82 @@ import can
 from drivers.cia301 import NmtState
 from drivers.cia402 import OperationMode, State402
 
-__all__ = ["DeviceInfo", "Drive", "Feedback"]
+__all__ = ["DISABLED_STATES", "DeviceInfo", "Drive", "Feedback", "StopPath", "StopReport"]
 
 DriveT = TypeVar("DriveT", bound="Drive")
+
+# states in which the power stage produces no torque: a stop is confirmed when the drive reports one of them
+DISABLED_STATES = frozenset({
+    State402.NOT_READY_TO_SWITCH_ON,
+    State402.SWITCH_ON_DISABLED,
+    State402.READY_TO_SWITCH_ON,
+    State402.SWITCHED_ON,
+    State402.FAULT,
+})
+
+
+@enum.unique
+class StopPath(enum.StrEnum):
+    """The channel through which a stop was commanded and its result read back, in the order they are tried."""
+
+    PDO = "pdo"  # RPDO controlword, statusword from the TPDO answering the SYNC
+    SDO = "sdo"  # SDO write of 0x6040, SDO read of 0x6041
+    NMT_SDO = "nmt+sdo"  # NMT enter pre-operational (SDO works again, the drive's 0x6007 reaction), then SDO
+    NMT_RESET = "nmt-reset"  # NMT reset node (application reset: power stage off), then an SDO read of 0x6041
+
+
+@dataclass(frozen=True)
+class StopReport:
+    """What :meth:`Drive.safe_stop` reached, read back from the drive, not assumed.
+
+    Attributes
+    ----------
+    commanded
+        False when no drive ever answered ``connect()``: nothing was enabled, nothing needed stopping.
+    confirmed
+        The drive's statusword was read after the stop and shows a disabled power stage (:data:`DISABLED_STATES`).
+    state, statusword
+        The last state read back, or None when none could be read.
+    via
+        The path that reached the confirmed state, or None.
+    attempts
+        One line per path tried that did not confirm, saying why.
+    faults
+        Errors the drive reported that had not been raised when the stop began (e.g. an EMCY after the last
+        trial): a run that otherwise succeeded must not hide them.
+    """
+
+    commanded: bool
+    confirmed: bool
+    state: State402 | None = None
+    statusword: int | None = None
+    via: StopPath | None = None
+    attempts: tuple[str, ...] = ()
+    faults: tuple[str, ...] = ()
+
+    def describe(self, node_id: int) -> str:
+        """One sentence for the user: the truth about the drive's state after the stop."""
+        if not self.commanded:
+            return f"node {node_id}: no drive answered connect(); nothing to stop"
+        if self.confirmed and self.state is not None and self.statusword is not None:
+            return (f"drive {node_id} confirmed disabled: {self.state.name} (statusword 0x{self.statusword:04X}, "
+                    f"read via {self.via})")
+        seen = (f"last state read {self.state.name} (statusword 0x{self.statusword:04X})"
+                if self.state is not None and self.statusword is not None else "its state could not be read")
+        tried = "; ".join(self.attempts) or "no stop path was available"
+        return f"drive {node_id} NOT confirmed disabled: {seen}; tried: {tried}"
+
+    def to_json(self) -> dict[str, object]:
+        """The report as the ``drive_stop`` object of ``run --json``."""
+        return {
+            "commanded": self.commanded,
+            "confirmed": self.confirmed,
+            "state": self.state.name if self.state is not None else None,
+            "statusword": self.statusword,
+            "via": str(self.via) if self.via is not None else None,
+            "attempts": list(self.attempts),
+            "faults": list(self.faults),
+        }
 
 
 @dataclass(frozen=True, slots=True)
@@ -117,8 +191,9 @@ class Drive(ABC):
         ``DriveFaultError``, ``HeartbeatLostError`` or ``ProtocolError``; each leaves the drive commanded to stop."""
 
     @abstractmethod
-    def safe_stop(self) -> None:
-        """Best effort, never raises: quick stop, zero target, disable."""
+    def safe_stop(self) -> StopReport:
+        """Never raises: quick stop, zero target, disable, escalating through the paths of :class:`StopPath`
+        until the drive's own statusword confirms a disabled power stage; the report says what was reached."""
 
     @abstractmethod
     def close(self) -> None:

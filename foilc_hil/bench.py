@@ -61,11 +61,14 @@ from typing import Any, Literal, Protocol
 import numpy as np
 
 from drivers.cia402 import State402
+from drivers.drive import StopReport
 from foilc_hil.config import Config
 from foilc_hil.errors import (
     DriveError,
     DriveFaultError,
+    DriveNotStoppedError,
     FeedbackTimeoutError,
+    FoilcHilError,
     LearningDivergedError,
     RunInterruptedError,
 )
@@ -517,7 +520,7 @@ class TrialLoop:
     def _cycle_feedback(self) -> float:
         """Release (realtime: wait for the deadline), SYNC, and wait for this cycle's feedback (watchdog-bounded)."""
         if self.stop.requested:
-            raise RunInterruptedError(f"interrupted by {self.stop.signal_name}; drive quick-stopped and disabled")
+            raise RunInterruptedError(f"interrupted by {self.stop.signal_name}; quick stop commanded")
         if self.scheduler is not None:
             deadline, lateness, skipped = self.scheduler.wait()
         else:
@@ -623,10 +626,12 @@ class RunReport:
     design: dict[str, Any]
     bus: str
     cycles: int
+    drive_stop: StopReport
 
     def to_json(self) -> dict[str, Any]:
         timing = self.outcome.timing.to_json() if self.outcome.timing is not None else {}
         return {
+            "drive_stop": self.drive_stop.to_json(),
             "law": self.law,
             "trials": [metrics.to_json() for metrics in self.outcome.trials],
             "timing": timing,
@@ -765,7 +770,8 @@ def run_bench(request: RunRequest) -> RunReport:
     before_trial: Callable[[int], None] | None = None
     where = "the embedded emulator" if bus_cfg.interface == "embedded" else f"{bus_cfg.interface}:{bus_cfg.channel}"
     title = request.title or f"{law_kind.upper()} on {where}"
-    with ExitStack() as stack:
+    stops: list[StopReport] = []
+    with _truth_about_the_stop(stops, config.drive.node_id), ExitStack() as stack:
         sink: _McapSink | None = None
         if request.out is not None:
             writer = QueuedLogWriter.open(request.out, config_yaml=dump_config(config), design=design_json)
@@ -787,7 +793,7 @@ def run_bench(request: RunRequest) -> RunReport:
         if sink is not None:
             drive.add_frame_listener(sink.writer.log_frame)
         # LIFO: safe_stop runs before the drive is closed and before the log is closed, so its frames are logged
-        stack.callback(drive.safe_stop)
+        stack.callback(lambda: stops.append(drive.safe_stop()))
         progress = make_progress(title, quiet=request.quiet)
         stack.callback(progress.close)
         stop = stack.enter_context(StopRequest())
@@ -812,4 +818,25 @@ def run_bench(request: RunRequest) -> RunReport:
         },
         bus=f"{bus_cfg.interface}:{bus_cfg.channel}",
         cycles=cycles,
+        drive_stop=stops[-1],
     )
+
+
+@contextlib.contextmanager
+def _truth_about_the_stop(stops: list[StopReport], node_id: int) -> Iterator[None]:
+    """Say what the final stop really reached: a note on an error that ends the run, and an error (exit 1) for a
+    run that otherwise succeeded but left the drive unconfirmed or faulted."""
+    try:
+        yield
+    except FoilcHilError as exc:
+        for report in stops:
+            exc.add_note(report.describe(node_id))
+            if report.faults:
+                exc.add_note("the drive also reported: " + "; ".join(report.faults))
+        raise
+    report = stops[-1]
+    if not report.confirmed:
+        raise DriveNotStoppedError(report.describe(node_id))
+    if report.faults or report.state is State402.FAULT:
+        reported = "; ".join(report.faults) or "a fault statusword"
+        raise DriveFaultError(f"the drive reported {reported} at the end of the run; {report.describe(node_id)}")

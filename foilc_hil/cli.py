@@ -98,6 +98,10 @@ def _with_source(error: ConfigError, config_path: object) -> ConfigError:
 
 def _fail(command: str, error: FoilcHilError) -> int:
     message = str(error).splitlines()[0] if str(error) else type(error).__name__
+    # PEP 678 notes carry what happened on the way out, e.g. whether the drive was confirmed disabled
+    notes = [note for note in getattr(error, "__notes__", ()) if isinstance(note, str)]
+    if notes:
+        message = "; ".join([message, *notes])
     sys.stderr.write(f"foilc-hil {command}: {message}\n")
     return int(error.exit_code)
 

@@ -117,6 +117,10 @@ class DriveFaultError(DriveError):
     """The drive reports a fault (statusword fault bit)."""
 
 
+class DriveNotStoppedError(DriveError):
+    """The drive's disabled state could not be confirmed by reading it back after the stop."""
+
+
 class EmergencyError(DriveFaultError):
     """The drive sent an EMCY message.
 

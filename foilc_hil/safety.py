@@ -116,7 +116,7 @@ class FeedbackWatchdog:
         detail = f": {cause}" if cause is not None and str(cause) else ""
         return FeedbackTimeoutError(
             f"watchdog: no feedback from the drive for {self.limit} cycles ({self.timeout:.3g} s) at cycle {cycle}; "
-            f"drive quick-stopped{detail}"
+            f"quick stop commanded{detail}"
         )
 
 

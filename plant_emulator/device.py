@@ -132,6 +132,7 @@ class FaultKind(StrEnum):
     OVER_SPEED = "over-speed"
     HEARTBEAT_LOSS = "heartbeat-loss"
     SYNC_LOSS = "sync-loss"
+    NMT_LEFT_OPERATIONAL = "nmt-left-operational"
     GENERIC = "generic"
 
 
@@ -141,9 +142,12 @@ FAULT_CODES: dict[FaultKind, tuple[EmcyCode, int]] = {
     FaultKind.OVER_SPEED: (EmcyCode.OVER_SPEED, ErrorRegister.DEVICE_PROFILE),
     FaultKind.HEARTBEAT_LOSS: (EmcyCode.HEARTBEAT_LOSS, ErrorRegister.COMMUNICATION),
     FaultKind.SYNC_LOSS: (EmcyCode.SYNC_LOSS, ErrorRegister.COMMUNICATION),
+    FaultKind.NMT_LEFT_OPERATIONAL: (EmcyCode.COMMUNICATION, ErrorRegister.COMMUNICATION),
     FaultKind.GENERIC: (EmcyCode.GENERIC, 0),
 }
-_COMMUNICATION_FAULTS = frozenset({FaultKind.HEARTBEAT_LOSS, FaultKind.SYNC_LOSS})
+_COMMUNICATION_FAULTS = frozenset({FaultKind.HEARTBEAT_LOSS, FaultKind.SYNC_LOSS, FaultKind.NMT_LEFT_OPERATIONAL})
+# the power stage may produce torque in these states: an abort-connection event must act on them
+_POWERED_STATES = frozenset({State402.OPERATION_ENABLED, State402.QUICK_STOP_ACTIVE})
 
 
 def load_object_dictionary(node_id: int, eds: str | Path | None = None) -> cod.ObjectDictionary:
@@ -561,10 +565,17 @@ class VirtualDrive:
                 self._reset_store(_COMMUNICATION_AREA)
                 self._after_reset()
             else:
+                was_operational = self.nmt_state is NmtState.OPERATIONAL
                 self.node.nmt.on_command(can_id, data, timestamp)
                 if self.nmt_state is not NmtState.OPERATIONAL:
                     for channel in self._rpdos.values():
                         channel.pending = None
+                    # Why: outside OPERATIONAL no RPDO reaches the drive, so a master could no longer stop it over
+                    # PDO. CiA 402 drives apply the abort-connection reaction (0x6007) when the NMT state leaves
+                    # OPERATIONAL (NMT stop or pre-operational, by anyone) while the power stage is on.
+                    if was_operational and self.machine.state in _POWERED_STATES:
+                        self._communication_abort(FaultKind.NMT_LEFT_OPERATIONAL)
+                        self._publish_status()
 
     def _after_reset(self) -> None:
         self._subscribe_sync()
@@ -689,7 +700,7 @@ class VirtualDrive:
             self.machine.ramp_finished()
 
     def _communication_abort(self, fault: FaultKind) -> None:
-        """Heartbeat or SYNC loss: EMCY, then the 0x6007 reaction."""
+        """Heartbeat or SYNC loss, or NMT leaving OPERATIONAL: EMCY, then the 0x6007 reaction."""
         option = (int(self._get(Obj.ABORT_CONNECTION_OPTION)) if Obj.ABORT_CONNECTION_OPTION in self.od
                   else int(AbortConnectionOption.FAULT))
         if option == AbortConnectionOption.FAULT:
@@ -723,7 +734,8 @@ class VirtualDrive:
 
     def _emcy(self, code: int, register: int, data: bytes = b"") -> None:
         self.emcy_log.append((code, register))
-        if self._network is not None and self._alive:
+        # CiA 301: a node in STOPPED sends no EMCY (the error stays latched in 0x1001/0x603F)
+        if self._network is not None and self._alive and self.nmt_state is not NmtState.STOPPED:
             self.node.emcy.send(code, register, data)
 
     def _publish_status(self) -> None:

@@ -25,11 +25,14 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import can
 import pytest
+import yaml
 from mcap.reader import make_reader
 
-from drivers.cia301 import FunctionCode, cob_id
+from drivers.cia301 import FunctionCode, NmtCommand, cob_id
 from drivers.cia402 import Command402, State402, decode_state
+from drivers.drive import DISABLED_STATES
 from foilc_hil.cli import main
 from foilc_hil.config import load_config
 from tests.test_bench_e2e import NODE, SAMPLES, bench_config
@@ -134,6 +137,7 @@ def test_emulator_stops_responding_mid_trial(
     assert code == 1
     assert len(err) == 1 and err[0].startswith("foilc-hil run: ")
     assert "feedback" in err[0] or "heartbeat" in err[0]
+    assert f"drive {NODE} NOT confirmed disabled" in err[0]  # a silent drive cannot be read back: say so
     topics = read_log(out)
     trials = assert_completed_trials_intact(topics, 2)
     assert len(trials) == 2  # the fault hit trial 3, which is not in the log
@@ -152,6 +156,7 @@ def test_drive_fault_mid_trial(
     assert code == 1
     assert len(err) == 1 and err[0].startswith("foilc-hil run: ")
     assert "EMCY" in err[0] or "fault" in err[0]
+    assert f"drive {NODE} confirmed disabled" in err[0]
     topics = read_log(out)
     trials = assert_completed_trials_intact(topics, 2)
     assert len(trials) == 2  # the fault hit trial 3, which is not in the log
@@ -219,3 +224,39 @@ def _completed_trials_on_disk(path: Path) -> int:
             return len(reader.read().completed_trials)
     except Exception:  # a file in the middle of its first write
         return 0
+
+
+@pytest.mark.parametrize("command", [NmtCommand.STOP, NmtCommand.ENTER_PRE_OPERATIONAL])
+@pytest.mark.parametrize("abort_option", [0, 3])
+def test_third_party_nmt_mid_trial_ends_confirmed_disabled(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], command: NmtCommand, abort_option: int
+) -> None:
+    """Another node takes the drive out of OPERATIONAL mid-trial. Whether or not the drive reacts itself (0x6007),
+    the run exits 1 naming the fault and the drive ends disabled, read back from the drive, not assumed."""
+    from foilc_hil.bench import emulator_settings
+    from plant_emulator.embedded import EmbeddedEmulator
+
+    config_path = bench_config(tmp_path, watchdog_cycles=3)
+    document = yaml.safe_load(config_path.read_text(encoding="utf-8"))
+    document["drive"]["abort_connection_option"] = abort_option
+    config_path.write_text(yaml.safe_dump(document), encoding="utf-8")
+    config = load_config(config_path)
+    emulator = EmbeddedEmulator.for_drive(
+        config.plant, emulator_settings(config), config.drive, sample_time=config.sample_time
+    )
+    out = tmp_path / "nmt.mcap"
+    with emulator:
+        def third_party_nmt() -> None:
+            with can.Bus(interface="virtual", channel=emulator.channel) as bus:
+                bus.send(can.Message(arbitration_id=0, data=[int(command), NODE], is_extended_id=False))
+
+        watcher = when_mid_trial(emulator, out, 1, third_party_nmt)
+        code = run_cli(config_path, emulator.channel, out, trials=20)
+        watcher.join(timeout=5)
+        state_after = emulator.drive.state
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1
+    assert len(err) == 1 and err[0].startswith("foilc-hil run: "), err
+    assert f"drive {NODE} confirmed disabled" in err[0], err[0]
+    assert state_after in DISABLED_STATES
+    assert_completed_trials_intact(read_log(out), 1)

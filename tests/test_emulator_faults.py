@@ -6,13 +6,15 @@ from __future__ import annotations
 import struct
 import time
 
+import can
 import pytest
 
 from drivers.bus import open_bus
-from drivers.cia301 import EmcyCode, ErrorRegister, FunctionCode, NmtCommand, cob_id
+from drivers.cia301 import EmcyCode, ErrorRegister, FunctionCode, NmtCommand, NmtState, cob_id
 from drivers.cia402 import AbortConnectionOption, Obj, OperationMode, State402
 from drivers.cia402_master import Cia402Drive
 from drivers.config import DriveConfig
+from drivers.drive import StopPath
 from foilc_hil.errors import DriveError, EmergencyError, HeartbeatLostError
 from plant_emulator.config import PlantConfig, PmsmConfig
 from plant_emulator.device import FaultKind
@@ -270,3 +272,72 @@ def test_short_rpdo_is_refused_with_emcy() -> None:
         frames = h.recorder.wait_count(h.emcy, 1)
         assert _emcy(frames[0])[0] == EmcyCode.PDO_LENGTH
         assert h.drive.state is State402.SWITCH_ON_DISABLED  # the frame was not applied
+
+
+# --- NMT leaving OPERATIONAL, and the master's confirmed stop ------------------------------------------------
+
+
+@pytest.mark.parametrize("command", [NmtCommand.STOP, NmtCommand.ENTER_PRE_OPERATIONAL])
+@pytest.mark.parametrize(
+    ("option", "state_after"),
+    [
+        (AbortConnectionOption.NO_ACTION, State402.OPERATION_ENABLED),
+        (AbortConnectionOption.FAULT, State402.FAULT),
+        (AbortConnectionOption.DISABLE_VOLTAGE, State402.SWITCH_ON_DISABLED),
+        (AbortConnectionOption.QUICK_STOP, State402.QUICK_STOP_ACTIVE),
+    ],
+)
+def test_leaving_operational_reacts_per_0x6007(command: NmtCommand, option: int, state_after: State402) -> None:
+    """Outside OPERATIONAL no RPDO reaches the drive: the drive applies its abort-connection reaction itself."""
+    with Harness() as h:
+        h.node.sdo[Obj.ABORT_CONNECTION_OPTION].raw = option
+        _enable_csv(h, target_counts=100_000)
+        h.nmt(command)
+        assert h.drive.state is state_after
+        if option != AbortConnectionOption.NO_ACTION:
+            assert h.drive.snapshot().error_code == EmcyCode.COMMUNICATION
+            if command is NmtCommand.ENTER_PRE_OPERATIONAL:  # no EMCY from a STOPPED node (CiA 301)
+                frames = h.recorder.wait_count(h.emcy, 1)
+                assert _emcy(frames[-1])[0] == EmcyCode.COMMUNICATION
+
+
+@pytest.mark.parametrize("command", [NmtCommand.STOP, NmtCommand.ENTER_PRE_OPERATIONAL])
+def test_master_stop_is_confirmed_when_the_pdo_path_is_gone(command: NmtCommand) -> None:
+    """A third party takes the drive out of OPERATIONAL; the drive itself does nothing (0x6007 = 0). The master's
+    stop escalates past the dead PDO path and confirms the disabled state by reading the statusword over SDO."""
+    plant = PlantConfig(model="pmsm")
+    with EmbeddedEmulator(plant, EmulatorConfig(), node_id=2, sample_time=0.01, velocity_scale=1000.0) as emulator:
+        master = _master(emulator, velocity_scale=1000.0, abort_connection_option=0)
+        try:
+            bus = open_bus(emulator.bus_config)
+            try:
+                bus.send(can.Message(arbitration_id=0, data=[int(command), 2], is_extended_id=False))
+                deadline = time.monotonic() + 5.0
+                while master.heartbeat.last_state == NmtState.OPERATIONAL and time.monotonic() < deadline:
+                    time.sleep(0.01)
+            finally:
+                bus.shutdown()
+            assert emulator.drive.state is State402.OPERATION_ENABLED  # 0x6007 = 0: still enabled, no PDO path
+            report = master.safe_stop()
+            assert report.commanded and report.confirmed, report
+            assert report.via in (StopPath.SDO, StopPath.NMT_SDO)
+            assert report.attempts and report.attempts[0].startswith("pdo:")
+            assert emulator.drive.state is State402.SWITCH_ON_DISABLED
+            assert report.state is State402.SWITCH_ON_DISABLED
+            assert "confirmed disabled" in report.describe(2) and "NOT" not in report.describe(2)
+        finally:
+            master.close()
+
+
+def test_master_stop_of_a_silent_drive_is_reported_unconfirmed() -> None:
+    plant = PlantConfig(model="pmsm")
+    with EmbeddedEmulator(plant, EmulatorConfig(), node_id=2, sample_time=0.01, velocity_scale=1000.0) as emulator:
+        master = _master(emulator, velocity_scale=1000.0, sdo_timeout=0.1, state_timeout=0.3)
+        try:
+            emulator.drive.stop_responding()
+            report = master.safe_stop()
+            assert report.commanded and not report.confirmed
+            assert [line.split(":")[0] for line in report.attempts] == [str(path) for path in StopPath]
+            assert "NOT confirmed disabled" in report.describe(2)
+        finally:
+            master.close()
