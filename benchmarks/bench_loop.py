@@ -4,10 +4,10 @@ and without logging.
 Three measurements, each a short run of the real code:
 
 ``loop_only``
-    :class:`foilc_hil.bench.TrialLoop` against an in-memory drive (a first-order plant answering each SYNC at
+    :class:`foilc_hil.loop.bench.TrialLoop` against an in-memory drive (a first-order plant answering each SYNC at
     once, no CAN): the loop's own cost per cycle (law, clamp, safety, timing record).
 ``can_lockstep_no_log`` / ``can_lockstep_logged``
-    :func:`foilc_hil.bench.run_bench` over the embedded emulator (python-can ``virtual`` bus, the CiA 402 master
+    :func:`foilc_hil.loop.bench.run_bench` over the embedded emulator (python-can ``virtual`` bus, the CiA 402 master
     and the virtual drive in one process), without a log and with the queued MCAP log. ``cycles_per_second`` is
     what the demo's sample-time choice rests on; ``compute_p50_us`` is the hot-path cost (feedback in -> command
     sent, including the frame tap's enqueue when logging).
@@ -86,9 +86,9 @@ def _first_order_config(sample_time: float, duration: float) -> Any:
 
 def loop_only(samples: int = 2000, trials: int = 5) -> dict[str, Any]:
     """The trial loop's own per-cycle cost (no CAN)."""
-    from foilc_hil.bench import LoopSettings, TrialLoop
-    from foilc_hil.laws import PType
-    from foilc_hil.safety import CommandLimiter
+    from foilc_hil.laws.learning import PType
+    from foilc_hil.loop.bench import LoopSettings, TrialLoop
+    from foilc_hil.loop.safety import CommandLimiter
 
     sample_time = 0.001
     a, b = -1.23, 1.68
@@ -122,7 +122,7 @@ def loop_only(samples: int = 2000, trials: int = 5) -> dict[str, Any]:
 def can_lockstep(logged: bool, *, sample_time: float = 0.005, duration: float = 2.0, trials: int = 5) -> dict[str, Any]:
     """Lockstep run over the embedded emulator (virtual bus), with or without the MCAP log."""
     from drivers.config import BusConfig
-    from foilc_hil.bench import RunRequest, run_bench
+    from foilc_hil.loop.bench import RunRequest, run_bench
 
     config = _first_order_config(sample_time, duration)
     with tempfile.TemporaryDirectory() as tmp:

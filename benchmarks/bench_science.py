@@ -33,7 +33,7 @@ def fractional(lengths: Sequence[int] = (256, 2000, 6000), r: float = 0.7, h: fl
     """Direct vs FFT vs scipy.lfilter for the Caputo derivative of a smooth signal of each length."""
     from scipy.signal import lfilter
 
-    from foilc_hil.fractional import caputo_derivative, gl_weights
+    from foilc_hil.design.fractional import caputo_derivative, gl_weights
 
     rows = []
     for n in lengths:
@@ -70,8 +70,8 @@ def fractional(lengths: Sequence[int] = (256, 2000, 6000), r: float = 0.7, h: fl
 def lmi(sample_time: float = 0.01) -> list[dict[str, Any]]:
     """LMI (31) on the paper's plant (48), once with each solver asked first. ``solve_lmi`` falls back to the other
     solver when a solution fails the numpy re-check; ``solved_by`` and ``fallbacks`` show when that happened."""
-    from foilc_hil.discretize import Uncertainty, discretize
-    from foilc_hil.synthesis import solve_lmi
+    from foilc_hil.design.lmi import solve_lmi
+    from foilc_hil.design.models import Uncertainty, discretize
     from plant_emulator.config import PlantConfig
     from plant_emulator.linear import continuous_model
 

@@ -84,8 +84,8 @@ class LawConfig(Section):
     kind: Literal["foilc", "ioilc", "p-type"] = "foilc"
     p_type_gain: float | None = None  # Arimoto gain; None: 1 / (C B) scaled for monotonic convergence
     q_filter: QFilterConfig | None = None
-    # Where the fractional operator's memory starts (foilc_hil.laws): "controllable" -- at the first error sample
-    # an input can move, zero history before it (the converged error is zero); "trial" -- the paper-literal
+    # Where the fractional operator's memory starts (foilc_hil.laws.learning): "controllable" -- at the first error
+    # sample an input can move, zero history before it (the converged error is zero); "trial" -- the paper-literal
     # Caputo derivative over the whole trial error (leaves a Mittag-Leffler tail when e(0) != 0), for comparison.
     fractional_memory: Literal["controllable", "trial"] = "controllable"
 

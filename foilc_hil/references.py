@@ -1,6 +1,6 @@
 """Repeated set-point profiles ``y_r(t)`` of one trial: paper eq. (49), eq. (52) and user piecewise profiles.
 
-Sample alignment (shared with :mod:`foilc_hil.laws` and :mod:`foilc_hil.simulation`)
+Sample alignment (shared with :mod:`foilc_hil.laws.learning` and :mod:`foilc_hil.loop.simulation`)
 -------------------------------------------------------------------------------------
 A trial of ``N`` samples issues the inputs ``u(0) .. u(N-1)``; ``u(i)`` is held over ``[i Ts, (i+1) Ts)``.
 Trial arrays (reference, output, error, ``E``) are indexed ``i = 0 .. N-1`` and hold the value at the END of

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from foilc_hil.design import Design
+from foilc_hil.design.record import Design
 
 
 def plain_design(

@@ -71,7 +71,7 @@ def assert_completed_trials_intact(topics: dict[str, list[dict[str, Any]]], mini
 @pytest.fixture
 def emulator_on_channel(tmp_path: Path) -> Iterator[tuple[Any, str, Path]]:
     """The real emulator on a fresh virtual channel, outside the bench (so the test can stop or fault it)."""
-    from foilc_hil.bench import emulator_settings
+    from foilc_hil.loop.bench import emulator_settings
     from plant_emulator.embedded import EmbeddedEmulator
 
     config_path = bench_config(tmp_path, watchdog_cycles=3)
@@ -233,7 +233,7 @@ def test_third_party_nmt_mid_trial_ends_confirmed_disabled(
 ) -> None:
     """Another node takes the drive out of OPERATIONAL mid-trial. Whether or not the drive reacts itself (0x6007),
     the run exits 1 naming the fault and the drive ends disabled, read back from the drive, not assumed."""
-    from foilc_hil.bench import emulator_settings
+    from foilc_hil.loop.bench import emulator_settings
     from plant_emulator.embedded import EmbeddedEmulator
 
     config_path = bench_config(tmp_path, watchdog_cycles=3)

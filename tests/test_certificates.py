@@ -7,7 +7,7 @@ import warnings
 import numpy as np
 import pytest
 
-from foilc_hil.certificates import (
+from foilc_hil.design.certificates import (
     DENSE_LIMIT,
     certify,
     dense_error_map,
@@ -16,11 +16,11 @@ from foilc_hil.certificates import (
     lifted_input_map,
     map_certificate,
 )
-from foilc_hil.discretize import DiscreteModel, Uncertainty, augment_input_delay, discretize
+from foilc_hil.design.fractional import FractionalPD
+from foilc_hil.design.lmi import solve_lmi
+from foilc_hil.design.models import DiscreteModel, Uncertainty, augment_input_delay, discretize
+from foilc_hil.design.qfilter import QFilter
 from foilc_hil.errors import ConvergenceCertificateError
-from foilc_hil.fractional import FractionalPD
-from foilc_hil.qfilter import QFilter
-from foilc_hil.synthesis import solve_lmi
 from plant_emulator.linear import ContinuousModel
 from tests.test_synthesis import _mimo
 

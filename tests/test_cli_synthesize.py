@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from foilc_hil.cli import main
-from foilc_hil.design import Design
+from foilc_hil.design.record import Design
 
 pytestmark = pytest.mark.filterwarnings("ignore:Solution may be inaccurate")
 

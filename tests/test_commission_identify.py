@@ -25,7 +25,7 @@ from foilc_hil.cli import main
 from foilc_hil.commission import identify
 from foilc_hil.commission.target import CommissionTarget
 from foilc_hil.config import Config, load_config
-from foilc_hil.discretize import uncertainty_from_config
+from foilc_hil.design.models import uncertainty_from_config
 from foilc_hil.errors import DriveError, DriveFaultError, InputError
 from plant_emulator.config import PmsmConfig, UncertaintyConfig
 from plant_emulator.physics.pmsm import nominal_first_order

@@ -19,7 +19,7 @@ import yaml
 
 from foilc_hil.cli import main
 from foilc_hil.config import load_config
-from foilc_hil.synthesis import synthesize_from_config
+from foilc_hil.design.lmi import synthesize_from_config
 from plant_emulator.linear import continuous_model
 
 pytestmark = pytest.mark.timeout(600)

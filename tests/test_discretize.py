@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from foilc_hil.design import Design
-from foilc_hil.discretize import (
+from foilc_hil.design.models import (
     DiscreteModel,
     Uncertainty,
     augment_input_delay,
     discretize,
     uncertainty_from_config,
 )
+from foilc_hil.design.record import Design
 from foilc_hil.errors import ConfigError, InputError
 from plant_emulator.config import UncertaintyConfig
 from plant_emulator.linear import ContinuousModel

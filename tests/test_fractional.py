@@ -21,8 +21,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.special import gamma, rgamma
 
-from foilc_hil.errors import ConfigError, InputError
-from foilc_hil.fractional import (
+from foilc_hil.design.fractional import (
     FFT_THRESHOLD,
     FractionalPD,
     caputo_derivative,
@@ -30,6 +29,7 @@ from foilc_hil.fractional import (
     gl_derivative,
     gl_weights,
 )
+from foilc_hil.errors import ConfigError, InputError
 
 Truth = Callable[[np.ndarray, float], np.ndarray]
 

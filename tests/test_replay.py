@@ -14,7 +14,7 @@ import pytest
 
 from foilc_hil.cli import main
 from foilc_hil.io.mcap_log import McapLogWriter, read_log
-from foilc_hil.replay import _output_for_error, play_frames, select_frames, verify_log
+from foilc_hil.logtools.replay import _output_for_error, play_frames, select_frames, verify_log
 from tests.designs import plain_design
 
 N = 25
@@ -165,7 +165,7 @@ def test_output_for_error_reproduces_the_error_exactly() -> None:
 def test_verify_with_the_real_foilc_law_rebuilt_from_metadata(tmp_path: Path) -> None:
     """make_law + Design.from_json + config from the log's metadata reproduce a FOILC run bit for bit."""
     from foilc_hil.config import Config, dump_config
-    from foilc_hil.laws import make_law
+    from foilc_hil.laws.learning import make_law
 
     design = plain_design([[0.9]], [[0.1]], [[1.0]], [[-0.4, 3.0]], kp=0.05, r=0.6, sample_time=0.01,
                           certificates={"spectral_radius": 0.5})
@@ -350,7 +350,7 @@ def test_replay_of_a_truncated_log_says_so_and_uses_what_it_has(
 def test_verify_rebuilds_a_clamping_law_with_the_logged_command_limits(tmp_path: Path) -> None:
     """A run whose law clamped to limits verifies bit for bit only with the logged limits (saturation-aware law)."""
     from foilc_hil.config import Config, dump_config
-    from foilc_hil.laws import make_law
+    from foilc_hil.laws.learning import make_law
 
     design = plain_design([[0.9]], [[0.1]], [[1.0]], [[-0.4, 5.0]], kp=0.0, r=1.0, sample_time=0.01, law="ioilc")
     limits = (-0.8, 0.8)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from foilc_hil.errors import FeedbackTimeoutError, LearningDivergedError
-from foilc_hil.safety import CommandLimiter, DivergenceGuard, FeedbackWatchdog, StopRequest, require_finite
+from foilc_hil.loop.safety import CommandLimiter, DivergenceGuard, FeedbackWatchdog, StopRequest, require_finite
 
 
 def test_limiter_clamps_and_counts() -> None:
@@ -127,8 +127,8 @@ class _InMemoryDrive:
 
 
 def _loop(drive: _InMemoryDrive, gain: float, factor: float = 3.0) -> Any:
-    from foilc_hil.bench import LoopSettings, TrialLoop
-    from foilc_hil.laws import PType
+    from foilc_hil.laws.learning import PType
+    from foilc_hil.loop.bench import LoopSettings, TrialLoop
 
     a_d, b_d = drive.a_d, drive.b_d
     A = np.array([[a_d, b_d], [0.0, 0.0]])

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from foilc_hil.scheduler import DeadlineScheduler, TimingRecorder
+from foilc_hil.loop.scheduler import DeadlineScheduler, TimingRecorder
 
 
 class FakeClock:

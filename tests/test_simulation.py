@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from foilc_hil.config import Config, load_config
-from foilc_hil.design import Design
-from foilc_hil.fractional import FractionalPD
-from foilc_hil.simulation import plot_simulation, simulate
+from foilc_hil.design.fractional import FractionalPD
+from foilc_hil.design.record import Design
+from foilc_hil.loop.simulation import plot_simulation, simulate
 from tests.designs import plain_design
 
 A_C, B_C = -1.23, 1.68
@@ -141,7 +141,7 @@ def test_mcap_log_and_plots(tmp_path: Path) -> None:
 
 
 def test_paper_table_numbers_come_from_runs(tmp_path: Path) -> None:
-    from foilc_hil.simulation import paper_table
+    from foilc_hil.loop.simulation import paper_table
 
     extra = "  disturbance: {kind: constant, amplitude: 0.2, start_trial: 3}"
     config = _config(tmp_path, extra=extra)
@@ -161,7 +161,7 @@ def test_paper_table_numbers_come_from_runs(tmp_path: Path) -> None:
 
 
 def _delayed_design(kp: float, r: float) -> Design:
-    from foilc_hil.discretize import DiscreteModel, augment_input_delay
+    from foilc_hil.design.models import DiscreteModel, augment_input_delay
 
     ad, bd = _zoh()
     aug, _ = augment_input_delay(DiscreteModel(np.array([[ad]]), np.array([[bd]]), np.array([[1.0]]), TS), 1)

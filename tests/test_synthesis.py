@@ -7,9 +7,7 @@ import warnings
 import numpy as np
 import pytest
 
-from foilc_hil.discretize import DiscreteModel, Uncertainty, augment_input_delay, discretize
-from foilc_hil.errors import LmiInfeasibleError
-from foilc_hil.synthesis import (
+from foilc_hil.design.lmi import (
     lmi_matrix,
     roesser_model,
     solve_lmi,
@@ -17,6 +15,8 @@ from foilc_hil.synthesis import (
     uncertainty_vertices,
     verify_lmi_solution,
 )
+from foilc_hil.design.models import DiscreteModel, Uncertainty, augment_input_delay, discretize
+from foilc_hil.errors import LmiInfeasibleError
 from plant_emulator.linear import ContinuousModel
 
 pytestmark = pytest.mark.filterwarnings("ignore:Solution may be inaccurate")
@@ -186,7 +186,7 @@ def test_synthesize_returns_a_design_with_certificates() -> None:
 def test_synthesize_certifies_the_fractional_memory_the_law_runs() -> None:
     """d = 0, a large e(0) weight: the Caputo correction column (memory "trial") changes the certificate's 2-norm;
     the design records which operator it certified, and the law built from it must match."""
-    from foilc_hil.laws import Foilc
+    from foilc_hil.laws.learning import Foilc
 
     model = _paper_plant(0.01)
     designs = {

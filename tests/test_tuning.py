@@ -20,8 +20,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from foilc_hil.config import load_config
-from foilc_hil.errors import ConfigError, TuningInfeasibleError
-from foilc_hil.tuning import (
+from foilc_hil.design.tuning import (
     CONTROL_CROSSOVER_RTOL,
     CONTROL_PHASE_TOL_DEG,
     evaluate_pair,
@@ -33,6 +32,7 @@ from foilc_hil.tuning import (
     tune,
     tune_loop,
 )
+from foilc_hil.errors import ConfigError, TuningInfeasibleError
 
 
 def _closed_form(num: list[float], den: list[float], delay: float, wc: float, pm_deg: float) -> tuple[float, float]:

@@ -4,8 +4,9 @@ What runs: the plant emulator in this process (a PMSM axis behind a PI velocity 
 uncertainty, an inertia drift and a load-torque disturbance from the 5th trial, ``configs/demo.yaml``) behind a
 CiA 402 virtual drive on a python-can ``virtual`` bus; the bench commissions it over SDO and runs the paper's
 experiment profile (eq. 52, 400 -> 600 rpm over 6 s) for 30 trials with each law, in lockstep -- the CAN path, not
-the offline simulator. Each run writes an MCAP log and a report (PNG plots + summary, :mod:`foilc_hil.report`) and
-the command prints a side-by-side table at the end. The designs of both laws are computed first, in parallel.
+the offline simulator. Each run writes an MCAP log and a report (PNG plots + summary,
+:mod:`foilc_hil.logtools.report`) and the command prints a side-by-side table at the end. The designs of both
+laws are computed first, in parallel.
 
 Sample time: ``Ts = 10 ms`` (600 samples per 6 s trial; 2 x 30 x (601 trial + ~100 settle) ~= 41k cycles). The
 embedded CAN path with the PMSM physics (200 sub-steps of 50 us per 10 ms cycle) runs about 550-700 lockstep
@@ -48,9 +49,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def execute(args: argparse.Namespace) -> CommandResult:
     from drivers.config import BusConfig
-    from foilc_hil.bench import RunRequest, run_bench
     from foilc_hil.config import load_config
     from foilc_hil.errors import InputError
+    from foilc_hil.loop.bench import RunRequest, run_bench
 
     if args.trials is not None and args.trials < 1:
         raise InputError(f"--trials: must be >= 1, got {args.trials}")
@@ -104,7 +105,7 @@ def execute(args: argparse.Namespace) -> CommandResult:
 
 def _design_one(config: Any, law: str, n_samples: int) -> dict[str, Any]:
     """One law's design as JSON (runs in a worker process)."""
-    from foilc_hil.bench import build_design
+    from foilc_hil.loop.bench import build_design
 
     return dict(build_design(config, law, n_samples).to_json())
 
@@ -114,7 +115,7 @@ def design_all(config: Any, laws: tuple[str, ...]) -> dict[str, Any]:
     trial are the slow part of the demo's start-up; the machine has two cores)."""
     from concurrent.futures import ProcessPoolExecutor
 
-    from foilc_hil.design import Design
+    from foilc_hil.design.record import Design
     from foilc_hil.references import trial_samples
 
     n_samples = trial_samples(config.reference, config.sample_time)
@@ -125,7 +126,7 @@ def design_all(config: Any, laws: tuple[str, ...]) -> dict[str, Any]:
 
 def _write_report(log_path: Path, report_dir: Path) -> str:
     """F's report (plots + summary) for one log; returns the directory written."""
-    from foilc_hil import report
+    from foilc_hil.logtools import report
 
     report.write_report(log_path, report_dir)
     return str(report_dir)

@@ -20,7 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def execute(args: argparse.Namespace) -> CommandResult:
-    from foilc_hil.export import export_frames
+    from foilc_hil.logtools.export import export_frames
 
     result = export_frames(args.log, args.out, args.format)
     if result.truncated:

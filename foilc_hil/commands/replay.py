@@ -61,7 +61,7 @@ def _check_bus(spec: str, allow_real_bus: bool) -> Any:
 
 def execute(args: argparse.Namespace) -> CommandResult:
     from foilc_hil.io.mcap_log import read_log
-    from foilc_hil.replay import play_frames, select_frames, verify_log
+    from foilc_hil.logtools.replay import play_frames, select_frames, verify_log
 
     if not args.rate > 0:
         raise InputError(f"--rate: must be > 0, got {args.rate}")

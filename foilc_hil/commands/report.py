@@ -21,7 +21,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def execute(args: argparse.Namespace) -> CommandResult:
-    from foilc_hil.report import write_report
+    from foilc_hil.logtools.report import write_report
 
     files = write_report(args.log, args.out)
     summary = files.summary

@@ -51,9 +51,9 @@ def resolve_bus(config: Any, bus_spec: str | None, emulator: str | None) -> Any:
 
 
 def execute(args: argparse.Namespace) -> CommandResult:
-    from foilc_hil.bench import RunRequest, run_bench
     from foilc_hil.config import load_config
     from foilc_hil.errors import InputError
+    from foilc_hil.loop.bench import RunRequest, run_bench
 
     if args.trials is not None and args.trials < 1:
         raise InputError(f"--trials: must be >= 1, got {args.trials}")

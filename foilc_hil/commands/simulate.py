@@ -36,7 +36,7 @@ def execute(args: argparse.Namespace) -> CommandResult:
     """Load the config, design (tune + synthesize) unless P-type, run the trials, report per-trial metrics."""
     from foilc_hil.config import load_config
     from foilc_hil.errors import ConfigError, ExitCode, InputError
-    from foilc_hil.simulation import plot_simulation, simulate
+    from foilc_hil.loop.simulation import plot_simulation, simulate
 
     config = load_config(args.config, {"law.kind": args.law, "trials": args.trials})
     if args.trials is not None and args.trials < 1:

@@ -2,7 +2,7 @@
 
 JSON (``--json``): ``{"A", "B", "C", "G1", "H1", "G2", "H2", "P", "Qb", "Qt", "gamma", "tau", "theta", "kp", "r",
 "sample_time", "certificates": {...}}`` plus ``law``, ``input_delay``, ``gain_scale``, ``p1``, ``p2`` and
-``C_measured`` (:meth:`foilc_hil.design.Design.to_json`). ``kp``/``r`` come from ``tuning.kp``/``tuning.r`` when
+``C_measured`` (:meth:`foilc_hil.design.record.Design.to_json`). ``kp``/``r`` come from ``tuning.kp``/``tuning.r`` when
 given, else from the tuner. An infeasible LMI or an uncertifiable law exits 3.
 """
 
@@ -15,7 +15,7 @@ from foilc_hil.commands import CommandResult
 
 if TYPE_CHECKING:
     from foilc_hil.config import Config
-    from foilc_hil.design import Design
+    from foilc_hil.design.record import Design
 
 HELP = "solve the LMI of Theorem 1 for the learning gain P"
 
@@ -44,7 +44,7 @@ def _fractional_parameters(config: Config, law: str) -> tuple[float, float]:
     if law == "ioilc":
         return 0.0, 1.0 if r is None else float(r)
     if kp is None or r is None:
-        from foilc_hil.tuning import tune
+        from foilc_hil.design.tuning import tune
 
         tuned = tune(config)
         kp, r = tuned.kp, tuned.r
@@ -76,8 +76,8 @@ def _text(design: Design) -> str:
 def execute(args: argparse.Namespace) -> CommandResult:
     """Load the config, get ``kp``/``r``, solve LMI (31), certify the law as it runs, print the design."""
     from foilc_hil.config import load_config
+    from foilc_hil.design.lmi import synthesize_from_config
     from foilc_hil.errors import InputError
-    from foilc_hil.synthesis import synthesize_from_config
 
     if args.input_delay < 0:
         raise InputError(f"--input-delay: must be >= 0, got {args.input_delay}")
@@ -85,7 +85,7 @@ def execute(args: argparse.Namespace) -> CommandResult:
     kp, r = _fractional_parameters(config, args.law)
     q_matrix = None
     if config.law.q_filter is not None:
-        from foilc_hil.qfilter import QFilter
+        from foilc_hil.design.qfilter import QFilter
         from foilc_hil.references import trial_samples
 
         q_filter = QFilter(config.law.q_filter.cutoff, config.law.q_filter.order, config.sample_time)

@@ -1,6 +1,6 @@
 """``foilc-hil tune``: tune the fractional PD function's ``kp``, ``r`` (and ``K``) from a loop specification.
 
-The open loop is ``L(s) = K (1 + kp s^r) G(s)``; see :mod:`foilc_hil.tuning` for the method and its checks.
+The open loop is ``L(s) = K (1 + kp s^r) G(s)``; see :mod:`foilc_hil.design.tuning` for the method and its checks.
 JSON (``--json``): ``{"K", "kp", "r", "crossover", "phase_margin_deg", "plant": {"num", "den", "delay"},
 "achieved": {"crossover", "phase_margin_deg"}, "mode", "flat_phase", "solutions", "checks"}``.
 Exit 3 when no ``kp > 0``, ``0 < r < 2`` meets the specification; the message says why.
@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 from foilc_hil.commands import CommandResult
 
 if TYPE_CHECKING:
-    from foilc_hil.tuning import TuningResult
+    from foilc_hil.design.tuning import TuningResult
 
 HELP = "tune the fractional PD function's kp and r from loop specifications"
 
@@ -44,7 +44,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def execute(args: argparse.Namespace) -> CommandResult:
     """Load the config with the command-line overrides, tune (or evaluate kp/r), and report."""
     from foilc_hil.config import load_config
-    from foilc_hil.tuning import tune
+    from foilc_hil.design.tuning import tune
 
     overrides = {
         "tuning.crossover": args.crossover,

@@ -270,7 +270,7 @@ class McapLogWriter(_ClosingListener):
         """Log one sample on ``/ilc/sample``: ``output`` is the feedback the law saw, ``control`` its command.
 
         Scalars for a SISO axis, sequences/arrays for a multi-variable one. Values are encoded exactly (float64
-        ``repr``), so :func:`foilc_hil.replay.verify_log` can check the law bit for bit.
+        ``repr``), so :func:`foilc_hil.logtools.replay.verify_log` can check the law bit for bit.
         """
         document: dict[str, Any] = {
             "trial": trial,

@@ -1,6 +1,6 @@
 """The learning gain and everything it was designed on: one frozen, JSON-round-trippable record.
 
-A :class:`Design` is what ``foilc-hil synthesize`` prints, what the learning laws (:mod:`foilc_hil.laws`) run
+A :class:`Design` is what ``foilc-hil synthesize`` prints, what the learning laws (:mod:`foilc_hil.laws.learning`) run
 with, and what an MCAP log stores in its ``foilc_hil.design`` metadata record (``replay --verify`` rebuilds the
 law from it, so :meth:`Design.from_json` must reproduce :meth:`Design.to_json` exactly).
 
@@ -11,13 +11,13 @@ The law applies, per sample ``t`` of trial ``k`` (paper eq. 21, with ``P = (p1 p
 
 Sample alignment is that of :mod:`foilc_hil.references`: ``error[i] = e((i+1) Ts)`` is the first error sample
 ``u(i)`` can move, so with no input delay the paper's ``E_{k-1}(t+1)`` is ``E_{k-1}[i]``. With ``input_delay = d``
-cycles the design model is augmented (:func:`foilc_hil.discretize.augment_input_delay`): the state is
+cycles the design model is augmented (:func:`foilc_hil.design.models.augment_input_delay`): the state is
 ``z = [x; u(t-d); ...; u(t-1)]``, ``C`` is the ``d``-step-ahead output map and ``C_measured = [C_plant 0]``; the law
 then uses ``E_{k-1}[i + d]`` (:attr:`Design.error_lead`, zero past the end of the trial), the first error
 sample ``u(i)`` can move through the delay.
 
 ``gain_scale`` is informational: when the certificate step had to shrink ``p2`` (see
-:mod:`foilc_hil.certificates`), the stored ``P`` already contains the shrunk ``p2``; ``gain_scale`` records by
+:mod:`foilc_hil.design.certificates`), the stored ``P`` already contains the shrunk ``p2``; ``gain_scale`` records by
 how much, so a reader can tell the LMI gain from the gain that runs.
 """
 
@@ -30,7 +30,7 @@ from typing import Any, Literal, cast
 
 import numpy as np
 
-from foilc_hil.discretize import ssmatrix
+from foilc_hil.design.models import ssmatrix
 from foilc_hil.errors import InputError
 
 LawKind = Literal["foilc", "ioilc", "p-type"]
@@ -98,7 +98,7 @@ class Design:
     gain_scale
         ``1.0`` unless the certificate step rescaled ``p2`` (``P`` holds the rescaled gain).
     certificates
-        Convergence certificates of the law as it runs (see :mod:`foilc_hil.certificates`).
+        Convergence certificates of the law as it runs (see :mod:`foilc_hil.design.certificates`).
     C_measured
         The measured output ``y = C_measured z`` of the (augmented) state; ``None`` means ``C`` (allowed only
         without input delay). Always an array after construction.

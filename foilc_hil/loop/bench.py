@@ -14,7 +14,7 @@ braking velocity set-point and in CST lets a stable axis coast down), until ``|y
 ``bench.settle_time``; a settle that does not finish within :data:`SETTLE_TIMEOUT_FACTOR` x ``settle_time`` (at
 least :data:`MIN_SETTLE_TIMEOUT` seconds of cycles) raises :class:`~foilc_hil.errors.DriveError`.
 
-Timing modes (:mod:`foilc_hil.scheduler`): ``lockstep`` sends the next SYNC as soon as the command of the
+Timing modes (:mod:`foilc_hil.loop.scheduler`): ``lockstep`` sends the next SYNC as soon as the command of the
 previous one is out; ``realtime`` releases each SYNC on an absolute deadline (period ``sample_time``), measures
 lateness, feedback latency and missed deadlines, and logs one ``/timing`` record per cycle.
 
@@ -26,7 +26,7 @@ Hot path: the per-trial arrays are allocated before the trial; per cycle the loo
 the law and the drive, and the frame tap enqueues CAN frames for the log writer thread. ``/ilc/sample``,
 ``/ilc/trial`` and ``/timing`` messages are built after the trial.
 
-Safety (:mod:`foilc_hil.safety`): commands are clamped to the drive limits and the plant saturation; the
+Safety (:mod:`foilc_hil.loop.safety`): commands are clamped to the drive limits and the plant saturation; the
 watchdog bounds the wait for each SYNC's feedback to ``bench.watchdog_cycles`` cycles (one period each in
 realtime, :data:`LOCKSTEP_FEEDBACK_TIMEOUT` in lockstep) -- no further SYNC is sent while waiting, the drive holds
 its last command, and feedback that arrives after half a period is counted late; when it trips the master has
@@ -42,7 +42,7 @@ command before the bench's limiter (what the law computed, so ``replay --verify`
 the clamped, quantised value actually sent is kept in :attr:`TrialRecord.applied`, and ``/ilc/trial`` counts the
 clamped commands in ``clamped``). The law is built with the limiter's limits (``make_law(..., limits=...)``) and
 clamps internally, so it learns from the input that was applied (saturation-aware learning, see
-:mod:`foilc_hil.laws`); the limiter stays as the safety layer and is normally a no-op. ``/ilc/trial`` records
+:mod:`foilc_hil.laws.learning`); the limiter stays as the safety layer and is normally a no-op. ``/ilc/trial`` records
 those limits as ``command_limits: [lower, upper]`` so that ``replay --verify`` rebuilds the same law.
 ``reference``, ``error`` and ``E`` are row ``i`` of the trial
 arrays (``error[i] = reference[i] - y_{i+1}``), so the SSE of a trial is the sum of the squared ``error`` fields.
@@ -72,10 +72,8 @@ from foilc_hil.errors import (
     LearningDivergedError,
     RunInterruptedError,
 )
-from foilc_hil.laws import TrialUpdate
-from foilc_hil.metrics import TrialMetrics
-from foilc_hil.progress import UPDATES_PER_TRIAL, NullProgress, ProgressView
-from foilc_hil.safety import (
+from foilc_hil.laws.learning import TrialUpdate
+from foilc_hil.loop.safety import (
     CommandLimiter,
     DivergenceGuard,
     DivergenceVerdict,
@@ -83,7 +81,9 @@ from foilc_hil.safety import (
     StopRequest,
     require_finite,
 )
-from foilc_hil.scheduler import DeadlineScheduler, TimingRecorder, TimingSummary
+from foilc_hil.loop.scheduler import DeadlineScheduler, TimingRecorder, TimingSummary
+from foilc_hil.metrics import TrialMetrics
+from foilc_hil.progress import UPDATES_PER_TRIAL, NullProgress, ProgressView
 from plant_emulator.settings import EmulatorConfig
 
 __all__ = [
@@ -108,7 +108,7 @@ LOCKSTEP_FEEDBACK_TIMEOUT = 0.1
 LATE_FEEDBACK_FRACTION = 0.5
 
 
-# --- what the loop talks to (the real pieces: drivers.drive.Drive, foilc_hil.laws, foilc_hil.io.mcap_log) ---------
+# --- what the loop talks to (drivers.drive.Drive, foilc_hil.laws.learning, foilc_hil.io.mcap_log) ---------------
 
 
 class FeedbackLike(Protocol):
@@ -145,7 +145,7 @@ class TrialUpdateLike(Protocol):
 
 
 class LawLike(Protocol):
-    """The subset of ``foilc_hil.laws.LearningLaw`` the loop uses."""
+    """The subset of ``foilc_hil.laws.learning.LearningLaw`` the loop uses."""
 
     def begin_trial(self) -> None: ...
 
@@ -601,7 +601,7 @@ class RunRequest:
     quiet
         No progress view on stderr.
     design
-        A precomputed :class:`foilc_hil.design.Design` (the demo reuses one); ``None``: tune if needed and
+        A precomputed :class:`foilc_hil.design.record.Design` (the demo reuses one); ``None``: tune if needed and
         synthesize with ``input_delay = 1`` (the CAN loop's one-cycle transport delay).
     """
 
@@ -650,11 +650,11 @@ CAN_INPUT_DELAY = 1
 
 def build_design(config: Any, law: str, n_samples: int) -> Any:
     """Tune (if the config gives no ``kp``/``r``) and synthesize the design for the bench's CAN loop."""
-    from foilc_hil.synthesis import synthesize_from_config
+    from foilc_hil.design.lmi import synthesize_from_config
 
     kp, r = config.tuning.kp, config.tuning.r
     if kp is None or r is None:
-        from foilc_hil.tuning import tune
+        from foilc_hil.design.tuning import tune
 
         tuned = tune(config)
         kp, r = tuned.kp, tuned.r
@@ -740,7 +740,7 @@ def run_bench(request: RunRequest) -> RunReport:
     from foilc_hil.config import dump_config
     from foilc_hil.errors import LogFormatError
     from foilc_hil.io.mcap_log import QueuedLogWriter
-    from foilc_hil.laws import make_law
+    from foilc_hil.laws.learning import make_law
     from foilc_hil.progress import make_progress
     from foilc_hil.references import reference_profile
 

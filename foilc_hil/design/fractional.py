@@ -31,7 +31,7 @@ Memory (``history``)
   the first sample. The operator is then a pure lower-triangular Toeplitz matrix ``I + kp h^-r T`` with diagonal
   ``1 + kp h^-r`` (invertible). For a signal that really starts from rest (``f(0) = 0``, and ``f'(0) = 0`` for
   ``r > 1``), Grünwald–Letnikov, Riemann–Liouville and Caputo agree, so both modes give the same derivative.
-  The learning law uses this mode on the controllable part of the error (:mod:`foilc_hil.laws`).
+  The learning law uses this mode on the controllable part of the error (:mod:`foilc_hil.laws.learning`).
 
 The sum is a *linear* (not circular) convolution of the weights with ``g``. Short signals use a direct
 convolution, long ones a zero-padded FFT (``scipy.signal.fftconvolve``, which pads to the full ``2N - 1``

@@ -34,7 +34,7 @@ acts on ``e~ = e[d:]`` (``L = N - d`` samples). Writing ``A_cl = A + B p1``, the
 ``T`` is the map of the law as it runs: an exact identity on trial-to-trial error differences (the tests check
 it against a brute-force trial-by-trial simulation), not a bound.
 
-With a Q-filter (zero-phase, an ``N x N`` matrix ``Q``; as :mod:`foilc_hil.laws` runs it, the feedforward
+With a Q-filter (zero-phase, an ``N x N`` matrix ``Q``; as :mod:`foilc_hil.laws.learning` runs it, the feedforward
 stored for the next trial is ``Q u_{k-1}``, so ``u_k = Q u_{k-1} + P2 S E_{k-1} + P1 (z_k - z_{k-1})``) the error
 recursion does not close; the map acts on the input instead:
 
@@ -74,7 +74,7 @@ from typing import Any
 
 import numpy as np
 
-from foilc_hil.discretize import DiscreteModel, Uncertainty
+from foilc_hil.design.models import DiscreteModel, Uncertainty
 from foilc_hil.errors import ConfigError, ConvergenceCertificateError, InputError
 
 __all__ = [
@@ -207,7 +207,7 @@ def _check_memory(fractional_memory: str) -> str:
 
 def _zero_history_filter(kp: float, r: float, h: float, n: int) -> _ScalarFilter:
     """``FractionalPD(kp, r, h, history="zero")`` on ``n`` samples: pure lower-triangular Toeplitz."""
-    from foilc_hil.fractional import FractionalPD, gl_weights
+    from foilc_hil.design.fractional import FractionalPD, gl_weights
 
     FractionalPD(kp, r, h, history="zero")  # validates kp, r, h
     weights = kp * h**-r * gl_weights(r, n)
@@ -216,7 +216,7 @@ def _zero_history_filter(kp: float, r: float, h: float, n: int) -> _ScalarFilter
 
 
 def _law_filter(kp: float, r: float, h: float, n: int, lead: int, fractional_memory: str) -> _ScalarFilter:
-    """The ``N x N`` operator ``E = F e`` (per channel) that :mod:`foilc_hil.laws` applies, as a filter.
+    """The ``N x N`` operator ``E = F e`` (per channel) that :mod:`foilc_hil.laws.learning` applies, as a filter.
 
     ``"controllable"``: ``diag(I_lead, Toeplitz)`` (zero-history GL on ``e[lead:]``); ``"trial"``: the Caputo
     ``FractionalPD`` on the whole trial (Toeplitz plus correction columns, or dense columns if that fails).
@@ -237,7 +237,8 @@ def _windowed(kp: float, r: float, h: float, n: int, lead: int) -> _ScalarFilter
 def law_filter_matrix(
     kp: float, r: float, sample_time: float, n_samples: int, lead: int = 0, fractional_memory: str = "controllable"
 ) -> np.ndarray:
-    """The dense ``(N, N)`` matrix ``F`` of ``E = F e`` as :class:`foilc_hil.laws.Foilc` computes it per channel.
+    """The dense ``(N, N)`` matrix ``F`` of ``E = F e`` as :class:`foilc_hil.laws.learning.Foilc` computes it per
+    channel.
 
     ``fractional_memory="controllable"``: ``diag(I_lead, I + kp h^-r T)`` with ``T`` the GL Toeplitz matrix on
     ``N - lead`` samples; ``"trial"``: ``FractionalPD(kp, r, h).matrix(N)`` (Caputo over the whole trial).
@@ -249,7 +250,7 @@ def law_filter_matrix(
 
 def _fractional_filter(kp: float, r: float, h: float, n: int) -> tuple[_ScalarFilter | None, Any]:
     """Decompose ``FractionalPD(kp, r, h)`` on ``n`` samples; ``None`` when the decomposition fails the probe."""
-    from foilc_hil.fractional import FractionalPD
+    from foilc_hil.design.fractional import FractionalPD
 
     fpd = FractionalPD(kp, r, h)
     k = min(CORRECTION_COLUMNS, n)
@@ -789,7 +790,7 @@ class Certification:
 
 
 def _plants(model: DiscreteModel, uncertainty: Uncertainty) -> list[tuple[str, np.ndarray, np.ndarray]]:
-    from foilc_hil.synthesis import uncertainty_vertices
+    from foilc_hil.design.lmi import uncertainty_vertices
 
     plants = [("nominal", model.A, model.B)]
     for index, (dA, dB) in enumerate(uncertainty_vertices(uncertainty), start=1):

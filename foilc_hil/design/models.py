@@ -16,7 +16,7 @@ first block row of ``z(t+1) = Az z(t) + Bz u(t)``. The measured output is ``y(t)
 output is the ``d``-step-ahead output ``y(t+d) = Cz z(t)`` (computable from ``z(t)`` because the inputs of the
 next ``d`` steps are already in the delay line), which restores relative degree one for the Roesser model of
 Theorem 1. A law designed on the augmented model therefore uses the measured error ``d`` samples further ahead
-(see :attr:`foilc_hil.design.Design.error_lead`).
+(see :attr:`foilc_hil.design.record.Design.error_lead`).
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@
   interrupts the loop between a SYNC and its command: the loop then quick-stops the drive itself.
 
 What the bench does when one of them trips (quick stop, disable, close the log, exit code) is in
-:mod:`foilc_hil.bench`.
+:mod:`foilc_hil.loop.bench`.
 """
 
 from __future__ import annotations

@@ -2,12 +2,12 @@
 
 Each trial runs sample by sample exactly as the bench does: reset the plant for trial ``k`` (initial condition,
 disturbance armed from ``disturbance.start_trial``), then for ``t = 0 .. N-1`` hand the measured output
-``y(t Ts)`` to :meth:`~foilc_hil.laws.LearningLaw.command`, hold the returned ``u(t)`` over one sample (after
+``y(t Ts)`` to :meth:`~foilc_hil.laws.learning.LearningLaw.command`, hold the returned ``u(t)`` over one sample (after
 ``input_delay`` samples, the CAN loop's transport delay when emulated), and finally pass the trial arrays
-(values at ``(i + 1) Ts``, see :mod:`foilc_hil.references`) to :meth:`~foilc_hil.laws.LearningLaw.end_trial`.
+(values at ``(i + 1) Ts``, see :mod:`foilc_hil.references`) to :meth:`~foilc_hil.laws.learning.LearningLaw.end_trial`.
 No plant dynamics are written here.
 
-``python -m foilc_hil.simulation --paper-table [--config configs/paper_sim.yaml]`` prints the Markdown table of
+``python -m foilc_hil.loop.simulation --paper-table [--config configs/paper_sim.yaml]`` prints the Markdown table of
 ``docs/paper-reproduction.md`` from fresh runs.
 """
 
@@ -24,14 +24,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from foilc_hil.design import jsonable
+from foilc_hil.design.record import jsonable
 from foilc_hil.errors import ConfigError, LearningDivergedError
 from foilc_hil.metrics import TrialMetrics
 
 if TYPE_CHECKING:
     from foilc_hil.config import Config
-    from foilc_hil.design import Design
-    from foilc_hil.laws import LearningLaw
+    from foilc_hil.design.record import Design
+    from foilc_hil.laws.learning import LearningLaw
 
 __all__ = [
     "SimulationResult",
@@ -113,8 +113,8 @@ class SimulationResult:
 
 def nominal_discrete_model(config: Config, input_delay: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The nominal ``(A, B, C_measured)`` sampled with ``config.synthesis.discretization`` and augmented by
-    ``input_delay`` cycles (:func:`foilc_hil.discretize.augment_input_delay`) -- what a P-type law needs."""
-    from foilc_hil.discretize import augment_input_delay, discretize
+    ``input_delay`` cycles (:func:`foilc_hil.design.models.augment_input_delay`) -- what a P-type law needs."""
+    from foilc_hil.design.models import augment_input_delay, discretize
     from plant_emulator.linear import continuous_model
 
     model = discretize(continuous_model(config.plant), config.sample_time, config.synthesis.discretization)
@@ -127,13 +127,13 @@ def design_for(config: Config, law: str, input_delay: int = 0) -> Design:
 
     IOILC is designed with ``kp = 0`` (``r`` is then unused; the tuned or given ``r``, or 1, is recorded).
     """
-    from foilc_hil.synthesis import synthesize_from_config
+    from foilc_hil.design.lmi import synthesize_from_config
 
     if law not in ("foilc", "ioilc"):
         raise ConfigError(f"no LMI design for law {law!r}", key="law.kind")
     q_matrix = None
     if config.law.q_filter is not None:
-        from foilc_hil.qfilter import QFilter
+        from foilc_hil.design.qfilter import QFilter
         from foilc_hil.references import trial_samples
 
         q_filter = QFilter(config.law.q_filter.cutoff, config.law.q_filter.order, config.sample_time)
@@ -144,7 +144,7 @@ def design_for(config: Config, law: str, input_delay: int = 0) -> Design:
             config, law="ioilc", kp=0.0, r=1.0 if r is None else r, input_delay=input_delay, q_filter=q_matrix
         )
     if kp is None or r is None:
-        from foilc_hil.tuning import tune
+        from foilc_hil.design.tuning import tune
 
         tuned = tune(config)
         kp, r = tuned.kp, tuned.r
@@ -155,14 +155,14 @@ def build_law(
     config: Config, law: str, n_samples: int, *, design: Design | None = None, input_delay: int = 0
 ) -> tuple[LearningLaw, Design | None, dict[str, Any]]:
     """The law ``law`` for ``config`` with its design (2D laws) and certificates."""
-    from foilc_hil.laws import PType, make_law, p_type_certificates
+    from foilc_hil.laws.learning import PType, make_law, p_type_certificates
 
     if law not in LAWS:
         raise ConfigError(f"unknown law {law!r}; choose {', '.join(LAWS)}", key="law.kind")
     if law == "p-type":
         q_filter = None
         if config.law.q_filter is not None:
-            from foilc_hil.qfilter import QFilter
+            from foilc_hil.design.qfilter import QFilter
 
             q_filter = QFilter(config.law.q_filter.cutoff, config.law.q_filter.order, config.sample_time)
         if design is not None:
@@ -555,7 +555,7 @@ def _certificate(certificates: dict[str, Any], names: Sequence[str]) -> Any:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m foilc_hil.simulation --paper-table [--config C] [--trials N]``."""
+    """``python -m foilc_hil.loop.simulation --paper-table [--config C] [--trials N]``."""
     from foilc_hil.config import load_config
     from foilc_hil.errors import FoilcHilError
 
@@ -576,7 +576,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         table = paper_table(load_config(args.config), trials=args.trials)
         if args.update_doc is not None:
             _update_doc(
-                Path(args.update_doc), table, f"python -m foilc_hil.simulation --paper-table --config {args.config}"
+                Path(args.update_doc),
+                table,
+                f"python -m foilc_hil.loop.simulation --paper-table --config {args.config}",
             )
     except FoilcHilError as exc:
         sys.stderr.write(f"{exc}\n")

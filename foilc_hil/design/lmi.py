@@ -65,8 +65,8 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
-from foilc_hil.design import Design
-from foilc_hil.discretize import DiscreteModel, Uncertainty, augment_input_delay, discretize, uncertainty_from_config
+from foilc_hil.design.models import DiscreteModel, Uncertainty, augment_input_delay, discretize, uncertainty_from_config
+from foilc_hil.design.record import Design
 from foilc_hil.errors import ConfigError, InputError, LmiInfeasibleError
 
 if TYPE_CHECKING:
@@ -467,7 +467,7 @@ def synthesize(
     solver, margin
         cvxpy solver tried first and the LMI strictness margin.
     on_divergent_filter
-        ``"rescale"``, ``"augment"`` or ``"refuse"`` (see :func:`foilc_hil.certificates.certify`).
+        ``"rescale"``, ``"augment"`` or ``"refuse"`` (see :func:`foilc_hil.design.certificates.certify`).
     q_filter
         Optional ``N x N`` zero-phase Q-filter matrix applied to the feedforward between trials.
     require_monotonic
@@ -476,7 +476,7 @@ def synthesize(
         Trials over which the error-growth bound is reported when only asymptotic convergence is certified.
     fractional_memory
         The law's ``law.fractional_memory`` (``"controllable"`` or ``"trial"``): the certificate is of the
-        operator the law applies (:mod:`foilc_hil.laws`), and is recorded in ``certificates``.
+        operator the law applies (:mod:`foilc_hil.laws.learning`), and is recorded in ``certificates``.
 
     Raises
     ------
@@ -485,7 +485,7 @@ def synthesize(
     foilc_hil.errors.ConvergenceCertificateError
         The law as it runs is not certified and could not be fixed (exit 3).
     """
-    from foilc_hil.certificates import certify
+    from foilc_hil.design.certificates import certify
 
     started = time.perf_counter()
     if law not in ("foilc", "ioilc"):

@@ -140,7 +140,7 @@ def play_frames(
 
 
 class LawLike(Protocol):
-    """The part of :class:`foilc_hil.laws.LearningLaw` that verification drives."""
+    """The part of :class:`foilc_hil.laws.learning.LearningLaw` that verification drives."""
 
     n_samples: int
 
@@ -234,7 +234,7 @@ def law_from_log(contents: LogContents, n_samples: int) -> LawLike:
     design names the law that ran; the bench may override the config's ``law.kind``), with the command limits the
     bench logged in ``/ilc/trial`` (``command_limits``; none in offline logs, whose laws do not clamp). Without
     one (an offline P-type run): the P-type law of the config's nominal model
-    (:func:`foilc_hil.simulation.build_law`, no input delay).
+    (:func:`foilc_hil.loop.simulation.build_law`, no input delay).
 
     Raises
     ------
@@ -263,11 +263,11 @@ def law_from_log(contents: LogContents, n_samples: int) -> LawLike:
                 f"{contents.path}: no foilc_hil.design metadata; --verify needs the design the {config.law.kind} "
                 "run used"
             )
-        from foilc_hil.simulation import build_law
+        from foilc_hil.loop.simulation import build_law
 
         return build_law(config, "p-type", n_samples)[0]
-    from foilc_hil.design import Design
-    from foilc_hil.laws import make_law
+    from foilc_hil.design.record import Design
+    from foilc_hil.laws.learning import make_law
 
     try:
         design = Design.from_json(design_doc)

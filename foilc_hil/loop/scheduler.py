@@ -1,6 +1,6 @@
 """Cycle timing for the bench: absolute deadlines, a hybrid sleep/spin wait, and per-cycle timing records.
 
-Two timing modes drive the SYNC of the CAN loop (see :mod:`foilc_hil.bench`):
+Two timing modes drive the SYNC of the CAN loop (see :mod:`foilc_hil.loop.bench`):
 
 ``lockstep``
     The next SYNC goes out as soon as the feedback of the previous one is in and the command is sent. The run is

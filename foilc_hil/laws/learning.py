@@ -18,7 +18,7 @@ at ``(t + 1 + d) Ts``. Entries past the end of the trial (``t + d >= N``) are ze
 any output of the trial, so nothing is learned for them. The state is reconstructed from the measured output,
 ``x = pinv(C) y``, which requires ``C`` to have full column rank (else :class:`~foilc_hil.errors.ConfigError`
 naming ``plant.c``) -- ``C`` here is the design's MEASURED output map ``design.measured_output``; with ``d > 0``
-the design's augmented state is ``[x; u(t-d); ...; u(t-1)]`` (:func:`foilc_hil.discretize.augment_input_delay`,
+the design's augmented state is ``[x; u(t-d); ...; u(t-1)]`` (:func:`foilc_hil.design.models.augment_input_delay`,
 oldest input first), whose extra entries are the law's own past commands of this trial (zero before the trial
 starts, as the plant rests). The lead ``d`` is ``design.error_lead``.
 
@@ -32,7 +32,7 @@ operator with diagonal ``1 + kp h^-r``); ``E[0:d] = error[0:d]`` is only logged,
 point ``E[d:] = 0`` and the operator is invertible, so the converged error is zero on the controllable samples.
 ``"trial"`` is the paper-literal operator: the Caputo derivative over the whole trial error, which subtracts
 ``e(0)``; with ``e(0) != 0`` its fixed point ``e + kp D^r e = 0`` is a Mittag-Leffler decay of ``e``, not zero
-(kept for comparison). :mod:`foilc_hil.certificates` certifies the same operator (``fractional_memory``).
+(kept for comparison). :mod:`foilc_hil.design.certificates` certifies the same operator (``fractional_memory``).
 
 Saturation-aware learning
 -------------------------
@@ -51,7 +51,7 @@ feedforward and drops the previous-trial record the same way, so the next trial 
 restored feedforward before learning resumes.
 
 Optional Q-filter: after each trial the feedforward stored for the next trial is ``Q(u_k)`` (zero phase,
-:mod:`foilc_hil.qfilter`).
+:mod:`foilc_hil.design.qfilter`).
 
 Determinism: every operation is a fixed sequence of numpy calls on fixed-shape float64 arrays (no threads, no
 reductions whose order depends on data), so the same design, configuration and measured outputs give
@@ -73,9 +73,9 @@ from foilc_hil.metrics import TrialMetrics, trial_metrics
 
 if TYPE_CHECKING:
     from foilc_hil.config import LawConfig
-    from foilc_hil.design import Design
-    from foilc_hil.fractional import FractionalPD, History
-    from foilc_hil.qfilter import QFilter
+    from foilc_hil.design.fractional import FractionalPD, History
+    from foilc_hil.design.qfilter import QFilter
+    from foilc_hil.design.record import Design
 
 __all__ = [
     "FRACTIONAL_MEMORY",
@@ -351,7 +351,7 @@ class Foilc(LearningLaw):
         fractional_memory: str = "controllable",
         limits: tuple[float, float] | None = None,
     ) -> None:
-        from foilc_hil.fractional import FractionalPD
+        from foilc_hil.design.fractional import FractionalPD
 
         n, m, p, d = design.n_states, design.n_inputs, design.n_outputs, design.error_lead
         super().__init__(
@@ -654,7 +654,7 @@ def make_law(
     """
     q_filter = None
     if law_cfg.q_filter is not None:
-        from foilc_hil.qfilter import QFilter
+        from foilc_hil.design.qfilter import QFilter
 
         q_filter = QFilter(law_cfg.q_filter.cutoff, law_cfg.q_filter.order, design.sample_time)
     memory = law_cfg.fractional_memory

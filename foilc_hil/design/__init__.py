@@ -1,0 +1,1 @@
+"""Design: models, fractional calculus, tuning, the LMI, certificates, and the one pipeline config -> Design."""

@@ -1,0 +1,1 @@
+"""Learning laws: the per-sample update the trial loop calls."""

@@ -1,0 +1,1 @@
+"""Log tools: replay, report, export."""

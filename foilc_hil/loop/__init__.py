@@ -1,0 +1,1 @@
+"""The trial loop: bench over CAN, scheduler, safety, the simulated drive."""
