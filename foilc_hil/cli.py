@@ -74,11 +74,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         result = module.execute(args)
     except KeyboardInterrupt:
         error: FoilcHilError = RunInterruptedError("interrupted")
-        return _fail(args.command, error)
+        return _fail(args.command, error, want_json)
     except ConfigError as exc:
-        return _fail(args.command, _with_source(exc, getattr(args, "config", None)))
+        return _fail(args.command, _with_source(exc, getattr(args, "config", None)), want_json)
     except FoilcHilError as exc:
-        return _fail(args.command, exc)
+        return _fail(args.command, exc, want_json)
     if want_json:
         sys.stdout.write(json.dumps(result.document, indent=2, allow_nan=False) + "\n")
     elif result.text:
@@ -96,13 +96,21 @@ def _with_source(error: ConfigError, config_path: object) -> ConfigError:
     return type(error)(error.message, key=error.key, source=config_path)
 
 
-def _fail(command: str, error: FoilcHilError) -> int:
+def _fail(command: str, error: FoilcHilError, want_json: bool) -> int:
+    """One line on stderr; under ``--json`` also one JSON document on stdout, so a script always gets a document."""
     message = str(error).splitlines()[0] if str(error) else type(error).__name__
     # PEP 678 notes carry what happened on the way out, e.g. whether the drive was confirmed disabled
     notes = [note for note in getattr(error, "__notes__", ()) if isinstance(note, str)]
     if notes:
         message = "; ".join([message, *notes])
     sys.stderr.write(f"foilc-hil {command}: {message}\n")
+    if want_json:
+        detail: dict[str, object] = {"type": type(error).__name__, "message": message,
+                                     "exit_code": int(error.exit_code)}
+        if isinstance(error, ConfigError):
+            detail.update(key=error.key, source=error.source)
+        sys.stdout.write(json.dumps({"error": detail}) + "\n")
+        sys.stdout.flush()
     return int(error.exit_code)
 
 

@@ -18,11 +18,14 @@ from typing import Annotated, Any, TypeVar
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, BeforeValidator, ConfigDict, ValidationError
+from pydantic import BaseModel, BeforeValidator, ConfigDict, ValidationError, field_validator
 
 from foilc_hil.errors import ConfigError
 
 __all__ = [
+    "MAX_DOCUMENT_BYTES",
+    "MAX_EXPANDED_NODES",
+    "MAX_MAGNITUDE",
     "Matrix",
     "Section",
     "apply_overrides",
@@ -33,11 +36,40 @@ __all__ = [
 
 SectionT = TypeVar("SectionT", bound="Section")
 
+#: a config is a page of YAML; anything larger is a mistake or an attack
+MAX_DOCUMENT_BYTES = 1 << 20
+#: nodes of the document with every alias expanded: YAML aliases can describe exponentially large documents
+#: ("billion laughs") in a few lines; validation would expand them
+MAX_EXPANDED_NODES = 100_000
+#: how deep mappings and lists may nest (deeper input would exhaust the recursion of the validators)
+MAX_DEPTH = 32
+#: no physical quantity of a servo axis, a design or a bench setting is larger: a finite but absurd value (1e308)
+#: would overflow numpy or stall the LMI solver rather than fail cleanly
+MAX_MAGNITUDE = 1e12
+
 
 class Section(BaseModel):
-    """Base of every config section: strict keys, frozen values."""
+    """Base of every config section: strict keys, frozen values, finite numbers of bounded magnitude."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True, allow_inf_nan=False)
+
+    @field_validator("*", mode="after")
+    @classmethod
+    def _bounded_numbers(cls, value: Any) -> Any:
+        _check_magnitude(value)
+        return value
+
+
+def _check_magnitude(value: Any) -> None:
+    """Every number inside ``value`` (nested lists included) is finite and at most :data:`MAX_MAGNITUDE`."""
+    if isinstance(value, bool):
+        return
+    if isinstance(value, (int, float)):
+        if not abs(value) <= MAX_MAGNITUDE:  # also catches nan
+            raise ValueError(f"must be finite and at most {MAX_MAGNITUDE:g} in magnitude, got {value!r}")
+    elif isinstance(value, (list, tuple)):
+        for item in value:
+            _check_magnitude(item)
 
 
 def _to_matrix(value: Any) -> Any:
@@ -79,13 +111,17 @@ def load_document(path: str | Path) -> dict[str, Any]:
     """Read a YAML config file into a mapping, with errors naming the file."""
     source = str(path)
     try:
-        text = Path(path).read_text(encoding="utf-8")
+        with Path(path).open("rb") as stream:
+            raw = stream.read(MAX_DOCUMENT_BYTES + 1)
+        if len(raw) > MAX_DOCUMENT_BYTES:
+            raise ConfigError(f"larger than {MAX_DOCUMENT_BYTES} bytes; a config is a page of YAML", source=source)
+        text = raw.decode("utf-8")
     except FileNotFoundError:
         raise ConfigError("no such file", source=source) from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"cannot read: {exc}", source=source) from None
     try:
-        document = yaml.safe_load(text)
+        document = _load_yaml(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}: " if mark is not None else ""
@@ -96,6 +132,64 @@ def load_document(path: str | Path) -> dict[str, Any]:
     if not isinstance(document, dict):
         raise ConfigError("the top level must be a mapping of sections", source=source)
     return document
+
+
+def _load_yaml(text: str) -> Any:
+    """``yaml.safe_load`` that refuses duplicate keys, deep nesting and alias expansion beyond the bounds.
+
+    The node graph is composed first (aliases stay shared nodes, so composing is linear in the text) and checked
+    before anything is constructed.
+    """
+    loader = yaml.SafeLoader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        _check_nodes(node)
+        return loader.construct_document(node)
+    finally:
+        loader.dispose()
+
+
+def _check_nodes(root: yaml.Node) -> None:
+    """Duplicate keys, depth and the expanded size of the graph below ``root`` (memoised per node)."""
+    sizes: dict[int, int] = {}
+
+    def size(node: yaml.Node, path: str, depth: int) -> int:
+        if id(node) in sizes:
+            if sizes[id(node)] < 0:
+                raise _problem(node, f"{path or 'document'}: a recursive alias")
+            return sizes[id(node)]
+        if depth > MAX_DEPTH:
+            raise _problem(node, f"{path or 'document'}: nested deeper than {MAX_DEPTH} levels")
+        sizes[id(node)] = -1  # in progress: meeting it again is a cycle
+        total = 1
+        if isinstance(node, yaml.MappingNode):
+            seen: dict[Any, int] = {}
+            for key_node, value_node in node.value:
+                key = key_node.value if isinstance(key_node, yaml.ScalarNode) else None
+                if key is not None and key != "<<":
+                    if key in seen:
+                        raise _problem(key_node, f"{_join(path, key)}: duplicate key (first at line {seen[key]})")
+                    seen[key] = key_node.start_mark.line + 1
+                total += size(key_node, path, depth + 1) + size(value_node, _join(path, key), depth + 1)
+        elif isinstance(node, yaml.SequenceNode):
+            total += sum(size(item, f"{path}[{i}]", depth + 1) for i, item in enumerate(node.value))
+        if total > MAX_EXPANDED_NODES:
+            raise _problem(node, f"{path or 'document'}: expands to more than {MAX_EXPANDED_NODES} nodes "
+                                 "(aliases refer to aliases)")
+        sizes[id(node)] = total
+        return total
+
+    size(root, "", 0)
+
+
+def _join(path: str, key: Any) -> str:
+    return f"{path}.{key}" if path else str(key)
+
+
+def _problem(node: yaml.Node, message: str) -> yaml.YAMLError:
+    return yaml.constructor.ConstructorError(None, None, message, node.start_mark)
 
 
 def apply_overrides(document: Mapping[str, Any], overrides: Mapping[str, Any]) -> dict[str, Any]:

@@ -80,7 +80,7 @@ def test_refused_filter_exits_3(tmp_path: Path, capsys: pytest.CaptureFixture[st
     path = _config(tmp_path, synthesis={"on_divergent_filter": "refuse"})
     code, out, err = _run(capsys, "synthesize", "--config", str(path), "--json")
     assert code == 3
-    assert out == ""
+    assert json.loads(out)["error"]["type"] == "ConvergenceCertificateError"
     assert "not certified" in err and len(err.strip().splitlines()) == 1
 
 

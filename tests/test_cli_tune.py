@@ -70,7 +70,7 @@ def test_paper_literal_spec_exits_3_with_reason(tmp_path: Path, capsys: pytest.C
     for extra in ([], ["--flat-phase"]):
         assert main(["tune", "--config", str(config), "--json", *extra]) == 3
         out, err = capsys.readouterr()
-        assert out == ""
+        assert json.loads(out)["error"]["exit_code"] == 3  # one JSON document even on failure
         assert len(err.strip().splitlines()) == 1
         assert err.startswith("foilc-hil tune: the plant's phase at wc=70 rad/s is -88.99 deg")
         assert "Traceback" not in err
@@ -94,7 +94,8 @@ def test_bad_config_exits_2_one_line(
     config = _write(tmp_path, text)
     assert main(["tune", "--config", str(config), "--json", *args]) == 2
     out, err = capsys.readouterr()
-    assert out == ""
+    error = json.loads(out)["error"]  # one JSON document even on failure, naming the same place
+    assert error["exit_code"] == 2 and fragment in error["message"]
     assert len(err.strip().splitlines()) == 1
     assert fragment in err
     assert "Traceback" not in err
