@@ -22,9 +22,10 @@ from typing import Any
 
 from canopen.objectdictionary import INTEGER_TYPES, SIGNED_TYPES, ODVariable
 
-from drivers.cia301 import ErrorRegister, NmtState, SdoAbortCode, emcy_text
+from drivers.cia301 import CobIdEntry, ErrorRegister, NmtState, SdoAbortCode, emcy_text
 from drivers.cia402 import IdentitySub, Obj, Statusword, decode_state
 from drivers.cia402_master import Cia402Drive
+from drivers.pdo import MappingEntry
 from foilc_hil.errors import InputError, SdoError
 
 __all__ = ["MODE_NAMES", "SUPPORTED_MODE_BITS_402", "DriveInfo", "PdoReport", "export_dbc", "read_info"]
@@ -42,8 +43,6 @@ SUPPORTED_MODE_BITS_402: dict[int, tuple[int, str]] = {
     9: (10, "cyclic synchronous torque (cst)"),
 }
 MODE_NAMES: dict[int, str] = {number: name for number, name in SUPPORTED_MODE_BITS_402.values()}
-PDO_INVALID_BIT = 1 << 31
-PDO_COB_ID_MASK = 0x7FF
 PDO_COUNT = 4
 HEARTBEAT_WAIT_FACTOR = 1.5
 
@@ -136,22 +135,22 @@ def read_pdos(drive: Cia402Drive) -> tuple[PdoReport, ...]:
             count = _optional(drive, mapping, 0) or 0
             mapped = []
             for sub in range(1, count + 1):
-                entry = drive.read_object(mapping, sub)
-                index, subindex, bits = entry >> 16, (entry >> 8) & 0xFF, entry & 0xFF
+                entry = MappingEntry.decode(drive.read_object(mapping, sub))
                 mapped.append(
                     {
-                        "index": index,
-                        "subindex": subindex,
-                        "bits": bits,
-                        "name": _object_name(drive, index, subindex),
+                        "index": entry.index,
+                        "subindex": entry.subindex,
+                        "bits": entry.bits,
+                        "name": _object_name(drive, entry.index, entry.subindex),
                     }
                 )
+            cob = CobIdEntry.decode(raw_cob)
             reports.append(
                 PdoReport(
                     direction=direction,
                     number=number,
-                    cob_id=raw_cob & PDO_COB_ID_MASK,
-                    valid=not raw_cob & PDO_INVALID_BIT,
+                    cob_id=cob.can_id,
+                    valid=cob.valid,
                     transmission_type=transmission if transmission is not None else -1,
                     mapped=tuple(mapped),
                 )
