@@ -100,7 +100,7 @@ def test_a_stuck_drive_names_the_state_and_exits_1(capsys: pytest.CaptureFixture
                                                    monkeypatch: pytest.MonkeyPatch) -> None:
     with emulated_bus([NODE]) as bus:
         drive = bus.drives[NODE]
-        monkeypatch.setattr(drive.application, "_apply_controlword", lambda controlword: None)  # deaf to the controlword
+        monkeypatch.setattr(drive.application, "_apply_controlword", lambda controlword: None)  # deaf to it
         code, _, err = run_cli(capsys, "commission", "enable", "--bus", bus.spec, "--node-id", str(NODE),
                                "--state-timeout", "0.2")
         assert code == 1
