@@ -311,15 +311,16 @@ class Cia402Drive(Drive):
     def connect(self) -> DeviceInfo:
         """NMT reset communication, wait for boot-up, NMT pre-operational, read identity (see module docstring).
 
-        Starts the listening side first (:meth:`listen`); a failed connect stops it again, so no thread outlives the
-        failure.
+        Starts the listening side first (:meth:`listen`). If the drive never answered (no boot-up), a failed connect
+        stops it again, so no thread outlives the failure; once it answered, the listening side stays for
+        :meth:`safe_stop` (the drive is there to be stopped) until :meth:`close`.
         """
         self.listen()
         try:
             return self._identify()
         except BaseException:
-            self._connected = False
-            self._stop_listening()
+            if not self._connected:
+                self._stop_listening()
             raise
 
     def listen(self) -> None:
