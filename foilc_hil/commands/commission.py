@@ -245,7 +245,7 @@ def _params(args: argparse.Namespace) -> CommandResult:
             except OSError as exc:
                 raise InputError(f"--out: cannot write {args.out}: {exc}") from exc
             text = f"{len(values)} parameters written to {args.out}"
-        return CommandResult({"parameters": values, "out": args.out}, text)
+        return CommandResult({"parameters": [value.to_json() for value in values], "out": args.out}, text)
     document = report.to_json()
     if not report.ok:
         return CommandResult(document, report.render(), exit_code=ExitCode.RUNTIME_FAILURE, message=report.error)
