@@ -287,18 +287,14 @@ def _identify(args: argparse.Namespace) -> CommandResult:
             drive.disable()
     fit = identify.fit_model(record, args.model)
     uncertainty = identify.uncertainty_bounds(fit, margin=args.uncertainty_margin)
-    campaign = {
-        "mode": mode,
-        "pattern": spec.pattern,
-        "amplitudes": list(spec.amplitudes),
-        "hold": spec.hold,
-        "rest": spec.rest,
-        "repetitions": spec.repetitions,
-        "cycles": int(command.shape[0]),
-        "sample_time": sample_time,
-        "output_quantum": 1.0 / drive_cfg.velocity_scale,
-        "max_abs_output": float(np.max(np.abs(record.output))),
-    }
+    campaign = identify.CampaignSummary(
+        mode=mode,
+        spec=spec,
+        cycles=int(command.shape[0]),
+        sample_time=sample_time,
+        output_quantum=1.0 / drive_cfg.velocity_scale,
+        max_abs_output=float(np.max(np.abs(record.output))),
+    )
     document = identify.identification_document(fit, uncertainty, campaign)
     if args.out:
         fragment = identify.fragment_document(document, sample_time, base)
