@@ -45,6 +45,8 @@ NMT_COB_ID = int(FunctionCode.NMT)
 SYNC_COB_ID = 0x080  # CiA 301 default COB-ID of SYNC (0x1005); EMCY uses the same function code plus a node id
 COB_ID_INVALID = 1 << 31  # bit 31 of a COB-ID entry: the PDO (or SYNC consumer) is not valid
 _COB_ID_MASK = 0x7FF  # the 11-bit identifier of a COB-ID entry
+_FUNCTION_CODE_MASK = 0x780  # the 4 function-code bits of an 11-bit COB-ID (the low 7 are the node id)
+_HEARTBEAT_STATE_MASK = 0x7F
 
 
 def check_node_id(node_id: int) -> int:
@@ -57,6 +59,16 @@ def check_node_id(node_id: int) -> int:
 def cob_id(function: FunctionCode, node_id: int) -> int:
     """The COB-ID of ``function`` for ``node_id`` (e.g. ``cob_id(FunctionCode.TPDO1, 5) == 0x185``)."""
     return int(function) + check_node_id(node_id)
+
+
+def split_cob_id(can_id: int) -> tuple[int, int]:
+    """``(function code, node id)`` of an 11-bit COB-ID: the inverse of :func:`cob_id` (node id 0: a broadcast)."""
+    return can_id & _FUNCTION_CODE_MASK, can_id & NODE_ID_MAX
+
+
+def heartbeat_state(byte: int) -> int:
+    """The NMT state carried in a heartbeat byte (bit 7 is the node-guarding toggle bit, not part of it)."""
+    return byte & _HEARTBEAT_STATE_MASK
 
 
 @dataclass(frozen=True, slots=True)

@@ -4,7 +4,16 @@ from __future__ import annotations
 
 import pytest
 
-from drivers.cia301 import SYNC_COB_ID, CobIdEntry, FunctionCode, HeartbeatConsumerEntry, cob_id
+from drivers.cia301 import (
+    SYNC_COB_ID,
+    CobIdEntry,
+    FunctionCode,
+    HeartbeatConsumerEntry,
+    NmtState,
+    cob_id,
+    heartbeat_state,
+    split_cob_id,
+)
 from drivers.pdo import PDO_DISABLED, MappedVariable, MappingEntry
 from foilc_hil.errors import ProtocolError
 
@@ -50,3 +59,15 @@ def test_mapping_entry_is_the_codec_behind_mapped_variable() -> None:
     variable = MappedVariable.from_entry(0x606C0020, signed=True)
     assert (variable.index, variable.subindex, variable.bits) == (0x606C, 0, 32)
     assert variable.mapping_entry == 0x606C0020
+
+
+@pytest.mark.parametrize("function", [code for code in FunctionCode if code not in (FunctionCode.NMT,)])
+@pytest.mark.parametrize("node", [1, 64, 127])
+def test_split_cob_id_inverts_cob_id(function: FunctionCode, node: int) -> None:
+    assert split_cob_id(cob_id(function, node)) == (function, node)
+
+
+def test_heartbeat_state_drops_the_toggle_bit() -> None:
+    assert heartbeat_state(0x80 | NmtState.OPERATIONAL) == NmtState.OPERATIONAL
+    assert heartbeat_state(NmtState.PRE_OPERATIONAL) == NmtState.PRE_OPERATIONAL
+    assert heartbeat_state(0x00) == NmtState.INITIALISING
