@@ -5,6 +5,8 @@ COB-IDs are never written inline elsewhere: use :class:`FunctionCode` and :func:
 
 from __future__ import annotations
 
+import enum
+from dataclasses import dataclass
 from enum import IntEnum
 
 from foilc_hil.errors import ProtocolError
@@ -13,11 +15,15 @@ NODE_ID_MIN = 1
 NODE_ID_MAX = 127
 
 
+@enum.unique
 class FunctionCode(IntEnum):
-    """The 4-bit function code of an 11-bit CANopen COB-ID, in its base COB-ID form (``code + node_id``)."""
+    """The 4-bit function code of an 11-bit CANopen COB-ID, in its base COB-ID form (``code + node_id``).
+
+    SYNC is not a member: it shares function code 0x080 with EMCY but is a broadcast without a node id, so it is
+    the constant :data:`SYNC_COB_ID` (an alias member would make ``FunctionCode.EMCY`` the SYNC member).
+    """
 
     NMT = 0x000
-    SYNC = 0x080
     EMCY = 0x080
     TIME = 0x100
     TPDO1 = 0x180
@@ -36,7 +42,11 @@ class FunctionCode(IntEnum):
 TPDO_BASES = (FunctionCode.TPDO1, FunctionCode.TPDO2, FunctionCode.TPDO3, FunctionCode.TPDO4)
 RPDO_BASES = (FunctionCode.RPDO1, FunctionCode.RPDO2, FunctionCode.RPDO3, FunctionCode.RPDO4)
 NMT_COB_ID = int(FunctionCode.NMT)
-SYNC_COB_ID = int(FunctionCode.SYNC)
+SYNC_COB_ID = 0x080  # CiA 301 default COB-ID of SYNC (0x1005); EMCY uses the same function code plus a node id
+COB_ID_INVALID = 1 << 31  # bit 31 of a COB-ID entry: the PDO (or SYNC consumer) is not valid
+_COB_ID_MASK = 0x7FF  # the 11-bit identifier of a COB-ID entry
+_FUNCTION_CODE_MASK = 0x780  # the 4 function-code bits of an 11-bit COB-ID (the low 7 are the node id)
+_HEARTBEAT_STATE_MASK = 0x7F
 
 
 def check_node_id(node_id: int) -> int:
@@ -51,14 +61,70 @@ def cob_id(function: FunctionCode, node_id: int) -> int:
     return int(function) + check_node_id(node_id)
 
 
-def tpdo_cob_id(number: int, node_id: int) -> int:
-    """Default COB-ID of TPDO ``number`` (1..4)."""
-    return cob_id(TPDO_BASES[number - 1], node_id)
+def split_cob_id(can_id: int) -> tuple[int, int]:
+    """``(function code, node id)`` of an 11-bit COB-ID: the inverse of :func:`cob_id` (node id 0: a broadcast)."""
+    return can_id & _FUNCTION_CODE_MASK, can_id & NODE_ID_MAX
 
 
-def rpdo_cob_id(number: int, node_id: int) -> int:
-    """Default COB-ID of RPDO ``number`` (1..4)."""
-    return cob_id(RPDO_BASES[number - 1], node_id)
+def heartbeat_state(byte: int) -> int:
+    """The NMT state carried in a heartbeat byte (bit 7 is the node-guarding toggle bit, not part of it)."""
+    return byte & _HEARTBEAT_STATE_MASK
+
+
+@dataclass(frozen=True, slots=True)
+class CobIdEntry:
+    """A COB-ID entry (0x1005, 0x14xx:01, 0x18xx:01): the 11-bit identifier and bit 31 "not valid" (CiA 301).
+
+    Bits 29 (extended frame) and 30 (SYNC producer / RTR) are not used by the product and are dropped on decode.
+    """
+
+    can_id: int
+    valid: bool = True
+
+    def encode(self) -> int:
+        """The UNSIGNED32 written to the entry."""
+        if not 0 <= self.can_id <= _COB_ID_MASK:
+            raise ProtocolError(f"COB-ID 0x{self.can_id:X} is not an 11-bit identifier")
+        return self.can_id | (0 if self.valid else COB_ID_INVALID)
+
+    @classmethod
+    def decode(cls, value: int) -> CobIdEntry:
+        """Inverse of :meth:`encode`."""
+        return cls(value & _COB_ID_MASK, valid=not value & COB_ID_INVALID)
+
+
+@dataclass(frozen=True, slots=True)
+class HeartbeatConsumerEntry:
+    """One sub-index of the consumer heartbeat time 0x1016: ``node_id << 16 | time_ms`` (CiA 301).
+
+    The master encodes it when it asks the drive to watch its heartbeat; the drive decodes it to know whom to
+    watch. A node id or time of 0 means the entry is unused.
+    """
+
+    node_id: int
+    time_ms: int
+
+    def encode(self) -> int:
+        """The UNSIGNED32 written to 0x1016:n."""
+        if not 0 <= self.node_id <= NODE_ID_MAX:
+            raise ProtocolError(f"heartbeat consumer: node id {self.node_id} is outside 0..{NODE_ID_MAX}")
+        if not 0 <= self.time_ms <= _HEARTBEAT_TIME_MASK:
+            raise ProtocolError(f"heartbeat consumer: {self.time_ms} ms is outside 0..{_HEARTBEAT_TIME_MASK}")
+        return (self.node_id << _HEARTBEAT_NODE_SHIFT) | self.time_ms
+
+    @classmethod
+    def decode(cls, value: int) -> HeartbeatConsumerEntry:
+        """Inverse of :meth:`encode` (bits 24..31 are reserved and ignored)."""
+        return cls((value >> _HEARTBEAT_NODE_SHIFT) & NODE_ID_MAX, value & _HEARTBEAT_TIME_MASK)
+
+    @property
+    def active(self) -> bool:
+        """Whether the entry watches a node (neither the node id nor the time is 0)."""
+        return self.node_id != 0 and self.time_ms != 0
+
+
+_HEARTBEAT_NODE_SHIFT = 16
+_HEARTBEAT_TIME_MASK = 0xFFFF
 
 
 class NmtState(IntEnum):

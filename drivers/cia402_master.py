@@ -2,8 +2,9 @@
 
 Start-up follows what real CANopen masters do, using only standard objects, so any CiA 402 drive works:
 
-1. ``connect``: NMT reset communication, wait for the boot-up, NMT pre-operational, read 0x1000 (must be a 402
-   device), 0x1018:1..4 and 0x6502 over SDO.
+0. Construction (``Cia402Drive.open``) is inert, like canopen's ``Network()``: no thread, nothing on the bus.
+1. ``connect``: ``listen`` (Notifier, frame tap, heartbeat watchdog); NMT reset communication, wait for the
+   boot-up, NMT pre-operational, read 0x1000 (must be a 402 device), 0x1018:1..4 and 0x6502 over SDO.
 2. ``configure``: start the master's heartbeat producer; for every RPDO/TPDO 1..4: disable it (COB-ID bit 31),
    and for those the mode uses: transmission type 1, mapping count 0, mapping entries, count, COB-ID enabled;
    then 0x6060 mode, 0x605A, 0x6007 (both optional in CiA 402: skipped with a warning when the drive lacks
@@ -68,8 +69,10 @@ from drivers.cia301 import (
     RPDO_BASES,
     SYNC_COB_ID,
     TPDO_BASES,
+    CobIdEntry,
     EmcyCode,
     FunctionCode,
+    HeartbeatConsumerEntry,
     NmtCommand,
     NmtState,
     SdoAbortCode,
@@ -93,7 +96,7 @@ from drivers.drive import DISABLED_STATES, DeviceInfo, Drive, Feedback, StopPath
 from drivers.emcy import decode_emcy
 from drivers.heartbeat import HeartbeatMonitor, HeartbeatProducer
 from drivers.od import load_od, mapped_variable
-from drivers.pdo import PDO_DISABLED, MappedVariable, PdoCodec, PdoDirection, PdoLayout
+from drivers.pdo import MappedVariable, PdoCodec, PdoDirection, PdoLayout
 from foilc_hil.errors import (
     ConfigError,
     DriveError,
@@ -116,6 +119,7 @@ CIA402_PROFILE = 402
 
 MASTER_HEARTBEATS_PER_CONSUMER_TIME = 4
 """The master beats this many times per drive consumer time (0x1016), so one lost or late frame never trips it."""
+HEARTBEAT_WATCHDOG_POLL = 0.05  # s between checks of the drive's heartbeat deadline
 
 _FEEDBACK_OBJECTS = (
     Obj.STATUSWORD,
@@ -240,8 +244,7 @@ class Cia402Drive(Drive):
         self.od = od
         self._bus = bus
 
-        self._tap = FrameTap()
-        self._tap.attach(bus)
+        self._tap = FrameTap()  # attached to the bus by connect(), like the Notifier: construction starts nothing
         self.network = canopen.Network(bus)
         self.network.NOTIFIER_CYCLE = 0.1  # bounds how long close() waits for the Notifier thread
         self._unknown = _UnknownFrameCounter(self.network)
@@ -291,13 +294,6 @@ class Cia402Drive(Drive):
         self.network.unsubscribe(emcy_cob, self.node.emcy.on_emcy)
         self.network.subscribe(emcy_cob, self._on_emcy)
         self.network.subscribers[cob_id(FunctionCode.HEARTBEAT, self.node_id)].insert(0, self._on_heartbeat)
-        try:
-            self.network.connect()  # starts the Notifier with canopen's listener, the tap and the counter
-        except ValueError as exc:  # python-can allows one active Notifier per bus
-            self._tap.detach()
-            raise DriveError(f"cannot listen on the bus: {exc}; the drive object must own the bus's Notifier "
-                             "(use add_frame_listener to see frames)") from exc
-        self.heartbeat.start_watchdog(self._on_heartbeat_lost, poll=0.05)
 
     # --- construction -----------------------------------------------------------------------------------------
 
@@ -313,8 +309,47 @@ class Cia402Drive(Drive):
     # --- Drive: start-up --------------------------------------------------------------------------------------
 
     def connect(self) -> DeviceInfo:
-        """NMT reset communication, wait for boot-up, NMT pre-operational, read identity (see module docstring)."""
+        """NMT reset communication, wait for boot-up, NMT pre-operational, read identity (see module docstring).
+
+        Starts the listening side first (:meth:`listen`). If the drive never answered (no boot-up), a failed connect
+        stops it again, so no thread outlives the failure; once it answered, the listening side stays for
+        :meth:`safe_stop` (the drive is there to be stopped) until :meth:`close`.
+        """
+        self.listen()
+        try:
+            return self._identify()
+        except BaseException:
+            if not self._connected:
+                self._stop_listening()
+            raise
+
+    def listen(self) -> None:
+        """Attach the frame tap, start the Notifier (canopen's listener, the tap, the counter) and the watchdog.
+
+        :meth:`connect` calls it; commissioning, which talks SDO and NMT to a drive it must not reset, calls it
+        instead. Idempotent; :meth:`close` stops it all.
+        """
         self._require_open()
+        if self.network.notifier is not None:
+            return
+        self._tap.attach(self._bus)
+        try:
+            self.network.connect()
+        except ValueError as exc:  # python-can allows one active Notifier per bus
+            self._tap.detach()
+            raise DriveError(f"cannot listen on the bus: {exc}; the drive object must own the bus's Notifier "
+                             "(use add_frame_listener to see frames)") from exc
+        self.heartbeat.start_watchdog(self._on_heartbeat_lost, poll=HEARTBEAT_WATCHDOG_POLL)
+
+    def _stop_listening(self) -> None:
+        """Undo :meth:`listen` (safe when it never ran); the bus itself stays the caller's."""
+        self.heartbeat.stop_watchdog()
+        if self.network.notifier is not None:
+            self.network.notifier.stop(self.network.NOTIFIER_SHUTDOWN_TIMEOUT)
+            self.network.notifier = None
+        self._tap.detach()
+
+    def _identify(self) -> DeviceInfo:
         self._reset_communication()
         self._connected = True
         self._nmt(NmtCommand.ENTER_PRE_OPERATIONAL)
@@ -548,12 +583,9 @@ class Cia402Drive(Drive):
                 logger.info("close: could not park node %d: %s", self.node_id, exc)
         self._operational = False
         self._closed = True
-        self.heartbeat.stop_watchdog()
         if self._producer is not None:
             self._producer.stop()
-        if self.network.notifier is not None:
-            self.network.notifier.stop(self.network.NOTIFIER_SHUTDOWN_TIMEOUT)
-        self._tap.detach()
+        self._stop_listening()
 
     def add_frame_listener(self, listener: FrameListener) -> None:
         """Call ``listener(message, "tx" | "rx")`` for every frame; runs on the sending and the Notifier thread."""
@@ -916,7 +948,7 @@ class Cia402Drive(Drive):
 
     def _settings(self, mode: OperationMode, cycle_period: float) -> list[_Setting]:
         """The objects ``configure`` writes after the PDOs, in order: (index, sub, format, value, optional)."""
-        consumer = (self.cfg.master_node_id << 16) | self.cfg.heartbeat_consumer_ms
+        consumer = HeartbeatConsumerEntry(self.cfg.master_node_id, self.cfg.heartbeat_consumer_ms).encode()
         rows: list[_Setting] = [
             (Obj.MODES_OF_OPERATION, 0, _I8, int(mode), False),
             (Obj.QUICK_STOP_OPTION, 0, _I16, self.cfg.quick_stop_option, True),  # optional in CiA 402
@@ -959,7 +991,7 @@ class Cia402Drive(Drive):
     def _write_pdo(self, layout: PdoLayout) -> None:
         """CiA 301 PDO reconfiguration: disable, transmission type, count 0, entries, count, enable."""
         com, mapping = layout.communication_index, layout.mapping_index
-        self._write(com, 1, _U32, layout.cob_id | PDO_DISABLED)
+        self._write(com, 1, _U32, CobIdEntry(layout.cob_id, valid=False).encode())
         self._write(com, 2, _U8, int(layout.transmission_type))
         self._write(mapping, 0, _U8, 0)
         for sub, variable in enumerate(layout.variables, start=1):
@@ -970,7 +1002,7 @@ class Cia402Drive(Drive):
     def _disable_pdo(self, direction: PdoDirection, number: int, default_cob: int) -> None:
         layout = PdoLayout(direction, number, default_cob, ())
         try:
-            self._write(layout.communication_index, 1, _U32, default_cob | PDO_DISABLED)
+            self._write(layout.communication_index, 1, _U32, CobIdEntry(default_cob, valid=False).encode())
         except SdoError as exc:
             if exc.abort_code != SdoAbortCode.NO_OBJECT:
                 raise  # the drive has fewer PDOs than four: nothing to disable

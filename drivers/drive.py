@@ -151,7 +151,8 @@ class Drive(ABC):
     @abstractmethod
     def connect(self) -> DeviceInfo:
         """Bring the drive's communication to a known state (NMT reset communication, pre-operational), wait for
-        its boot-up and read its identity."""
+        its boot-up and read its identity. Constructing a drive starts nothing (no thread, no frame): threads and
+        listeners start here, and a connect that no drive answered leaves none behind."""
 
     @abstractmethod
     def configure(self, mode: OperationMode, cycle_period: float) -> None:
@@ -197,7 +198,8 @@ class Drive(ABC):
 
     @abstractmethod
     def close(self) -> None:
-        """Release the bus resources the drive object holds (not the bus itself)."""
+        """Release the bus resources the drive object holds (not the bus itself); safe on a never-connected
+        drive and when called twice."""
 
     @abstractmethod
     def add_frame_listener(self, listener: Callable[[can.Message, str], None]) -> None:

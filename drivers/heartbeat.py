@@ -22,7 +22,7 @@ from collections.abc import Callable
 
 import can
 
-from drivers.cia301 import FunctionCode, NmtState, cob_id
+from drivers.cia301 import FunctionCode, NmtState, cob_id, heartbeat_state
 from foilc_hil.errors import DriveError, HeartbeatLostError
 
 __all__ = ["HeartbeatMonitor", "HeartbeatProducer"]
@@ -97,7 +97,7 @@ class HeartbeatMonitor:
         """Record a heartbeat (or boot-up, ``state == 0``) received at ``when`` (default: now)."""
         with self._lock:
             self._last_time = self._clock() if when is None else when
-            self._last_state = state & 0x7F  # bit 7 is the node-guarding toggle bit
+            self._last_state = heartbeat_state(state)
             self._beats += 1
             self._lock.notify_all()
 

@@ -13,19 +13,21 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import IntEnum
 
+from drivers.cia301 import COB_ID_INVALID
 from drivers.cia402 import Obj
 from foilc_hil.errors import ProtocolError
 
 __all__ = [
     "PDO_DISABLED",
     "MappedVariable",
+    "MappingEntry",
     "PdoCodec",
     "PdoDirection",
     "PdoLayout",
     "TransmissionType",
 ]
 
-PDO_DISABLED = 0x8000_0000
+PDO_DISABLED = COB_ID_INVALID
 """Bit 31 of a PDO COB-ID (sub-index 1 of 0x1400../0x1800..): the PDO is not valid."""
 
 _FORMAT = {(8, False): "B", (8, True): "b", (16, False): "H", (16, True): "h", (32, False): "I", (32, True): "i"}
@@ -48,6 +50,28 @@ class TransmissionType(IntEnum):
 
 
 @dataclass(frozen=True, slots=True)
+class MappingEntry:
+    """One sub-index of a PDO mapping object (0x16xx / 0x1Axx): ``index << 16 | subindex << 8 | bits`` (CiA 301).
+
+    The raw codec, with no judgement on the size: a device validates what a master writes
+    (:class:`MappedVariable` is the master's typed, checked form).
+    """
+
+    index: int
+    subindex: int
+    bits: int
+
+    def encode(self) -> int:
+        """The UNSIGNED32 written to the mapping sub-index."""
+        return (self.index << 16) | (self.subindex << 8) | self.bits
+
+    @classmethod
+    def decode(cls, value: int) -> MappingEntry:
+        """Inverse of :meth:`encode`."""
+        return cls(value >> 16, (value >> 8) & 0xFF, value & 0xFF)
+
+
+@dataclass(frozen=True, slots=True)
 class MappedVariable:
     """One entry of a PDO mapping: object, sub-index, size in bits and signedness."""
 
@@ -65,13 +89,14 @@ class MappedVariable:
 
     @property
     def mapping_entry(self) -> int:
-        """The UNSIGNED32 written to a mapping sub-index: ``index << 16 | subindex << 8 | bits``."""
-        return (self.index << 16) | (self.subindex << 8) | self.bits
+        """The UNSIGNED32 written to a mapping sub-index (:class:`MappingEntry`)."""
+        return MappingEntry(self.index, self.subindex, self.bits).encode()
 
     @classmethod
     def from_entry(cls, entry: int, *, signed: bool) -> MappedVariable:
         """Inverse of :attr:`mapping_entry` (signedness is not in the entry and must be given)."""
-        return cls(entry >> 16, (entry >> 8) & 0xFF, entry & 0xFF, signed)
+        raw = MappingEntry.decode(entry)
+        return cls(raw.index, raw.subindex, raw.bits, signed)
 
     @property
     def minimum(self) -> int:

@@ -20,7 +20,9 @@ from drivers.cia301 import (
     NmtCommand,
     NmtState,
     emcy_text,
+    heartbeat_state,
     sdo_abort_text,
+    split_cob_id,
 )
 from drivers.pdo import PdoCodec
 
@@ -97,7 +99,7 @@ def describe_frame(msg: can.Message, codecs: Mapping[int, PdoCodec] | None = Non
     if msg.is_extended_id or msg.is_error_frame or msg.is_remote_frame:
         return f"frame 0x{msg.arbitration_id:X} {data.hex(' ')}"
     can_id = msg.arbitration_id
-    function, node = can_id & 0x780, can_id & 0x7F
+    function, node = split_cob_id(can_id)
     if can_id == NMT_COB_ID:
         return _nmt(data)
     if can_id == SYNC_COB_ID:
@@ -123,7 +125,7 @@ def describe_frame(msg: can.Message, codecs: Mapping[int, PdoCodec] | None = Non
         if data[0] == NmtState.INITIALISING:
             return f"boot-up node {node}"
         try:
-            state = NmtState(data[0] & 0x7F).name.lower().replace("_", "-")
+            state = NmtState(heartbeat_state(data[0])).name.lower().replace("_", "-")
         except ValueError:
             state = f"state 0x{data[0]:02X}"
         return f"heartbeat node {node} {state}"

@@ -100,10 +100,6 @@ class BenchConfig(Section):
     settle_tolerance: float = Field(default=1.0, ge=0)  # |y| below this counts as at rest
 
 
-EmulatorSection = EmulatorConfig
-"""The ``emulator:`` section is the emulator's own :class:`plant_emulator.settings.EmulatorConfig`."""
-
-
 class Config(Section):
     """The whole document."""
 

@@ -101,24 +101,24 @@ def test_uncertainty_covers_every_step_model_and_loads_in_the_synthesis() -> Non
     fit = identify.fit_model(_synthetic_record(-3.0, 4.5, noise=2.0, seed=2), "first-order")
     bounds = identify.uncertainty_bounds(fit, margin=1.25)
     a0, b0 = identify.discrete_model(fit.num, fit.den, TS)
-    g1, h1 = np.array(bounds["G1"]), np.array(bounds["H1"])
-    g2, h2 = np.array(bounds["G2"]), np.array(bounds["H2"])
+    g1, h1, g2, h2 = bounds.g1, bounds.h1, bounds.g2, bounds.h2
     for step in fit.steps:
         num, den, _ = identify.transfer_function("first-order", step.theta)
         a_i, b_i = identify.discrete_model(num, den, TS)
         # Delta = dA / (G1 H1) must have norm <= 1 (scalar case)
         assert abs(float((a_i - a0)[0, 0]) / float((g1 @ h1)[0, 0])) <= 1.0
         assert abs(float((b_i - b0)[0, 0]) / float((g2 @ h2)[0, 0])) <= 1.0
-    assert bounds["rho_A"] >= bounds["observed_max_dA"] * 1.25 - 1e-15
-    loaded = uncertainty_from_config(UncertaintyConfig(G1=bounds["G1"], H1=bounds["H1"], G2=bounds["G2"],
-                                                       H2=bounds["H2"]), 1, 1)
+    assert bounds.rho_a >= bounds.observed_max_da * 1.25 - 1e-15
+    document = bounds.to_json()  # what the plant section is written from
+    loaded = uncertainty_from_config(UncertaintyConfig(G1=document["G1"], H1=document["H1"], G2=document["G2"],
+                                                       H2=document["H2"]), 1, 1)
     assert not loaded.is_zero
 
 
 def test_second_order_uncertainty_shapes_fit_the_synthesis() -> None:
     record = _synthetic_record(-3.0, 4.5, noise=0.5)
     fit = identify.fit_model(record, "second-order")
-    bounds = identify.uncertainty_bounds(fit)
+    bounds = identify.uncertainty_bounds(fit).to_json()
     loaded = uncertainty_from_config(
         UncertaintyConfig(G1=bounds["G1"], H1=bounds["H1"], G2=bounds["G2"], H2=bounds["H2"]), 2, 1
     )

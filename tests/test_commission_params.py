@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from plant_emulator.device import VirtualDrive
 from tests.commission_bus import emulated_bus, run_cli, run_json
 
 pytestmark = pytest.mark.timeout(120)
@@ -24,8 +25,8 @@ def _set(path: Path, entries: list[dict[str, object]]) -> str:
     return str(path)
 
 
-def _value(drive: object, index: int, subindex: int = 0) -> int:
-    return int(drive._get(index, subindex))  # type: ignore[attr-defined]  # the emulator's own store
+def _value(drive: VirtualDrive, index: int, subindex: int = 0) -> int:
+    return int(drive.node.read(index, subindex))  # the emulator's own store
 
 
 def test_write_then_read_round_trips_the_shipped_set(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:

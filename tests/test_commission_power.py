@@ -60,7 +60,7 @@ def test_heartbeat_fault_resets_communication_before_the_fault_reset(capsys: pyt
                        "--node-id", str(NODE))[0] == 0
         assert run_cli(capsys, "commission", "enable", "--bus", bus.spec, "--node-id", str(NODE))[0] == 0
         drive.inject_fault("heartbeat-loss")
-        assert drive.state is State402.FAULT and int(drive._get(Obj.ERROR_CODE)) == EmcyCode.HEARTBEAT_LOSS
+        assert drive.state is State402.FAULT and int(drive.node.read(Obj.ERROR_CODE)) == EmcyCode.HEARTBEAT_LOSS
 
         # enable refuses a faulted drive: exit 1, naming the fault and the way out
         code, _, err = run_cli(capsys, "commission", "enable", "--bus", bus.spec, "--node-id", str(NODE))
@@ -70,7 +70,7 @@ def test_heartbeat_fault_resets_communication_before_the_fault_reset(capsys: pyt
             code, document, _ = run_json(capsys, "commission", "fault-reset", "--bus", bus.spec,
                                          "--node-id", str(NODE))
         assert code == 0
-        assert drive.state is State402.SWITCH_ON_DISABLED and int(drive._get(Obj.ERROR_CODE)) == 0
+        assert drive.state is State402.SWITCH_ON_DISABLED and int(drive.node.read(Obj.ERROR_CODE)) == 0
         assert any("NMT reset communication" in note for note in document["notes"])
         assert [t["state"] for t in document["transitions"]] == ["FAULT", "SWITCH_ON_DISABLED"]
         # on the wire: NMT reset communication to the node, its boot-up, and only then the fault-reset command
@@ -100,7 +100,7 @@ def test_a_stuck_drive_names_the_state_and_exits_1(capsys: pytest.CaptureFixture
                                                    monkeypatch: pytest.MonkeyPatch) -> None:
     with emulated_bus([NODE]) as bus:
         drive = bus.drives[NODE]
-        monkeypatch.setattr(drive, "_apply_controlword", lambda controlword: None)  # deaf to the controlword
+        monkeypatch.setattr(drive.application, "_apply_controlword", lambda controlword: None)  # deaf to it
         code, _, err = run_cli(capsys, "commission", "enable", "--bus", bus.spec, "--node-id", str(NODE),
                                "--state-timeout", "0.2")
         assert code == 1

@@ -77,7 +77,7 @@ def test_info_decodes_the_drive(capsys: pytest.CaptureFixture[str]) -> None:
         drive = bus.drives[5]
         drive.inject_fault("over-current")
         code, document, _ = run_json(capsys, "commission", "info", "--bus", bus.spec, "--node-id", "5")
-        statusword = int(drive._get(Obj.STATUSWORD))
+        statusword = int(drive.node.read(Obj.STATUSWORD))
     assert code == 0
     assert document["identity"] == EDS_IDENTITY
     assert document["nmt_state"] == "PRE_OPERATIONAL"

@@ -10,7 +10,15 @@ import can
 import pytest
 
 from drivers.bus import open_bus
-from drivers.cia301 import EmcyCode, ErrorRegister, FunctionCode, NmtCommand, NmtState, cob_id
+from drivers.cia301 import (
+    EmcyCode,
+    ErrorRegister,
+    FunctionCode,
+    HeartbeatConsumerEntry,
+    NmtCommand,
+    NmtState,
+    cob_id,
+)
 from drivers.cia402 import AbortConnectionOption, Obj, OperationMode, State402
 from drivers.cia402_master import Cia402Drive
 from drivers.config import DriveConfig
@@ -133,7 +141,7 @@ def test_sustained_torque_limit_is_an_over_current_fault() -> None:
 def test_heartbeat_loss_reacts_per_0x6007(option: int, state_after: State402) -> None:
     with Harness() as h:
         h.node.sdo[Obj.ABORT_CONNECTION_OPTION].raw = option
-        h.node.sdo[Obj.CONSUMER_HEARTBEAT_TIME][1].raw = (MASTER_ID << 16) | 300  # watch node 127, 300 ms
+        h.node.sdo[Obj.CONSUMER_HEARTBEAT_TIME][1].raw = HeartbeatConsumerEntry(MASTER_ID, 300).encode()
         _enable_csv(h)
         h.send(cob_id(FunctionCode.HEARTBEAT, MASTER_ID), bytes([0x05]))  # the master's one and only beat
         time.sleep(0.05)

@@ -8,7 +8,7 @@ import time
 import pytest
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
-from drivers.cia301 import FunctionCode, NmtCommand, NmtState, SdoAbortCode, cob_id
+from drivers.cia301 import CobIdEntry, FunctionCode, NmtCommand, NmtState, SdoAbortCode, cob_id
 from drivers.cia402 import Obj, State402
 from tests.emulator_harness import NODE_ID, Harness
 
@@ -80,8 +80,8 @@ def test_pdo_too_long_is_refused() -> None:
 
 def _remap(h: Harness, communication: int, mapping: int, entries: list[int], transmission_type: int) -> None:
     """The CiA 301 remapping procedure: invalidate the PDO, zero the count, write entries, count, re-validate."""
-    cob = h.node.sdo[communication][1].raw & 0x7FF
-    h.node.sdo[communication][1].raw = cob | (1 << 31)
+    cob = CobIdEntry.decode(h.node.sdo[communication][1].raw).can_id
+    h.node.sdo[communication][1].raw = CobIdEntry(cob, valid=False).encode()
     h.node.sdo[communication][2].raw = transmission_type
     h.node.sdo.download(mapping, 0, b"\x00")
     for sub, entry in enumerate(entries, start=1):
@@ -129,7 +129,7 @@ def test_rpdo_values_take_effect_at_the_next_sync() -> None:
 
 def test_event_driven_and_acyclic_tpdos() -> None:
     with Harness() as h:
-        h.node.sdo[0x1800][1].raw = h.tpdo1 | (1 << 31)  # disable while changing the type
+        h.node.sdo[0x1800][1].raw = CobIdEntry(h.tpdo1, valid=False).encode()  # disable while changing the type
         h.node.sdo[0x1800][2].raw = 255
         h.node.sdo[0x1800][1].raw = h.tpdo1
         h.node.sdo[0x1801][2].raw = 0  # TPDO2 acyclic synchronous: on SYNC, only when changed

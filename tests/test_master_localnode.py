@@ -45,7 +45,7 @@ from drivers.cia402 import (
 from drivers.cia402_master import Cia402Drive, interpolation_time_period
 from drivers.config import DriveConfig
 from drivers.od import DEFAULT_EDS
-from drivers.pdo import PDO_DISABLED
+from drivers.pdo import PDO_DISABLED, MappingEntry
 from foilc_hil.errors import ConfigError, DriveError, DriveTimeoutError, SdoError
 
 NODE_ID = 5
@@ -157,9 +157,10 @@ class MiniServo:
             if self.value(index - 0x200, 1) & PDO_DISABLED == 0:
                 raise SdoAbortedError(SdoAbortCode.GENERAL_PARAMETER)  # map only a disabled PDO
             if subindex > 0:
-                (entry,) = struct.unpack("<I", data)
-                mapped = self.node.object_dictionary.get_variable(entry >> 16, (entry >> 8) & 0xFF)
-                if entry and (mapped is None or not mapped.pdo_mappable):
+                (value,) = struct.unpack("<I", data)
+                entry = MappingEntry.decode(value)
+                mapped = self.node.object_dictionary.get_variable(entry.index, entry.subindex)
+                if value and (mapped is None or not mapped.pdo_mappable):
                     raise SdoAbortedError(SdoAbortCode.CANNOT_MAP)
         if index == Obj.MODES_OF_OPERATION:
             self.node.set_data(Obj.MODES_OF_OPERATION_DISPLAY, 0, data)
@@ -186,9 +187,8 @@ class MiniServo:
     def _mapping(self, mapping_index: int) -> list[tuple[int, int, str]]:
         entries = []
         for sub in range(1, self.value(mapping_index, 0) + 1):
-            entry = self.value(mapping_index, sub)
-            index, subindex = entry >> 16, (entry >> 8) & 0xFF
-            entries.append((index, subindex, self._format(index, subindex)[1:]))
+            entry = MappingEntry.decode(self.value(mapping_index, sub))
+            entries.append((entry.index, entry.subindex, self._format(entry.index, entry.subindex)[1:]))
         return entries
 
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
@@ -373,6 +373,36 @@ def test_connect_without_boot_up_names_the_node(servo: MiniServo, master_bus: ca
         drive.connect()
 
 
+def _new_threads(before: set[threading.Thread]) -> list[str]:
+    return [thread.name for thread in threading.enumerate() if thread not in before]
+
+
+def test_construction_is_inert_and_close_is_safe_unconnected(channel: str, master_bus: can.BusABC) -> None:
+    listener_bus = can.Bus(interface="virtual", channel=channel)
+    before = set(threading.enumerate())
+    drive = Cia402Drive.open(master_bus, drive_config(), sample_time=0.002)
+    assert _new_threads(before) == []  # no Notifier, no heartbeat watchdog
+    assert "send" not in vars(master_bus)  # the frame tap is not on the bus yet
+    drive.close()
+    drive.close()  # idempotent
+    assert _new_threads(before) == []
+    assert listener_bus.recv(timeout=0.05) is None  # nothing was sent
+    listener_bus.shutdown()
+
+
+def test_failed_connect_leaves_no_thread(servo: MiniServo, master_bus: can.BusABC) -> None:
+    servo.boot_up = False
+    servo.stop_heartbeat()
+    before = set(threading.enumerate())
+    drive = Cia402Drive.open(master_bus, drive_config(state_timeout=0.2), sample_time=0.002)
+    with pytest.raises(DriveTimeoutError):
+        drive.connect()
+    assert _new_threads(before) == []  # the Notifier and the watchdog were stopped again
+    assert "send" not in vars(master_bus)
+    drive.close()
+    assert _new_threads(before) == []
+
+
 def test_responder_follows_the_402_table() -> None:
     # the responder's 402 table itself: the path the master walks, and disable voltage from anywhere
     assert _transition(State402.SWITCH_ON_DISABLED, 0x06, 0) is State402.READY_TO_SWITCH_ON
@@ -466,8 +496,11 @@ def test_silent_sdo_server_is_a_timeout_naming_the_object(servo: MiniServo, mast
 def test_bus_with_a_foreign_notifier_is_refused_cleanly(master_bus: can.BusABC) -> None:
     notifier = can.Notifier(master_bus, [], timeout=0.05)
     try:
-        with pytest.raises(DriveError, match="cannot listen on the bus"):
-            Cia402Drive.open(master_bus, drive_config(), sample_time=0.002)
+        with (
+            Cia402Drive.open(master_bus, drive_config(), sample_time=0.002) as drive,
+            pytest.raises(DriveError, match="cannot listen on the bus"),
+        ):
+            drive.connect()
         assert "send" not in vars(master_bus)  # the frame tap was taken off again
     finally:
         notifier.stop()

@@ -13,7 +13,7 @@ Each module defines:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from foilc_hil.errors import ExitCode
@@ -40,4 +40,3 @@ class CommandResult:
     text: str = ""
     exit_code: ExitCode = ExitCode.OK
     message: str = ""
-    extra: dict[str, Any] = field(default_factory=dict)

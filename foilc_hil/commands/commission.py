@@ -34,13 +34,11 @@ from foilc_hil.errors import ExitCode, InputError
 if TYPE_CHECKING:
     from drivers.cia402_master import Cia402Drive
     from drivers.config import DriveConfig
+    from foilc_hil.commission.identify import CampaignSpec
     from foilc_hil.commission.target import CommissionTarget
     from foilc_hil.config import Config
 
 HELP = "scan, inspect, enable, parameterise and identify a drive"
-
-ACTIONS = ("scan", "info", "enable", "disable", "fault-reset", "params", "identify")
-
 
 def _common(parser: argparse.ArgumentParser) -> None:
     where = parser.add_mutually_exclusive_group()
@@ -148,7 +146,9 @@ def _target(args: argparse.Namespace, config: Config, emulator_config: Config | 
 def _open_drive(target: CommissionTarget, drive_cfg: DriveConfig, sample_time: float) -> Cia402Drive:
     from drivers.cia402_master import Cia402Drive
 
-    return Cia402Drive.open(target.bus, drive_cfg, sample_time=sample_time)
+    drive = Cia402Drive.open(target.bus, drive_cfg, sample_time=sample_time)
+    drive.listen()  # the actions talk SDO/NMT to the drive as it is: no connect() (that resets its communication)
+    return drive
 
 
 def execute(args: argparse.Namespace) -> CommandResult:
@@ -245,7 +245,7 @@ def _params(args: argparse.Namespace) -> CommandResult:
             except OSError as exc:
                 raise InputError(f"--out: cannot write {args.out}: {exc}") from exc
             text = f"{len(values)} parameters written to {args.out}"
-        return CommandResult({"parameters": values, "out": args.out}, text)
+        return CommandResult({"parameters": [value.to_json() for value in values], "out": args.out}, text)
     document = report.to_json()
     if not report.ok:
         return CommandResult(document, report.render(), exit_code=ExitCode.RUNTIME_FAILURE, message=report.error)
@@ -262,26 +262,7 @@ def _identify(args: argparse.Namespace) -> CommandResult:
 
     config, emulator_config, drive_cfg = _load(args)
     mode = args.mode or ("cst" if drive_cfg.mode == "cst" else "csv")
-    for option, value in (("--hold", args.hold), ("--rest", args.rest), ("--output-limit", args.output_limit)):
-        _positive(value, option)
-    if not (math.isfinite(args.uncertainty_margin) and args.uncertainty_margin >= 1):
-        raise InputError(f"--uncertainty-margin: must be >= 1, got {args.uncertainty_margin}")
-    limit = drive_cfg.torque_limit if mode == "cst" else drive_cfg.velocity_limit
-    if args.amplitudes:
-        try:
-            amplitudes = tuple(float(x) for x in args.amplitudes.split(",") if x.strip())
-        except ValueError:
-            raise InputError(f"--amplitudes: {args.amplitudes!r} is not a comma-separated list of numbers") from None
-    else:
-        amplitudes = tuple(f * limit for f in ((0.02, 0.04) if mode == "cst" else (0.1, 0.2, 0.3)))
-    spec = identify.CampaignSpec(
-        amplitudes=amplitudes,
-        hold=args.hold if args.hold is not None else (0.2 if mode == "cst" else 1.0),
-        rest=args.rest if args.rest is not None else 1.0,
-        repetitions=args.repetitions,
-        limit=limit,
-        pattern="doublet" if mode == "cst" else "pulse",
-    )
+    spec = _campaign_spec(args, drive_cfg, mode)
     output_limit = args.output_limit if args.output_limit is not None else drive_cfg.velocity_limit
     sample_time = config.sample_time
     command = identify.build_campaign(spec, sample_time)
@@ -306,18 +287,14 @@ def _identify(args: argparse.Namespace) -> CommandResult:
             drive.disable()
     fit = identify.fit_model(record, args.model)
     uncertainty = identify.uncertainty_bounds(fit, margin=args.uncertainty_margin)
-    campaign = {
-        "mode": mode,
-        "pattern": spec.pattern,
-        "amplitudes": list(spec.amplitudes),
-        "hold": spec.hold,
-        "rest": spec.rest,
-        "repetitions": spec.repetitions,
-        "cycles": int(command.shape[0]),
-        "sample_time": sample_time,
-        "output_quantum": 1.0 / drive_cfg.velocity_scale,
-        "max_abs_output": float(np.max(np.abs(record.output))),
-    }
+    campaign = identify.CampaignSummary(
+        mode=mode,
+        spec=spec,
+        cycles=int(command.shape[0]),
+        sample_time=sample_time,
+        output_quantum=1.0 / drive_cfg.velocity_scale,
+        max_abs_output=float(np.max(np.abs(record.output))),
+    )
     document = identify.identification_document(fit, uncertainty, campaign)
     if args.out:
         fragment = identify.fragment_document(document, sample_time, base)
@@ -334,6 +311,32 @@ def _identify(args: argparse.Namespace) -> CommandResult:
     document["out"] = args.out
     document["plot"] = args.plot
     return CommandResult(document, _render_identify(document))
+
+
+def _campaign_spec(args: argparse.Namespace, drive_cfg: DriveConfig, mode: str) -> CampaignSpec:
+    """The identification campaign from the command line (defaults per mode), options checked."""
+    from foilc_hil.commission.identify import CampaignSpec
+
+    for option, value in (("--hold", args.hold), ("--rest", args.rest), ("--output-limit", args.output_limit)):
+        _positive(value, option)
+    if not (math.isfinite(args.uncertainty_margin) and args.uncertainty_margin >= 1):
+        raise InputError(f"--uncertainty-margin: must be >= 1, got {args.uncertainty_margin}")
+    limit = drive_cfg.torque_limit if mode == "cst" else drive_cfg.velocity_limit
+    if args.amplitudes:
+        try:
+            amplitudes = tuple(float(x) for x in args.amplitudes.split(",") if x.strip())
+        except ValueError:
+            raise InputError(f"--amplitudes: {args.amplitudes!r} is not a comma-separated list of numbers") from None
+    else:
+        amplitudes = tuple(f * limit for f in ((0.02, 0.04) if mode == "cst" else (0.1, 0.2, 0.3)))
+    return CampaignSpec(
+        amplitudes=amplitudes,
+        hold=args.hold if args.hold is not None else (0.2 if mode == "cst" else 1.0),
+        rest=args.rest if args.rest is not None else 1.0,
+        repetitions=args.repetitions,
+        limit=limit,
+        pattern="doublet" if mode == "cst" else "pulse",
+    )
 
 
 def _render_identify(document: dict[str, Any]) -> str:

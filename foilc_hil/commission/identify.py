@@ -75,10 +75,12 @@ from foilc_hil.errors import DriveError, FoilcHilError, InputError
 
 __all__ = [
     "CampaignSpec",
+    "CampaignSummary",
     "FitResult",
     "ModelKind",
     "StepRecord",
     "StepWindow",
+    "UncertaintyBounds",
     "build_campaign",
     "discrete_model",
     "find_steps",
@@ -519,44 +521,81 @@ def fit_model(record: StepRecord, kind: ModelKind = "first-order") -> FitResult:
 # --- uncertainty ------------------------------------------------------------------------------------------------
 
 
-def uncertainty_bounds(fit: FitResult, *, margin: float = 1.25) -> dict[str, Any]:
+_UNCERTAINTY_CONSTRUCTION = (
+    "rho = margin * max(max_i ||X_i - X0||_2, 2 sigma_X0); G = sqrt(rho) I, H = sqrt(rho) I "
+    "(H2 = sqrt(rho_B) e1); X_i the ZOH model of step i fitted alone"
+)
+
+
+@dataclass(frozen=True)
+class UncertaintyBounds:
+    """``G1, H1, G2, H2`` of the ``plant.uncertainty`` section and how they were built (module docstring)."""
+
+    g1: np.ndarray
+    h1: np.ndarray
+    g2: np.ndarray
+    h2: np.ndarray
+    rho_a: float
+    rho_b: float
+    observed_max_da: float  # max over the steps of ||A_i - A0||_2
+    observed_max_db: float
+    sigma_a: float  # propagated standard error of A0 / B0
+    sigma_b: float
+    margin: float
+    per_step: tuple[tuple[float, float], ...]  # (||A_i - A0||, ||B_i - B0||) per step
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "G1": self.g1.tolist(),
+            "H1": self.h1.tolist(),
+            "G2": self.g2.tolist(),
+            "H2": self.h2.tolist(),
+            "rho_A": self.rho_a,
+            "rho_B": self.rho_b,
+            "observed_max_dA": self.observed_max_da,
+            "observed_max_dB": self.observed_max_db,
+            "sigma_A": self.sigma_a,
+            "sigma_B": self.sigma_b,
+            "margin": self.margin,
+            "per_step": [{"dA": da, "dB": db} for da, db in self.per_step],
+            "construction": _UNCERTAINTY_CONSTRUCTION,
+        }
+
+
+def uncertainty_bounds(fit: FitResult, *, margin: float = 1.25) -> UncertaintyBounds:
     """``G1, H1, G2, H2`` covering the per-step spread of the discrete model (module docstring)."""
     if not (math.isfinite(margin) and margin >= 1):
         raise InputError(f"--uncertainty-margin: must be >= 1, got {margin}")
     ts = fit.sample_time
     a0, b0 = discrete_model(fit.num, fit.den, ts)
     n = a0.shape[0]
-    spread_a = 0.0
-    spread_b = 0.0
-    per_step: list[dict[str, float]] = []
+    per_step: list[tuple[float, float]] = []
     for step in fit.steps:
         num, den, _ = transfer_function(fit.kind, step.theta)
         a_i, b_i = discrete_model(num, den, ts)
-        da, db = float(np.linalg.norm(a_i - a0, 2)), float(np.linalg.norm(b_i - b0, 2))
-        spread_a, spread_b = max(spread_a, da), max(spread_b, db)
-        per_step.append({"dA": da, "dB": db})
+        per_step.append((float(np.linalg.norm(a_i - a0, 2)), float(np.linalg.norm(b_i - b0, 2))))
+    spread_a = max((da for da, _ in per_step), default=0.0)
+    spread_b = max((db for _, db in per_step), default=0.0)
     sigma_a, sigma_b = _propagated_sigma(fit)
     rho_a = margin * max(spread_a, STATISTICAL_FLOOR_SIGMAS * sigma_a)
     rho_b = margin * max(spread_b, STATISTICAL_FLOOR_SIGMAS * sigma_b)
     root_a, root_b = math.sqrt(rho_a), math.sqrt(rho_b)
     e1 = np.zeros((n, 1))
     e1[0, 0] = 1.0
-    return {
-        "G1": (root_a * np.eye(n)).tolist(),
-        "H1": (root_a * np.eye(n)).tolist(),
-        "G2": (root_b * np.eye(n)).tolist(),
-        "H2": (root_b * e1).tolist(),
-        "rho_A": rho_a,
-        "rho_B": rho_b,
-        "observed_max_dA": spread_a,
-        "observed_max_dB": spread_b,
-        "sigma_A": sigma_a,
-        "sigma_B": sigma_b,
-        "margin": margin,
-        "per_step": per_step,
-        "construction": "rho = margin * max(max_i ||X_i - X0||_2, 2 sigma_X0); G = sqrt(rho) I, H = sqrt(rho) I "
-        "(H2 = sqrt(rho_B) e1); X_i the ZOH model of step i fitted alone",
-    }
+    return UncertaintyBounds(
+        g1=root_a * np.eye(n),
+        h1=root_a * np.eye(n),
+        g2=root_b * np.eye(n),
+        h2=root_b * e1,
+        rho_a=rho_a,
+        rho_b=rho_b,
+        observed_max_da=spread_a,
+        observed_max_db=spread_b,
+        sigma_a=sigma_a,
+        sigma_b=sigma_b,
+        margin=margin,
+        per_step=tuple(per_step),
+    )
 
 
 def _propagated_sigma(fit: FitResult) -> tuple[float, float]:
@@ -583,7 +622,35 @@ def _propagated_sigma(fit: FitResult) -> tuple[float, float]:
 # --- documents --------------------------------------------------------------------------------------------------
 
 
-def identification_document(fit: FitResult, uncertainty: dict[str, Any], campaign: dict[str, Any]) -> dict[str, Any]:
+@dataclass(frozen=True)
+class CampaignSummary:
+    """What the identification campaign was: its spec, mode and size, and what it measured."""
+
+    mode: str  # "csv" or "cst"
+    spec: CampaignSpec
+    cycles: int
+    sample_time: float
+    output_quantum: float  # one count of the feedback, in plant units
+    max_abs_output: float
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "mode": self.mode,
+            "pattern": self.spec.pattern,
+            "amplitudes": list(self.spec.amplitudes),
+            "hold": self.spec.hold,
+            "rest": self.spec.rest,
+            "repetitions": self.spec.repetitions,
+            "cycles": self.cycles,
+            "sample_time": self.sample_time,
+            "output_quantum": self.output_quantum,
+            "max_abs_output": self.max_abs_output,
+        }
+
+
+def identification_document(
+    fit: FitResult, uncertainty: UncertaintyBounds, campaign: CampaignSummary
+) -> dict[str, Any]:
     """The ``--json`` document: ``{"plant", "uncertainty", "fit", "campaign"}`` (interface.md)."""
     a, b, c = state_space(fit.num, fit.den)
     scalar = a.shape == (1, 1)
@@ -605,7 +672,7 @@ def identification_document(fit: FitResult, uncertainty: dict[str, Any], campaig
         "steps": [step.to_json(fit.kind) for step in fit.steps],
         "discrete": {"A": a_d.tolist(), "B": b_d.tolist(), "sample_time": fit.sample_time},
     }
-    return {"plant": plant, "uncertainty": uncertainty, "fit": fit_doc, "campaign": campaign}
+    return {"plant": plant, "uncertainty": uncertainty.to_json(), "fit": fit_doc, "campaign": campaign.to_json()}
 
 
 def fragment_document(document: dict[str, Any], sample_time: float, base: dict[str, Any] | None) -> dict[str, Any]:

@@ -22,12 +22,21 @@ from typing import Any
 
 from canopen.objectdictionary import INTEGER_TYPES, SIGNED_TYPES, ODVariable
 
-from drivers.cia301 import ErrorRegister, NmtState, SdoAbortCode, emcy_text
+from drivers.cia301 import CobIdEntry, ErrorRegister, NmtState, SdoAbortCode, emcy_text
 from drivers.cia402 import IdentitySub, Obj, Statusword, decode_state
 from drivers.cia402_master import Cia402Drive
+from drivers.pdo import MappingEntry
 from foilc_hil.errors import InputError, SdoError
 
-__all__ = ["MODE_NAMES", "SUPPORTED_MODE_BITS_402", "DriveInfo", "PdoReport", "export_dbc", "read_info"]
+__all__ = [
+    "MODE_NAMES",
+    "SUPPORTED_MODE_BITS_402",
+    "DriveInfo",
+    "MappedObjectReport",
+    "PdoReport",
+    "export_dbc",
+    "read_info",
+]
 
 #: 0x6502 bit -> (mode of operation number, name), CiA 402-2
 SUPPORTED_MODE_BITS_402: dict[int, tuple[int, str]] = {
@@ -42,10 +51,19 @@ SUPPORTED_MODE_BITS_402: dict[int, tuple[int, str]] = {
     9: (10, "cyclic synchronous torque (cst)"),
 }
 MODE_NAMES: dict[int, str] = {number: name for number, name in SUPPORTED_MODE_BITS_402.values()}
-PDO_INVALID_BIT = 1 << 31
-PDO_COB_ID_MASK = 0x7FF
 PDO_COUNT = 4
 HEARTBEAT_WAIT_FACTOR = 1.5
+
+
+@dataclass(frozen=True)
+class MappedObjectReport:
+    """One entry of a PDO mapping as read from the drive, with the object's name from the EDS."""
+
+    entry: MappingEntry
+    name: str
+
+    def to_json(self) -> dict[str, Any]:
+        return {"index": self.entry.index, "subindex": self.entry.subindex, "bits": self.entry.bits, "name": self.name}
 
 
 @dataclass(frozen=True)
@@ -57,7 +75,7 @@ class PdoReport:
     cob_id: int
     valid: bool
     transmission_type: int
-    mapped: tuple[dict[str, Any], ...]
+    mapped: tuple[MappedObjectReport, ...]
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -66,19 +84,53 @@ class PdoReport:
             "cob_id": self.cob_id,
             "valid": self.valid,
             "transmission_type": self.transmission_type,
-            "mapped": list(self.mapped),
+            "mapped": [entry.to_json() for entry in self.mapped],
         }
 
 
 @dataclass(frozen=True)
 class DriveInfo:
-    """Everything ``info`` reads."""
+    """Everything ``info`` reads (raw values; :meth:`to_json` decodes them)."""
 
     node_id: int
-    document: dict[str, Any]
+    device_type: int
+    identity: dict[str, int]  # 0x1018 sub-index name -> value
+    nmt_state: str
+    heartbeat_producer_ms: int | None
+    supported_bits: int | None  # 0x6502; None when the drive lacks it
+    mode: int | None  # 0x6061
+    statusword: int
+    error_register: int
+    error_code: int | None  # 0x603F
+    pdos: tuple[PdoReport, ...]
+    heartbeat_wait_seconds: float
 
     def to_json(self) -> dict[str, Any]:
-        return dict(self.document)
+        bits, mode, error_code = self.supported_bits, self.mode, self.error_code
+        modes = [] if bits is None else [
+            {"mode": number, "name": name}
+            for bit, (number, name) in SUPPORTED_MODE_BITS_402.items()
+            if bits & (1 << bit)
+        ]
+        return {
+            "node_id": self.node_id,
+            "device_type": self.device_type,
+            "profile": self.device_type & 0xFFFF,
+            "identity": dict(self.identity),
+            "nmt_state": self.nmt_state,
+            "heartbeat_producer_ms": self.heartbeat_producer_ms,
+            "supported_modes": {"value": bits, "hex": None if bits is None else f"0x{bits:08X}", "modes": modes},
+            "mode": {"value": mode, "name": MODE_NAMES.get(mode, "unknown") if mode is not None else None},
+            "statusword": decode_statusword(self.statusword),
+            "error_register": decode_error_register(self.error_register),
+            "error_code": None if error_code is None else {
+                "value": error_code,
+                "hex": f"0x{error_code:04X}",
+                "text": "no error" if error_code == 0 else emcy_text(error_code),
+            },
+            "pdos": [pdo.to_json() for pdo in self.pdos],
+            "heartbeat_wait_seconds": self.heartbeat_wait_seconds,
+        }
 
 
 def _object_name(drive: Cia402Drive, index: int, subindex: int) -> str:
@@ -136,22 +188,15 @@ def read_pdos(drive: Cia402Drive) -> tuple[PdoReport, ...]:
             count = _optional(drive, mapping, 0) or 0
             mapped = []
             for sub in range(1, count + 1):
-                entry = drive.read_object(mapping, sub)
-                index, subindex, bits = entry >> 16, (entry >> 8) & 0xFF, entry & 0xFF
-                mapped.append(
-                    {
-                        "index": index,
-                        "subindex": subindex,
-                        "bits": bits,
-                        "name": _object_name(drive, index, subindex),
-                    }
-                )
+                entry = MappingEntry.decode(drive.read_object(mapping, sub))
+                mapped.append(MappedObjectReport(entry, _object_name(drive, entry.index, entry.subindex)))
+            cob = CobIdEntry.decode(raw_cob)
             reports.append(
                 PdoReport(
                     direction=direction,
                     number=number,
-                    cob_id=raw_cob & PDO_COB_ID_MASK,
-                    valid=not raw_cob & PDO_INVALID_BIT,
+                    cob_id=cob.can_id,
+                    valid=cob.valid,
                     transmission_type=transmission if transmission is not None else -1,
                     mapped=tuple(mapped),
                 )
@@ -176,15 +221,6 @@ def read_info(drive: Cia402Drive) -> DriveInfo:
     device_type = drive.read_object(Obj.DEVICE_TYPE)
     identity = {sub.name.lower(): drive.read_object(Obj.IDENTITY, sub) for sub in IdentitySub}
     supported_bits = _optional(drive, Obj.SUPPORTED_DRIVE_MODES)
-    supported = (
-        [
-            {"mode": number, "name": name}
-            for bit, (number, name) in SUPPORTED_MODE_BITS_402.items()
-            if supported_bits & (1 << bit)
-        ]
-        if supported_bits is not None
-        else []
-    )
     mode = _optional(drive, Obj.MODES_OF_OPERATION_DISPLAY)
     statusword = drive.read_object(Obj.STATUSWORD)
     register = drive.read_object(Obj.ERROR_REGISTER)
@@ -192,32 +228,20 @@ def read_info(drive: Cia402Drive) -> DriveInfo:
     producer_ms = _optional(drive, Obj.PRODUCER_HEARTBEAT_TIME)
     started = time.monotonic()
     nmt = _nmt_state(drive, producer_ms)
-    document: dict[str, Any] = {
-        "node_id": drive.node_id,
-        "device_type": device_type,
-        "profile": device_type & 0xFFFF,
-        "identity": identity,
-        "nmt_state": nmt,
-        "heartbeat_producer_ms": producer_ms,
-        "supported_modes": {
-            "value": supported_bits,
-            "hex": None if supported_bits is None else f"0x{supported_bits:08X}",
-            "modes": supported,
-        },
-        "mode": {"value": mode, "name": MODE_NAMES.get(mode, "unknown") if mode is not None else None},
-        "statusword": decode_statusword(statusword),
-        "error_register": decode_error_register(register),
-        "error_code": None
-        if error_code is None
-        else {
-            "value": error_code,
-            "hex": f"0x{error_code:04X}",
-            "text": "no error" if error_code == 0 else emcy_text(error_code),
-        },
-        "pdos": [pdo.to_json() for pdo in read_pdos(drive)],
-        "heartbeat_wait_seconds": round(time.monotonic() - started, 3),
-    }
-    return DriveInfo(drive.node_id, document)
+    return DriveInfo(
+        node_id=drive.node_id,
+        device_type=device_type,
+        identity=identity,
+        nmt_state=nmt,
+        heartbeat_producer_ms=producer_ms,
+        supported_bits=supported_bits,
+        mode=mode,
+        statusword=statusword,
+        error_register=register,
+        error_code=error_code,
+        pdos=read_pdos(drive),
+        heartbeat_wait_seconds=round(time.monotonic() - started, 3),
+    )
 
 
 def export_dbc(drive: Cia402Drive, path: str | Path) -> dict[str, Any]:

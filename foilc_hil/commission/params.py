@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -53,8 +54,11 @@ from foilc_hil.errors import ConfigError, DriveError, SdoError
 from foilc_hil.schema import Section, load_document, validate
 
 __all__ = [
+    "ChangeStatus",
+    "ParameterChange",
     "ParameterEntry",
     "ParameterSet",
+    "ParameterValue",
     "WriteReport",
     "check_against_eds",
     "dump_parameter_set",
@@ -126,15 +130,30 @@ def load_parameter_set(path: str | Path, *, need_values: bool) -> ParameterSet:
     return parameter_set
 
 
-def dump_parameter_set(entries: list[dict[str, Any]]) -> str:
+@dataclass(frozen=True)
+class ParameterValue:
+    """One parameter as read from the drive (the fields of a parameter-set file)."""
+
+    name: str
+    index: int
+    subindex: int
+    value: int | float
+    unit: str = ""
+
+    def to_json(self) -> dict[str, Any]:
+        return {"name": self.name, "index": self.index, "subindex": self.subindex, "value": self.value,
+                "unit": self.unit}
+
+
+def dump_parameter_set(entries: list[ParameterValue]) -> str:
     """The YAML text of a parameter set (indices as hex strings)."""
     rows = [
         {
-            "name": entry["name"],
-            "index": f"0x{entry['index']:04X}",
-            "subindex": entry["subindex"],
-            "value": entry["value"],
-            "unit": entry.get("unit", ""),
+            "name": entry.name,
+            "index": f"0x{entry.index:04X}",
+            "subindex": entry.subindex,
+            "value": entry.value,
+            "unit": entry.unit,
         }
         for entry in entries
     ]
@@ -257,12 +276,9 @@ def _download(drive: Cia402Drive, entry: ParameterEntry, value: int | float) -> 
 # --- read / write -----------------------------------------------------------------------------------------------
 
 
-def read_parameters(drive: Cia402Drive, entries: list[ParameterEntry]) -> list[dict[str, Any]]:
+def read_parameters(drive: Cia402Drive, entries: list[ParameterEntry]) -> list[ParameterValue]:
     """Current values of ``entries`` (same fields as the file)."""
-    return [
-        {"name": e.name, "index": e.index, "subindex": e.subindex, "value": _upload(drive, e), "unit": e.unit}
-        for e in entries
-    ]
+    return [ParameterValue(e.name, e.index, e.subindex, _upload(drive, e), e.unit) for e in entries]
 
 
 def eds_parameters(drive: Cia402Drive) -> list[ParameterEntry]:
@@ -284,11 +300,43 @@ def eds_parameters(drive: Cia402Drive) -> list[ParameterEntry]:
     return entries
 
 
+class ChangeStatus(StrEnum):
+    """What happened to one entry of ``params write`` (the ``status`` of the JSON document)."""
+
+    PENDING = "pending"  # not reached: an earlier entry failed
+    CHANGED = "changed"
+    UNCHANGED = "unchanged"  # written, and the drive already had the value
+    FAILED = "failed"
+    ROLLED_BACK = "rolled back"
+    NOT_RESTORED = "NOT restored"
+
+
+@dataclass
+class ParameterChange:
+    """One entry of ``params write``: old value, value read back after writing, and after a rollback."""
+
+    name: str
+    index: int
+    subindex: int
+    old: int | float
+    unit: str = ""
+    new: int | float | None = None  # read back after writing; None: not written
+    status: ChangeStatus = ChangeStatus.PENDING
+    now: int | float | None = None  # read back after a successful rollback
+
+    def to_json(self) -> dict[str, Any]:
+        document: dict[str, Any] = {"name": self.name, "index": self.index, "subindex": self.subindex,
+                                    "old": self.old, "new": self.new, "unit": self.unit, "status": str(self.status)}
+        if self.now is not None:
+            document["now"] = self.now
+        return document
+
+
 @dataclass
 class WriteReport:
     """What ``params write`` did: per entry old -> new, and on failure the abort and the rollback."""
 
-    changes: list[dict[str, Any]]
+    changes: list[ParameterChange]
     error: str = ""
     rolled_back: list[str] | None = None
     not_restored: list[str] | None = None
@@ -301,7 +349,7 @@ class WriteReport:
     def to_json(self) -> dict[str, Any]:
         return {
             "ok": self.ok,
-            "changes": self.changes,
+            "changes": [change.to_json() for change in self.changes],
             "error": self.error or None,
             "refused": self.refused,
             "rolled_back": self.rolled_back,
@@ -311,14 +359,13 @@ class WriteReport:
     def render(self) -> str:
         lines: list[str] = []
         for change in self.changes:
-            old, new = change["old"], change.get("new")
-            status = change["status"]
+            old, new = change.old, change.new
             arrow = f"{old} -> {new}" if new is not None else f"{old} (not written)"
-            if "now" in change:
-                arrow += f" -> {change['now']}"
-            unit = f" {change['unit']}" if change.get("unit") else ""
-            lines.append(f"{change['name']:<28} 0x{change['index']:04X}:{change['subindex']:02X}  {arrow}{unit}  "
-                         f"[{status}]")
+            if change.now is not None:
+                arrow += f" -> {change.now}"
+            unit = f" {change.unit}" if change.unit else ""
+            lines.append(f"{change.name:<28} 0x{change.index:04X}:{change.subindex:02X}  {arrow}{unit}  "
+                         f"[{change.status}]")
         for line in self.refused or []:
             lines.append(f"refused: {line}")
         if self.error:
@@ -346,11 +393,7 @@ def write_parameters(drive: Cia402Drive, entries: list[ParameterEntry], *, eds_c
                 rolled_back=[],
             )
     old_values = {e.name: _upload(drive, e) for e in entries}  # phase 3: nothing written yet
-    changes: list[dict[str, Any]] = [
-        {"name": e.name, "index": e.index, "subindex": e.subindex, "old": old_values[e.name], "new": None,
-         "unit": e.unit, "status": "pending"}
-        for e in entries
-    ]
+    changes = [ParameterChange(e.name, e.index, e.subindex, old_values[e.name], e.unit) for e in entries]
     written: list[ParameterEntry] = []
     for entry, change in zip(entries, changes, strict=True):
         assert entry.value is not None
@@ -359,16 +402,16 @@ def write_parameters(drive: Cia402Drive, entries: list[ParameterEntry], *, eds_c
             read_back = _upload(drive, entry)
             if not _same(read_back, entry.value):
                 written.append(entry)
-                change["new"] = read_back
+                change.new = read_back
                 raise DriveError(f"{entry.name} ({entry.address}) reads back {read_back} after writing {entry.value}")
         except (SdoError, DriveError) as exc:
-            change["status"] = "failed"
+            change.status = ChangeStatus.FAILED
             restored, not_restored = _roll_back(drive, written, old_values, changes)
             return WriteReport(changes, error=f"{entry.name}: {exc}", rolled_back=restored,
                                not_restored=not_restored)
         written.append(entry)
-        change["new"] = read_back
-        change["status"] = "unchanged" if _same(read_back, old_values[entry.name]) else "changed"
+        change.new = read_back
+        change.status = ChangeStatus.UNCHANGED if _same(read_back, old_values[entry.name]) else ChangeStatus.CHANGED
     return WriteReport(changes)
 
 
@@ -376,11 +419,11 @@ def _roll_back(
     drive: Cia402Drive,
     written: list[ParameterEntry],
     old_values: dict[str, int | float],
-    changes: list[dict[str, Any]],
+    changes: list[ParameterChange],
 ) -> tuple[list[str], list[str]]:
     restored: list[str] = []
     not_restored: list[str] = []
-    by_name = {change["name"]: change for change in changes}
+    by_name = {change.name: change for change in changes}
     for entry in reversed(written):
         old = old_values[entry.name]
         try:
@@ -388,13 +431,13 @@ def _roll_back(
             ok = _same(_upload(drive, entry), old)
         except (SdoError, DriveError) as exc:
             not_restored.append(f"{entry.name} ({exc})")
-            by_name[entry.name]["status"] = "NOT restored"
+            by_name[entry.name].status = ChangeStatus.NOT_RESTORED
             continue
         if ok:
             restored.append(entry.name)
-            by_name[entry.name]["status"] = "rolled back"
-            by_name[entry.name]["now"] = old
+            by_name[entry.name].status = ChangeStatus.ROLLED_BACK
+            by_name[entry.name].now = old
         else:
             not_restored.append(f"{entry.name} (reads back a different value)")
-            by_name[entry.name]["status"] = "NOT restored"
+            by_name[entry.name].status = ChangeStatus.NOT_RESTORED
     return restored, not_restored

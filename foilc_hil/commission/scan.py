@@ -29,7 +29,16 @@ import can
 import canopen
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
-from drivers.cia301 import NMT_COB_ID, FunctionCode, NmtCommand, NmtState, cob_id, sdo_abort_text
+from drivers.cia301 import (
+    NMT_COB_ID,
+    FunctionCode,
+    NmtCommand,
+    NmtState,
+    cob_id,
+    heartbeat_state,
+    sdo_abort_text,
+    split_cob_id,
+)
 from drivers.cia402 import IdentitySub, Obj
 from foilc_hil.errors import DriveError
 
@@ -107,12 +116,12 @@ class _Discovery(can.Listener):
     def on_message_received(self, msg: can.Message) -> None:
         if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
             return
-        function, node_id = msg.arbitration_id & 0x780, msg.arbitration_id & 0x7F
+        function, node_id = split_cob_id(msg.arbitration_id)
         if node_id not in self.nodes:
             return
         with self.lock:
             if function == FunctionCode.HEARTBEAT and len(msg.data) == 1:
-                state = msg.data[0] & 0x7F
+                state = heartbeat_state(msg.data[0])
                 self.heartbeat_state[node_id] = state
                 how = "boot-up" if state == NmtState.INITIALISING else "heartbeat"
                 self.found_by.setdefault(node_id, set()).add(how)

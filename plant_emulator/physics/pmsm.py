@@ -182,11 +182,6 @@ class PmsmPlant:
         self._input_kind = kind
 
     @property
-    def velocity_rpm(self) -> float:
-        """The measured velocity (rpm) as reported at the end of the last step, noise included."""
-        return float(self._y[0])
-
-    @property
     def torque(self) -> float:
         """The electromagnetic torque ``Te`` (N m) at the end of the last step."""
         return self._torque

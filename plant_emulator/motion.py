@@ -1,0 +1,201 @@
+"""The physics tick of the virtual drive and its realtime clock.
+
+Each cycle the power stage turns the 402 state and the mode's target into one plant input (velocity or torque),
+advances the plant from :mod:`plant_emulator.physics` by one cycle period, and writes the feedback (0x606C,
+0x6077, 0x6064) back to the store. Torque limiting held too long and the plant's over-speed flag are faults; the
+quick stop ramp ends when the axis is at rest.
+
+In lockstep mode the device calls :meth:`AxisPhysics.tick` at each SYNC; in realtime mode
+:meth:`AxisPhysics.run_realtime` calls it on the wall clock, one cycle period per tick, SYNC or not.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable
+
+import numpy as np
+from canopen import objectdictionary as cod
+
+from drivers.cia402 import Obj, OperationMode, QuickStopOption
+from plant_emulator.application import Cia402Application, FaultKind
+from plant_emulator.axis import Axis, Units, toward
+from plant_emulator.node import EmulatedNode
+from plant_emulator.physics.base import Plant
+from plant_emulator.settings import EmulatorConfig
+from plant_emulator.state_machine import MotionKind
+
+__all__ = ["AxisPhysics", "default_units"]
+
+VELOCITY_RESOLUTION_INDEX = 0x2000  # manufacturer object of the shipped EDS: counts of 0x606C per rpm
+RAMP_SETTLE_TIME = 3.0  # s a finished quick-stop ramp waits at most for the axis to come to rest
+REALTIME_MAX_LAG = 10  # periods behind the wall clock after which the clock restarts instead of catching up
+_SLOW_QUICK_STOP = (QuickStopOption.SLOW_DOWN_RAMP_THEN_DISABLE, QuickStopOption.SLOW_DOWN_RAMP_STAY)
+
+
+def default_units(
+    plant: Plant, od: cod.ObjectDictionary, velocity_scale: float | None, torque_scale: float | None
+) -> Units:
+    """The given scales, else the drive's defaults: a PMSM counts 0x2000 per rpm and per mille of rated torque."""
+    if velocity_scale is None:
+        velocity_scale = 1.0
+        if hasattr(plant, "set_input_kind") and VELOCITY_RESOLUTION_INDEX in od:
+            resolution = od[VELOCITY_RESOLUTION_INDEX]
+            default = resolution.default if isinstance(resolution, cod.ODVariable) else None
+            velocity_scale = float(default) if isinstance(default, (int, float)) and default > 0 else 1.0
+    if torque_scale is None:
+        rated_torque = getattr(plant, "rated_torque", None)
+        torque_scale = 1000.0 / float(rated_torque) if rated_torque is not None else 1.0  # N m -> per mille
+    return Units(float(velocity_scale), float(torque_scale))
+
+
+class AxisPhysics:
+    """One cycle of the power stage and the plant, and the wall clock that drives it in realtime mode.
+
+    Parameters
+    ----------
+    plant
+        The physics; output 0 is the velocity. A PMSM (``set_input_kind``) is switched between velocity and
+        torque input.
+    node
+        The drive's node (targets in, feedback out).
+    application
+        The 402 application: its state decides the motion, its faults and statusword are raised here.
+    settings
+        The ``emulator:`` section (limits, standstill).
+    default_cycle_period
+        Seconds per cycle while 0x1006 is 0.
+    """
+
+    def __init__(
+        self,
+        plant: Plant,
+        node: EmulatedNode,
+        application: Cia402Application,
+        settings: EmulatorConfig,
+        *,
+        default_cycle_period: float,
+    ) -> None:
+        self.plant = plant
+        self.node = node
+        self.application = application
+        self.settings = settings
+        self.axis: Axis = application.axis
+        self.units: Units = application.units
+        self._default_cycle_period = default_cycle_period
+        self._is_pmsm = hasattr(plant, "set_input_kind")
+
+    @property
+    def cycle_period(self) -> float:
+        """Seconds per cycle: 0x1006 (microseconds) when set, else the default."""
+        micros = self.node.read(Obj.COMMUNICATION_CYCLE_PERIOD) if self.node.has(Obj.COMMUNICATION_CYCLE_PERIOD) else 0
+        return micros * 1e-6 if micros > 0 else self._default_cycle_period
+
+    def tick(self, dt: float) -> None:
+        """Advance the plant one cycle with the active command; update feedback, limits, ramps."""
+        motion = self.application.machine.motion()
+        kind, u = self._plant_input(motion, dt)
+        if self._is_pmsm:
+            self.plant.set_input_kind(kind)  # type: ignore[attr-defined]
+        elif motion is MotionKind.TORQUE_OFF:
+            u = 0.0
+        y = np.asarray(self.plant.step(np.array([u]), dt), dtype=float).reshape(-1)
+        axis = self.axis
+        axis.cycles += 1
+        axis.velocity = self.units.counts(float(y[0]))
+        plant_position = getattr(self.plant, "position_counts", None)
+        if plant_position is not None:
+            axis.position = float(plant_position)
+        else:
+            axis.position += float(y[0]) * dt  # no encoder in the model: the integral of the output
+        plant_torque = getattr(self.plant, "torque", None)
+        if plant_torque is not None:
+            axis.torque = float(plant_torque) * self.units.torque_scale
+        else:
+            axis.torque = u * self.units.torque_scale if kind == "torque" else 0.0
+        self._check_limits(motion, dt)
+        self.node.produce(Obj.VELOCITY_ACTUAL_VALUE, axis.velocity)
+        self.node.produce(Obj.TORQUE_ACTUAL_VALUE, axis.torque)
+        self.node.produce(Obj.POSITION_ACTUAL_VALUE, axis.position)
+        self.application.publish_status()
+
+    def _plant_input(self, motion: MotionKind, dt: float) -> tuple[str, float]:
+        """The plant's input kind ("velocity" / "torque") and value for this cycle, in plant units."""
+        axis, units, node = self.axis, self.units, self.node
+        if motion is MotionKind.FOLLOW_TARGET:
+            mode = int(node.read(Obj.MODES_OF_OPERATION_DISPLAY))
+            if mode == OperationMode.CYCLIC_SYNC_TORQUE:
+                return "torque", units.plant_torque(float(node.read(Obj.TARGET_TORQUE)))
+            if mode == OperationMode.PROFILE_VELOCITY:
+                axis.profile_velocity = self._profile_step(axis.profile_velocity, dt)
+                return "velocity", units.plant_velocity(axis.profile_velocity)
+            return "velocity", units.plant_velocity(float(node.read(Obj.TARGET_VELOCITY)))
+        if motion is MotionKind.QUICK_STOP_RAMP:
+            axis.ramp_velocity = toward(axis.ramp_velocity, 0.0, self._quick_stop_deceleration() * dt)
+            return "velocity", units.plant_velocity(axis.ramp_velocity)
+        if motion is MotionKind.HOLD_STANDSTILL:
+            axis.ramp_velocity = 0.0
+            return "velocity", units.plant_velocity(axis.ramp_velocity)
+        return "torque", 0.0
+
+    def _check_limits(self, motion: MotionKind, dt: float) -> None:
+        """Torque limit held too long and over-speed are faults; a finished quick stop ramp ends at rest."""
+        axis = self.axis
+        torque_limited = bool(getattr(self.plant, "torque_limited", False))
+        over_speed = bool(getattr(self.plant, "over_speed", False))
+        axis.internal_limit = torque_limited
+        axis.torque_limited_cycles = axis.torque_limited_cycles + 1 if torque_limited else 0
+        energised = motion is not MotionKind.TORQUE_OFF
+        if energised and over_speed:
+            self.application.raise_fault(FaultKind.OVER_SPEED)
+        limit_cycles = self.settings.torque_limit_fault_cycles
+        if energised and limit_cycles and axis.torque_limited_cycles >= limit_cycles:
+            self.application.raise_fault(FaultKind.OVER_CURRENT)
+        if motion is MotionKind.QUICK_STOP_RAMP and axis.ramp_velocity == 0.0:
+            axis.ramp_zero_time += dt
+            standstill = abs(axis.velocity) <= self.units.counts(self.settings.standstill_velocity)
+            if standstill or axis.ramp_zero_time >= RAMP_SETTLE_TIME:
+                self.application.machine.ramp_finished()
+
+    def _profile_step(self, current: float, dt: float) -> float:
+        target = float(self.node.read(Obj.TARGET_VELOCITY))
+        speeding_up = abs(target) > abs(current) and (target * current >= 0)
+        index = Obj.PROFILE_ACCELERATION if speeding_up else Obj.PROFILE_DECELERATION
+        rate = float(self.node.read(index)) if self.node.has(index) else math.inf
+        return toward(current, target, rate * dt if rate > 0 else math.inf)
+
+    def _quick_stop_deceleration(self) -> float:
+        slow = self.application.machine.quick_stop_option in _SLOW_QUICK_STOP
+        index = Obj.PROFILE_DECELERATION if slow else Obj.QUICK_STOP_DECELERATION
+        rate = float(self.node.read(index)) if self.node.has(index) else 0.0
+        return rate if rate > 0 else math.inf
+
+    def begin_trial(self, trial: int) -> None:
+        """``plant.reset(trial)`` and the feedback of the plant's initial condition (see ``VirtualDrive``)."""
+        self.plant.reset(trial)
+        y = np.asarray(self.plant.output(), dtype=float).reshape(-1)
+        axis = self.axis
+        axis.velocity = self.units.counts(float(y[0]))
+        axis.profile_velocity = axis.ramp_velocity = axis.velocity
+        plant_position = getattr(self.plant, "position_counts", None)
+        axis.position = float(plant_position) if plant_position is not None else 0.0
+        self.node.produce(Obj.VELOCITY_ACTUAL_VALUE, axis.velocity)
+        self.node.produce(Obj.POSITION_ACTUAL_VALUE, axis.position)
+
+    def run_realtime(self, stop: threading.Event, lock: threading.RLock, after_tick: Callable[[], None]) -> None:
+        """Tick on the wall clock until ``stop`` is set (the drive's physics thread), ``after_tick`` each time."""
+        next_tick = time.perf_counter()
+        while not stop.is_set():
+            period = self.cycle_period
+            next_tick += period
+            delay = next_tick - time.perf_counter()
+            if delay > 0:
+                stop.wait(delay)
+            elif delay < -REALTIME_MAX_LAG * period:
+                next_tick = time.perf_counter()  # fell far behind (debugger, overload): do not burst
+            with lock:
+                if self.node.alive:
+                    self.tick(period)
+                    after_tick()
