@@ -179,3 +179,36 @@ def test_run_law_works_without_tuning_and_the_log_verifies(
     code = main(["replay", str(out), "--verify", "--json"])
     verified = json.loads(capsys.readouterr().out)
     assert code == 0 and verified["verified"] is True
+
+
+# --- the design package's one-way order -----------------------------------------------------------------------
+
+DESIGN_ORDER = ("models", "fractional", "qfilter", "ptype", "record", "certificates", "lmi", "tuning", "pipeline")
+
+
+def _design_imports(name: str) -> set[str]:
+    """The ``foilc_hil.design.*`` modules ``name`` imports anywhere (function-local imports included)."""
+    import ast
+
+    path = Path(__file__).resolve().parents[1] / "foilc_hil" / "design" / f"{name}.py"
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("foilc_hil.design."):
+            found.add(node.module.rsplit(".", 1)[1])
+        elif isinstance(node, ast.Import):
+            found.update(a.name.rsplit(".", 1)[1] for a in node.names if a.name.startswith("foilc_hil.design."))
+    return found
+
+
+@pytest.mark.parametrize("name", DESIGN_ORDER)
+def test_design_modules_import_only_earlier_ones(name: str) -> None:
+    """models < fractional, qfilter, ptype < record < certificates < lmi < tuning < pipeline: no cycle (the
+    certificates <-> lmi one used to hide behind a function-local import)."""
+    earlier = set(DESIGN_ORDER[: DESIGN_ORDER.index(name)])
+    assert _design_imports(name) <= earlier, f"{name} imports {_design_imports(name) - earlier}"
+
+
+def test_the_order_check_can_fail() -> None:
+    assert "certificates" in _design_imports("lmi")
+    assert "lmi" not in _design_imports("certificates")
+    assert not {"certificates"} <= set(DESIGN_ORDER[: DESIGN_ORDER.index("lmi") - 1])

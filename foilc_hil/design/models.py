@@ -17,6 +17,8 @@ output is the ``d``-step-ahead output ``y(t+d) = Cz z(t)`` (computable from ``z(
 next ``d`` steps are already in the delay line), which restores relative degree one for the Roesser model of
 Theorem 1. A law designed on the augmented model therefore uses the measured error ``d`` samples further ahead
 (see :attr:`foilc_hil.design.record.Design.error_lead`).
+
+Module order: first in :mod:`foilc_hil.design` (imports no other design module).
 """
 
 from __future__ import annotations
