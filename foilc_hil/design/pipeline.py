@@ -103,7 +103,7 @@ def build_design(config: Config, law: str, n_samples: int, *, input_delay: int) 
     structure = law_structure(config, kind, n_samples, input_delay=input_delay)
     settings = config.synthesis
     if kind is LawKind.P_TYPE:
-        gain = p_type_gain(model, config.law.p_type_gain)
+        gain = p_type_gain(config.law.p_type_gain, model.A, model.B, model.measured_output, model.input_delay)
         return certify_p_type(model, uncertainty, gain, structure, require_monotonic=settings.require_monotonic)
     return synthesize(
         model,

@@ -94,11 +94,14 @@ def p_type_default_gain(A: np.ndarray, B: np.ndarray, C: np.ndarray, input_delay
     return np.asarray(float(found.x) * base, dtype=float)
 
 
-def p_type_gain(model: DiscreteModel, gain: float | np.ndarray | None) -> np.ndarray:
-    """``Gamma`` (``m x p``) for ``model``: a scalar ``g`` gives ``g I``, a matrix is taken as is, ``None`` the
-    default of :func:`p_type_default_gain` (``law.p_type_gain``)."""
+def p_type_gain(
+    gain: float | np.ndarray | None, A: np.ndarray, B: np.ndarray, C: np.ndarray, input_delay: int = 0
+) -> np.ndarray:
+    """``Gamma`` (``m x p``) for the model ``(A, B)`` with measured output ``C`` and ``input_delay`` augmented delay
+    states: a scalar ``g`` gives ``g I``, a matrix is taken as is, ``None`` the default of
+    :func:`p_type_default_gain` (``law.p_type_gain``)."""
     if gain is None:
-        return p_type_default_gain(model.A, model.B, model.measured_output, model.input_delay)
+        return p_type_default_gain(np.asarray(A, dtype=float), np.asarray(B, dtype=float), C, input_delay)
     if np.ndim(gain) == 0:
-        return float(gain) * np.eye(model.n_inputs, model.n_outputs)
+        return float(gain) * np.eye(np.shape(B)[1], np.shape(C)[0])
     return np.asarray(gain, dtype=float)

@@ -71,7 +71,7 @@ import numpy as np
 
 from foilc_hil.config import FractionalMemory, LawConfig, LawKind
 from foilc_hil.design.fractional import FractionalPD, History
-from foilc_hil.design.ptype import p_type_default_gain
+from foilc_hil.design.ptype import p_type_gain
 from foilc_hil.design.qfilter import QFilter
 from foilc_hil.design.record import Design
 from foilc_hil.errors import ConfigError, InputError, LearningDivergedError
@@ -495,19 +495,12 @@ class PType(LearningLaw):
         q_filter: QFilter | None = None,
         limits: tuple[float, float] | None = None,
     ) -> None:
-        B = np.asarray(B, dtype=float)
         C = np.asarray(C, dtype=float)
-        m, p = B.shape[1], C.shape[0]
-        if gain is None:
-            gamma = p_type_default_gain(np.asarray(A, dtype=float), B, C, input_delay)
-        elif np.ndim(gain) == 0:
-            gamma = float(gain) * np.eye(m, p)
-        else:
-            gamma = np.asarray(gain, dtype=float)
+        gamma = p_type_gain(gain, A, B, C, input_delay)
         super().__init__(
             n_samples=n_samples,
-            n_inputs=m,
-            n_outputs=p,
+            n_inputs=np.shape(B)[1],
+            n_outputs=C.shape[0],
             input_delay=input_delay,
             error_gain=gamma,
             q_filter=q_filter,
