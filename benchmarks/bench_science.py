@@ -91,7 +91,7 @@ def lmi(sample_time: float = 0.01) -> list[dict[str, Any]]:
                 "seconds": elapsed,
                 "gamma": solution.gamma,
                 "P": solution.P.tolist(),
-                "fallbacks": solution.checks.get("solver_failures", []),
+                "fallbacks": list(solution.checks.solver_failures),
             }
         )
     return rows

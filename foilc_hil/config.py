@@ -6,7 +6,9 @@ here. Load with :func:`load_config`; command-line options override the file, whi
 
 from __future__ import annotations
 
+import enum
 from collections.abc import Mapping
+from enum import StrEnum
 from pathlib import Path
 from typing import Any, Literal
 
@@ -17,6 +19,40 @@ from drivers.config import BusConfig, DriveConfig
 from foilc_hil.schema import Section, apply_overrides, load_document, validate
 from plant_emulator.config import PlantConfig
 from plant_emulator.settings import EmulatorConfig
+
+
+@enum.unique
+class LawKind(StrEnum):
+    """The learning laws, spelled once: config (``law.kind``), designs, laws and commands use these values."""
+
+    FOILC = "foilc"
+    IOILC = "ioilc"
+    P_TYPE = "p-type"
+
+
+@enum.unique
+class FractionalMemory(StrEnum):
+    """Where the fractional operator's memory starts (:mod:`foilc_hil.laws.learning`).
+
+    ``CONTROLLABLE``: at the first error sample an input can move, zero history before it (the converged error is
+    zero); ``TRIAL``: the paper-literal Caputo derivative over the whole trial error (leaves a Mittag-Leffler tail
+    when ``e(0) != 0``), kept for comparison.
+    """
+
+    CONTROLLABLE = "controllable"
+    TRIAL = "trial"
+
+
+@enum.unique
+class DivergentFilterPolicy(StrEnum):
+    """What the certificate step does when the law as it runs is not certified (``synthesis.on_divergent_filter``).
+
+    See :func:`foilc_hil.design.certificates.certify`.
+    """
+
+    RESCALE = "rescale"
+    AUGMENT = "augment"
+    REFUSE = "refuse"
 
 
 class Segment(Section):
@@ -66,7 +102,7 @@ class SynthesisConfig(Section):
     discretization: Literal["zoh", "euler"] = "zoh"
     solver: Literal["CLARABEL", "SCS"] = "CLARABEL"
     margin: float = Field(default=1e-6, gt=0)  # strictness margin of the LMIs
-    on_divergent_filter: Literal["rescale", "augment", "refuse"] = "rescale"
+    on_divergent_filter: DivergentFilterPolicy = DivergentFilterPolicy.RESCALE
     # Certify monotonic convergence (induced 2-norm of the lifted trial map < 1), not only asymptotic (radius < 1).
     require_monotonic: bool = True
 
@@ -81,13 +117,10 @@ class QFilterConfig(Section):
 class LawConfig(Section):
     """The learning law that runs."""
 
-    kind: Literal["foilc", "ioilc", "p-type"] = "foilc"
+    kind: LawKind = LawKind.FOILC
     p_type_gain: float | None = None  # Arimoto gain; None: 1 / (C B) scaled for monotonic convergence
     q_filter: QFilterConfig | None = None
-    # Where the fractional operator's memory starts (foilc_hil.laws.learning): "controllable" -- at the first error
-    # sample an input can move, zero history before it (the converged error is zero); "trial" -- the paper-literal
-    # Caputo derivative over the whole trial error (leaves a Mittag-Leffler tail when e(0) != 0), for comparison.
-    fractional_memory: Literal["controllable", "trial"] = "controllable"
+    fractional_memory: FractionalMemory = FractionalMemory.CONTROLLABLE  # see FractionalMemory
 
 
 class BenchConfig(Section):

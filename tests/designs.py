@@ -10,7 +10,9 @@ from typing import Any
 
 import numpy as np
 
-from foilc_hil.design.record import Design
+from foilc_hil.config import LawKind
+from foilc_hil.design.models import DiscreteModel, Uncertainty
+from foilc_hil.design.record import Certificates, Design
 
 
 def plain_design(
@@ -25,30 +27,22 @@ def plain_design(
     law: str = "foilc",
     input_delay: int = 0,
     C_measured: Any = None,
-    certificates: dict[str, Any] | None = None,
+    certificates: Certificates | None = None,
 ) -> Design:
     """``Design`` of ``(A, B, C)`` with gain ``P``, zero ``G1/H1/G2/H2`` and identity ``Qb``, ``Qt``."""
     A, B, C, P = (np.atleast_2d(np.asarray(x, dtype=float)) for x in (A, B, C, P))
     n, m, p = A.shape[0], B.shape[1], C.shape[0]
     return Design(
-        law=law,
-        A=A,
-        B=B,
-        C=C,
-        G1=np.zeros((n, 1)),
-        H1=np.zeros((1, n)),
-        G2=np.zeros((n, 1)),
-        H2=np.zeros((1, m)),
+        law=LawKind(law),
+        model=DiscreteModel(A, B, C, sample_time, input_delay=input_delay, C_measured=C_measured),
+        uncertainty=Uncertainty(np.zeros((n, 1)), np.zeros((1, n)), np.zeros((n, 1)), np.zeros((1, m))),
         P=P,
+        kp=kp,
+        r=r,
         Qb=np.eye(n),
         Qt=np.eye(p),
         gamma=1.0,
         tau=0.868,
         theta=0.868,
-        kp=kp,
-        r=r,
-        sample_time=sample_time,
-        input_delay=input_delay,
-        C_measured=C_measured,
-        certificates=certificates or {},
+        certificates=certificates,
     )

@@ -7,8 +7,11 @@ import warnings
 import numpy as np
 import pytest
 
+from foilc_hil.config import DivergentFilterPolicy, FractionalMemory
 from foilc_hil.design.certificates import (
     DENSE_LIMIT,
+    LawStructure,
+    LoopPlant,
     certify,
     dense_error_map,
     dense_input_map,
@@ -105,7 +108,7 @@ CASES = [
 ]
 
 
-def _law_operator(kp: float, r: float, h: float, n_samples: int, lead: int, memory: str) -> np.ndarray:
+def _law_operator(kp: float, r: float, h: float, n_samples: int, lead: int, memory: FractionalMemory) -> np.ndarray:
     """The law's E = F e as a dense matrix, built from FractionalPD (the operator tested in test_fractional)."""
     if memory == "trial":
         return FractionalPD(kp, r, h).matrix(n_samples)
@@ -114,13 +117,13 @@ def _law_operator(kp: float, r: float, h: float, n_samples: int, lead: int, memo
     return F
 
 
-MEMORIES = ["controllable", "trial"]
+MEMORIES = list(FractionalMemory)
 
 
 @pytest.mark.parametrize("memory", MEMORIES)
 @pytest.mark.parametrize(("n", "m", "p", "lead", "kp", "r"), CASES)
 def test_lifted_map_matches_brute_force_trials(
-    n: int, m: int, p: int, lead: int, kp: float, r: float, memory: str
+    n: int, m: int, p: int, lead: int, kp: float, r: float, memory: FractionalMemory
 ) -> None:
     A, B, C = _plant(n, m, p, seed=n + 10 * lead, lead=lead)
     rng = np.random.default_rng(5)
@@ -129,9 +132,7 @@ def test_lifted_map_matches_brute_force_trials(
     h, n_samples = 0.05, 40
     reference = np.cumsum(rng.standard_normal((n_samples, p)), axis=0) * 0.1
     errors, _ = _run_trials(A, B, C, p1, p2, FractionalPD(kp, h=h, r=r), reference, lead, trials=5, memory=memory)
-    T = lifted_error_map(
-        A, B, C, p1, p2, kp=kp, r=r, sample_time=h, n_samples=n_samples, lead=lead, fractional_memory=memory
-    )
+    T = lifted_error_map(LoopPlant(A, B, C, p1, p2), LawStructure(kp, r, h, n_samples, lead, memory))
     for k in range(2, 5):
         before = (errors[k - 1] - errors[k - 2])[lead:].ravel()
         after = (errors[k] - errors[k - 1])[lead:].ravel()
@@ -144,16 +145,14 @@ def test_lifted_map_matches_brute_force_trials(
 @pytest.mark.parametrize("memory", MEMORIES)
 @pytest.mark.parametrize(("n", "m", "p", "lead", "kp", "r"), CASES)
 def test_fast_operator_matches_the_dense_second_method(
-    n: int, m: int, p: int, lead: int, kp: float, r: float, memory: str
+    n: int, m: int, p: int, lead: int, kp: float, r: float, memory: FractionalMemory
 ) -> None:
     A, B, C = _plant(n, m, p, seed=3, lead=lead)
     rng = np.random.default_rng(9)
     p1 = 0.1 * rng.standard_normal((m, A.shape[0]))
     p2 = 0.05 * rng.standard_normal((m, p))
     h, n_samples = 0.05, 30
-    T = lifted_error_map(
-        A, B, C, p1, p2, kp=kp, r=r, sample_time=h, n_samples=n_samples, lead=lead, fractional_memory=memory
-    )
+    T = lifted_error_map(LoopPlant(A, B, C, p1, p2), LawStructure(kp, r, h, n_samples, lead, memory))
     full = dense_error_map(A, B, C, p1, p2, _law_operator(kp, r, h, n_samples, lead, memory), lead)
     np.testing.assert_allclose(full[: lead * p, :], np.eye(n_samples * p)[: lead * p], atol=1e-15)
     sub = full[lead * p :, lead * p :]
@@ -167,7 +166,7 @@ def test_spectral_radius_is_read_off_the_block_triangular_structure() -> None:
     rng = np.random.default_rng(2)
     p1, p2 = 0.1 * rng.standard_normal((2, 3)), 0.3 * rng.standard_normal((2, 2))
     kp, r, h, n_samples = 0.1, 1.3, 0.05, 30
-    T = lifted_error_map(A, B, C, p1, p2, kp=kp, r=r, sample_time=h, n_samples=n_samples, fractional_memory="trial")
+    T = lifted_error_map(LoopPlant(A, B, C, p1, p2), LawStructure(kp, r, h, n_samples, 0, FractionalMemory.TRIAL))
     dense = dense_error_map(A, B, C, p1, p2, FractionalPD(kp, r, h).matrix(n_samples))
     # Dense eigvals of a defective triangular matrix are inaccurate; read the blocks from the dense matrix instead.
     k = 4 * 2  # the leading samples where the Caputo corrections sit
@@ -182,30 +181,21 @@ def test_spectral_radius_is_read_off_the_block_triangular_structure() -> None:
 
 
 @pytest.mark.parametrize("memory", MEMORIES)
-def test_iterative_norm_matches_dense_svd(memory: str) -> None:
+def test_iterative_norm_matches_dense_svd(memory: FractionalMemory) -> None:
     model = discretize(ContinuousModel(np.array([[-1.23]]), np.array([[1.68]]), np.array([[1.0]])), 0.01)
     p1, p2 = -model.A / model.B, 0.3 / model.B
     n_samples = DENSE_LIMIT + 200
     result = map_certificate(
-        model.A,
-        model.B,
-        model.C,
-        p1,
-        p2,
-        kp=0.05,
-        r=0.8,
-        sample_time=0.01,
-        n_samples=n_samples,
-        fractional_memory=memory,
+        LoopPlant(model.A, model.B, model.C, p1, p2), LawStructure(0.05, 0.8, 0.01, n_samples, 0, memory)
     )
     dense = dense_error_map(model.A, model.B, model.C, p1, p2, _law_operator(0.05, 0.8, 0.01, n_samples, 0, memory))
-    assert result["norm_2_method"] == "svds"
-    assert result["norm_2"] == pytest.approx(np.linalg.norm(dense, 2), rel=1e-7)
-    assert result["spectral_radius"] < 1
+    assert result.norm_2_method == "svds"
+    assert result.norm_2 == pytest.approx(np.linalg.norm(dense, 2), rel=1e-7)
+    assert result.spectral_radius < 1
 
 
 @pytest.mark.parametrize("memory", MEMORIES)
-def test_q_filter_input_map_matches_brute_force_and_the_operator(memory: str) -> None:
+def test_q_filter_input_map_matches_brute_force_and_the_operator(memory: FractionalMemory) -> None:
     A, B, C = _plant(2, 1, 1, seed=8)
     kp, r, h, n_samples = 0.1, 0.7, 0.05, 40
     first_weight = 1 + kp * h**-r
@@ -220,20 +210,18 @@ def test_q_filter_input_map_matches_brute_force_and_the_operator(memory: str) ->
         after = (inputs[k] - inputs[k - 1]).ravel()
         np.testing.assert_allclose(M @ before, after, atol=1e-10 * max(1.0, float(np.max(np.abs(after)))))
     # The fast operator agrees with the dense map, forward and adjoint.
-    operator = lifted_input_map(A, B, C, p1, p2, kp=kp, r=r, sample_time=h, Q=Q, fractional_memory=memory)
+    operator = lifted_input_map(LoopPlant(A, B, C, p1, p2), LawStructure(kp, r, h, n_samples, 0, memory, Q))
     x, y = rng.standard_normal(n_samples), rng.standard_normal(n_samples)
     np.testing.assert_allclose(operator.matvec(x), M @ x, atol=1e-10 * np.max(np.abs(M @ x)))
     np.testing.assert_allclose(operator.rmatvec(y), M.T @ y, atol=1e-10 * np.max(np.abs(M.T @ y)))
     # On a large trial the certificate's numbers agree with dense linear algebra.
     n_large = DENSE_LIMIT + 100
     Q_large = QFilter(cutoff=20.0, order=2, sample_time=h).matrix(n_large)
-    fast = map_certificate(
-        A, B, C, p1, p2, kp=kp, r=r, sample_time=h, n_samples=n_large, q_filter=Q_large, fractional_memory=memory
-    )
+    fast = map_certificate(LoopPlant(A, B, C, p1, p2), LawStructure(kp, r, h, n_large, 0, memory, Q_large))
     M_large = dense_input_map(A, B, C, p1, p2, _law_operator(kp, r, h, n_large, 0, memory), Q_large)
-    assert fast["map"] == "input (Q-filter)"
+    assert fast.map == "input (Q-filter)"
     # M is far from normal: its eigenvalues are ill-conditioned, so ARPACK and LAPACK agree only roughly.
-    assert fast["spectral_radius"] == pytest.approx(max(abs(np.linalg.eigvals(M_large))), rel=5e-2)
+    assert fast.spectral_radius == pytest.approx(max(abs(np.linalg.eigvals(M_large))), rel=5e-2)
 
 
 def _paper_model(ts: float) -> DiscreteModel:
@@ -241,7 +229,7 @@ def _paper_model(ts: float) -> DiscreteModel:
 
 
 @pytest.mark.parametrize("memory", MEMORIES)
-def test_rescale_fixes_a_filter_that_breaks_the_naive_gain_and_refuse_raises(memory: str) -> None:
+def test_rescale_fixes_a_filter_that_breaks_the_naive_gain_and_refuse_raises(memory: FractionalMemory) -> None:
     model = _paper_model(0.01)
     unc = Uncertainty.none(1, 1)
     P = solve_lmi(model, unc, tau=0.868, theta=0.868).P
@@ -252,20 +240,21 @@ def test_rescale_fixes_a_filter_that_breaks_the_naive_gain_and_refuse_raises(mem
     assert np.linalg.norm(naive, 2) < 1  # the LMI gain is fine without the filter ...
     assert max(abs(np.diag(designed))) > 1  # ... and diverges with it (triangular: the diagonal is the spectrum)
     with pytest.raises(ConvergenceCertificateError, match="refuse"):
-        certify(model, unc, P, kp=kp, r=r, n_samples=n_samples, on_divergent_filter="refuse", fractional_memory=memory)
+        certify(model, unc, P, LawStructure(kp, r, 0.01, n_samples, 0, memory), policy=DivergentFilterPolicy.REFUSE)
     outcome = certify(
-        model, unc, P, kp=kp, r=r, n_samples=n_samples, on_divergent_filter="rescale", fractional_memory=memory
+        model, unc, P, LawStructure(kp, r, 0.01, n_samples, 0, memory), policy=DivergentFilterPolicy.RESCALE
     )
-    assert outcome.certificates["fractional_memory"] == memory
+    assert outcome.certificates.fractional_memory == memory
     assert 0 < outcome.gain_scale < 1
-    assert outcome.certificates["action"] == "rescale"
-    assert outcome.certificates["monotonic"] is True
+    assert outcome.certificates.action == "rescale"
+    assert outcome.certificates.monotonic is True
     np.testing.assert_allclose(outcome.P[:, 1:], outcome.gain_scale * P[:, 1:])
     np.testing.assert_array_equal(outcome.P[:, :1], P[:, :1])
     rescaled = dense_error_map(model.A, model.B, model.C, outcome.P[:, :1], outcome.P[:, 1:], fpd_matrix)
     assert np.linalg.norm(rescaled, 2) < 1
-    assert outcome.certificates["norm_2"] == pytest.approx(np.linalg.norm(rescaled, 2), rel=1e-9)
-    assert outcome.certificates["largest_admissible_scale"] >= outcome.gain_scale
+    assert outcome.certificates.norm_2 == pytest.approx(np.linalg.norm(rescaled, 2), rel=1e-9)
+    assert outcome.certificates.largest_admissible_scale is not None
+    assert outcome.certificates.largest_admissible_scale >= outcome.gain_scale
 
 
 def test_r_above_one_has_no_monotonic_certificate() -> None:
@@ -274,17 +263,18 @@ def test_r_above_one_has_no_monotonic_certificate() -> None:
     P = solve_lmi(model, unc, tau=0.868, theta=0.868).P
     kp, r, n_samples = 2.6315, 1.0778, 200
     with pytest.raises(ConvergenceCertificateError, match="monotonically"):
-        certify(model, unc, P, kp=kp, r=r, n_samples=n_samples, fractional_memory="trial")
+        certify(model, unc, P, LawStructure(kp, r, 0.01, n_samples, 0, FractionalMemory.TRIAL))
     outcome = certify(
-        model, unc, P, kp=kp, r=r, n_samples=n_samples, require_monotonic=False, fractional_memory="trial"
+        model, unc, P, LawStructure(kp, r, 0.01, n_samples, 0, FractionalMemory.TRIAL), require_monotonic=False
     )
-    assert outcome.certificates["monotonic"] is False
-    assert outcome.certificates["spectral_radius"] < 1
+    assert outcome.certificates.monotonic is False
+    assert outcome.certificates.spectral_radius < 1
     rescaled = dense_error_map(
         model.A, model.B, model.C, outcome.P[:, :1], outcome.P[:, 1:], FractionalPD(kp, r, 0.01).matrix(n_samples)
     )
     assert np.linalg.norm(rescaled, 2) > 1
-    assert outcome.certificates["growth_bound"]["bound"] >= 1
+    assert outcome.certificates.growth_bound is not None
+    assert outcome.certificates.growth_bound.bound >= 1
 
 
 def test_certify_covers_uncertainty_vertices_and_mimo() -> None:
@@ -293,25 +283,23 @@ def test_certify_covers_uncertainty_vertices_and_mimo() -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         P = solve_lmi(model, unc, tau=0.868, theta=0.868).P
-    outcome = certify(model, unc, P, kp=0.0, r=1.0, n_samples=60)
-    assert outcome.certificates["vertices"] > 0
-    assert len(outcome.certificates["plants"]) == outcome.certificates["vertices"] + 1
-    assert all(entry["spectral_radius"] < 1 for entry in outcome.certificates["plants"])
-    assert outcome.certificates["monotonic"] is True
+    outcome = certify(model, unc, P, LawStructure(0.0, 1.0, model.sample_time, 60))
+    assert outcome.certificates.vertices > 0
+    assert len(outcome.certificates.plants) == outcome.certificates.vertices + 1
+    assert all(entry.spectral_radius < 1 for entry in outcome.certificates.plants)
+    assert outcome.certificates.monotonic is True
 
 
 @pytest.mark.parametrize("memory", MEMORIES)
 @pytest.mark.parametrize(("n", "m", "p", "lead", "kp", "r"), CASES)
 def test_norm_upper_bound_bounds_the_dense_norm(
-    n: int, m: int, p: int, lead: int, kp: float, r: float, memory: str
+    n: int, m: int, p: int, lead: int, kp: float, r: float, memory: FractionalMemory
 ) -> None:
     A, B, C = _plant(n, m, p, seed=11, lead=lead)
     rng = np.random.default_rng(4)
     p1 = 0.1 * rng.standard_normal((m, A.shape[0]))
     p2 = 0.05 * rng.standard_normal((m, p))
-    T = lifted_error_map(
-        A, B, C, p1, p2, kp=kp, r=r, sample_time=0.05, n_samples=30, lead=lead, fractional_memory=memory
-    )
+    T = lifted_error_map(LoopPlant(A, B, C, p1, p2), LawStructure(kp, r, 0.05, 30, lead, memory))
     dense_norm = float(np.linalg.norm(T.to_dense(), 2))
     assert T.norm_upper_bound() >= dense_norm * (1 - 1e-12)
     assert T.symbol_norm() <= T.norm_upper_bound() * (1 + 1e-12)

@@ -19,7 +19,8 @@ import yaml
 
 from foilc_hil.cli import main
 from foilc_hil.config import load_config
-from foilc_hil.design.lmi import synthesize_from_config
+from foilc_hil.design.pipeline import build_design
+from foilc_hil.references import trial_samples
 from plant_emulator.linear import continuous_model
 
 pytestmark = pytest.mark.timeout(600)
@@ -88,8 +89,8 @@ def test_tune_accepts_the_fragment(identified: tuple[Path, dict[str, object]]) -
 
 def test_synthesis_accepts_the_fragment(identified: tuple[Path, dict[str, object]]) -> None:
     out, document = identified
-    config = load_config(out)
-    design = synthesize_from_config(config, law="foilc", kp=0.2, r=0.6, input_delay=1)
+    config = load_config(out, {"tuning.kp": 0.2, "tuning.r": 0.6})
+    design = build_design(config, "foilc", trial_samples(config.reference, config.sample_time), input_delay=1)
     uncertainty = document["uncertainty"]
     assert isinstance(uncertainty, dict)
     # the design saw the identified uncertainty: delay augmentation keeps dA's block in G1's first row

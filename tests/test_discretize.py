@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy import signal
 
+from foilc_hil.design.certificates import LawStructure, certify_as_given
 from foilc_hil.design.models import (
     DiscreteModel,
     Uncertainty,
@@ -130,16 +131,16 @@ def test_uncertainty_from_config_defaults_and_errors() -> None:
 
 
 def _design(**overrides: object) -> Design:
+    A, B, C = np.array([[0.9, 0.1], [0.0, 0.0]]), np.array([[0.0], [1.0]]), np.array([[0.9, 0.1]])
+    model = DiscreteModel(A, B, C, 0.01, input_delay=1, C_measured=np.array([[1.0, 0.0]]))
+    uncertainty = Uncertainty(np.zeros((2, 1)), np.zeros((1, 2)), np.zeros((2, 1)), np.zeros((1, 1)))
+    P = np.array([[-1.0, 0.5, 2.0]])
+    law = LawStructure(kp=0.1, r=0.9, sample_time=0.01, n_samples=20, lead=1)
     fields: dict[str, object] = {
         "law": "foilc",
-        "A": [[0.9, 0.1], [0.0, 0.0]],
-        "B": [[0.0], [1.0]],
-        "C": [[0.9, 0.1]],
-        "G1": [[0.0], [0.0]],
-        "H1": [[0.0, 0.0]],
-        "G2": [[0.0], [0.0]],
-        "H2": [[0.0]],
-        "P": [[-1.0, 0.5, 2.0]],
+        "model": model,
+        "uncertainty": uncertainty,
+        "P": P,
         "Qb": np.eye(2),
         "Qt": [[1.0]],
         "gamma": 1.5,
@@ -147,11 +148,8 @@ def _design(**overrides: object) -> Design:
         "theta": 0.7,
         "kp": 0.1,
         "r": 0.9,
-        "sample_time": 0.01,
-        "input_delay": 1,
         "gain_scale": 0.25,
-        "certificates": {"spectral_radius": np.float64(0.5), "nested": {"values": np.array([1.0, 2.0])}},
-        "C_measured": [[1.0, 0.0]],
+        "certificates": certify_as_given(model, uncertainty, P, law, require_monotonic=True),
     }
     fields.update(overrides)
     return Design(**fields)  # type: ignore[arg-type]
@@ -174,6 +172,8 @@ def test_design_validation_names_the_field() -> None:
     with pytest.raises(InputError, match=r"design\.law"):
         _design(law="pid")
     with pytest.raises(InputError, match=r"design\.C_measured: is required"):
-        _design(C_measured=None)
+        Design.from_json({k: v for k, v in _design().to_json().items() if k != "C_measured"})
+    with pytest.raises(InputError, match=r"design: Qb, Qt, gamma, tau, theta are given together"):
+        _design(gamma=None)
     with pytest.raises(InputError, match=r"design\.gamma: is required"):
         Design.from_json({k: v for k, v in _design().to_json().items() if k != "gamma"})

@@ -7,12 +7,15 @@ import itertools
 import numpy as np
 import pytest
 
-from foilc_hil.config import LawConfig, QFilterConfig
+from foilc_hil.config import FractionalMemory, LawConfig, QFilterConfig
+from foilc_hil.design.certificates import LawStructure, LoopPlant, certify_as_given, certify_p_type
 from foilc_hil.design.fractional import FractionalPD
-from foilc_hil.design.models import DiscreteModel, augment_input_delay
+from foilc_hil.design.models import DiscreteModel, Uncertainty, augment_input_delay
+from foilc_hil.design.pipeline import law_kind
 from foilc_hil.design.qfilter import QFilter
+from foilc_hil.design.record import Certificates
 from foilc_hil.errors import ConfigError, InputError
-from foilc_hil.laws.learning import Foilc, Ioilc, PType, lifted_plant, make_law, p_type_certificates
+from foilc_hil.laws.learning import Foilc, Ioilc, PType, make_law
 from tests.designs import plain_design
 
 TS = 0.05
@@ -207,16 +210,30 @@ def _first_order(ts: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.array([[ad]]), np.array([[b * (ad - 1.0) / a]]), np.array([[1.0]])
 
 
+def _p_type_certificates(A: np.ndarray, B: np.ndarray, C: np.ndarray, n: int, gain: np.ndarray) -> Certificates:
+    """The certificates of the P-type design with gain ``gain`` (the design pipeline's P-type step)."""
+    model = DiscreteModel(A, B, C, 0.1)
+    design = certify_p_type(
+        model, Uncertainty.none(1, 1), gain, LawStructure(0.0, 1.0, 0.1, n), require_monotonic=False
+    )
+    np.testing.assert_array_equal(design.p1, 0.0)  # P = (0 Gamma)
+    np.testing.assert_array_equal(design.p2, gain)
+    assert design.certificates is not None
+    return design.certificates
+
+
 def test_p_type_default_gain_converges_monotonically() -> None:
     n = 60
     A, B, C = _first_order(0.1)
     law = PType(A, B, C, n)
-    cert = p_type_certificates(law)
-    assert cert["frequency_bound"] < 1.0
-    assert cert["norm_2"] <= cert["frequency_bound"] + 1e-9  # the symbol bounds the lifted norm
+    cert = _p_type_certificates(A, B, C, n, law.gain)
+    assert cert.p_type is not None and cert.p_type.frequency_bound < 1.0
+    assert cert.norm_2 <= cert.p_type.frequency_bound + 1e-9  # the symbol bounds the lifted norm
+    assert cert.monotonic
     # the classic 1 / (C B) has spectral radius 0 but is NOT monotonic on this slow plant sampled fast
-    deadbeat = p_type_certificates(PType(A, B, C, n, gain=1.0 / float((C @ B)[0, 0])))
-    assert deadbeat["spectral_radius"] < 1e-12 and deadbeat["norm_2"] > 1.0
+    deadbeat = _p_type_certificates(A, B, C, n, np.array([[1.0 / float((C @ B)[0, 0])]]))
+    assert deadbeat.spectral_radius < 1e-12 and deadbeat.norm_2 > 1.0
+    assert not deadbeat.monotonic and deadbeat.action == "none"  # reported, never rescaled
     ref = np.ones(n)
     norms = []
     for _ in range(12):
@@ -227,12 +244,19 @@ def test_p_type_default_gain_converges_monotonically() -> None:
     assert norms[-1] < 0.5 * norms[0]
 
 
+def _lifted_plant(A: np.ndarray, B: np.ndarray, C: np.ndarray, n_samples: int) -> np.ndarray:
+    """SISO ``u[0..N-1] -> y[1..N]``: entry ``(i, j)`` is ``C A^(i-j) B`` for ``j <= i``."""
+    markov = [float((C @ np.linalg.matrix_power(A, k) @ B)[0, 0]) for k in range(n_samples)]
+    lag = np.subtract.outer(np.arange(n_samples), np.arange(n_samples))
+    return np.where(lag >= 0, np.asarray(markov)[np.clip(lag, 0, None)], 0.0)
+
+
 def test_p_type_update_matches_lifted_formula() -> None:
     n = 25
     A, B, C = _first_order(0.1)
     gamma = 0.7
     law = PType(A, B, C, n, gain=gamma)
-    G = lifted_plant(A, B, C, n)
+    G = _lifted_plant(A, B, C, n)
     ref = np.sin(np.arange(1, n + 1) * 0.3)
     e = ref.copy()  # trial 1 runs u = 0 from rest: y = 0
     for _ in range(4):
@@ -283,13 +307,13 @@ def test_q_filter_never_amplifies(cutoff: float, order: int, ts: float, n: int) 
 def test_make_law_with_q_filter_stores_filtered_feedforward() -> None:
     n = 80
     design = _design(A2, B2, C2, P2, kp=0.0)
-    law = make_law("foilc", design, LawConfig(q_filter=QFilterConfig(cutoff=10.0, order=2)), n)
+    law = make_law(design, LawConfig(q_filter=QFilterConfig(cutoff=10.0, order=2)), n)
     ref = _reference(n, 2)
     commands = _run_law(law, A2, B2, C2, ref, 2, n, x0=[0.2, 0.1])
     assert law.q_filter is not None
     np.testing.assert_allclose(law.feedforward[:, 0], law.q_filter.apply(commands[-1][:, 0]), atol=1e-14)
     with pytest.raises(ConfigError, match=r"law\.kind"):
-        make_law("pid", design, LawConfig(), n)
+        law_kind("pid")
 
 
 @pytest.mark.parametrize("memory", ["controllable", "trial"])
@@ -327,17 +351,8 @@ def test_law_obeys_the_certificates_lifted_error_map(delay: int, memory: str) ->
 
     np.testing.assert_allclose(law_filter_matrix(0.15, 0.6, 0.1, n, delay, memory), F, atol=1e-12)
     fast = lifted_error_map(
-        model.A,
-        model.B,
-        model.measured_output,
-        design.p1,
-        design.p2,
-        kp=0.15,
-        r=0.6,
-        sample_time=0.1,
-        n_samples=n,
-        lead=delay,
-        fractional_memory=memory,
+        LoopPlant(model.A, model.B, model.measured_output, design.p1, design.p2),
+        LawStructure(0.15, 0.6, 0.1, n, delay, FractionalMemory(memory)),
     )
     np.testing.assert_allclose(fast.to_dense(), T[delay:, delay:], atol=1e-10)
 
@@ -387,7 +402,7 @@ def test_limits_are_validated_and_logged() -> None:
     design = _design(A2, B2, C2, P2)
     with pytest.raises(InputError, match="limits"):
         Foilc(design, 10, limits=(1.0, -1.0))
-    law = make_law("foilc", design, LawConfig(), 10, limits=(-2.0, 3.0))
+    law = make_law(design, LawConfig(), 10, limits=(-2.0, 3.0))
     assert law.limits == (-2.0, 3.0)
     assert law.state_dict()["limits"] == [-2.0, 3.0]
     law.begin_trial()
@@ -395,8 +410,10 @@ def test_limits_are_validated_and_logged() -> None:
 
 
 def test_law_refuses_a_design_certified_for_another_fractional_memory() -> None:
-    design = _design(A2, B2, C2, P2)
-    design.certificates["fractional_memory"] = "trial"
+    plain = _design(A2, B2, C2, P2)
+    trial = LawStructure(plain.kp, plain.r, TS, 10, fractional_memory=FractionalMemory.TRIAL)
+    certificates = certify_as_given(plain.model, plain.uncertainty, plain.P, trial, require_monotonic=False)
+    design = plain_design(A2, B2, C2, P2, kp=plain.kp, r=plain.r, sample_time=TS, certificates=certificates)
     with pytest.raises(ConfigError, match=r"law\.fractional_memory"):
         Foilc(design, 10)  # default "controllable": the certificate would not be of this law
     assert Foilc(design, 10, fractional_memory="trial").fractional_memory == "trial"

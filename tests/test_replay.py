@@ -167,9 +167,8 @@ def test_verify_with_the_real_foilc_law_rebuilt_from_metadata(tmp_path: Path) ->
     from foilc_hil.config import Config, dump_config
     from foilc_hil.laws.learning import make_law
 
-    design = plain_design([[0.9]], [[0.1]], [[1.0]], [[-0.4, 3.0]], kp=0.05, r=0.6, sample_time=0.01,
-                          certificates={"spectral_radius": 0.5})
-    law = make_law("foilc", design, Config().law, N)
+    design = plain_design([[0.9]], [[0.1]], [[1.0]], [[-0.4, 3.0]], kp=0.05, r=0.6, sample_time=0.01)
+    law = make_law(design, Config().law, N)
     reference = np.linspace(0.0, 1.0, N) ** 2
     path = tmp_path / "foilc.mcap"
     with McapLogWriter(path, config_yaml=dump_config(Config()), design=design.to_json()) as writer:
@@ -354,7 +353,7 @@ def test_verify_rebuilds_a_clamping_law_with_the_logged_command_limits(tmp_path:
 
     design = plain_design([[0.9]], [[0.1]], [[1.0]], [[-0.4, 5.0]], kp=0.0, r=1.0, sample_time=0.01, law="ioilc")
     limits = (-0.8, 0.8)
-    law = make_law("ioilc", design, Config().law, N, limits=limits)
+    law = make_law(design, Config().law, N, limits=limits)
     reference = np.full(N, 5.0)  # out of reach with |u| <= 0.8 (DC gain 1): the law saturates
     path = tmp_path / "clamped.mcap"
     clamped_any = False

@@ -7,15 +7,16 @@ import warnings
 import numpy as np
 import pytest
 
+from foilc_hil.config import FractionalMemory, LawKind
+from foilc_hil.design.certificates import LawStructure
 from foilc_hil.design.lmi import (
     lmi_matrix,
     roesser_model,
     solve_lmi,
     synthesize,
-    uncertainty_vertices,
     verify_lmi_solution,
 )
-from foilc_hil.design.models import DiscreteModel, Uncertainty, augment_input_delay, discretize
+from foilc_hil.design.models import DiscreteModel, Uncertainty, augment_input_delay, discretize, uncertainty_vertices
 from foilc_hil.errors import LmiInfeasibleError
 from plant_emulator.linear import ContinuousModel
 
@@ -70,7 +71,7 @@ def test_paper_plant_solution_rechecked_in_numpy(ts: float, method: str) -> None
     model = _paper_plant(ts, method)
     unc = Uncertainty.none(1, 1)
     solution = solve_lmi(model, unc, tau=0.868, theta=0.868)
-    assert solution.checks["lmi_max_eigenvalue"] < 0
+    assert solution.checks.lmi_max_eigenvalue < 0
     # Rebuild the LMI matrix here and check it directly.
     roesser = roesser_model(model, unc)
     M = lmi_matrix(
@@ -106,8 +107,8 @@ def test_mimo_dimensions() -> None:
     solution = solve_lmi(model, unc, tau=0.868, theta=0.868)
     assert solution.P.shape == (2, 5)
     assert solution.Qb.shape == (3, 3) and solution.Qt.shape == (2, 2)
-    assert solution.checks["vertices_checked"] > 0
-    assert solution.checks["trial_radius"] < 1 and solution.checks["time_radius"] < 1
+    assert solution.checks.vertices_checked > 0
+    assert solution.checks.trial_radius < 1 and solution.checks.time_radius < 1
 
 
 def test_uncertain_plant_is_robust_at_every_vertex() -> None:
@@ -130,7 +131,7 @@ def test_delay_augmented_design_is_feasible_with_uncertainty() -> None:
     model, padded = augment_input_delay(base, 1, unc)
     solution = solve_lmi(model, padded, tau=0.868, theta=0.868)
     assert solution.P.shape == (1, 3)
-    assert solution.checks["lmi_max_eigenvalue"] < 0
+    assert solution.checks.lmi_max_eigenvalue < 0
 
 
 def test_verification_catches_a_wrong_solution() -> None:
@@ -170,17 +171,18 @@ def test_sign_indefinite_input_uncertainty_is_infeasible() -> None:
 def test_scs_solver_is_recorded() -> None:
     solution = solve_lmi(_paper_plant(0.01), Uncertainty.none(1, 1), tau=0.868, theta=0.868, solver="SCS")
     assert solution.solver in ("SCS", "CLARABEL")
-    assert solution.checks["lmi_max_eigenvalue"] < 0
+    assert solution.checks.lmi_max_eigenvalue < 0
 
 
 def test_synthesize_returns_a_design_with_certificates() -> None:
     model = _paper_plant(0.01)
-    design = synthesize(model, None, kp=0.0, r=1.0, law="ioilc", n_samples=200)
-    assert design.law == "ioilc" and design.kp == 0.0
-    assert design.certificates["spectral_radius"] < 1
-    assert design.certificates["lmi"]["solver"] == "CLARABEL"
+    design = synthesize(model, None, LawStructure(0.3, 1.0, model.sample_time, 200), kind=LawKind.IOILC)
+    assert design.law == "ioilc" and design.kp == 0.0  # IOILC certifies kp = 0 whatever it is given
+    assert design.certificates is not None and design.certificates.lmi is not None
+    assert design.certificates.spectral_radius < 1
+    assert design.certificates.lmi.solver == "CLARABEL"
     assert design.gain_scale == 1.0
-    np.testing.assert_array_equal(design.P, design.certificates["lmi"]["P_lmi"])
+    np.testing.assert_array_equal(design.P, design.certificates.lmi.P_lmi)
 
 
 def test_synthesize_certifies_the_fractional_memory_the_law_runs() -> None:
@@ -191,15 +193,17 @@ def test_synthesize_certifies_the_fractional_memory_the_law_runs() -> None:
     model = _paper_plant(0.01)
     designs = {
         memory: synthesize(
-            model, None, kp=0.37, r=0.13, n_samples=200, require_monotonic=False, fractional_memory=memory
+            model, None, LawStructure(0.37, 0.13, model.sample_time, 200, fractional_memory=memory),
+            require_monotonic=False,
         )
-        for memory in ("controllable", "trial")
+        for memory in FractionalMemory
     }
+    certificates = {memory: design.certificates for memory, design in designs.items()}
     for memory, design in designs.items():
-        assert design.certificates["fractional_memory"] == memory
+        assert design.certificates is not None and design.certificates.fractional_memory == memory
         Foilc(design, 200, fractional_memory=memory)  # consistent: accepted
+    trial, controllable = certificates[FractionalMemory.TRIAL], certificates[FractionalMemory.CONTROLLABLE]
+    assert trial is not None and controllable is not None
     # Same LMI gain; the operators differ only by the e(0) correction column, which the first input moves.
-    assert designs["trial"].certificates["designed"]["norm_2"] > designs["controllable"].certificates["designed"][
-        "norm_2"
-    ]
-    assert designs["controllable"].certificates["monotonic"] is True
+    assert trial.designed.norm_2 > controllable.designed.norm_2
+    assert controllable.monotonic is True

@@ -24,12 +24,13 @@ from pathlib import Path
 from typing import Any
 
 from foilc_hil.commands import CommandResult
+from foilc_hil.config import LawKind
 from foilc_hil.errors import ExitCode
 
 HELP = "FOILC and IOILC side by side on the embedded emulator"
 
 #: the laws compared, in table order
-DEMO_LAWS = ("foilc", "ioilc")
+DEMO_LAWS = (LawKind.FOILC, LawKind.IOILC)
 #: trials the demo table reports individually (1-based; the last trial is always added)
 REPORTED_TRIALS = (1, 2, 3, 4, 5, 6, 10)
 
@@ -105,9 +106,10 @@ def execute(args: argparse.Namespace) -> CommandResult:
 
 def _design_one(config: Any, law: str, n_samples: int) -> dict[str, Any]:
     """One law's design as JSON (runs in a worker process)."""
-    from foilc_hil.loop.bench import build_design
+    from foilc_hil.design.pipeline import build_design
+    from foilc_hil.loop.bench import CAN_INPUT_DELAY
 
-    return dict(build_design(config, law, n_samples).to_json())
+    return dict(build_design(config, law, n_samples, input_delay=CAN_INPUT_DELAY).to_json())
 
 
 def design_all(config: Any, laws: tuple[str, ...]) -> dict[str, Any]:

@@ -12,9 +12,9 @@ import argparse
 from typing import TYPE_CHECKING
 
 from foilc_hil.commands import CommandResult
+from foilc_hil.config import LawKind
 
 if TYPE_CHECKING:
-    from foilc_hil.config import Config
     from foilc_hil.design.record import Design
 
 HELP = "solve the LMI of Theorem 1 for the learning gain P"
@@ -26,7 +26,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tau", type=float, default=None, help="convergence index along time, 0 < tau < 1")
     parser.add_argument("--theta", type=float, default=None, help="convergence index along trials, 0 < theta < 1")
     parser.add_argument(
-        "--law", choices=("foilc", "ioilc"), default="foilc", help="2D law to design (IOILC: kp = 0; default foilc)"
+        "--law",
+        choices=(LawKind.FOILC.value, LawKind.IOILC.value),
+        default=LawKind.FOILC.value,
+        help="2D law to design (IOILC: kp = 0; default foilc)",
     )
     parser.add_argument(
         "--input-delay",
@@ -38,57 +41,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print one JSON document on stdout")
 
 
-def _fractional_parameters(config: Config, law: str) -> tuple[float, float]:
-    """``kp, r``: given in ``tuning:``, else tuned (IOILC: ``kp = 0``, ``r`` recorded but unused)."""
-    kp, r = config.tuning.kp, config.tuning.r
-    if law == "ioilc":
-        return 0.0, 1.0 if r is None else float(r)
-    if kp is None or r is None:
-        from foilc_hil.design.tuning import tune
-
-        tuned = tune(config)
-        kp, r = tuned.kp, tuned.r
-    return float(kp), float(r)
-
-
 def _text(design: Design) -> str:
     certificates = design.certificates
+    assert certificates is not None and certificates.lmi is not None  # a synthesised design has both
     lines = [
         f"law {design.law}: kp = {design.kp:.6g}, r = {design.r:.6g}, Ts = {design.sample_time:g} s, "
         f"input delay {design.input_delay} cycle(s)",
         f"gamma = {design.gamma:.6g} (tau = {design.tau:g}, theta = {design.theta:g}; "
-        f"solver {certificates['lmi']['solver']})",
+        f"solver {certificates.lmi.solver})",
         f"p1 = {design.p1.tolist()}",
         f"p2 = {design.p2.tolist()}" + (f"  (rescaled by {design.gain_scale:.6g})" if design.gain_scale != 1 else ""),
-        f"lifted trial map ({certificates['n_samples']} samples, {certificates['vertices']} uncertainty vertices): "
-        f"spectral radius {certificates['spectral_radius']:.6g}, induced 2-norm {certificates['norm_2']:.6g}"
-        f" -> {'monotonic' if certificates.get('monotonic') else 'asymptotic only'}",
-        f"as designed (before any rescale): spectral radius {certificates['designed']['spectral_radius']:.6g}; "
-        f"without the fractional filter: {certificates['naive_without_filter']['spectral_radius']:.6g}; "
-        f"filter first weight 1 + kp h^-r = {certificates['filter_first_weight']:.6g}",
+        f"lifted trial map ({certificates.n_samples} samples, {certificates.vertices} uncertainty vertices): "
+        f"spectral radius {certificates.spectral_radius:.6g}, induced 2-norm {certificates.norm_2:.6g}"
+        f" -> {'monotonic' if certificates.monotonic else 'asymptotic only'}",
+        f"as designed (before any rescale): spectral radius {certificates.designed.spectral_radius:.6g}; "
+        f"without the fractional filter: {certificates.naive_without_filter.spectral_radius:.6g}; "
+        f"filter first weight 1 + kp h^-r = {certificates.filter_first_weight:.6g}",
     ]
-    growth = certificates.get("growth_bound")
+    growth = certificates.growth_bound
     if growth is not None:
-        lines.append(f"error growth bound over {growth['trials']} trials: {growth['bound']:.6g}")
+        lines.append(f"error growth bound over {growth.trials} trials: {growth.bound:.6g}")
     return "\n".join(lines)
 
 
 def execute(args: argparse.Namespace) -> CommandResult:
-    """Load the config, get ``kp``/``r``, solve LMI (31), certify the law as it runs, print the design."""
+    """Load the config and build the design with the one pipeline: tune ``kp``/``r`` if needed, solve LMI (31),
+    certify the law as it runs (Q-filter, fractional memory, input delay), print the design."""
     from foilc_hil.config import load_config
-    from foilc_hil.design.lmi import synthesize_from_config
+    from foilc_hil.design.pipeline import build_design
     from foilc_hil.errors import InputError
+    from foilc_hil.references import trial_samples
 
     if args.input_delay < 0:
         raise InputError(f"--input-delay: must be >= 0, got {args.input_delay}")
     config = load_config(args.config, {"synthesis.tau": args.tau, "synthesis.theta": args.theta})
-    kp, r = _fractional_parameters(config, args.law)
-    q_matrix = None
-    if config.law.q_filter is not None:
-        from foilc_hil.design.qfilter import QFilter
-        from foilc_hil.references import trial_samples
-
-        q_filter = QFilter(config.law.q_filter.cutoff, config.law.q_filter.order, config.sample_time)
-        q_matrix = q_filter.matrix(trial_samples(config.reference, config.sample_time))
-    design = synthesize_from_config(config, law=args.law, kp=kp, r=r, input_delay=args.input_delay, q_filter=q_matrix)
+    n_samples = trial_samples(config.reference, config.sample_time)
+    design = build_design(config, args.law, n_samples, input_delay=args.input_delay)
     return CommandResult(document=design.to_json(), text=_text(design))

@@ -63,25 +63,43 @@ What is exact and what is estimated
   by ``svds``.
 * Uncertainty vertices are FROZEN (constant ``Delta``) plants; a time-varying ``Delta(t)`` makes the map
   non-Toeplitz and is covered only by the LMI of Theorem 1 and by simulation.
+
+Module order: after :mod:`foilc_hil.design.record` (whose typed :class:`~foilc_hil.design.record.Certificates`
+this module fills in), before :mod:`foilc_hil.design.lmi` (which certifies the gain it solves for).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Any
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from foilc_hil.design.models import DiscreteModel, Uncertainty
+from foilc_hil.config import DivergentFilterPolicy, FractionalMemory, LawKind
+from foilc_hil.design.fractional import FractionalPD, gl_weights
+from foilc_hil.design.models import DiscreteModel, Uncertainty, uncertainty_vertices
+from foilc_hil.design.ptype import frequency_bound
+from foilc_hil.design.record import (
+    Bounds,
+    CertificateAction,
+    Certificates,
+    Design,
+    GrowthBound,
+    PlantCertificate,
+    PTypeGain,
+)
 from foilc_hil.errors import ConfigError, ConvergenceCertificateError, InputError
 
 __all__ = [
     "DENSE_LIMIT",
     "Certification",
+    "LawStructure",
     "LiftedErrorMap",
+    "LoopPlant",
     "certify",
+    "certify_as_given",
+    "certify_p_type",
     "dense_error_map",
     "dense_input_map",
     "law_filter_matrix",
@@ -197,18 +215,82 @@ class _ScalarFilter:
         return out
 
 
-def _check_memory(fractional_memory: str) -> str:
-    if fractional_memory not in ("controllable", "trial"):
-        raise ConfigError(
-            f"must be 'controllable' or 'trial', got {fractional_memory!r}", key="law.fractional_memory"
-        )
-    return fractional_memory
+@dataclass(frozen=True)
+class LawStructure:
+    """How the learning law runs, everything its lifted trial map depends on besides the plant and the gain.
+
+    Attributes
+    ----------
+    kp, r, sample_time
+        The fractional PD function ``FractionalPD(kp, r, sample_time)`` (``kp = 0``: ``E = e``).
+    n_samples
+        ``N``, samples per trial.
+    lead
+        The input delay ``d`` in samples (the law uses ``E[i + d]``).
+    fractional_memory
+        The law's ``law.fractional_memory`` (:class:`~foilc_hil.config.FractionalMemory`).
+    q_filter
+        The ``N x N`` zero-phase Q-filter matrix the law applies to the feedforward between trials, or ``None``.
+    """
+
+    kp: float
+    r: float
+    sample_time: float
+    n_samples: int
+    lead: int = 0
+    fractional_memory: FractionalMemory = FractionalMemory.CONTROLLABLE
+    q_filter: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        try:
+            object.__setattr__(self, "fractional_memory", FractionalMemory(self.fractional_memory))
+        except ValueError:
+            raise ConfigError(
+                f"must be 'controllable' or 'trial', got {self.fractional_memory!r}", key="law.fractional_memory"
+            ) from None
+        if not (isinstance(self.n_samples, int) and self.n_samples > self.lead + 1):
+            raise InputError(f"n_samples: must be an integer above {self.lead + 1}, got {self.n_samples!r}")
+        if self.q_filter is not None:
+            Q = np.asarray(self.q_filter, dtype=float)
+            if Q.shape != (self.n_samples, self.n_samples):
+                raise InputError(f"q_filter: must be {self.n_samples}x{self.n_samples} (one trial), got {Q.shape}")
+            object.__setattr__(self, "q_filter", Q)
+
+    @property
+    def filter_first_weight(self) -> float:
+        """``1 + kp h^-r``: the weight of the newest error sample in ``E`` (module notes)."""
+        return 1.0 + self.kp * self.sample_time**-self.r
+
+    def without_filters(self) -> LawStructure:
+        """The same law with the fractional filter and the Q-filter off (``E = e``): the naive comparison."""
+        return LawStructure(0.0, self.r, self.sample_time, self.n_samples, self.lead, self.fractional_memory)
+
+    def filter(self) -> _ScalarFilter:
+        """The ``N x N`` operator ``E = F e`` (per channel) the law applies, as a filter (see :func:`_law_filter`)."""
+        return _law_filter(self.kp, self.r, self.sample_time, self.n_samples, self.lead, self.fractional_memory)
+
+
+@dataclass(frozen=True)
+class LoopPlant:
+    """One plant of the learning loop with the gain ``P = (p1 p2)`` applied to it.
+
+    ``A``, ``B`` the (delay-augmented) plant, ``C_measured`` its measured output, ``p1`` (``m x n``) and ``p2``
+    (``m x p``) the gain blocks.
+    """
+
+    A: np.ndarray
+    B: np.ndarray
+    C_measured: np.ndarray
+    p1: np.ndarray
+    p2: np.ndarray
+
+    def scaled(self, scale: float) -> LoopPlant:
+        """The loop with ``p2`` scaled by ``scale``."""
+        return LoopPlant(self.A, self.B, self.C_measured, self.p1, scale * self.p2)
 
 
 def _zero_history_filter(kp: float, r: float, h: float, n: int) -> _ScalarFilter:
     """``FractionalPD(kp, r, h, history="zero")`` on ``n`` samples: pure lower-triangular Toeplitz."""
-    from foilc_hil.design.fractional import FractionalPD, gl_weights
-
     FractionalPD(kp, r, h, history="zero")  # validates kp, r, h
     weights = kp * h**-r * gl_weights(r, n)
     weights[0] += 1.0
@@ -221,7 +303,7 @@ def _law_filter(kp: float, r: float, h: float, n: int, lead: int, fractional_mem
     ``"controllable"``: ``diag(I_lead, Toeplitz)`` (zero-history GL on ``e[lead:]``); ``"trial"``: the Caputo
     ``FractionalPD`` on the whole trial (Toeplitz plus correction columns, or dense columns if that fails).
     """
-    if _check_memory(fractional_memory) == "controllable":
+    if FractionalMemory(fractional_memory) is FractionalMemory.CONTROLLABLE:
         return _windowed(kp, r, h, n, lead)
     filt, fpd = _fractional_filter(kp, r, h, n)
     if filt is None:
@@ -248,10 +330,8 @@ def law_filter_matrix(
     return _law_filter(kp, r, sample_time, n_samples, lead, fractional_memory).dense()
 
 
-def _fractional_filter(kp: float, r: float, h: float, n: int) -> tuple[_ScalarFilter | None, Any]:
+def _fractional_filter(kp: float, r: float, h: float, n: int) -> tuple[_ScalarFilter | None, FractionalPD]:
     """Decompose ``FractionalPD(kp, r, h)`` on ``n`` samples; ``None`` when the decomposition fails the probe."""
-    from foilc_hil.design.fractional import FractionalPD
-
     fpd = FractionalPD(kp, r, h)
     k = min(CORRECTION_COLUMNS, n)
     extended = np.zeros(n + k)
@@ -405,49 +485,21 @@ def _radius(matrix: np.ndarray) -> float:
     return float(np.max(np.abs(values))) if np.all(np.isfinite(values)) else math.inf
 
 
-def lifted_error_map(
-    A: np.ndarray,
-    B: np.ndarray,
-    C_measured: np.ndarray,
-    p1: np.ndarray,
-    p2: np.ndarray,
-    *,
-    kp: float,
-    r: float,
-    sample_time: float,
-    n_samples: int,
-    lead: int = 0,
-    fractional_memory: str = "controllable",
-) -> LiftedErrorMap:
-    """The trial-to-trial error map ``T`` of the law as it runs (module notes).
+def lifted_error_map(loop: LoopPlant, law: LawStructure) -> LiftedErrorMap:
+    """The trial-to-trial error map ``T`` of the law as it runs (module notes), without a Q-filter.
 
-    Parameters
-    ----------
-    A, B, C_measured
-        The (delay-augmented) plant and its measured output.
-    p1, p2
-        The gain blocks (``m x n``, ``m x p``).
-    kp, r, sample_time
-        The fractional PD function ``FractionalPD(kp, r, sample_time)``.
-    n_samples
-        ``N``, samples per trial.
-    lead
-        The input delay ``d`` in samples (the law uses ``E[i + d]``).
-    fractional_memory
-        The law's ``law.fractional_memory``: ``"controllable"`` (``F'`` is the zero-history Toeplitz operator
-        on the ``N - lead`` controllable samples) or ``"trial"`` (``F' = F[lead:, lead:]`` of the Caputo
-        operator over the whole trial).
+    ``law.fractional_memory`` picks ``F'``: ``"controllable"`` -- the zero-history Toeplitz operator on the
+    ``N - lead`` controllable samples; ``"trial"`` -- ``F' = F[lead:, lead:]`` of the Caputo operator over the whole
+    trial. ``law.q_filter`` is not used here (see :func:`lifted_input_map`).
     """
-    _check_memory(fractional_memory)
-    n_out = C_measured.shape[0]
-    if not (isinstance(n_samples, int) and n_samples > lead + 1):
-        raise InputError(f"n_samples: must be an integer above {lead + 1}, got {n_samples!r}")
+    n_out = loop.C_measured.shape[0]
+    kp, r, sample_time, n_samples, lead = law.kp, law.r, law.sample_time, law.n_samples, law.lead
     length = n_samples - lead
-    A_cl = A + B @ p1
-    blocks = _markov_blocks(A_cl, B @ p2, C_measured, lead, length)
+    A_cl = loop.A + loop.B @ loop.p1
+    blocks = _markov_blocks(A_cl, loop.B @ loop.p2, loop.C_measured, lead, length)
     H = _BlockToeplitz(blocks)
     finite = bool(np.all(np.isfinite(blocks)))  # an overflowing plant takes the dense path (caller reports it)
-    if fractional_memory == "controllable":
+    if law.fractional_memory is FractionalMemory.CONTROLLABLE:
         window = _zero_history_filter(kp, r, sample_time, length)
         if finite:
             return LiftedErrorMap(H, window, None, n_out, length)
@@ -582,39 +634,16 @@ class LiftedInputMap:
         return (self.Q.T @ Y - learning - self.Gz.rmatvec(Y @ self.p1)).ravel()
 
 
-def lifted_input_map(
-    A: np.ndarray,
-    B: np.ndarray,
-    C_measured: np.ndarray,
-    p1: np.ndarray,
-    p2: np.ndarray,
-    *,
-    kp: float,
-    r: float,
-    sample_time: float,
-    Q: np.ndarray,
-    lead: int = 0,
-    fractional_memory: str = "controllable",
-) -> LiftedInputMap:
-    """The input map ``M`` (with the ``N x N`` Q-filter matrix ``Q``) as fast ``matvec``/``rmatvec`` products.
-
-    ``fractional_memory`` as in :func:`lifted_error_map` (the operator is :func:`law_filter_matrix`'s).
-    """
-    n_samples = Q.shape[0]
-    filt = _law_filter(kp, r, sample_time, n_samples, lead, fractional_memory)
-    return _input_map(A, B, C_measured, p1, p2, filt, Q, lead)
+def lifted_input_map(loop: LoopPlant, law: LawStructure) -> LiftedInputMap:
+    """The input map ``M`` (with the law's ``N x N`` Q-filter matrix ``law.q_filter``) as fast ``matvec``/``rmatvec``
+    products; the fractional operator is :func:`law_filter_matrix`'s for ``law.fractional_memory``."""
+    if law.q_filter is None:
+        raise InputError("q_filter: the input map needs the law's Q-filter (without one, see lifted_error_map)")
+    return _input_map(loop, law.filter(), law.q_filter, law.lead)
 
 
-def _input_map(
-    A: np.ndarray,
-    B: np.ndarray,
-    C_measured: np.ndarray,
-    p1: np.ndarray,
-    p2: np.ndarray,
-    F: _ScalarFilter,
-    Q: np.ndarray,
-    lead: int,
-) -> LiftedInputMap:
+def _input_map(loop: LoopPlant, F: _ScalarFilter, Q: np.ndarray, lead: int) -> LiftedInputMap:
+    A, B, C_measured, p1, p2 = loop.A, loop.B, loop.C_measured, loop.p1, loop.p2
     n = Q.shape[0]
     ns, m = B.shape
     p = C_measured.shape[0]
@@ -699,85 +728,63 @@ def _operator_norm(
     return float(np.max(values)), "svds"
 
 
-def map_certificate(
-    A: np.ndarray,
-    B: np.ndarray,
-    C_measured: np.ndarray,
-    p1: np.ndarray,
-    p2: np.ndarray,
-    *,
-    kp: float,
-    r: float,
-    sample_time: float,
-    n_samples: int,
-    lead: int = 0,
-    q_filter: np.ndarray | None = None,
-    fractional_memory: str = "controllable",
-) -> dict[str, Any]:
-    """Spectral radius and induced 2-norm of the lifted trial-to-trial map for one plant (module notes).
+def _error_map_certificate(loop: LoopPlant, law: LawStructure) -> PlantCertificate:
+    """:func:`map_certificate` without a Q-filter: the exact error map ``T``."""
+    T = lifted_error_map(loop, law)
+    if not np.all(np.isfinite(T.H.blocks)):
+        return PlantCertificate("", "error", math.inf, math.inf, "overflow")
+    radius = T.spectral_radius()
+    if radius >= 1.0:
+        norm = max(radius, _power_norm(T.size, T.matvec, T.rmatvec))
+        method = "lower bound (spectral radius >= 1; power iteration)"
+    else:
+        norm, method = _operator_norm(T.size, T.matvec, T.rmatvec, T.to_dense, T.norm_upper_bound)
+    symbol = T.symbol_norm() if T.F is not None else None
+    return PlantCertificate("", "error", radius, norm, method, norm_2_symbol=symbol)
 
-    When the spectral radius is not below one the 2-norm is not computed: ``norm_2`` then holds the radius,
-    a lower bound (``||T|| >= rho(T)``), and ``norm_2_method`` says so. ``fractional_memory``: the law's
-    ``law.fractional_memory`` (see :func:`lifted_error_map`).
-    """
-    if q_filter is None:
-        T = lifted_error_map(
-            A,
-            B,
-            C_measured,
-            p1,
-            p2,
-            kp=kp,
-            r=r,
-            sample_time=sample_time,
-            n_samples=n_samples,
-            lead=lead,
-            fractional_memory=fractional_memory,
-        )
-        if not np.all(np.isfinite(T.H.blocks)):
-            return {"map": "error", "spectral_radius": math.inf, "norm_2": math.inf, "norm_2_method": "overflow"}
-        radius = T.spectral_radius()
-        result: dict[str, Any] = {"map": "error", "spectral_radius": radius}
-        if radius >= 1.0:
-            bound = max(radius, _power_norm(T.size, T.matvec, T.rmatvec))
-            result.update({"norm_2": bound, "norm_2_method": "lower bound (spectral radius >= 1; power iteration)"})
-        else:
-            norm, method = _operator_norm(T.size, T.matvec, T.rmatvec, T.to_dense, T.norm_upper_bound)
-            result.update({"norm_2": norm, "norm_2_method": method})
-        if T.F is not None:
-            result["norm_2_symbol"] = T.symbol_norm()
-        return result
-    Q = np.asarray(q_filter, dtype=float)
-    if Q.shape != (n_samples, n_samples):
-        raise InputError(f"q_filter: must be {n_samples}x{n_samples} (one trial), got {Q.shape}")
-    filt = _law_filter(kp, r, sample_time, n_samples, lead, fractional_memory)
-    M = _input_map(A, B, C_measured, p1, p2, filt, Q, lead)
+
+def _input_map_radius(M: LiftedInputMap, dense: Callable[[], np.ndarray]) -> tuple[float, str]:
+    """Spectral radius of the input map: dense for small trials, ARPACK ``eigs`` otherwise (``nan`` if it fails)."""
+    if M.size <= DENSE_LIMIT:
+        return _radius(dense()), "dense"
+    from scipy.sparse.linalg import ArpackNoConvergence, LinearOperator, eigs
+
+    operator = LinearOperator((M.size, M.size), matvec=M.matvec, dtype=float)
+    try:
+        values = eigs(operator, k=1, which="LM", tol=1e-8, return_eigenvectors=False, maxiter=50 * M.size)
+    except ArpackNoConvergence:
+        return math.nan, "eigs did not converge"
+    return float(np.max(np.abs(values))), "eigs"
+
+
+def _input_map_certificate(loop: LoopPlant, law: LawStructure, Q: np.ndarray) -> PlantCertificate:
+    """:func:`map_certificate` with a Q-filter: the input map ``M``."""
+    filt = law.filter()
+    M = _input_map(loop, filt, Q, law.lead)
 
     def dense() -> np.ndarray:
-        return dense_input_map(A, B, C_measured, p1, p2, filt.dense(), Q, lead)
+        return dense_input_map(loop.A, loop.B, loop.C_measured, loop.p1, loop.p2, filt.dense(), Q, law.lead)
 
-    if M.size <= DENSE_LIMIT:
-        radius, radius_method = _radius(dense()), "dense"
-    else:
-        from scipy.sparse.linalg import ArpackNoConvergence, LinearOperator, eigs
-
-        operator = LinearOperator((M.size, M.size), matvec=M.matvec, dtype=float)
-        try:
-            values = eigs(operator, k=1, which="LM", tol=1e-8, return_eigenvectors=False, maxiter=50 * M.size)
-            radius, radius_method = float(np.max(np.abs(values))), "eigs"
-        except ArpackNoConvergence:
-            radius, radius_method = math.nan, "eigs did not converge"
-    result = {"map": "input (Q-filter)", "spectral_radius_method": radius_method}
+    kind = "input (Q-filter)"
+    radius, radius_method = _input_map_radius(M, dense)
     if math.isfinite(radius) and radius >= 1.0:
-        result.update(
-            {"spectral_radius": radius, "norm_2": radius, "norm_2_method": "lower bound: the spectral radius"}
-        )
-        return result
+        return PlantCertificate("", kind, radius, radius, "lower bound: the spectral radius", radius_method)
     norm, method = _operator_norm(M.size, M.matvec, M.rmatvec, dense)
     if not math.isfinite(radius):  # fall back on the bound rho <= ||M||
-        radius, result["spectral_radius_method"] = norm, "upper bound: the induced 2-norm (eigs did not converge)"
-    result.update({"spectral_radius": radius, "norm_2": norm, "norm_2_method": method})
-    return result
+        radius, radius_method = norm, "upper bound: the induced 2-norm (eigs did not converge)"
+    return PlantCertificate("", kind, radius, norm, method, radius_method)
+
+
+def map_certificate(loop: LoopPlant, law: LawStructure) -> PlantCertificate:
+    """Spectral radius and induced 2-norm of the lifted trial-to-trial map for one plant (module notes).
+
+    Without ``law.q_filter`` the error map ``T``, with it the input map ``M``. When the spectral radius is not
+    below one the 2-norm is not computed: ``norm_2`` then holds a lower bound (``||T|| >= rho(T)``) and
+    ``norm_2_method`` says so. The result's ``plant`` name is empty (the caller names it).
+    """
+    if law.q_filter is None:
+        return _error_map_certificate(loop, law)
+    return _input_map_certificate(loop, law, law.q_filter)
 
 
 @dataclass(frozen=True)
@@ -786,44 +793,199 @@ class Certification:
 
     P: np.ndarray
     gain_scale: float
-    certificates: dict[str, Any] = field(default_factory=dict)
+    certificates: Certificates
 
 
 def _plants(model: DiscreteModel, uncertainty: Uncertainty) -> list[tuple[str, np.ndarray, np.ndarray]]:
-    from foilc_hil.design.lmi import uncertainty_vertices
-
     plants = [("nominal", model.A, model.B)]
     for index, (dA, dB) in enumerate(uncertainty_vertices(uncertainty), start=1):
         plants.append((f"vertex {index}", model.A + dA, model.B + dB))
     return plants
 
 
-def _worst(entries: list[dict[str, Any]], key: str) -> float:
-    values = [float(entry[key]) for entry in entries]
+def _worst(entries: Sequence[PlantCertificate], key: str) -> float:
+    values = [float(getattr(entry, key)) for entry in entries]
     return max(values) if all(math.isfinite(v) for v in values) else math.inf
+
+
+@dataclass(frozen=True)
+class _Verdict:
+    """The certificates of one gain scale at every plant."""
+
+    scale: float
+    plants: tuple[PlantCertificate, ...]
+
+    @property
+    def spectral_radius(self) -> float:
+        return _worst(self.plants, "spectral_radius")
+
+    @property
+    def norm_2(self) -> float:
+        return _worst(self.plants, "norm_2")
+
+    @property
+    def asymptotic(self) -> bool:
+        return self.spectral_radius < 1.0
+
+    @property
+    def monotonic(self) -> bool:
+        return self.asymptotic and self.norm_2 <= CONTRACTION_LIMIT
+
+    def admissible(self, require_monotonic: bool) -> bool:
+        return self.monotonic if require_monotonic else self.asymptotic
+
+    def bounds(self) -> Bounds:
+        return Bounds(self.spectral_radius, self.norm_2)
+
+
+class _Evaluator:
+    """The lifted maps of one gain, nominal and at the uncertainty vertices, per scale of ``p2`` (cached)."""
+
+    def __init__(self, model: DiscreteModel, uncertainty: Uncertainty, P: np.ndarray, law: LawStructure) -> None:
+        n = model.n_states
+        self.law = law
+        self.loops = [
+            (name, LoopPlant(A_v, B_v, model.measured_output, P[:, :n], P[:, n:]))
+            for name, A_v, B_v in _plants(model, uncertainty)
+        ]
+        self._cache: dict[float, _Verdict] = {}
+
+    def at(self, scale: float, law: LawStructure | None = None) -> _Verdict:
+        """The verdict with ``p2`` scaled by ``scale`` (for ``law``, default the law as it runs)."""
+        if law is not None:
+            return self._evaluate(scale, law)
+        if scale not in self._cache:
+            self._cache[scale] = self._evaluate(scale, self.law)
+        return self._cache[scale]
+
+    def _evaluate(self, scale: float, law: LawStructure) -> _Verdict:
+        return _Verdict(scale, tuple(map_certificate(loop.scaled(scale), law).named(name) for name, loop in self.loops))
+
+    def objective(self, key: str) -> Callable[[float], float]:
+        """The worst-case ``key`` as a function of ``log(scale)`` (``1e300`` where it is not finite)."""
+
+        def worst(log_scale: float) -> float:
+            value = float(getattr(self.at(math.exp(log_scale)), key))
+            return value if math.isfinite(value) else 1e300
+
+        return worst
+
+
+def _record(
+    evaluator: _Evaluator, chosen: _Verdict, require_monotonic: bool, action: CertificateAction
+) -> Certificates:
+    """The typed certificates of the ``chosen`` verdict (the designed and naive ones for comparison)."""
+    law = evaluator.law
+    return Certificates(
+        spectral_radius=chosen.spectral_radius,
+        norm_2=chosen.norm_2,
+        monotonic_required=require_monotonic,
+        n_samples=law.n_samples,
+        lead=law.lead,
+        fractional_memory=law.fractional_memory,
+        filter_first_weight=law.filter_first_weight,
+        naive_without_filter=evaluator.at(1.0, law.without_filters()).bounds(),
+        designed=evaluator.at(1.0).bounds(),
+        vertices=len(evaluator.loops) - 1,
+        q_filter=law.q_filter is not None,
+        action=action,
+        gain_scale=chosen.scale,
+        asymptotic=chosen.asymptotic,
+        monotonic=chosen.monotonic,
+        plants=chosen.plants,
+    )
+
+
+def certify_as_given(
+    model: DiscreteModel, uncertainty: Uncertainty, P: np.ndarray, law: LawStructure, *, require_monotonic: bool
+) -> Certificates:
+    """The certificates of gain ``P`` exactly as given, nominal and at the uncertainty vertices (no fix)."""
+    evaluator = _Evaluator(model, uncertainty, np.asarray(P, dtype=float), law)
+    return _record(evaluator, evaluator.at(1.0), require_monotonic, CertificateAction.NONE)
+
+
+def _summary(designed: _Verdict, law: LawStructure) -> str:
+    return (
+        f"spectral radius {designed.spectral_radius:.4g}, induced 2-norm {designed.norm_2:.4g} "
+        f"(filter first weight 1 + kp h^-r = {law.filter_first_weight:.4g})"
+    )
+
+
+def _refuse(policy: DivergentFilterPolicy, summary: str) -> None:
+    """Raise for the policies that do not rescale (``refuse``, and ``augment``, which is not implemented)."""
+    if policy is DivergentFilterPolicy.REFUSE:
+        raise ConvergenceCertificateError(
+            f"the law as it runs is not certified to converge: {summary}; synthesis.on_divergent_filter=refuse"
+        )
+    if policy is DivergentFilterPolicy.AUGMENT:
+        raise ConvergenceCertificateError(
+            f"the law as it runs is not certified to converge: {summary}; 'augment' is not implemented, "
+            "use synthesis.on_divergent_filter=rescale"
+        )
+
+
+def _best_scale(evaluator: _Evaluator, summary: str, require_monotonic: bool) -> tuple[_Verdict, str]:
+    """The scale of ``p2`` minimising the worst-case 2-norm (monotonic), else the worst spectral radius."""
+    from scipy.optimize import minimize_scalar
+
+    # The optimum sits near 1 / (filter gain * loop gain); search a window wide enough around it.
+    low = math.log(min(1.0, 1e-3 / max(1.0, evaluator.law.filter_first_weight)))
+    # 1. Monotonic: the worst-case 2-norm is convex in s and 1 at s = 0; take its minimiser.
+    search = minimize_scalar(
+        evaluator.objective("norm_2"), bounds=(low, 0.0), method="bounded", options={"xatol": 1e-2}
+    )
+    best = evaluator.at(math.exp(float(search.x)))
+    if best.monotonic:
+        return best, "monotonic"
+    if require_monotonic:
+        raise ConvergenceCertificateError(
+            f"the law as it runs is not certified to converge monotonically: {summary}; no rescaling of p2 "
+            f"in (0, 1] gives an induced 2-norm below 1 (best {best.norm_2:.6g} at scale {best.scale:.4g})"
+        )
+    # 2. Asymptotic only (monotonic not required, and not reachable): minimise the worst spectral radius.
+    search = minimize_scalar(
+        evaluator.objective("spectral_radius"), bounds=(low, 0.0), method="bounded", options={"xatol": 1e-2}
+    )
+    best = evaluator.at(math.exp(float(search.x)))
+    if not best.asymptotic:
+        raise ConvergenceCertificateError(
+            f"the law as it runs is not certified to converge: {summary}; no rescaling of p2 in (0, 1] helps "
+            f"(best worst-case spectral radius {best.spectral_radius:.6g} at scale {best.scale:.4g})"
+        )
+    return best, "asymptotic"
+
+
+def _largest_admissible(evaluator: _Evaluator, best: _Verdict, require_monotonic: bool) -> float:
+    """Largest admissible scale (same criterion), by bisection between the chosen scale and 1 (not admissible)."""
+    lo, hi = best.scale, 1.0
+    for _ in range(40):
+        if hi - lo <= 1e-2 * hi:
+            break
+        mid = math.sqrt(lo * hi)
+        if evaluator.at(mid).admissible(require_monotonic):
+            lo = mid
+        else:
+            hi = mid
+    return lo
 
 
 def certify(
     model: DiscreteModel,
     uncertainty: Uncertainty,
     P: np.ndarray,
+    law: LawStructure,
     *,
-    kp: float,
-    r: float,
-    n_samples: int,
-    on_divergent_filter: str = "rescale",
-    q_filter: np.ndarray | None = None,
+    policy: DivergentFilterPolicy = DivergentFilterPolicy.RESCALE,
     require_monotonic: bool = True,
     growth_horizon: int = 10,
-    fractional_memory: str = "controllable",
 ) -> Certification:
-    """Certify the law with gain ``P`` as it runs, nominal and at the uncertainty vertices; fix or refuse.
+    """Certify the law with gain ``P`` as it runs (``law``), nominal and at the uncertainty vertices; fix or refuse.
 
     The law is admissible when the spectral radius is below one at every plant (asymptotic convergence) and, if
     ``require_monotonic``, the induced 2-norm too (monotonic convergence of the error in l2). Otherwise, by
-    ``on_divergent_filter``:
+    ``policy`` (``synthesis.on_divergent_filter``):
 
-    ``"rescale"``
+    ``rescale``
         scale ``p2`` by ``s`` in ``(0, 1]``. The worst-case 2-norm of ``I - s K`` is convex in ``s`` and equals
         one at ``s = 0``, so the scales with a monotonic certificate form an interval ``(0, s_max)``; we take the
         ``s`` that minimises the worst-case 2-norm (the fastest certified monotone contraction, bounded Brent
@@ -833,171 +995,61 @@ def certify(
         monotonicity is not required, we take the ``s`` minimising the worst-case spectral radius instead and
         report ``monotonic: false`` with the growth bound ``||T||_2^k`` over ``growth_horizon`` trials.
         ``P`` is returned with ``p2`` scaled.
-    ``"refuse"``
+    ``refuse``
         raise :class:`ConvergenceCertificateError`.
-    ``"augment"``
+    ``augment``
         not available: designing on a model augmented with the filter's dynamics is not implemented; raises
         :class:`ConvergenceCertificateError` saying so (use ``rescale``).
 
-    ``fractional_memory`` is the law's ``law.fractional_memory``; the certificate is of that operator and is
-    recorded as ``certificates["fractional_memory"]`` (the law refuses a design certified with another one).
+    The certificate is of ``law.fractional_memory``'s operator and records it (the law refuses a design
+    certified with another one).
 
     Raises
     ------
     foilc_hil.errors.ConvergenceCertificateError
         When the law is not certified and cannot be fixed (exit 3).
     """
-    _check_memory(fractional_memory)
-    if on_divergent_filter not in ("rescale", "augment", "refuse"):
+    try:
+        policy = DivergentFilterPolicy(policy)
+    except ValueError:
         raise ConfigError(
-            f"must be 'rescale', 'augment' or 'refuse', got {on_divergent_filter!r}",
-            key="synthesis.on_divergent_filter",
-        )
-    n = model.n_states
+            f"must be 'rescale', 'augment' or 'refuse', got {policy!r}", key="synthesis.on_divergent_filter"
+        ) from None
     P = np.asarray(P, dtype=float)
-    p1, p2 = P[:, :n], P[:, n:]
-    plants = _plants(model, uncertainty)
-    lead = model.input_delay
-    C_meas = model.measured_output
-    h = model.sample_time
-
-    def evaluate(scale: float, kp_value: float, with_q: bool = True) -> list[dict[str, Any]]:
-        entries = []
-        for name, A_v, B_v in plants:
-            entry = map_certificate(
-                A_v,
-                B_v,
-                C_meas,
-                p1,
-                scale * p2,
-                kp=kp_value,
-                r=r,
-                sample_time=h,
-                n_samples=n_samples,
-                lead=lead,
-                q_filter=q_filter if with_q else None,
-                fractional_memory=fractional_memory,
-            )
-            entries.append({"plant": name, **entry})
-        return entries
-
-    def admissible(entries: list[dict[str, Any]]) -> bool:
-        radius_ok = _worst(entries, "spectral_radius") < 1.0
-        norm_ok = _worst(entries, "norm_2") <= CONTRACTION_LIMIT
-        return radius_ok and (norm_ok or not require_monotonic)
-
-    designed = evaluate(1.0, kp)
-    naive = evaluate(1.0, 0.0, with_q=False)
-    certificates: dict[str, Any] = {
-        "spectral_radius": _worst(designed, "spectral_radius"),
-        "norm_2": _worst(designed, "norm_2"),
-        "monotonic_required": require_monotonic,
-        "n_samples": n_samples,
-        "lead": lead,
-        "fractional_memory": fractional_memory,
-        "filter_first_weight": 1.0 + kp * h**-r,
-        "naive_without_filter": {
-            "spectral_radius": _worst(naive, "spectral_radius"),
-            "norm_2": _worst(naive, "norm_2"),
-        },
-        "designed": {
-            "spectral_radius": _worst(designed, "spectral_radius"),
-            "norm_2": _worst(designed, "norm_2"),
-        },
-        "vertices": len(plants) - 1,
-        "q_filter": q_filter is not None,
-    }
-
-    def verdict(entries: list[dict[str, Any]]) -> dict[str, Any]:
-        radius, norm = _worst(entries, "spectral_radius"), _worst(entries, "norm_2")
-        return {
-            "spectral_radius": radius,
-            "norm_2": norm,
-            "asymptotic": radius < 1.0,
-            "monotonic": radius < 1.0 and norm <= CONTRACTION_LIMIT,
-            "plants": entries,
-        }
-
-    if admissible(designed):
-        certificates.update({"action": "none", "gain_scale": 1.0, **verdict(designed)})
-        return Certification(P, 1.0, certificates)
-    summary = (
-        f"spectral radius {certificates['spectral_radius']:.4g}, induced 2-norm {certificates['norm_2']:.4g} "
-        f"(filter first weight 1 + kp h^-r = {certificates['filter_first_weight']:.4g})"
-    )
-    if on_divergent_filter == "refuse":
-        raise ConvergenceCertificateError(
-            f"the law as it runs is not certified to converge: {summary}; synthesis.on_divergent_filter=refuse"
-        )
-    if on_divergent_filter == "augment":
-        raise ConvergenceCertificateError(
-            f"the law as it runs is not certified to converge: {summary}; 'augment' is not implemented, "
-            "use synthesis.on_divergent_filter=rescale"
-        )
-    from scipy.optimize import minimize_scalar
-
-    cache: dict[float, list[dict[str, Any]]] = {}
-
-    def entries_at(scale: float) -> list[dict[str, Any]]:
-        if scale not in cache:
-            cache[scale] = evaluate(scale, kp)
-        return cache[scale]
-
-    def objective(key: str) -> Callable[[float], float]:
-        def worst(log_scale: float) -> float:
-            value = _worst(entries_at(math.exp(log_scale)), key)
-            return value if math.isfinite(value) else 1e300
-
-        return worst
-
-    # The optimum sits near 1 / (filter gain * loop gain); search a window wide enough around it.
-    low = math.log(min(1.0, 1e-3 / max(1.0, certificates["filter_first_weight"])))
-    # 1. Monotonic: the worst-case 2-norm is convex in s and 1 at s = 0; take its minimiser.
-    search = minimize_scalar(objective("norm_2"), bounds=(low, 0.0), method="bounded", options={"xatol": 1e-2})
-    best_scale = math.exp(float(search.x))
-    best = entries_at(best_scale)
-    criterion = "monotonic"
-    if not verdict(best)["monotonic"]:
-        if require_monotonic:
-            raise ConvergenceCertificateError(
-                f"the law as it runs is not certified to converge monotonically: {summary}; no rescaling of p2 "
-                f"in (0, 1] gives an induced 2-norm below 1 (best {_worst(best, 'norm_2'):.6g} at scale "
-                f"{best_scale:.4g})"
-            )
-        # 2. Asymptotic only (monotonic not required, and not reachable): minimise the worst spectral radius.
-        search = minimize_scalar(
-            objective("spectral_radius"), bounds=(low, 0.0), method="bounded", options={"xatol": 1e-2}
-        )
-        best_scale = math.exp(float(search.x))
-        best = entries_at(best_scale)
-        criterion = "asymptotic"
-        if not admissible(best):
-            raise ConvergenceCertificateError(
-                f"the law as it runs is not certified to converge: {summary}; no rescaling of p2 in (0, 1] helps "
-                f"(best worst-case spectral radius {_worst(best, 'spectral_radius'):.6g} at scale {best_scale:.4g})"
-            )
-    # Largest admissible scale (same criterion), by bisection between the chosen scale and 1 (not admissible).
-    lo, hi = best_scale, 1.0
-    for _ in range(40):
-        if hi - lo <= 1e-2 * hi:
-            break
-        mid = math.sqrt(lo * hi)
-        if admissible(entries_at(mid)):
-            lo = mid
-        else:
-            hi = mid
+    evaluator = _Evaluator(model, uncertainty, P, law)
+    designed = evaluator.at(1.0)
+    if designed.admissible(require_monotonic):
+        return Certification(P, 1.0, _record(evaluator, designed, require_monotonic, CertificateAction.NONE))
+    summary = _summary(designed, law)
+    _refuse(policy, summary)
+    best, criterion = _best_scale(evaluator, summary, require_monotonic)
     scaled = P.copy()
-    scaled[:, n:] = best_scale * p2
-    if criterion == "asymptotic":
-        # ||T^k|| <= ||T||^k: a rigorous bound on how much the error's l2 norm can grow over the run.
-        certificates["growth_bound"] = {"trials": growth_horizon, "bound": _worst(best, "norm_2") ** growth_horizon}
-    certificates.update(
-        {
-            "action": "rescale",
-            "rescale_criterion": criterion,
-            "gain_scale": best_scale,
-            "largest_admissible_scale": lo,
-            **verdict(best),
-        }
+    scaled[:, model.n_states :] = best.scale * P[:, model.n_states :]
+    # ||T^k|| <= ||T||^k: a rigorous bound on how much the error's l2 norm can grow over the run.
+    growth = GrowthBound(growth_horizon, best.norm_2**growth_horizon) if criterion == "asymptotic" else None
+    record = _record(evaluator, best, require_monotonic, CertificateAction.RESCALE)
+    certificates = replace(
+        record,
+        growth_bound=growth,
+        rescale_criterion=criterion,
+        largest_admissible_scale=_largest_admissible(evaluator, best, require_monotonic),
     )
-    return Certification(scaled, best_scale, certificates)
+    return Certification(scaled, best.scale, certificates)
+
+
+def certify_p_type(
+    model: DiscreteModel, uncertainty: Uncertainty, gain: np.ndarray, law: LawStructure, *, require_monotonic: bool
+) -> Design:
+    """The P-type design ``P = (0 Gamma)`` on ``model``, with its certificates as it runs (``law``: ``kp = 0``).
+
+    The gain is the law's (``law.p_type_gain`` or its default, :mod:`foilc_hil.design.ptype`), run as given:
+    the certificates report it, nothing rescales it (``synthesis.on_divergent_filter`` is about the fractional
+    filter, which P-type does not have). They add the gain and its frequency-domain bound (:class:`PTypeGain`).
+    """
+    gamma = np.asarray(gain, dtype=float)
+    P = np.hstack([np.zeros((model.n_inputs, model.n_states)), gamma])
+    record = certify_as_given(model, uncertainty, P, law, require_monotonic=require_monotonic)
+    certificates = replace(record, p_type=PTypeGain(gamma, frequency_bound(model, gamma)))
+    return Design(
+        law=LawKind.P_TYPE, model=model, uncertainty=uncertainty, P=P, kp=law.kp, r=law.r, certificates=certificates
+    )

@@ -52,25 +52,26 @@ Independent checks (numpy, after the solve)
   block ``A + dA + (B + dB) p1`` and of the trial block ``I - C (B + dB) p2`` below one.
 
 A failing check raises :class:`~foilc_hil.errors.LmiInfeasibleError` naming the condition (CLI exit 3).
+
+Module order: after :mod:`foilc_hil.design.certificates` (the solved gain is certified as the law runs), before
+:mod:`foilc_hil.design.pipeline` (which takes everything from the configuration).
 """
 
 from __future__ import annotations
 
-import itertools
 import math
 import time
-from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Literal
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import Any, Literal
 
 import numpy as np
 
-from foilc_hil.design.models import DiscreteModel, Uncertainty, augment_input_delay, discretize, uncertainty_from_config
-from foilc_hil.design.record import Design
+from foilc_hil.config import DivergentFilterPolicy, LawKind
+from foilc_hil.design.certificates import LawStructure, certify
+from foilc_hil.design.models import DiscreteModel, Uncertainty, uncertainty_vertices
+from foilc_hil.design.record import Design, LmiChecks, Timing
 from foilc_hil.errors import ConfigError, InputError, LmiInfeasibleError
-
-if TYPE_CHECKING:
-    from foilc_hil.config import Config
 
 __all__ = [
     "LmiSolution",
@@ -79,18 +80,11 @@ __all__ = [
     "roesser_model",
     "solve_lmi",
     "synthesize",
-    "synthesize_from_config",
-    "uncertainty_vertices",
     "verify_lmi_solution",
 ]
 
 Solver = Literal["CLARABEL", "SCS"]
 _SOLVERS: tuple[Solver, ...] = ("CLARABEL", "SCS")
-
-#: Cap on sampled vertices per uncertainty channel (matrix Delta), and on vertex combinations overall.
-MAX_VERTICES_PER_CHANNEL = 8
-MAX_VERTEX_COMBINATIONS = 32
-
 
 @dataclass(frozen=True)
 class Channel:
@@ -146,7 +140,7 @@ class LmiSolution:
     gamma: float
     solver: str
     status: str
-    checks: dict[str, Any] = field(default_factory=dict)
+    checks: LmiChecks
 
 
 def lmi_matrix(
@@ -241,62 +235,6 @@ def _solve_once(
         "sigmas": tuple(float(sigma.value) for sigma in sigmas if sigma.value is not None),
         "gamma": float(gamma.value),
     }
-
-
-def _orthonormal_extreme(rows: int, cols: int, rng: np.random.Generator) -> np.ndarray:
-    """A random extreme point of the unit spectral-norm ball: all singular values one."""
-    k = max(rows, cols)
-    q, r = np.linalg.qr(rng.standard_normal((k, k)))
-    q = q @ np.diag(np.sign(np.diag(r)))
-    return np.asarray(q[:rows, :cols])
-
-
-def _channel_vertices(rows: int, cols: int, seed: int) -> list[np.ndarray]:
-    """Extreme points of ``{Delta : ||Delta||_2 <= 1}`` (``rows x cols``) to check at.
-
-    ``1 x 1``: exactly ``{-1, +1}``. Otherwise the ball has a continuum of extreme points (the partial
-    isometries); we take the sign-diagonal ones ``diag(+-1)`` (all of them when there are at most
-    ``MAX_VERTICES_PER_CHANNEL``) plus seeded random orthonormal ones, up to the cap. This samples, it does not
-    enumerate: the LMI itself covers the whole ball, the vertex checks are an independent spot check.
-    """
-    if rows == 1 and cols == 1:
-        return [np.array([[-1.0]]), np.array([[1.0]])]
-    k = min(rows, cols)
-    vertices: list[np.ndarray] = []
-    for signs in itertools.product((-1.0, 1.0), repeat=k):
-        if len(vertices) >= MAX_VERTICES_PER_CHANNEL // 2:
-            break
-        delta = np.zeros((rows, cols))
-        delta[np.arange(k), np.arange(k)] = signs
-        vertices.append(delta)
-    rng = np.random.default_rng(seed)
-    while len(vertices) < MAX_VERTICES_PER_CHANNEL:
-        vertices.append(_orthonormal_extreme(rows, cols, rng))
-    return vertices
-
-
-def uncertainty_vertices(uncertainty: Uncertainty, *, seed: int = 0) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    """``(dA, dB)`` at the uncertainty vertices (see :func:`_channel_vertices`); nothing when uncertainty is zero.
-
-    Each independent channel (:meth:`Uncertainty.channels`) takes its extreme points; the combinations are
-    produced sign-diagonal ones first, at most :data:`MAX_VERTEX_COMBINATIONS` of them.
-    """
-    n, m = uncertainty.G1.shape[0], uncertainty.H2.shape[1]
-    per_channel: list[list[tuple[np.ndarray, np.ndarray]]] = []
-    for index, (kind, G, H) in enumerate(uncertainty.channels()):
-        options = []
-        for delta in _channel_vertices(G.shape[1], H.shape[0], seed + index):
-            term = G @ delta @ H
-            options.append((term, np.zeros((n, m))) if kind == "state" else (np.zeros((n, n)), term))
-        per_channel.append(options)
-    if not per_channel:
-        return
-    for count, combination in enumerate(itertools.product(*per_channel)):
-        if count >= MAX_VERTEX_COMBINATIONS:
-            return
-        dA = sum((term[0] for term in combination), np.zeros((n, n)))
-        dB = sum((term[1] for term in combination), np.zeros((n, m)))
-        yield dA, dB
 
 
 def _spectral_radius(matrix: np.ndarray) -> float:
@@ -416,6 +354,14 @@ def solve_lmi(
             failures.append(f"{name}: {exc}")
             continue
         P = checks.pop("P")
+        record = LmiChecks(
+            solver=name,
+            status=status,
+            sigmas=tuple(values["sigmas"]),
+            solver_failures=tuple(failures),
+            P_lmi=P,
+            **checks,
+        )
         return LmiSolution(
             P=P,
             Qb=(values["Qb"] + values["Qb"].T) / 2,
@@ -425,28 +371,24 @@ def solve_lmi(
             gamma=float(values["gamma"]),
             solver=name,
             status=status,
-            checks={**checks, "solver_failures": failures},
+            checks=record,
         )
     raise LmiInfeasibleError(f"LMI (31) infeasible for tau={tau:g}, theta={theta:g} ({'; '.join(failures)})")
 
 
 def synthesize(
     model: DiscreteModel,
-    uncertainty: Uncertainty | None = None,
+    uncertainty: Uncertainty | None,
+    law: LawStructure,
     *,
+    kind: LawKind = LawKind.FOILC,
     tau: float = 0.868,
     theta: float = 0.868,
-    kp: float = 0.0,
-    r: float = 1.0,
-    law: str = "foilc",
-    n_samples: int,
     solver: Solver = "CLARABEL",
     margin: float = 1e-6,
-    on_divergent_filter: str = "rescale",
-    q_filter: np.ndarray | None = None,
+    policy: DivergentFilterPolicy = DivergentFilterPolicy.RESCALE,
     require_monotonic: bool = True,
     growth_horizon: int = 10,
-    fractional_memory: str = "controllable",
 ) -> Design:
     """Solve Theorem 1 for ``P`` on ``model`` and certify the law as it runs (fractional filter included).
 
@@ -456,27 +398,21 @@ def synthesize(
         The discrete design model (already delay-augmented if the loop has input delay).
     uncertainty
         Its norm-bounded uncertainty; ``None``: none.
+    law
+        How the law runs (:class:`~foilc_hil.design.certificates.LawStructure`: ``kp``, ``r``, trial length,
+        lead = the model's input delay, fractional memory, Q-filter); the certificates are of exactly this law.
+    kind
+        ``foilc`` or ``ioilc`` (IOILC certifies ``kp = 0``).
     tau, theta
         Convergence indices along time and trials, in ``(0, 1)``.
-    kp, r
-        The fractional PD function ``E = (I + kp D^r) e``; ``kp = 0`` for IOILC.
-    law
-        ``"foilc"`` or ``"ioilc"`` (IOILC forces ``kp = 0``).
-    n_samples
-        Samples per trial ``N`` (the lifted certificates act on whole trials).
     solver, margin
         cvxpy solver tried first and the LMI strictness margin.
-    on_divergent_filter
-        ``"rescale"``, ``"augment"`` or ``"refuse"`` (see :func:`foilc_hil.design.certificates.certify`).
-    q_filter
-        Optional ``N x N`` zero-phase Q-filter matrix applied to the feedforward between trials.
+    policy
+        ``synthesis.on_divergent_filter`` (see :func:`foilc_hil.design.certificates.certify`).
     require_monotonic
         Demand a monotonic (induced 2-norm) certificate, not only an asymptotic (spectral radius) one.
     growth_horizon
         Trials over which the error-growth bound is reported when only asymptotic convergence is certified.
-    fractional_memory
-        The law's ``law.fractional_memory`` (``"controllable"`` or ``"trial"``): the certificate is of the
-        operator the law applies (:mod:`foilc_hil.laws.learning`), and is recorded in ``certificates``.
 
     Raises
     ------
@@ -485,119 +421,32 @@ def synthesize(
     foilc_hil.errors.ConvergenceCertificateError
         The law as it runs is not certified and could not be fixed (exit 3).
     """
-    from foilc_hil.design.certificates import certify
-
     started = time.perf_counter()
-    if law not in ("foilc", "ioilc"):
-        raise InputError(f"law: synthesize designs 'foilc' or 'ioilc', got {law!r}")
-    if law == "ioilc":
-        kp = 0.0
-    if not (isinstance(n_samples, int) and n_samples > model.input_delay + 1):
-        raise InputError(f"n_samples: must be an integer above {model.input_delay + 1}, got {n_samples!r}")
+    if kind not in (LawKind.FOILC, LawKind.IOILC):
+        raise InputError(f"law: synthesize designs 'foilc' or 'ioilc', got {kind!r}")
+    if law.lead != model.input_delay:
+        raise InputError(f"law: its lead {law.lead} must be the model's input delay {model.input_delay}")
+    if kind is LawKind.IOILC:
+        law = replace(law, kp=0.0)
     unc = uncertainty if uncertainty is not None else Uncertainty.none(model.n_states, model.n_inputs)
     solution = solve_lmi(model, unc, tau=tau, theta=theta, solver=solver, margin=margin)
     lmi_seconds = time.perf_counter() - started
     outcome = certify(
-        model,
-        unc,
-        solution.P,
-        kp=kp,
-        r=r,
-        n_samples=n_samples,
-        on_divergent_filter=on_divergent_filter,
-        q_filter=q_filter,
-        require_monotonic=require_monotonic,
-        growth_horizon=growth_horizon,
-        fractional_memory=fractional_memory,
+        model, unc, solution.P, law, policy=policy, require_monotonic=require_monotonic, growth_horizon=growth_horizon
     )
-    certificates: dict[str, Any] = {
-        **outcome.certificates,
-        "lmi": {
-            "solver": solution.solver,
-            "status": solution.status,
-            "sigmas": list(solution.sigmas),
-            **solution.checks,
-            "P_lmi": solution.P,
-        },
-        "seconds": {"lmi": lmi_seconds, "total": time.perf_counter() - started},
-    }
+    timing = Timing(lmi_seconds, time.perf_counter() - started)
     return Design(
-        law=law,
-        A=model.A,
-        B=model.B,
-        C=model.C,
-        G1=unc.G1,
-        H1=unc.H1,
-        G2=unc.G2,
-        H2=unc.H2,
+        law=LawKind(kind),
+        model=model,
+        uncertainty=unc,
         P=outcome.P,
+        kp=law.kp,
+        r=law.r,
         Qb=solution.Qb,
         Qt=solution.Qt,
         gamma=solution.gamma,
         tau=float(tau),
         theta=float(theta),
-        kp=float(kp),
-        r=float(r),
-        sample_time=model.sample_time,
-        input_delay=model.input_delay,
         gain_scale=outcome.gain_scale,
-        certificates=certificates,
-        C_measured=model.measured_output,
-    )
-
-
-def _trial_samples(config: Config) -> int:
-    try:
-        from foilc_hil.references import trial_samples
-    except ImportError:  # pragma: no cover - references.py ships with the product
-        raise ConfigError("foilc_hil.references is missing", key="reference") from None
-    return int(trial_samples(config.reference, config.sample_time))
-
-
-def design_model(config: Config, *, input_delay: int = 0) -> tuple[DiscreteModel, Uncertainty]:
-    """The discrete (optionally delay-augmented) design model and uncertainty of ``config``."""
-    from plant_emulator.linear import continuous_model
-
-    continuous = continuous_model(config.plant)
-    discrete = discretize(continuous, config.sample_time, config.synthesis.discretization)
-    uncertainty = uncertainty_from_config(config.plant.uncertainty, discrete.n_states, discrete.n_inputs)
-    return augment_input_delay(discrete, input_delay, uncertainty)
-
-
-def synthesize_from_config(
-    config: Config,
-    *,
-    law: str,
-    kp: float,
-    r: float,
-    input_delay: int = 0,
-    n_samples: int | None = None,
-    tau: float | None = None,
-    theta: float | None = None,
-    q_filter: np.ndarray | None = None,
-) -> Design:
-    """:func:`synthesize` with everything taken from ``config`` (``synthesis:``, ``plant:``, ``reference:``).
-
-    ``n_samples`` defaults to the reference's trial length; ``tau``/``theta`` to ``synthesis.tau/theta``; the
-    fractional memory certified is ``law.fractional_memory``.
-    """
-    model, uncertainty = design_model(config, input_delay=input_delay)
-    settings = config.synthesis
-    samples = n_samples if n_samples is not None else _trial_samples(config)
-    return synthesize(
-        model,
-        uncertainty,
-        tau=settings.tau if tau is None else tau,
-        theta=settings.theta if theta is None else theta,
-        kp=kp,
-        r=r,
-        law=law,
-        n_samples=samples,
-        solver=settings.solver,
-        margin=settings.margin,
-        on_divergent_filter=settings.on_divergent_filter,
-        require_monotonic=settings.require_monotonic,
-        growth_horizon=config.trials,
-        q_filter=q_filter,
-        fractional_memory=config.law.fractional_memory,
+        certificates=replace(outcome.certificates, lmi=solution.checks, seconds=timing),
     )

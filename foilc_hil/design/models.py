@@ -17,11 +17,15 @@ output is the ``d``-step-ahead output ``y(t+d) = Cz z(t)`` (computable from ``z(
 next ``d`` steps are already in the delay line), which restores relative degree one for the Roesser model of
 Theorem 1. A law designed on the augmented model therefore uses the measured error ``d`` samples further ahead
 (see :attr:`foilc_hil.design.record.Design.error_lead`).
+
+Module order: first in :mod:`foilc_hil.design` (imports no other design module).
 """
 
 from __future__ import annotations
 
+import itertools
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Literal
 
@@ -38,9 +42,14 @@ __all__ = [
     "augment_input_delay",
     "discretize",
     "uncertainty_from_config",
+    "uncertainty_vertices",
 ]
 
 Method = Literal["zoh", "euler"]
+
+#: Cap on sampled vertices per uncertainty channel (matrix Delta), and on vertex combinations overall.
+MAX_VERTICES_PER_CHANNEL = 8
+MAX_VERTEX_COMBINATIONS = 32
 
 
 def ssmatrix(value: object, name: str, *, allow_scalar: bool = True) -> np.ndarray:
@@ -200,6 +209,62 @@ class Uncertainty:
     def is_zero(self) -> bool:
         """True when both channels vanish (``G Delta H = 0`` for every ``Delta``)."""
         return not ((np.any(self.G1) and np.any(self.H1)) or (np.any(self.G2) and np.any(self.H2)))
+
+
+def _orthonormal_extreme(rows: int, cols: int, rng: np.random.Generator) -> np.ndarray:
+    """A random extreme point of the unit spectral-norm ball: all singular values one."""
+    k = max(rows, cols)
+    q, r = np.linalg.qr(rng.standard_normal((k, k)))
+    q = q @ np.diag(np.sign(np.diag(r)))
+    return np.asarray(q[:rows, :cols])
+
+
+def _channel_vertices(rows: int, cols: int, seed: int) -> list[np.ndarray]:
+    """Extreme points of ``{Delta : ||Delta||_2 <= 1}`` (``rows x cols``) to check at.
+
+    ``1 x 1``: exactly ``{-1, +1}``. Otherwise the ball has a continuum of extreme points (the partial
+    isometries); we take the sign-diagonal ones ``diag(+-1)`` (all of them when there are at most
+    ``MAX_VERTICES_PER_CHANNEL``) plus seeded random orthonormal ones, up to the cap. This samples, it does not
+    enumerate: the LMI itself covers the whole ball, the vertex checks are an independent spot check.
+    """
+    if rows == 1 and cols == 1:
+        return [np.array([[-1.0]]), np.array([[1.0]])]
+    k = min(rows, cols)
+    vertices: list[np.ndarray] = []
+    for signs in itertools.product((-1.0, 1.0), repeat=k):
+        if len(vertices) >= MAX_VERTICES_PER_CHANNEL // 2:
+            break
+        delta = np.zeros((rows, cols))
+        delta[np.arange(k), np.arange(k)] = signs
+        vertices.append(delta)
+    rng = np.random.default_rng(seed)
+    while len(vertices) < MAX_VERTICES_PER_CHANNEL:
+        vertices.append(_orthonormal_extreme(rows, cols, rng))
+    return vertices
+
+
+def uncertainty_vertices(uncertainty: Uncertainty, *, seed: int = 0) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """``(dA, dB)`` at the uncertainty vertices (see :func:`_channel_vertices`); nothing when uncertainty is zero.
+
+    Each independent channel (:meth:`Uncertainty.channels`) takes its extreme points; the combinations are
+    produced sign-diagonal ones first, at most :data:`MAX_VERTEX_COMBINATIONS` of them.
+    """
+    n, m = uncertainty.G1.shape[0], uncertainty.H2.shape[1]
+    per_channel: list[list[tuple[np.ndarray, np.ndarray]]] = []
+    for index, (kind, G, H) in enumerate(uncertainty.channels()):
+        options = []
+        for delta in _channel_vertices(G.shape[1], H.shape[0], seed + index):
+            term = G @ delta @ H
+            options.append((term, np.zeros((n, m))) if kind == "state" else (np.zeros((n, n)), term))
+        per_channel.append(options)
+    if not per_channel:
+        return
+    for count, combination in enumerate(itertools.product(*per_channel)):
+        if count >= MAX_VERTEX_COMBINATIONS:
+            return
+        dA = sum((term[0] for term in combination), np.zeros((n, n)))
+        dB = sum((term[1] for term in combination), np.zeros((n, m)))
+        yield dA, dB
 
 
 def uncertainty_from_config(config: UncertaintyConfig, n_states: int, n_inputs: int) -> Uncertainty:

@@ -1,20 +1,79 @@
 """The one design pipeline: config -> :class:`~foilc_hil.design.record.Design`, for every law.
 
-The bench (``run``), ``simulate``, ``synthesize`` and the demo all call :func:`build_design`, so the design a log
-records is the design of the law that ran: tuned when the law needs it (FOILC without ``tuning.kp``/``tuning.r``),
-synthesised, and certified exactly as it will run (Q-filter, fractional memory, input delay).
+The bench (``run``), ``simulate``, ``synthesize``, the demo and ``replay`` all call :func:`build_design`, so the
+design a log records is the design of the law that ran: tuned when the law needs it (FOILC without
+``tuning.kp``/``tuning.r``; IOILC and P-type never need tuning), synthesised (FOILC, IOILC) or given its Arimoto
+gain (P-type), and certified exactly as it will run (Q-filter from ``law.q_filter``, fractional memory from
+``law.fractional_memory``, input delay).
+
+Module order: last in :mod:`foilc_hil.design` (models < fractional, qfilter, ptype < record < certificates < lmi <
+tuning < pipeline).
 """
 
 from __future__ import annotations
 
-from foilc_hil.config import Config
-from foilc_hil.design.lmi import synthesize_from_config
+from foilc_hil.config import Config, LawKind
+from foilc_hil.design.certificates import LawStructure, certify_p_type
+from foilc_hil.design.lmi import synthesize
+from foilc_hil.design.models import DiscreteModel, Uncertainty, augment_input_delay, discretize, uncertainty_from_config
+from foilc_hil.design.ptype import p_type_gain
 from foilc_hil.design.qfilter import QFilter
 from foilc_hil.design.record import Design
 from foilc_hil.design.tuning import tune
 from foilc_hil.errors import ConfigError
+from plant_emulator.linear import continuous_model
 
-__all__ = ["build_design"]
+__all__ = ["build_design", "design_model", "law_kind", "law_structure"]
+
+#: ``r`` recorded by designs whose law has no fractional term and no tuned ``r`` (IOILC, P-type): unused.
+UNUSED_ORDER = 1.0
+
+
+def law_kind(law: str) -> LawKind:
+    """``law`` as a :class:`~foilc_hil.config.LawKind`; a :class:`~foilc_hil.errors.ConfigError` names
+    ``law.kind`` otherwise."""
+    try:
+        return LawKind(law)
+    except ValueError:
+        raise ConfigError(f"unknown law {law!r}; choose {', '.join(LawKind)}", key="law.kind") from None
+
+
+def design_model(config: Config, *, input_delay: int = 0) -> tuple[DiscreteModel, Uncertainty]:
+    """The discrete (optionally delay-augmented) design model and uncertainty of ``config``."""
+    continuous = continuous_model(config.plant)
+    discrete = discretize(continuous, config.sample_time, config.synthesis.discretization)
+    uncertainty = uncertainty_from_config(config.plant.uncertainty, discrete.n_states, discrete.n_inputs)
+    return augment_input_delay(discrete, input_delay, uncertainty)
+
+
+def _fractional_parameters(config: Config, law: LawKind) -> tuple[float, float]:
+    """``kp, r``: given in ``tuning:``, else tuned (FOILC only); IOILC and P-type run ``kp = 0`` (``r`` is
+    recorded, unused: the configured one, or :data:`UNUSED_ORDER`)."""
+    kp, r = config.tuning.kp, config.tuning.r
+    if law is not LawKind.FOILC:
+        return 0.0, UNUSED_ORDER if r is None else float(r)
+    if kp is None or r is None:
+        tuned = tune(config)
+        kp, r = tuned.kp, tuned.r
+    return float(kp), float(r)
+
+
+def law_structure(config: Config, law: LawKind, n_samples: int, *, input_delay: int) -> LawStructure:
+    """How ``law`` runs for ``config`` (the certificates' :class:`LawStructure`), tuning FOILC if needed."""
+    kp, r = _fractional_parameters(config, law)
+    q_matrix = None
+    if config.law.q_filter is not None:
+        q_filter = QFilter(config.law.q_filter.cutoff, config.law.q_filter.order, config.sample_time)
+        q_matrix = q_filter.matrix(n_samples)
+    return LawStructure(
+        kp=kp,
+        r=r,
+        sample_time=config.sample_time,
+        n_samples=n_samples,
+        lead=input_delay,
+        fractional_memory=config.law.fractional_memory,
+        q_filter=q_matrix,
+    )
 
 
 def build_design(config: Config, law: str, n_samples: int, *, input_delay: int) -> Design:
@@ -25,25 +84,37 @@ def build_design(config: Config, law: str, n_samples: int, *, input_delay: int) 
     config
         The whole configuration.
     law
-        ``foilc``, ``ioilc`` or ``p-type``.
+        ``foilc``, ``ioilc`` or ``p-type`` (:class:`~foilc_hil.config.LawKind`).
     n_samples
-        Samples per trial (the certificates are for this trial length).
+        Samples per trial (the certificates are for this trial length; so is the Q-filter).
     input_delay
         Cycles between computing a command and the plant applying it: 1 for the SYNC-driven CAN loop, and for
         ``simulate`` that stands in for it; 0 for an ideal offline loop.
+
+    Raises
+    ------
+    foilc_hil.errors.ConfigError
+        An unknown law, or a configuration the design cannot use (named key).
+    foilc_hil.errors.InfeasibleDesignError
+        Tuning, the LMI or the certificate fails (exit 3).
     """
-    q_matrix = None
-    if config.law.q_filter is not None:
-        q_filter = QFilter(config.law.q_filter.cutoff, config.law.q_filter.order, config.sample_time)
-        q_matrix = q_filter.matrix(n_samples)
-    kp, r = config.tuning.kp, config.tuning.r
-    if law == "ioilc":  # the integer-order law needs no tuning: kp = 0 (r is recorded, unused)
-        return synthesize_from_config(config, law="ioilc", kp=0.0, r=1.0 if r is None else r,
-                                      input_delay=input_delay, n_samples=n_samples, q_filter=q_matrix)
-    if law == "foilc":
-        if kp is None or r is None:
-            tuned = tune(config)
-            kp, r = tuned.kp, tuned.r
-        return synthesize_from_config(config, law="foilc", kp=kp, r=r, input_delay=input_delay,
-                                      n_samples=n_samples, q_filter=q_matrix)
-    raise ConfigError(f"no design pipeline for law {law!r} yet", key="law.kind")
+    kind = law_kind(law)
+    model, uncertainty = design_model(config, input_delay=input_delay)
+    structure = law_structure(config, kind, n_samples, input_delay=input_delay)
+    settings = config.synthesis
+    if kind is LawKind.P_TYPE:
+        gain = p_type_gain(config.law.p_type_gain, model.A, model.B, model.measured_output, model.input_delay)
+        return certify_p_type(model, uncertainty, gain, structure, require_monotonic=settings.require_monotonic)
+    return synthesize(
+        model,
+        uncertainty,
+        structure,
+        kind=kind,
+        tau=settings.tau,
+        theta=settings.theta,
+        solver=settings.solver,
+        margin=settings.margin,
+        policy=settings.on_divergent_filter,
+        require_monotonic=settings.require_monotonic,
+        growth_horizon=config.trials,
+    )

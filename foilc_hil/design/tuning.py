@@ -427,14 +427,21 @@ def control_check(
         result["closed_loop_stable"] = None
         result["closed_loop_note"] = f"not computed: {exc}"
     if reference is not None:
-        agrees = (
-            result["crossover"] is not None
-            and abs(result["crossover"] - reference.frequency) <= CONTROL_CROSSOVER_RTOL * reference.frequency
-            and abs(_wrap_deg(result["phase_margin_deg"] - reference.phase_margin_deg)) <= CONTROL_PHASE_TOL_DEG
-        )
-        result["agrees_with_sweep"] = bool(agrees)
-        result["tolerance"] = {"crossover_rel": CONTROL_CROSSOVER_RTOL, "phase_margin_deg": CONTROL_PHASE_TOL_DEG}
+        result.update(_agreement(result, reference))
     return result
+
+
+def _agreement(result: dict[str, Any], reference: Crossing) -> dict[str, Any]:
+    """Whether python-control's crossover and phase margin agree with the dense sweep's, and the tolerances."""
+    agrees = (
+        result["crossover"] is not None
+        and abs(result["crossover"] - reference.frequency) <= CONTROL_CROSSOVER_RTOL * reference.frequency
+        and abs(_wrap_deg(result["phase_margin_deg"] - reference.phase_margin_deg)) <= CONTROL_PHASE_TOL_DEG
+    )
+    return {
+        "agrees_with_sweep": bool(agrees),
+        "tolerance": {"crossover_rel": CONTROL_CROSSOVER_RTOL, "phase_margin_deg": CONTROL_PHASE_TOL_DEG},
+    }
 
 
 # --- the solver -----------------------------------------------------------------------------------------------
@@ -480,6 +487,140 @@ def _deg(x: float) -> str:
     return f"{math.degrees(x):.2f}"
 
 
+@dataclass(frozen=True)
+class _Spec:
+    """The loop specification at the crossover and what the plant contributes there."""
+
+    wc: float
+    phase_margin_deg: float
+    gain: float  # |G(j wc)|
+    phase_g: float  # arg G(j wc), rad
+    theta: float  # the phase the PD term must add, rad, in (0, pi)
+    where: str  # the plain-language context of an infeasibility message
+
+    @property
+    def r_min(self) -> float:
+        """The smallest ``r`` whose lead ``r 90`` deg can reach ``theta``."""
+        return 2.0 * self.theta / math.pi
+
+    @property
+    def r_grid(self) -> np.ndarray:
+        """The ``r`` interval ``(r_min, 2)`` sampled densely near both ends."""
+        return self.r_min + (2.0 - self.r_min) * _GRID_FRACTIONS
+
+    def x_of(self, r: float) -> float:
+        """``kp wc^r`` meeting the phase condition for this ``r``."""
+        a = r * math.pi / 2.0
+        return math.sin(self.theta) / math.sin(a - self.theta)
+
+    def magnitude_of(self, r: float) -> float:
+        """``|1 + kp (j wc)^r|`` for this ``r`` (on the phase condition)."""
+        a = r * math.pi / 2.0
+        return math.sin(a) / math.sin(a - self.theta)
+
+
+def _spec(num: np.ndarray, den: np.ndarray, delay: float, crossover: float, phase_margin_deg: float) -> _Spec:
+    """Validate the spec and read the plant at ``wc``; infeasible when the PD lead cannot reach the phase."""
+    if not (math.isfinite(crossover) and crossover > 0):
+        raise ConfigError(f"must be > 0 rad/s, got {crossover!r}", key="tuning.crossover")
+    if not (math.isfinite(phase_margin_deg) and 0 < phase_margin_deg < 180):
+        raise ConfigError(f"must be in (0, 180) degrees, got {phase_margin_deg!r}", key="tuning.phase_margin_deg")
+    wc = float(crossover)
+    g = complex(_rational(num, den, wc) * np.exp(-1j * delay * wc))
+    gain = abs(g)
+    if gain == 0.0 or not math.isfinite(gain):
+        raise TuningInfeasibleError(f"the plant's gain at wc={wc:g} rad/s is {gain:g}; no finite K, kp can fix it")
+    phase_g = plant_phase(num, den, delay, wc)
+    target = -math.pi + math.radians(phase_margin_deg)
+    theta = float(np.mod(target - phase_g, 2 * math.pi))
+    where = (
+        f"the plant's phase at wc={wc:g} rad/s is {_deg(phase_g)} deg; the spec needs arg L = "
+        f"{_deg(target)} deg (mod 360)"
+    )
+    return _Spec(wc, float(phase_margin_deg), gain, phase_g, theta, where)
+
+
+def _unreachable(spec: _Spec, flat_phase: bool) -> TuningInfeasibleError:
+    """Why the PD lead (``0 .. r 90`` deg for ``kp > 0``, ``0 < r < 2``) cannot give the phase the spec needs."""
+    target = -math.pi + math.radians(spec.phase_margin_deg)
+    lag = float(np.mod(target - spec.phase_g + math.pi, 2 * math.pi) - math.pi)
+    reachable = _reachable_margins(180.0 + math.degrees(spec.phase_g))
+    return TuningInfeasibleError(
+        f"{spec.where}, so 1 + kp*s^r would have to add {math.degrees(lag):+.2f} deg, but it adds only "
+        f"0..+r*90 deg of lead (< +180) for kp > 0, 0 < r < 2, and K > 0 leaves the phase unchanged"
+        f"{' (flat phase included)' if flat_phase else ''}; {reachable}"
+    )
+
+
+def _candidates(spec: _Spec, slope_g: float, flat_phase: bool) -> list[tuple[float, float, float]]:
+    """Every ``(K, kp, r)`` meeting the spec: ``K = 1`` and ``|L(j wc)| = 1``, or flat phase solving for ``K``."""
+    wc, r_grid = spec.wc, spec.r_grid
+    if not flat_phase:
+        roots = _brackets_and_roots(lambda r: math.log(spec.magnitude_of(r)) + math.log(spec.gain), r_grid)
+        if not roots:
+            raise TuningInfeasibleError(
+                f"{spec.where}; with K = 1 the needed |1 + kp*(j wc)^r| = {1 / spec.gain:.4g} is not met for any r "
+                f"in ({spec.r_min:.4g}, 2) (it needs r closer to an end than {_GRID_FRACTIONS[0]:.0e})"
+            )
+        return [(1.0, spec.x_of(r) / wc**r, r) for r in roots]
+
+    def flatness(r: float) -> float:
+        a = r * math.pi / 2.0
+        return (r / wc) * math.sin(spec.theta) * math.sin(a - spec.theta) / math.sin(a) + slope_g
+
+    roots = _brackets_and_roots(flatness, r_grid)
+    if not roots:
+        raise TuningInfeasibleError(
+            f"{spec.where}; flat phase needs the PD term's phase slope (always > 0) to cancel the plant's "
+            f"phase slope d arg G/dw = {math.degrees(slope_g):+.4g} deg/(rad/s) at wc, which is not negative"
+            if slope_g >= 0
+            else f"{spec.where}; no r in ({spec.r_min:.4g}, 2) makes d arg L/dw = 0 at wc"
+        )
+    return [(1.0 / (spec.magnitude_of(r) * spec.gain), spec.x_of(r) / wc**r, r) for r in roots]
+
+
+def _ranked_solutions(
+    num: np.ndarray, den: np.ndarray, delay: float, wc: float, candidates: list[tuple[float, float, float]]
+) -> list[tuple[LoopSolution, SweepResult]]:
+    """Each candidate with its dense sweep, best first (the selection rule of ``checks["selection"]``)."""
+    ranked: list[tuple[LoopSolution, SweepResult]] = []
+    for K, kp, r in candidates:
+        sweep = frequency_sweep(num, den, delay, K, kp, r, wc * 1e-3, wc * 1e3)
+        worst = sweep.worst()
+        solution = LoopSolution(
+            K=K,
+            kp=kp,
+            r=r,
+            worst_phase_margin_deg=worst.phase_margin_deg if worst else 180.0,
+            gain_margin_db=sweep.gain_margin_db,
+            n_crossings=len(sweep.crossings),
+        )
+        ranked.append((solution, sweep))
+
+    def preference(item: tuple[LoopSolution, SweepResult]) -> tuple[bool, float, float, float]:
+        solution = item[0]
+        gain_margin = solution.gain_margin_db if solution.gain_margin_db is not None else math.inf
+        return (gain_margin <= 0.0, -solution.worst_phase_margin_deg, -gain_margin, solution.kp)
+
+    return sorted(ranked, key=preference)
+
+
+def _achieved(spec: _Spec, chosen: LoopSolution, sweep: SweepResult) -> Crossing:
+    """The sweep's crossing nearest ``wc``; refuse the answer when it misses the spec (independent check)."""
+    achieved = sweep.nearest(spec.wc)
+    if (
+        achieved is None
+        or abs(achieved.frequency - spec.wc) > DENSE_CROSSOVER_RTOL * spec.wc
+        or abs(_wrap_deg(achieved.phase_margin_deg - spec.phase_margin_deg)) > DENSE_PHASE_TOL_DEG
+    ):
+        raise TuningInfeasibleError(
+            f"the solver's answer K={chosen.K:.6g}, kp={chosen.kp:.6g}, r={chosen.r:.6g} fails the independent "
+            f"frequency sweep (crossover {achieved.frequency if achieved else None}, "
+            f"phase margin {achieved.phase_margin_deg if achieved else None}); refusing to report it"
+        )
+    return achieved
+
+
 def tune_loop(
     num: Coefficients,
     den: Coefficients,
@@ -516,109 +657,17 @@ def tune_loop(
         A parameter is out of range (named).
     """
     num_a, den_a = _validated_plant(num, den, delay)
-    if not (math.isfinite(crossover) and crossover > 0):
-        raise ConfigError(f"must be > 0 rad/s, got {crossover!r}", key="tuning.crossover")
-    if not (math.isfinite(phase_margin_deg) and 0 < phase_margin_deg < 180):
-        raise ConfigError(f"must be in (0, 180) degrees, got {phase_margin_deg!r}", key="tuning.phase_margin_deg")
-    wc = float(crossover)
-    g = complex(_rational(num_a, den_a, wc) * np.exp(-1j * delay * wc))
-    gain = abs(g)
-    if gain == 0.0 or not math.isfinite(gain):
-        raise TuningInfeasibleError(f"the plant's gain at wc={wc:g} rad/s is {gain:g}; no finite K, kp can fix it")
-    phase_g = plant_phase(num_a, den_a, delay, wc)
-    target = -math.pi + math.radians(phase_margin_deg)
-    theta = float(np.mod(target - phase_g, 2 * math.pi))
-    where = (
-        f"the plant's phase at wc={wc:g} rad/s is {_deg(phase_g)} deg; the spec needs arg L = "
-        f"{_deg(target)} deg (mod 360)"
-    )
-    if not 0.0 < theta < math.pi:
-        lag = float(np.mod(target - phase_g + math.pi, 2 * math.pi) - math.pi)
-        pm_low = 180.0 + math.degrees(phase_g)
-        reachable = _reachable_margins(pm_low)
-        raise TuningInfeasibleError(
-            f"{where}, so 1 + kp*s^r would have to add {math.degrees(lag):+.2f} deg, but it adds only "
-            f"0..+r*90 deg of lead (< +180) for kp > 0, 0 < r < 2, and K > 0 leaves the phase unchanged"
-            f"{' (flat phase included)' if flat_phase else ''}; {reachable}"
-        )
-    r_min = 2.0 * theta / math.pi
-    r_grid = r_min + (2.0 - r_min) * _GRID_FRACTIONS
-
-    def x_of(r: float) -> float:
-        a = r * math.pi / 2.0
-        return math.sin(theta) / math.sin(a - theta)
-
-    def magnitude_of(r: float) -> float:
-        a = r * math.pi / 2.0
-        return math.sin(a) / math.sin(a - theta)
-
-    slope_g = plant_phase_slope(num_a, den_a, delay, wc)
-    candidates: list[tuple[float, float, float]] = []  # (K, kp, r)
-    if not flat_phase:
-        roots = _brackets_and_roots(lambda r: math.log(magnitude_of(r)) + math.log(gain), r_grid)
-        candidates = [(1.0, x_of(r) / wc**r, r) for r in roots]
-        if not candidates:
-            raise TuningInfeasibleError(
-                f"{where}; with K = 1 the needed |1 + kp*(j wc)^r| = {1 / gain:.4g} is not met for any r in "
-                f"({r_min:.4g}, 2) (it needs r closer to an end than {_GRID_FRACTIONS[0]:.0e})"
-            )
-    else:
-
-        def flatness(r: float) -> float:
-            a = r * math.pi / 2.0
-            return (r / wc) * math.sin(theta) * math.sin(a - theta) / math.sin(a) + slope_g
-
-        roots = _brackets_and_roots(flatness, r_grid)
-        candidates = [(1.0 / (magnitude_of(r) * gain), x_of(r) / wc**r, r) for r in roots]
-        if not candidates:
-            raise TuningInfeasibleError(
-                f"{where}; flat phase needs the PD term's phase slope (always > 0) to cancel the plant's "
-                f"phase slope d arg G/dw = {math.degrees(slope_g):+.4g} deg/(rad/s) at wc, which is not negative"
-                if slope_g >= 0
-                else f"{where}; no r in ({r_min:.4g}, 2) makes d arg L/dw = 0 at wc"
-            )
-
-    w_min, w_max = wc * 1e-3, wc * 1e3
-    solutions: list[LoopSolution] = []
-    sweeps: list[SweepResult] = []
-    for K, kp, r in candidates:
-        sweep = frequency_sweep(num_a, den_a, delay, K, kp, r, w_min, w_max)
-        worst = sweep.worst()
-        sweeps.append(sweep)
-        solutions.append(
-            LoopSolution(
-                K=K,
-                kp=kp,
-                r=r,
-                worst_phase_margin_deg=worst.phase_margin_deg if worst else 180.0,
-                gain_margin_db=sweep.gain_margin_db,
-                n_crossings=len(sweep.crossings),
-            )
-        )
-
-    def preference(index: int) -> tuple[bool, float, float, float]:
-        solution = solutions[index]
-        gain_margin = solution.gain_margin_db if solution.gain_margin_db is not None else math.inf
-        return (gain_margin <= 0.0, -solution.worst_phase_margin_deg, -gain_margin, solution.kp)
-
-    order = sorted(range(len(solutions)), key=preference)
-    best = order[0]
-    chosen, sweep = solutions[best], sweeps[best]
-    achieved = sweep.nearest(wc)
-    if (
-        achieved is None
-        or abs(achieved.frequency - wc) > DENSE_CROSSOVER_RTOL * wc
-        or abs(_wrap_deg(achieved.phase_margin_deg - phase_margin_deg)) > DENSE_PHASE_TOL_DEG
-    ):
-        raise TuningInfeasibleError(
-            f"the solver's answer K={chosen.K:.6g}, kp={chosen.kp:.6g}, r={chosen.r:.6g} fails the independent "
-            f"frequency sweep (crossover {achieved.frequency if achieved else None}, "
-            f"phase margin {achieved.phase_margin_deg if achieved else None}); refusing to report it"
-        )
+    spec = _spec(num_a, den_a, delay, crossover, phase_margin_deg)
+    if not 0.0 < spec.theta < math.pi:
+        raise _unreachable(spec, flat_phase)
+    slope_g = plant_phase_slope(num_a, den_a, delay, spec.wc)
+    ranked = _ranked_solutions(num_a, den_a, delay, spec.wc, _candidates(spec, slope_g, flat_phase))
+    chosen, sweep = ranked[0]
+    achieved = _achieved(spec, chosen, sweep)
     checks = _checks(num_a, den_a, delay, chosen.K, chosen.kp, chosen.r, sweep, achieved)
-    checks["plant_phase_deg"] = math.degrees(phase_g)
-    checks["plant_gain"] = gain
-    checks["pd_phase_deg"] = math.degrees(theta)
+    checks["plant_phase_deg"] = math.degrees(spec.phase_g)
+    checks["plant_gain"] = spec.gain
+    checks["pd_phase_deg"] = math.degrees(spec.theta)
     if flat_phase:
         checks["plant_phase_slope_deg_per_rad_s"] = math.degrees(slope_g)
     checks["selection"] = (
@@ -629,8 +678,8 @@ def tune_loop(
         K=chosen.K,
         kp=chosen.kp,
         r=chosen.r,
-        crossover=wc,
-        phase_margin_deg=float(phase_margin_deg),
+        crossover=spec.wc,
+        phase_margin_deg=spec.phase_margin_deg,
         flat_phase=flat_phase,
         plant_num=tuple(float(x) for x in num_a),
         plant_den=tuple(float(x) for x in den_a),
@@ -638,7 +687,7 @@ def tune_loop(
         achieved_crossover=achieved.frequency,
         achieved_phase_margin_deg=achieved.phase_margin_deg,
         mode="spec",
-        solutions=tuple(solutions[i] for i in order),
+        solutions=tuple(solution for solution, _ in ranked),
         checks=checks,
     )
 

@@ -41,7 +41,8 @@ clamps each command before storing it, so the feedforward learned for the next t
 applied, not a command the drive never executed (anti-windup: without it the stored feedforward can keep
 growing while the drive saturates). The bench's limiter stays as the safety layer with the same limits.
 
-P-type (Arimoto): ``u_k(t) = u_{k-1}(t) + Gamma e_{k-1}[t + d]``.
+P-type (Arimoto): ``u_k(t) = u_{k-1}(t) + Gamma e_{k-1}[t + d]``, the 2D law with ``p1 = 0`` and ``E = e``; its
+design (gain, model, certificates) comes from the same pipeline (:mod:`foilc_hil.design.pipeline`).
 
 First trial and restore
 -----------------------
@@ -64,35 +65,26 @@ from __future__ import annotations
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
+from foilc_hil.config import FractionalMemory, LawConfig, LawKind
+from foilc_hil.design.fractional import FractionalPD, History
+from foilc_hil.design.ptype import p_type_gain
+from foilc_hil.design.qfilter import QFilter
+from foilc_hil.design.record import Design
 from foilc_hil.errors import ConfigError, InputError, LearningDivergedError
 from foilc_hil.metrics import TrialMetrics, trial_metrics
 
-if TYPE_CHECKING:
-    from foilc_hil.config import LawConfig
-    from foilc_hil.design.fractional import FractionalPD, History
-    from foilc_hil.design.qfilter import QFilter
-    from foilc_hil.design.record import Design
-
 __all__ = [
-    "FRACTIONAL_MEMORY",
     "Foilc",
     "Ioilc",
     "LearningLaw",
     "PType",
     "TrialUpdate",
-    "lifted_plant",
     "make_law",
-    "p_type_certificates",
-    "p_type_default_gain",
 ]
-
-
-#: Values of ``law.fractional_memory`` (module notes).
-FRACTIONAL_MEMORY = ("controllable", "trial")
 
 
 def _check_limits(limits: tuple[float, float] | None) -> tuple[float, float] | None:
@@ -149,7 +141,7 @@ class LearningLaw(ABC):
         ``d``: samples between issuing ``u(t)`` and the plant applying it.
     """
 
-    kind: str = ""
+    kind: LawKind
 
     def __init__(
         self,
@@ -269,7 +261,7 @@ class LearningLaw(ABC):
     def state_dict(self) -> dict[str, Any]:
         """The law's learning state, for logging (JSON-friendly lists)."""
         return {
-            "kind": self.kind,
+            "kind": str(self.kind),
             "trial": self.trial,
             "input_delay": self.input_delay,
             "has_record": self._has_record,
@@ -340,7 +332,7 @@ class Foilc(LearningLaw):
         Optional ``(lower, upper)`` command limits (module notes: saturation-aware learning).
     """
 
-    kind = "foilc"
+    kind = LawKind.FOILC
 
     def __init__(
         self,
@@ -348,11 +340,9 @@ class Foilc(LearningLaw):
         n_samples: int,
         *,
         q_filter: QFilter | None = None,
-        fractional_memory: str = "controllable",
+        fractional_memory: FractionalMemory | str = FractionalMemory.CONTROLLABLE,
         limits: tuple[float, float] | None = None,
     ) -> None:
-        from foilc_hil.design.fractional import FractionalPD
-
         n, m, p, d = design.n_states, design.n_inputs, design.n_outputs, design.error_lead
         super().__init__(
             n_samples=n_samples,
@@ -363,16 +353,18 @@ class Foilc(LearningLaw):
             q_filter=q_filter,
             limits=limits,
         )
-        if fractional_memory not in FRACTIONAL_MEMORY:
+        try:
+            memory = FractionalMemory(fractional_memory)
+        except ValueError:
             raise ConfigError(
                 f"must be 'controllable' or 'trial', got {fractional_memory!r}", key="law.fractional_memory"
-            )
+            ) from None
         self.design = design
         self.kp = self._kp(design)
         self.r = design.r
-        self.fractional_memory = fractional_memory
-        certified = design.certificates.get("fractional_memory") if self.kp > 0 else None
-        if certified is not None and certified != fractional_memory:
+        self.fractional_memory = memory
+        certified = design.certificates.fractional_memory if design.certificates and self.kp > 0 else None
+        if certified is not None and certified is not memory:
             raise ConfigError(
                 f"is {fractional_memory!r} but the design was certified with {certified!r}: the certificate would "
                 "not be of the law that runs; re-synthesize or set the same memory",
@@ -381,7 +373,7 @@ class Foilc(LearningLaw):
         self._fractional: FractionalPD | None = None
         if self.kp > 0:
             # "controllable": zero history before e[d] (applied to e[d:]); "trial": Caputo over the whole trial
-            history: History = "zero" if fractional_memory == "controllable" else "caputo"
+            history: History = "zero" if memory is FractionalMemory.CONTROLLABLE else "caputo"
             self._fractional = FractionalPD(self.kp, design.r, design.sample_time, history=history)
         n_plant = n - d * m
         if n_plant < 1:
@@ -411,7 +403,7 @@ class Foilc(LearningLaw):
     def _learning_signal(self, error: np.ndarray) -> np.ndarray:
         if self._fractional is None:
             return error.copy()
-        if self.fractional_memory == "trial":
+        if self.fractional_memory is FractionalMemory.TRIAL:
             return np.asarray(self._fractional.apply(error), dtype=float).reshape(error.shape)
         # Memory from the first controllable sample, zero history before it; E[:d] = e[:d] is never used.
         d = self.input_delay
@@ -451,7 +443,7 @@ class Foilc(LearningLaw):
             {
                 "kp": self.kp,
                 "r": self.r,
-                "fractional_memory": self.fractional_memory,
+                "fractional_memory": str(self.fractional_memory),
                 "previous_state": self._x_prev.tolist(),
             }
         )
@@ -461,7 +453,7 @@ class Foilc(LearningLaw):
 class Ioilc(Foilc):
     """The integer-order 2D law: :class:`Foilc` with ``kp = 0`` (``E = e``), run with its own design's gain."""
 
-    kind = "ioilc"
+    kind = LawKind.IOILC
 
     @staticmethod
     def _kp(design: Design) -> float:
@@ -474,22 +466,22 @@ class PType(LearningLaw):
     Parameters
     ----------
     A, B, C
-        Discrete nominal model, augmented by ``input_delay`` like a design's, with ``C`` the MEASURED output map
-        (``C_measured``); used for the default gain and the certificates.
+        Discrete nominal model, augmented by ``input_delay`` like a design's, with ``C`` the MEASURED output map;
+        used only for the default gain.
     n_samples
         ``N``.
     input_delay
         ``d``.
     gain
-        ``Gamma``: a scalar ``g`` (``Gamma = g I``, ``m x p``), an ``m x p`` matrix, or ``None`` for
-        :func:`p_type_default_gain`.
+        ``Gamma``: a scalar ``g`` (``Gamma = g I``, ``m x p``), an ``m x p`` matrix (a P-type design's ``p2``, as
+        :func:`make_law` passes it), or ``None`` for :func:`foilc_hil.design.ptype.p_type_default_gain`.
     q_filter
         Optional zero-phase Q-filter.
     limits
         Optional ``(lower, upper)`` command limits (saturation-aware learning, module notes).
     """
 
-    kind = "p-type"
+    kind = LawKind.P_TYPE
 
     def __init__(
         self,
@@ -503,27 +495,17 @@ class PType(LearningLaw):
         q_filter: QFilter | None = None,
         limits: tuple[float, float] | None = None,
     ) -> None:
-        A = np.asarray(A, dtype=float)
-        B = np.asarray(B, dtype=float)
         C = np.asarray(C, dtype=float)
-        m, p = B.shape[1], C.shape[0]
-        if gain is None:
-            gamma = p_type_default_gain(A, B, C, input_delay)
-        elif np.ndim(gain) == 0:
-            scalar = float(gain)
-            gamma = scalar * np.eye(m, p)
-        else:
-            gamma = np.asarray(gain, dtype=float)
+        gamma = p_type_gain(gain, A, B, C, input_delay)
         super().__init__(
             n_samples=n_samples,
-            n_inputs=m,
-            n_outputs=p,
+            n_inputs=np.shape(B)[1],
+            n_outputs=C.shape[0],
             input_delay=input_delay,
             error_gain=gamma,
             q_filter=q_filter,
             limits=limits,
         )
-        self.A, self.B, self.C = A, B, C
         self.gain = self._error_gain.copy()
 
     def _learning_signal(self, error: np.ndarray) -> np.ndarray:
@@ -533,144 +515,38 @@ class PType(LearningLaw):
         u_out[:] = self._base[t]
 
 
-# --- P-type gain and certificates -------------------------------------------------------------------------------
-
-
-def _first_markov(A: np.ndarray, B: np.ndarray, C: np.ndarray, input_delay: int) -> np.ndarray:
-    """``C A^d B``: the first non-zero Markov parameter of a model whose ``d`` delay states are augmented."""
-    return np.asarray(C @ np.linalg.matrix_power(A, input_delay) @ B, dtype=float)
-
-
-def _shifted_response(A: np.ndarray, B: np.ndarray, C: np.ndarray, input_delay: int, w: np.ndarray) -> np.ndarray:
-    """``z^(1+d) C (zI - A)^-1 B`` at ``z = exp(j w)``: the plant seen by a law that learns from ``e[t + d]``."""
-    n = A.shape[0]
-    out = np.empty((w.size, C.shape[0], B.shape[1]), dtype=complex)
-    for i, wi in enumerate(w):
-        z = np.exp(1j * wi)
-        out[i] = z ** (1 + input_delay) * (C @ np.linalg.solve(z * np.eye(n) - A, B))
-    return out
-
-
-def _symbol_bound(response: np.ndarray, gamma: np.ndarray) -> float:
-    """``sup_w sigma_max(I - G(w) Gamma)`` over the grid: an upper bound of the lifted ``||I - G Gamma||_2``."""
-    p = response.shape[1]
-    residual = np.eye(p) - response @ gamma
-    if p == 1 and residual.shape[2] == 1:
-        return float(np.max(np.abs(residual[:, 0, 0])))
-    return float(np.max(np.linalg.norm(residual, 2, axis=(1, 2))))
-
-
-def p_type_default_gain(A: np.ndarray, B: np.ndarray, C: np.ndarray, input_delay: int = 0) -> np.ndarray:
-    """Default Arimoto gain ``Gamma = alpha * pinv(C A^d B)`` chosen for monotonic convergence.
-
-    The P-type error map is ``e_k = (I - G Gamma) e_{k-1}`` with ``G`` the lifted (lower-triangular block
-    Toeplitz) plant. Its induced 2-norm, for every trial length, is at most ``sup_w ||I - G(e^jw) Gamma||``
-    (the symbol bound of a Toeplitz operator). ``alpha`` minimises that bound on a 2048-point grid of
-    ``[0, pi]``; when the minimum is below 1 the law converges monotonically in the 2-norm on the nominal model.
-    The plain ``1 / (C B)`` (``alpha = 1``) would make the spectral radius zero but, on a slow plant sampled
-    fast, the 2-norm large: a classic transient blow-up before convergence.
-
-    Raises
-    ------
-    foilc_hil.errors.ConfigError
-        If ``C A^d B`` is zero (the law cannot learn through this model).
-    """
-    from scipy.optimize import minimize_scalar
-
-    markov = _first_markov(A, B, C, input_delay)
-    if not np.any(markov):
-        raise ConfigError("C A^d B is zero: P-type learning needs a non-zero first Markov parameter", key="plant")
-    base = np.linalg.pinv(markov)
-    w = np.linspace(0.0, math.pi, 2048)
-    response = _shifted_response(A, B, C, input_delay, w)
-    # The bound is convex in alpha (a supremum of norms of affine maps), equal to 1 at alpha = 0 and growing
-    # without limit: bracket its minimum by doubling, then minimise on the bracket.
-    upper = 1.0
-    for _ in range(60):
-        if _symbol_bound(response, upper * base) > 1.0:
-            break
-        upper *= 2.0
-    found = minimize_scalar(
-        lambda alpha: _symbol_bound(response, alpha * base),
-        bounds=(0.0, upper),
-        method="bounded",
-        options={"xatol": 1e-6 * upper},
-    )
-    return np.asarray(float(found.x) * base, dtype=float)
-
-
-def lifted_plant(A: np.ndarray, B: np.ndarray, C: np.ndarray, n_samples: int, input_delay: int = 0) -> np.ndarray:
-    """The ``(N p, N m)`` lifted map ``u[0..N-1] -> y[(1+d)..(N+d)]`` shifted so row block ``i`` holds the output
-    that ``u(i)`` first reaches: block ``(i, j)`` is ``C A^(i-j+d) B`` for ``j <= i`` (zero initial state)."""
-    p, m = C.shape[0], B.shape[1]
-    markov = np.empty((n_samples, p, m))
-    power = np.linalg.matrix_power(A, input_delay)
-    for k in range(n_samples):
-        markov[k] = C @ power @ B
-        power = A @ power
-    lag = np.subtract.outer(np.arange(n_samples), np.arange(n_samples))  # i - j
-    blocks = np.where((lag >= 0)[:, :, None, None], markov[np.clip(lag, 0, None)], 0.0)  # (N, N, p, m)
-    return np.ascontiguousarray(blocks.transpose(0, 2, 1, 3).reshape(n_samples * p, n_samples * m))
-
-
-def p_type_certificates(law: PType) -> dict[str, float]:
-    """Spectral radius and induced 2-norm of the nominal lifted P-type map ``I - G Gamma`` (no Q-filter).
-
-    The error of trial ``k`` restricted to the learnable samples obeys ``e_k = (I - G Gamma) e_{k-1}``; the
-    spectral radius is that of ``I - C A^d B Gamma`` (block lower triangular). Also reports the frequency-domain
-    bound used to choose the default gain.
-    """
-    n, m, p = law.n_samples, law.n_inputs, law.n_outputs
-    G = lifted_plant(law.A, law.B, law.C, n, law.input_delay)
-    gamma_lifted = np.kron(np.eye(n), law.gain)
-    T = np.eye(n * p) - G @ gamma_lifted
-    diagonal = np.eye(p) - _first_markov(law.A, law.B, law.C, law.input_delay) @ law.gain
-    response = _shifted_response(law.A, law.B, law.C, law.input_delay, np.linspace(0.0, math.pi, 2048))
-    del m
-    return {
-        "spectral_radius": float(max(abs(np.linalg.eigvals(diagonal)))),
-        "norm_2": float(np.linalg.norm(T, 2)),
-        "frequency_bound": _symbol_bound(response, law.gain),
-    }
-
-
 # --- factory ----------------------------------------------------------------------------------------------------
 
 
 def make_law(
-    kind: str,
     design: Design,
     law_cfg: LawConfig,
     n_samples: int,
     *,
     limits: tuple[float, float] | None = None,
 ) -> LearningLaw:
-    """Build the law ``kind`` (``foilc``, ``ioilc``, ``p-type``) for ``n_samples`` samples per trial.
+    """Build the law ``design.law`` (``foilc``, ``ioilc``, ``p-type``) for ``n_samples`` samples per trial.
 
-    ``design`` gives the gain (2D laws) or the nominal model and input delay (P-type: ``law_cfg.p_type_gain``,
-    a scalar ``Gamma = g I``, or the default of :func:`p_type_default_gain`); ``law_cfg.q_filter`` adds a
-    Q-filter; ``law_cfg.fractional_memory`` picks the fractional operator's memory (FOILC). ``limits``: the
-    command limits the law clamps to and learns from (module notes; the bench passes its limiter's).
+    ``design`` gives the gain (``P``; ``p2 = Gamma`` for P-type), the model and the input delay;
+    ``law_cfg.q_filter`` adds a Q-filter; ``law_cfg.fractional_memory`` picks the fractional operator's memory
+    (FOILC). ``limits``: the command limits the law clamps to and learns from (module notes; the bench passes its
+    limiter's).
     """
     q_filter = None
     if law_cfg.q_filter is not None:
-        from foilc_hil.design.qfilter import QFilter
-
         q_filter = QFilter(law_cfg.q_filter.cutoff, law_cfg.q_filter.order, design.sample_time)
     memory = law_cfg.fractional_memory
-    if kind == "foilc":
+    if design.law is LawKind.FOILC:
         return Foilc(design, n_samples, q_filter=q_filter, fractional_memory=memory, limits=limits)
-    if kind == "ioilc":
+    if design.law is LawKind.IOILC:
         return Ioilc(design, n_samples, q_filter=q_filter, fractional_memory=memory, limits=limits)
-    if kind == "p-type":
-        return PType(
-            design.A,
-            design.B,
-            design.measured_output,
-            n_samples,
-            input_delay=design.input_delay,
-            gain=law_cfg.p_type_gain,
-            q_filter=q_filter,
-            limits=limits,
-        )
-    raise ConfigError(f"unknown law {kind!r}; choose foilc, ioilc or p-type", key="law.kind")
+    return PType(
+        design.A,
+        design.B,
+        design.measured_output,
+        n_samples,
+        input_delay=design.input_delay,
+        gain=design.p2,
+        q_filter=q_filter,
+        limits=limits,
+    )

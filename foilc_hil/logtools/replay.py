@@ -230,11 +230,12 @@ def _output_for_error(reference: float, error: float) -> float | None:
 def law_from_log(contents: LogContents, n_samples: int) -> LawLike:
     """Rebuild the run's law from the log's metadata.
 
-    With a ``foilc_hil.design`` record: ``make_law(design.law, design, config.law, n_samples, limits=...)`` (the
-    design names the law that ran; the bench may override the config's ``law.kind``), with the command limits the
-    bench logged in ``/ilc/trial`` (``command_limits``; none in offline logs, whose laws do not clamp). Without
-    one (an offline P-type run): the P-type law of the config's nominal model
-    (:func:`foilc_hil.loop.simulation.build_law`, no input delay).
+    With a ``foilc_hil.design`` record: ``make_law(design, config.law, n_samples, limits=...)`` (the design names
+    the law that ran; the bench may override the config's ``law.kind``), with the command limits the bench logged
+    in ``/ilc/trial`` (``command_limits``; none in offline logs, whose laws do not clamp). Without one (an offline
+    P-type run written before P-type designs were logged): the P-type design of the config's nominal model from
+    the design pipeline (:func:`foilc_hil.design.pipeline.build_design`, no input delay), which gives the same
+    gain.
 
     Raises
     ------
@@ -243,7 +244,7 @@ def law_from_log(contents: LogContents, n_samples: int) -> LawLike:
     """
     import yaml
 
-    from foilc_hil.config import Config
+    from foilc_hil.config import Config, LawKind
     from foilc_hil.schema import validate
 
     config_yaml = contents.config_yaml
@@ -255,25 +256,26 @@ def law_from_log(contents: LogContents, n_samples: int) -> LawLike:
         raise LogFormatError(f"{contents.path}: metadata foilc_hil.config is not YAML: {exc}") from None
     if not isinstance(document, dict):
         raise LogFormatError(f"{contents.path}: metadata foilc_hil.config is not a mapping")
+    from foilc_hil.laws.learning import make_law
+
     config = validate(Config, document, source=f"{contents.path} (foilc_hil.config)")
     design_doc = contents.design
     if design_doc is None:
-        if config.law.kind != "p-type":
+        if config.law.kind is not LawKind.P_TYPE:
             raise LogFormatError(
                 f"{contents.path}: no foilc_hil.design metadata; --verify needs the design the {config.law.kind} "
                 "run used"
             )
-        from foilc_hil.loop.simulation import build_law
+        from foilc_hil.design.pipeline import build_design
 
-        return build_law(config, "p-type", n_samples)[0]
+        return make_law(build_design(config, LawKind.P_TYPE, n_samples, input_delay=0), config.law, n_samples)
     from foilc_hil.design.record import Design
-    from foilc_hil.laws.learning import make_law
 
     try:
         design = Design.from_json(design_doc)
     except InputError as exc:
         raise LogFormatError(f"{contents.path}: metadata foilc_hil.design: {exc}") from None
-    return make_law(design.law, design, config.law, n_samples, limits=_logged_limits(contents))
+    return make_law(design, config.law, n_samples, limits=_logged_limits(contents))
 
 
 def _logged_limits(contents: LogContents) -> tuple[float, float] | None:

@@ -649,16 +649,10 @@ CAN_INPUT_DELAY = 1
 
 
 def build_design(config: Any, law: str, n_samples: int) -> Any:
-    """Tune (if the config gives no ``kp``/``r``) and synthesize the design for the bench's CAN loop."""
-    from foilc_hil.design.lmi import synthesize_from_config
+    """The design of ``law`` for the bench's CAN loop (:func:`foilc_hil.design.pipeline.build_design`)."""
+    from foilc_hil.design.pipeline import build_design as pipeline_design
 
-    kp, r = config.tuning.kp, config.tuning.r
-    if kp is None or r is None:
-        from foilc_hil.design.tuning import tune
-
-        tuned = tune(config)
-        kp, r = tuned.kp, tuned.r
-    return synthesize_from_config(config, law=law, kp=kp, r=r, input_delay=CAN_INPUT_DELAY, n_samples=n_samples)
+    return pipeline_design(config, law, n_samples, input_delay=CAN_INPUT_DELAY)
 
 
 def command_limiter(config: Any) -> CommandLimiter:
@@ -757,7 +751,7 @@ def run_bench(request: RunRequest) -> RunReport:
     design = request.design if request.design is not None else build_design(config, law_kind, n_samples)
     limiter = command_limiter(config)
     # The law clamps to the limiter's limits and learns from what is applied; the limiter stays as the safety layer.
-    law = make_law(law_kind, design, config.law, n_samples, limits=(limiter.lower, limiter.upper))
+    law = make_law(design, config.law, n_samples, limits=(limiter.lower, limiter.upper))
     settings = LoopSettings(
         period=config.sample_time,
         mode=mode,

@@ -123,63 +123,26 @@ def nominal_discrete_model(config: Config, input_delay: int = 0) -> tuple[np.nda
 
 
 def design_for(config: Config, law: str, input_delay: int = 0) -> Design:
-    """Tune (unless ``tuning.kp``/``tuning.r`` are given) and synthesize the gain of a 2D law.
+    """The design of ``law`` for a whole trial of ``config`` (:func:`foilc_hil.design.pipeline.build_design`)."""
+    from foilc_hil.design.pipeline import build_design
+    from foilc_hil.references import trial_samples
 
-    IOILC is designed with ``kp = 0`` (``r`` is then unused; the tuned or given ``r``, or 1, is recorded).
-    """
-    from foilc_hil.design.lmi import synthesize_from_config
-
-    if law not in ("foilc", "ioilc"):
-        raise ConfigError(f"no LMI design for law {law!r}", key="law.kind")
-    q_matrix = None
-    if config.law.q_filter is not None:
-        from foilc_hil.design.qfilter import QFilter
-        from foilc_hil.references import trial_samples
-
-        q_filter = QFilter(config.law.q_filter.cutoff, config.law.q_filter.order, config.sample_time)
-        q_matrix = q_filter.matrix(trial_samples(config.reference, config.sample_time))
-    kp, r = config.tuning.kp, config.tuning.r
-    if law == "ioilc":
-        return synthesize_from_config(
-            config, law="ioilc", kp=0.0, r=1.0 if r is None else r, input_delay=input_delay, q_filter=q_matrix
-        )
-    if kp is None or r is None:
-        from foilc_hil.design.tuning import tune
-
-        tuned = tune(config)
-        kp, r = tuned.kp, tuned.r
-    return synthesize_from_config(config, law="foilc", kp=kp, r=r, input_delay=input_delay, q_filter=q_matrix)
+    return build_design(config, law, trial_samples(config.reference, config.sample_time), input_delay=input_delay)
 
 
 def build_law(
     config: Config, law: str, n_samples: int, *, design: Design | None = None, input_delay: int = 0
 ) -> tuple[LearningLaw, Design | None, dict[str, Any]]:
-    """The law ``law`` for ``config`` with its design (2D laws) and certificates."""
-    from foilc_hil.laws.learning import PType, make_law, p_type_certificates
+    """The law ``law`` for ``config`` with its design and certificates (:mod:`foilc_hil.design.pipeline`)."""
+    from foilc_hil.design.pipeline import build_design
+    from foilc_hil.laws.learning import make_law
 
-    if law not in LAWS:
-        raise ConfigError(f"unknown law {law!r}; choose {', '.join(LAWS)}", key="law.kind")
-    if law == "p-type":
-        q_filter = None
-        if config.law.q_filter is not None:
-            from foilc_hil.design.qfilter import QFilter
-
-            q_filter = QFilter(config.law.q_filter.cutoff, config.law.q_filter.order, config.sample_time)
-        if design is not None:
-            A, B, C, delay = design.A, design.B, design.measured_output, design.input_delay
-        else:
-            A, B, C = nominal_discrete_model(config, input_delay)
-            delay = input_delay
-        p_law = PType(A, B, C, n_samples, input_delay=delay, gain=config.law.p_type_gain, q_filter=q_filter)
-        certificates: dict[str, Any] = {"gain": p_law.gain.tolist()}
-        if q_filter is None and n_samples * p_law.n_outputs <= 4000:
-            certificates.update(p_type_certificates(p_law))
-        return p_law, None, certificates
     if design is None:
-        design = design_for(config, law, input_delay)
+        design = build_design(config, law, n_samples, input_delay=input_delay)
     elif design.law != law and not (law == "ioilc" and design.kp == 0):
         raise ConfigError(f"the design is for law {design.law!r}, not {law!r}", key="law.kind")
-    return make_law(law, design, config.law, n_samples), design, dict(design.certificates)
+    certificates = {} if design.certificates is None else design.certificates.to_json()
+    return make_law(design, config.law, n_samples), design, certificates
 
 
 # --- the trial loop ---------------------------------------------------------------------------------------------
