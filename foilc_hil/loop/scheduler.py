@@ -31,6 +31,8 @@ from typing import Any
 
 import numpy as np
 
+from plant_emulator.device import TimingMode
+
 __all__ = [
     "DeadlineScheduler",
     "TimingRecorder",
@@ -131,7 +133,7 @@ class TimingSummary:
     (law, clamp, RPDO encode and send, log enqueue).
     """
 
-    mode: str
+    mode: TimingMode
     period: float
     cycles: int
     missed_deadlines: int
@@ -148,7 +150,9 @@ class TimingSummary:
     cycles_per_second: float | None
 
     def to_json(self) -> dict[str, Any]:
-        return {key: getattr(self, key) for key in self.__dataclass_fields__}
+        document = {key: getattr(self, key) for key in self.__dataclass_fields__}
+        document["mode"] = str(self.mode)  # the plain string value, as the JSON document has always had it
+        return document
 
 
 class TimingRecorder:
@@ -165,7 +169,7 @@ class TimingRecorder:
 
     FIELDS = ("sync_time", "deadline", "lateness", "feedback_latency", "compute_time", "skipped", "late", "missing")
 
-    def __init__(self, mode: str, period: float) -> None:
+    def __init__(self, mode: TimingMode, period: float) -> None:
         self.mode = mode
         self.period = period
         self._block_arrays: list[np.ndarray] = []
