@@ -9,6 +9,10 @@ The last cycle (``i = N``) only reads ``y(N Ts)``; its RPDO is a zero command. T
 RPDO at the next SYNC, so ``u_i`` acts from ``(i + 1) Ts``: a one-cycle transport delay that the design models
 with ``input_delay = 1`` (see :func:`build_design`).
 
+The drive is any :class:`drivers.drive.Drive`: :func:`run_bench` runs the loop over a CiA 402 drive on CAN (or the
+embedded emulator); ``foilc-hil simulate`` runs the same loop, in lockstep, on a
+:class:`~foilc_hil.loop.simulated_drive.SimulatedDrive` (:func:`foilc_hil.loop.simulation.simulate`).
+
 Between trials the axis is brought back to rest over the same cyclic path (zero command, which in CSV/PV is a
 braking velocity set-point and in CST lets a stable axis coast down), until ``|y| <= bench.settle_tolerance`` for
 ``bench.settle_time``; a settle that does not finish within :data:`SETTLE_TIMEOUT_FACTOR` x ``settle_time`` (at
@@ -32,7 +36,8 @@ realtime, :data:`LOCKSTEP_FEEDBACK_TIMEOUT` in lockstep) -- no further SYNC is s
 its last command, and feedback that arrives after half a period is counted late; when it trips the master has
 already quick-stopped the drive and the run aborts with :class:`~foilc_hil.errors.FeedbackTimeoutError`. EMCY,
 a fault statusword or a drive leaving OPERATION ENABLED aborts; non-finite outputs or commands abort; a trial
-whose SSE exceeds ``bench.divergence_factor`` x the best SSE stops learning and restores the best feedforward;
+whose SSE exceeds ``bench.divergence_factor`` x the best SSE so far stops learning and restores the best
+feedforward (:class:`~foilc_hil.loop.safety.DivergenceGuard`, the same rule offline: ``simulate`` runs this loop);
 SIGINT/SIGTERM stop the loop at the next cycle. Every abort quick-stops the drive first; on every exit path the caller's
 ``finally`` disables the drive (``safe_stop``) and closes the log.
 

@@ -1,11 +1,14 @@
-"""Offline learning trials on the one physics code path (``plant_emulator.physics.build_plant``).
+"""Offline learning trials: the bench's trial loop on a simulated drive, over the one physics code path.
 
-Each trial runs sample by sample exactly as the bench does: reset the plant for trial ``k`` (initial condition,
-disturbance armed from ``disturbance.start_trial``), then for ``t = 0 .. N-1`` hand the measured output
-``y(t Ts)`` to :meth:`~foilc_hil.laws.learning.LearningLaw.command`, hold the returned ``u(t)`` over one sample (after
-``input_delay`` samples, the CAN loop's transport delay when emulated), and finally pass the trial arrays
-(values at ``(i + 1) Ts``, see :mod:`foilc_hil.references`) to :meth:`~foilc_hil.laws.learning.LearningLaw.end_trial`.
-No plant dynamics are written here.
+:func:`simulate` runs :class:`~foilc_hil.loop.bench.TrialLoop` -- the loop ``foilc-hil run`` runs over CAN -- in
+lockstep on a :class:`~foilc_hil.loop.simulated_drive.SimulatedDrive`, which puts
+``plant_emulator.physics.build_plant(config.plant)`` behind the bench's drive interface with a transport delay of
+the law's ``input_delay`` cycles (1: the SYNC-driven CAN loop; 0: the ideal loop). Each trial: the drive resets
+the plant for trial ``k`` (initial condition, disturbance armed from ``disturbance.start_trial``), then for
+``t = 0 .. N-1`` the law gets the measured output ``y(t Ts)`` and returns ``u(t)``, and finally the trial arrays
+(values at ``(i + 1) Ts``, see :mod:`foilc_hil.references`) go to
+:meth:`~foilc_hil.laws.learning.LearningLaw.end_trial`. The divergence rule, the per-sample log and the metrics are
+the bench's. No plant dynamics and no trial loop are written here.
 
 ``python -m foilc_hil.loop.simulation --paper-table [--config configs/paper_sim.yaml]`` prints the Markdown table of
 ``docs/paper-reproduction.md`` from fresh runs.
