@@ -213,8 +213,8 @@ class LoopSettings:
     settle_time: float = 0.5
     settle_tolerance: float = 1.0
     lockstep_feedback_timeout: float = LOCKSTEP_FEEDBACK_TIMEOUT
-    #: False when the drive itself starts every trial at rest (:class:`~foilc_hil.loop.simulated_drive.
-    #: SimulatedDrive` resets its plant in ``before_trial``): no settle phase between trials
+    #: False when the drive itself starts every trial at rest (the simulated drive resets its plant in
+    #: ``before_trial``): no settle phase between trials
     settle_between_trials: bool = True
 
     @property
