@@ -96,6 +96,6 @@ def test_recorder_summary_matches_numpy() -> None:
     intervals = np.diff(np.arange(300) * 0.001 + lateness)
     assert summary.cycle_time_p50_us == pytest.approx(np.median(intervals) * 1e6)
     records = list(recorder.records(block, first_cycle=100))
-    assert records[7]["missing_feedback"] is True
-    assert records[7]["cycle"] == 107
-    assert records[0]["lateness_us"] == pytest.approx(lateness[0] * 1e6)
+    assert records[7].missing_feedback is True
+    assert records[7].cycle == 107
+    assert records[0].lateness_us == pytest.approx(lateness[0] * 1e6)

@@ -86,7 +86,7 @@ from foilc_hil.loop.safety import (
     StopRequest,
     require_finite,
 )
-from foilc_hil.loop.scheduler import DeadlineScheduler, TimingRecorder, TimingSummary
+from foilc_hil.loop.scheduler import CycleTiming, DeadlineScheduler, TimingRecorder, TimingSummary
 from foilc_hil.metrics import TrialMetrics
 from foilc_hil.progress import UPDATES_PER_TRIAL, NullProgress, ProgressView
 from plant_emulator.device import TimingMode
@@ -151,7 +151,7 @@ class LogSink(Protocol):
 
     def trial_finished(self, record: TrialRecord) -> None: ...
 
-    def timing(self, records: Iterator[dict[str, Any]]) -> None: ...
+    def timing(self, records: Iterator[CycleTiming]) -> None: ...
 
 
 # --- results ------------------------------------------------------------------------------------------------------
@@ -705,20 +705,20 @@ class McapSink:
             )
         self.writer.end_trial()
 
-    def timing(self, records: Iterator[dict[str, Any]]) -> None:
+    def timing(self, records: Iterator[CycleTiming]) -> None:
         previous: float | None = None
         for record in records:
-            sync_time = record["sync_time"]
+            sync_time = record.sync_time
             period_us = (sync_time - previous) * 1e6 if previous is not None else 0.0
             previous = sync_time
             self.writer.log_timing(
-                record["cycle"],
-                record["trial"],
-                record["sample"],
-                record["lateness_us"] if record["lateness_us"] is not None else 0.0,
+                record.cycle,
+                record.trial,
+                record.sample,
+                record.lateness_us if record.lateness_us is not None else 0.0,
                 period_us,
-                record["feedback_latency_us"],
-                record["skipped_deadlines"] > 0,
+                record.feedback_latency_us,
+                record.skipped_deadlines > 0,
             )
 
 

@@ -37,6 +37,7 @@ if TYPE_CHECKING:
     from foilc_hil.design.record import Design
     from foilc_hil.laws.learning import LearningLaw
     from foilc_hil.loop.bench import McapSink, TrialRecord
+    from foilc_hil.loop.scheduler import CycleTiming
 
 __all__ = [
     "SimulationResult",
@@ -258,7 +259,7 @@ class _TrialCollector:
         if self.log is not None:
             self.log.trial_finished(record)
 
-    def timing(self, records: Iterator[dict[str, Any]]) -> None:
+    def timing(self, records: Iterator[CycleTiming]) -> None:
         if self.log is not None:
             self.log.timing(records)
 
