@@ -249,7 +249,13 @@ class _TrialUpdateThread:
         self._verdict: DivergenceVerdict | None = None
         self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._work, name=f"foilc-hil-trial-{raw.trial}-update", daemon=True)
-        self._thread.start()
+
+    @classmethod
+    def start(cls, loop: TrialLoop, raw: _RawTrial) -> _TrialUpdateThread:
+        """Begin the update of the trial ``raw`` in its own thread."""
+        update = cls(loop, raw)
+        update._thread.start()
+        return update
 
     def _work(self) -> None:
         try:
@@ -382,7 +388,7 @@ class TrialLoop:
                 if self._before_trial is not None:
                     self._before_trial(trial)
                 raw = self._run_trial(trial, trials)
-                update = _TrialUpdateThread(self, raw)
+                update = _TrialUpdateThread.start(self, raw)
             if update is not None:
                 verdict = update.result()
                 update = None
