@@ -123,6 +123,7 @@ def can_lockstep(logged: bool, *, sample_time: float = 0.005, duration: float = 
     """Lockstep run over the embedded emulator (virtual bus), with or without the MCAP log."""
     from drivers.config import BusConfig
     from foilc_hil.loop.bench import RunRequest, run_bench
+    from plant_emulator.device import TimingMode
 
     config = _first_order_config(sample_time, duration)
     with tempfile.TemporaryDirectory() as tmp:
@@ -134,7 +135,7 @@ def can_lockstep(logged: bool, *, sample_time: float = 0.005, duration: float = 
                 out=out,
                 law="foilc",
                 trials=trials,
-                mode="lockstep",
+                mode=TimingMode.LOCKSTEP,
                 bus=BusConfig(interface="embedded", channel="foilc-hil-bench"),
             )
         )

@@ -71,14 +71,11 @@ def assert_completed_trials_intact(topics: dict[str, list[dict[str, Any]]], mini
 @pytest.fixture
 def emulator_on_channel(tmp_path: Path) -> Iterator[tuple[Any, str, Path]]:
     """The real emulator on a fresh virtual channel, outside the bench (so the test can stop or fault it)."""
-    from foilc_hil.loop.bench import emulator_settings
     from plant_emulator.embedded import EmbeddedEmulator
 
     config_path = bench_config(tmp_path, watchdog_cycles=3)
     config = load_config(config_path)
-    emulator = EmbeddedEmulator.for_drive(
-        config.plant, emulator_settings(config), config.drive, sample_time=config.sample_time
-    )
+    emulator = EmbeddedEmulator.from_config(config)
     with emulator:
         yield emulator, emulator.channel, config_path
 
@@ -233,7 +230,6 @@ def test_third_party_nmt_mid_trial_ends_confirmed_disabled(
 ) -> None:
     """Another node takes the drive out of OPERATIONAL mid-trial. Whether or not the drive reacts itself (0x6007),
     the run exits 1 naming the fault and the drive ends disabled, read back from the drive, not assumed."""
-    from foilc_hil.loop.bench import emulator_settings
     from plant_emulator.embedded import EmbeddedEmulator
 
     config_path = bench_config(tmp_path, watchdog_cycles=3)
@@ -241,9 +237,7 @@ def test_third_party_nmt_mid_trial_ends_confirmed_disabled(
     document["drive"]["abort_connection_option"] = abort_option
     config_path.write_text(yaml.safe_dump(document), encoding="utf-8")
     config = load_config(config_path)
-    emulator = EmbeddedEmulator.for_drive(
-        config.plant, emulator_settings(config), config.drive, sample_time=config.sample_time
-    )
+    emulator = EmbeddedEmulator.from_config(config)
     out = tmp_path / "nmt.mcap"
     with emulator:
         def third_party_nmt() -> None:

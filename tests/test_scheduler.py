@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from foilc_hil.loop.scheduler import DeadlineScheduler, TimingRecorder
+from plant_emulator.device import TimingMode
 
 
 class FakeClock:
@@ -78,7 +79,7 @@ def test_invalid_period_is_refused() -> None:
 
 def test_recorder_summary_matches_numpy() -> None:
     rng = np.random.default_rng(3)
-    recorder = TimingRecorder("realtime", 0.001)
+    recorder = TimingRecorder(TimingMode.REALTIME, 0.001)
     lateness = rng.uniform(0, 1e-4, size=300)
     recorder.begin_block(10, phase="trial", trial=1)  # grows past its capacity
     for i, late in enumerate(lateness):
@@ -95,6 +96,6 @@ def test_recorder_summary_matches_numpy() -> None:
     intervals = np.diff(np.arange(300) * 0.001 + lateness)
     assert summary.cycle_time_p50_us == pytest.approx(np.median(intervals) * 1e6)
     records = list(recorder.records(block, first_cycle=100))
-    assert records[7]["missing_feedback"] is True
-    assert records[7]["cycle"] == 107
-    assert records[0]["lateness_us"] == pytest.approx(lateness[0] * 1e6)
+    assert records[7].missing_feedback is True
+    assert records[7].cycle == 107
+    assert records[0].lateness_us == pytest.approx(lateness[0] * 1e6)

@@ -53,6 +53,7 @@ def execute(args: argparse.Namespace) -> CommandResult:
     from foilc_hil.config import load_config
     from foilc_hil.errors import InputError
     from foilc_hil.loop.bench import RunRequest, run_bench
+    from plant_emulator.device import TimingMode
 
     if args.trials is not None and args.trials < 1:
         raise InputError(f"--trials: must be >= 1, got {args.trials}")
@@ -76,7 +77,7 @@ def execute(args: argparse.Namespace) -> CommandResult:
                 out=log_path,
                 law=law,
                 trials=args.trials,
-                mode="lockstep",
+                mode=TimingMode.LOCKSTEP,
                 bus=BusConfig(interface="embedded", channel=f"foilc-hil-demo-{law}"),
                 quiet=bool(args.quiet or args.json),
                 title=f"demo: {law.upper()} over CAN (embedded emulator)",

@@ -54,6 +54,7 @@ def execute(args: argparse.Namespace) -> CommandResult:
     from foilc_hil.config import load_config
     from foilc_hil.errors import InputError
     from foilc_hil.loop.bench import RunRequest, run_bench
+    from plant_emulator.device import TimingMode
 
     if args.trials is not None and args.trials < 1:
         raise InputError(f"--trials: must be >= 1, got {args.trials}")
@@ -63,7 +64,7 @@ def execute(args: argparse.Namespace) -> CommandResult:
         out=args.out,
         law=args.law,
         trials=args.trials,
-        mode=args.mode,
+        mode=TimingMode(args.mode) if args.mode is not None else None,
         bus=resolve_bus(config, args.bus, args.emulator),
         quiet=bool(args.quiet or args.json),
     )

@@ -23,12 +23,14 @@ Real time
 from __future__ import annotations
 
 import base64
+import enum
 import json
 import math
 import os
 import struct
 import threading
 import time
+from abc import abstractmethod
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,6 +46,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from foilc_hil.errors import FoilcHilError, LogFormatError
+from foilc_hil.io.records import SampleRecord
 from foilc_hil.io.schemas import (
     MESSAGE_ENCODING,
     METADATA_CONFIG,
@@ -62,6 +65,7 @@ __all__ = [
     "Direction",
     "LogContents",
     "LogMessage",
+    "LogOp",
     "LogWriteError",
     "McapLogReader",
     "McapLogWriter",
@@ -120,25 +124,33 @@ def _encode(document: dict[str, Any]) -> bytes:
         return json.dumps(_jsonable(document), allow_nan=False, separators=(",", ":")).encode("utf-8")
 
 
-def _scalar_or_list(value: Any) -> Any:
-    """A Python float for a scalar (SISO), a list for a vector; numpy values converted."""
-    if isinstance(value, float):
-        return value
-    if isinstance(value, np.ndarray):
-        return value.item() if value.ndim == 0 else value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
-
-
 # --- writer ---------------------------------------------------------------------------------------------------
 
 
 class _ClosingListener(can.Listener):
-    """A log writer's lifecycle: python-can's ``stop()`` and the context manager both mean :meth:`close`."""
+    """What both writers share: the lifecycle (python-can's ``stop()`` and the context manager both mean
+    :meth:`close`) and :meth:`log_sample`, the positional spelling of :meth:`write_sample`."""
 
-    def close(self) -> None:
-        raise NotImplementedError
+    @abstractmethod
+    def close(self) -> None: ...
+
+    @abstractmethod
+    def write_sample(self, record: SampleRecord) -> None: ...
+
+    def log_sample(
+        self,
+        trial: int,
+        t: float,
+        reference: Any,
+        output: Any,
+        control: Any,
+        error: Any,
+        E: Any = None,
+        *,
+        sample: int | None = None,
+    ) -> None:
+        """Log one sample on ``/ilc/sample`` (builds the :class:`~foilc_hil.io.records.SampleRecord`; see there)."""
+        self.write_sample(SampleRecord(trial, t, reference, output, control, error, E, sample))
 
     def stop(self) -> None:
         """python-can listener hook: same as :meth:`close`."""
@@ -254,36 +266,13 @@ class McapLogWriter(_ClosingListener):
         }
         self._add(TOPIC_CAN, document, now, publish_time_ns=round(timestamp * 1e9))
 
-    def log_sample(
-        self,
-        trial: int,
-        t: float,
-        reference: Any,
-        output: Any,
-        control: Any,
-        error: Any,
-        E: Any = None,
-        *,
-        sample: int | None = None,
-        log_time_ns: int | None = None,
-    ) -> None:
+    def write_sample(self, record: SampleRecord, log_time_ns: int | None = None) -> None:
         """Log one sample on ``/ilc/sample``: ``output`` is the feedback the law saw, ``control`` its command.
 
         Scalars for a SISO axis, sequences/arrays for a multi-variable one. Values are encoded exactly (float64
         ``repr``), so :func:`foilc_hil.logtools.replay.verify_log` can check the law bit for bit.
         """
-        document: dict[str, Any] = {
-            "trial": trial,
-            "t": t,
-            "reference": _scalar_or_list(reference),
-            "output": _scalar_or_list(output),
-            "control": _scalar_or_list(control),
-            "error": _scalar_or_list(error),
-            "E": _scalar_or_list(E),
-        }
-        if sample is not None:
-            document["sample"] = sample
-        self._add(TOPIC_SAMPLE, document, time.time_ns() if log_time_ns is None else log_time_ns)
+        self._add(TOPIC_SAMPLE, record.to_json(), time.time_ns() if log_time_ns is None else log_time_ns)
 
     def log_trial(self, metrics: Any, /, **extra: Any) -> None:
         """Log one trial's metrics on ``/ilc/trial``.
@@ -401,14 +390,18 @@ def _design_record(design: Mapping[str, Any]) -> dict[str, str]:
 
 # --- queued writer (the real-time path) -----------------------------------------------------------------------
 
-# Operation codes of the queue items: small tuples, no JSON and no I/O on the caller's thread.
-_FRAME: Final = 0
-_SAMPLE: Final = 1
-_TRIAL: Final = 2
-_TIMING: Final = 3
-_END_TRIAL: Final = 4
-_SYNC: Final = 5
-_STOP: Final = 6
+@enum.unique
+class LogOp(enum.IntEnum):
+    """Operation code of a queue item of :class:`QueuedLogWriter`: items are small tuples ``(op, ...)``, so the
+    caller's thread does no JSON and no I/O."""
+
+    FRAME = 0
+    SAMPLE = 1
+    TRIAL = 2
+    TIMING = 3
+    END_TRIAL = 4
+    SYNC = 5
+    STOP = 6
 
 
 class QueuedLogWriter(_ClosingListener):
@@ -452,30 +445,19 @@ class QueuedLogWriter(_ClosingListener):
 
     def on_message_received(self, msg: can.Message) -> None:
         """python-can listener hook (runs on the Notifier thread): enqueue a received frame."""
-        self._queue.put((_FRAME, time.time_ns(), msg, "rx"))
+        self._queue.put((LogOp.FRAME, time.time_ns(), msg, "rx"))
 
     def log_frame(self, msg: can.Message, direction: Direction) -> None:
         """Enqueue one frame the bench sent (``"tx"``) or received (``"rx"``)."""
-        self._queue.put((_FRAME, time.time_ns(), msg, direction))
+        self._queue.put((LogOp.FRAME, time.time_ns(), msg, direction))
 
-    def log_sample(
-        self,
-        trial: int,
-        t: float,
-        reference: Any,
-        output: Any,
-        control: Any,
-        error: Any,
-        E: Any = None,
-        *,
-        sample: int | None = None,
-    ) -> None:
-        """Enqueue one ``/ilc/sample`` message (see :meth:`McapLogWriter.log_sample`)."""
-        self._queue.put((_SAMPLE, time.time_ns(), trial, t, reference, output, control, error, E, sample))
+    def write_sample(self, record: SampleRecord) -> None:
+        """Enqueue one ``/ilc/sample`` message (see :meth:`McapLogWriter.write_sample`)."""
+        self._queue.put((LogOp.SAMPLE, time.time_ns(), record))
 
     def log_trial(self, metrics: Any, /, **extra: Any) -> None:
         """Enqueue one ``/ilc/trial`` message (see :meth:`McapLogWriter.log_trial`)."""
-        self._queue.put((_TRIAL, time.time_ns(), metrics, extra))
+        self._queue.put((LogOp.TRIAL, time.time_ns(), metrics, extra))
 
     def log_timing(
         self,
@@ -489,7 +471,7 @@ class QueuedLogWriter(_ClosingListener):
     ) -> None:
         """Enqueue one ``/timing`` message (see :meth:`McapLogWriter.log_timing`)."""
         self._queue.put(
-            (_TIMING, time.time_ns(), cycle, trial, sample, lateness_us, period_us, feedback_latency_us, missed)
+            (LogOp.TIMING, time.time_ns(), cycle, trial, sample, lateness_us, period_us, feedback_latency_us, missed)
         )
 
     # -- between trials and at the end ---------------------------------------------------------------------
@@ -497,7 +479,7 @@ class QueuedLogWriter(_ClosingListener):
     def end_trial(self, wait: bool = False) -> None:
         """Close the trial's chunk once everything enqueued before it is written; ``wait`` blocks until then."""
         self._raise_pending()
-        self._queue.put((_END_TRIAL,))
+        self._queue.put((LogOp.END_TRIAL,))
         if wait:
             self.sync()
 
@@ -509,7 +491,7 @@ class QueuedLogWriter(_ClosingListener):
     def sync(self, timeout: float | None = None) -> bool:
         """Block until everything enqueued so far is written; ``False`` if ``timeout`` expired first."""
         done = threading.Event()
-        self._queue.put((_SYNC, done))
+        self._queue.put((LogOp.SYNC, done))
         finished = done.wait(timeout)
         self._raise_pending()
         return finished
@@ -523,7 +505,7 @@ class QueuedLogWriter(_ClosingListener):
         if self._closed:
             return
         self._closed = True
-        self._queue.put((_STOP,))
+        self._queue.put((LogOp.STOP,))
         self._thread.join()
         try:
             self.writer.close()
@@ -546,25 +528,24 @@ class QueuedLogWriter(_ClosingListener):
         while True:
             item = get()
             op = item[0]
-            if op == _STOP:
+            if op is LogOp.STOP:
                 return
-            if op == _SYNC:
+            if op is LogOp.SYNC:
                 item[1].set()
                 continue
             if self._error is not None:
                 continue  # the log is broken: drop, never block the producer
             try:
-                if op == _FRAME:
+                if op is LogOp.FRAME:
                     writer.log_frame(item[2], item[3], log_time_ns=item[1])
-                elif op == _SAMPLE:
-                    _, stamp, trial, t, reference, output, control, error, E, sample = item
-                    writer.log_sample(trial, t, reference, output, control, error, E, sample=sample, log_time_ns=stamp)
-                elif op == _TRIAL:
+                elif op is LogOp.SAMPLE:
+                    writer.write_sample(item[2], log_time_ns=item[1])
+                elif op is LogOp.TRIAL:
                     writer.log_trial_at(item[1], item[2], item[3])
-                elif op == _TIMING:
+                elif op is LogOp.TIMING:
                     _, stamp, cycle, trial, sample, lateness, period, latency, missed = item
                     writer.log_timing(cycle, trial, sample, lateness, period, latency, missed, log_time_ns=stamp)
-                elif op == _END_TRIAL:
+                elif op is LogOp.END_TRIAL:
                     writer.end_trial()
             except Exception as exc:  # kept, then raised on the caller's thread by end_trial/sync/close
                 self._error = exc

@@ -10,16 +10,22 @@ frames are ``is_rx=False``), written in log order. What each format keeps:
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Final, Literal
 
 from foilc_hil.errors import InputError
 
-__all__ = ["FORMATS", "ExportResult", "export_frames"]
+__all__ = ["ExportFormat", "ExportResult", "export_frames"]
 
-Format = Literal["asc", "blf", "csv"]
-FORMATS: Final = ("asc", "blf", "csv")
+
+@enum.unique
+class ExportFormat(enum.StrEnum):
+    """The file formats of ``export --format`` (python-can's writers)."""
+
+    ASC = "asc"
+    BLF = "blf"
+    CSV = "csv"
 
 
 @dataclass(frozen=True)
@@ -27,7 +33,7 @@ class ExportResult:
     """What :func:`export_frames` wrote."""
 
     out: Path
-    format: str
+    format: ExportFormat
     frames: int
     truncated: bool
     damage: str
@@ -52,17 +58,19 @@ def export_frames(log: str | Path, out: str | Path, fmt: str, *, channel: int | 
     from foilc_hil.io.mcap_log import McapLogReader, frame_to_message
     from foilc_hil.io.schemas import TOPIC_CAN
 
-    writers: dict[str, type[can.io.generic.MessageWriter]] = {
-        "asc": can.ASCWriter,
-        "blf": can.BLFWriter,
-        "csv": can.CSVWriter,
+    writers: dict[ExportFormat, type[can.io.generic.MessageWriter]] = {
+        ExportFormat.ASC: can.ASCWriter,
+        ExportFormat.BLF: can.BLFWriter,
+        ExportFormat.CSV: can.CSVWriter,
     }
-    if fmt not in writers:
-        raise InputError(f"--format: must be one of {', '.join(FORMATS)}, not {fmt!r}")
+    try:
+        file_format = ExportFormat(fmt)
+    except ValueError:
+        raise InputError(f"--format: must be one of {', '.join(ExportFormat)}, not {fmt!r}") from None
     out_path = Path(out)
     with McapLogReader(log) as reader:
         try:
-            writer = writers[fmt](out_path)
+            writer = writers[file_format](out_path)
         except OSError as exc:
             raise InputError(f"--out: {out_path}: cannot write: {exc.strerror or exc}") from None
         count = 0
@@ -74,4 +82,4 @@ def export_frames(log: str | Path, out: str | Path, fmt: str, *, channel: int | 
                 count += 1
         finally:
             writer.stop()
-        return ExportResult(out_path, fmt, count, reader.truncated, reader.damage)
+        return ExportResult(out_path, file_format, count, reader.truncated, reader.damage)

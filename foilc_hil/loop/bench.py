@@ -9,6 +9,10 @@ The last cycle (``i = N``) only reads ``y(N Ts)``; its RPDO is a zero command. T
 RPDO at the next SYNC, so ``u_i`` acts from ``(i + 1) Ts``: a one-cycle transport delay that the design models
 with ``input_delay = 1`` (see :func:`build_design`).
 
+The drive is any :class:`drivers.drive.Drive`: :func:`run_bench` runs the loop over a CiA 402 drive on CAN (or the
+embedded emulator); ``foilc-hil simulate`` runs the same loop, in lockstep, on a
+:class:`~foilc_hil.loop.simulated_drive.SimulatedDrive` (:func:`foilc_hil.loop.simulation.simulate`).
+
 Between trials the axis is brought back to rest over the same cyclic path (zero command, which in CSV/PV is a
 braking velocity set-point and in CST lets a stable axis coast down), until ``|y| <= bench.settle_tolerance`` for
 ``bench.settle_time``; a settle that does not finish within :data:`SETTLE_TIMEOUT_FACTOR` x ``settle_time`` (at
@@ -32,7 +36,8 @@ realtime, :data:`LOCKSTEP_FEEDBACK_TIMEOUT` in lockstep) -- no further SYNC is s
 its last command, and feedback that arrives after half a period is counted late; when it trips the master has
 already quick-stopped the drive and the run aborts with :class:`~foilc_hil.errors.FeedbackTimeoutError`. EMCY,
 a fault statusword or a drive leaving OPERATION ENABLED aborts; non-finite outputs or commands abort; a trial
-whose SSE exceeds ``bench.divergence_factor`` x the best SSE stops learning and restores the best feedforward;
+whose SSE exceeds ``bench.divergence_factor`` x the best SSE so far stops learning and restores the best
+feedforward (:class:`~foilc_hil.loop.safety.DivergenceGuard`, the same rule offline: ``simulate`` runs this loop);
 SIGINT/SIGTERM stop the loop at the next cycle. Every abort quick-stops the drive first; on every exit path the caller's
 ``finally`` disables the drive (``safe_stop``) and closes the log.
 
@@ -54,15 +59,14 @@ import contextlib
 import math
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from typing import Any, Literal, Protocol
+from typing import TYPE_CHECKING, Any, Protocol, cast
 
 import numpy as np
 
 from drivers.cia402 import State402
-from drivers.drive import StopReport
-from foilc_hil.config import Config
+from drivers.drive import Feedback, StopReport
 from foilc_hil.errors import (
     DriveError,
     DriveFaultError,
@@ -72,6 +76,7 @@ from foilc_hil.errors import (
     LearningDivergedError,
     RunInterruptedError,
 )
+from foilc_hil.io.records import SampleRecord
 from foilc_hil.laws.learning import TrialUpdate
 from foilc_hil.loop.safety import (
     CommandLimiter,
@@ -81,10 +86,15 @@ from foilc_hil.loop.safety import (
     StopRequest,
     require_finite,
 )
-from foilc_hil.loop.scheduler import DeadlineScheduler, TimingRecorder, TimingSummary
+from foilc_hil.loop.scheduler import CycleTiming, DeadlineScheduler, TimingRecorder, TimingSummary
 from foilc_hil.metrics import TrialMetrics
 from foilc_hil.progress import UPDATES_PER_TRIAL, NullProgress, ProgressView
-from plant_emulator.settings import EmulatorConfig
+from plant_emulator.device import TimingMode
+
+if TYPE_CHECKING:
+    import can
+
+    from foilc_hil.io.mcap_log import McapLogWriter, QueuedLogWriter
 
 __all__ = [
     "MIN_SETTLE_TIMEOUT",
@@ -94,8 +104,6 @@ __all__ = [
     "TrialLoop",
     "TrialRecord",
 ]
-
-TimingMode = Literal["lockstep", "realtime"]
 
 #: the settle phase gives up after this many times ``bench.settle_time`` ...
 SETTLE_TIMEOUT_FACTOR = 20.0
@@ -111,37 +119,16 @@ LATE_FEEDBACK_FRACTION = 0.5
 # --- what the loop talks to (drivers.drive.Drive, foilc_hil.laws.learning, foilc_hil.io.mcap_log) ---------------
 
 
-class FeedbackLike(Protocol):
-    """One cycle's TPDO feedback (``drivers.drive.Feedback``)."""
-
-    @property
-    def cycle(self) -> int: ...
-
-    @property
-    def state(self) -> State402: ...
-
-    @property
-    def velocity(self) -> float: ...
-
-
 class DriveLike(Protocol):
     """The subset of ``drivers.drive.Drive`` the trial loop uses."""
 
     def sync(self) -> int: ...
 
-    def wait_feedback(self, timeout: float) -> Any: ...
+    def wait_feedback(self, timeout: float) -> Feedback: ...
 
     def set_target(self, value: float) -> float: ...
 
     def quick_stop(self) -> None: ...
-
-
-class TrialUpdateLike(Protocol):
-    @property
-    def error(self) -> np.ndarray: ...
-
-    @property
-    def E(self) -> np.ndarray | None: ...
 
 
 class LawLike(Protocol):
@@ -164,7 +151,7 @@ class LogSink(Protocol):
 
     def trial_finished(self, record: TrialRecord) -> None: ...
 
-    def timing(self, records: Iterator[dict[str, Any]]) -> None: ...
+    def timing(self, records: Iterator[CycleTiming]) -> None: ...
 
 
 # --- results ------------------------------------------------------------------------------------------------------
@@ -187,21 +174,20 @@ class TrialRecord:
     sync_times: np.ndarray  # (N + 1,) perf_counter time of each SYNC
     clamped: int = 0  # commands of this trial the limiter clamped
 
-    def sample_messages(self) -> Iterator[dict[str, Any]]:
+    def sample_records(self) -> Iterator[SampleRecord]:
         """The ``/ilc/sample`` messages of this trial (module docstring: what each field is)."""
         E = self.E
         for i in range(self.control.shape[0]):
-            yield {
-                "trial": self.trial,
-                "t": i * self.sample_time,  # the instant of the feedback the law saw (as simulate logs it)
-                "sample": i,
-                "reference": float(self.reference[i]),
-                "output": float(self.seen[i]),
-                "control": float(self.control[i]),
-                "applied": float(self.applied[i]),
-                "error": float(self.error[i]),
-                "E": float(E[i]),
-            }
+            yield SampleRecord(
+                trial=self.trial,
+                t=i * self.sample_time,  # the instant of the feedback the law saw
+                reference=float(self.reference[i]),
+                output=float(self.seen[i]),
+                control=float(self.control[i]),
+                error=float(self.error[i]),
+                E=float(E[i]),
+                sample=i,
+            )
 
 
 @dataclass
@@ -221,12 +207,15 @@ class LoopSettings:
     """Timing and safety settings of the loop (from ``bench:`` and ``sample_time``)."""
 
     period: float
-    mode: TimingMode = "lockstep"
+    mode: TimingMode = TimingMode.LOCKSTEP
     watchdog_cycles: int = 5
     divergence_factor: float = 10.0
     settle_time: float = 0.5
     settle_tolerance: float = 1.0
     lockstep_feedback_timeout: float = LOCKSTEP_FEEDBACK_TIMEOUT
+    #: False when the drive itself starts every trial at rest (the simulated drive resets its plant in
+    #: ``before_trial``): no settle phase between trials
+    settle_between_trials: bool = True
 
     @property
     def settle_cycles(self) -> int:
@@ -260,7 +249,13 @@ class _TrialUpdateThread:
         self._verdict: DivergenceVerdict | None = None
         self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._work, name=f"foilc-hil-trial-{raw.trial}-update", daemon=True)
-        self._thread.start()
+
+    @classmethod
+    def start(cls, loop: TrialLoop, raw: _RawTrial) -> _TrialUpdateThread:
+        """Begin the update of the trial ``raw`` in its own thread."""
+        update = cls(loop, raw)
+        update._thread.start()
+        return update
 
     def _work(self) -> None:
         try:
@@ -292,7 +287,8 @@ class TrialLoop:
     reference
         One trial's reference, shape ``(N,)`` (:func:`foilc_hil.references.reference_profile`).
     limiter
-        Command limits in plant units.
+        Command limits in plant units; ``None``: commands go to the drive as the law computed them (the offline
+        simulator, whose plant saturates by itself).
     settings
         Timing and safety settings.
     log
@@ -305,8 +301,8 @@ class TrialLoop:
         ``time.perf_counter`` (injected in tests).
     before_trial
         Called with the trial number once the axis has settled, just before the trial's first SYNC. The embedded
-        emulator uses it to start its plant's trial (a disturbance that begins at a given trial, per-trial noise);
-        a real drive has no such hook.
+        emulator and the simulated drive use it to start their plant's trial (initial condition, a disturbance that
+        begins at a given trial, per-trial noise); a real drive has no such hook.
     """
 
     def __init__(
@@ -314,7 +310,7 @@ class TrialLoop:
         drive: DriveLike,
         law: LawLike,
         reference: np.ndarray,
-        limiter: CommandLimiter,
+        limiter: CommandLimiter | None,
         settings: LoopSettings,
         *,
         log: LogSink | None = None,
@@ -338,11 +334,12 @@ class TrialLoop:
         self._before_trial = before_trial
         self.watchdog = FeedbackWatchdog(
             settings.watchdog_cycles,
-            settings.period if settings.mode == "realtime" else settings.lockstep_feedback_timeout,
+            settings.period if settings.mode is TimingMode.REALTIME else settings.lockstep_feedback_timeout,
         )
         self.guard = DivergenceGuard(settings.divergence_factor)
         self.timing = TimingRecorder(settings.mode, settings.period)
-        self.scheduler = DeadlineScheduler(settings.period, clock=clock) if settings.mode == "realtime" else None
+        realtime = settings.mode is TimingMode.REALTIME
+        self.scheduler = DeadlineScheduler(settings.period, clock=clock) if realtime else None
         self.outcome = BenchOutcome()
         self._cycle = 0  # cycles run so far, over the whole run
         self._output_buffer = np.zeros(1)
@@ -391,7 +388,7 @@ class TrialLoop:
                 if self._before_trial is not None:
                     self._before_trial(trial)
                 raw = self._run_trial(trial, trials)
-                update = _TrialUpdateThread(self, raw)
+                update = _TrialUpdateThread.start(self, raw)
             if update is not None:
                 verdict = update.result()
                 update = None
@@ -405,7 +402,7 @@ class TrialLoop:
                 # an abort during the settle phase: the trial before it did complete, so finish logging it
                 with contextlib.suppress(Exception):
                     update.result()
-            self.outcome.clamped_commands = self.limiter.clamped_count
+            self.outcome.clamped_commands = self._clamped_count()
             self.outcome.timing = self.timing.summary(
                 self.scheduler.missed_deadlines if self.scheduler is not None else 0
             )
@@ -415,6 +412,8 @@ class TrialLoop:
 
     def _settle(self, trial: int) -> None:
         """Zero command until the axis rests within tolerance for ``settle_time`` (bounded)."""
+        if not self.settings.settle_between_trials:
+            return
         needed = self.settings.settle_cycles
         limit = self.settings.settle_timeout_cycles
         tolerance = self.settings.settle_tolerance
@@ -451,8 +450,8 @@ class TrialLoop:
         self.progress.begin_trial(trial, total_trials, n)
         self.law.begin_trial()
         output_buffer = self._output_buffer
-        limiter = self.limiter
-        clamped_before = limiter.clamped_count
+        clamp: Callable[[float], float] = self.limiter.clamp if self.limiter is not None else float
+        clamped_before = self._clamped_count()
         drive = self.drive
         law = self.law
         try:
@@ -464,7 +463,7 @@ class TrialLoop:
                 u = float(law.command(i, output_buffer)[0])
                 require_finite(u, "command", self._cycle)
                 control[i] = u
-                applied[i] = drive.set_target(limiter.clamp(u))
+                applied[i] = drive.set_target(clamp(u))
                 self._finish_cycle()
                 if i % every == 0:
                     self.progress.advance(i)
@@ -477,7 +476,7 @@ class TrialLoop:
             self._flush_timing(first_cycle)
         self.progress.advance(n)
         return _RawTrial(
-            trial, seen, control, applied, sync_times, limiter.clamped_count - clamped_before, self._feedforward_used
+            trial, seen, control, applied, sync_times, self._clamped_count() - clamped_before, self._feedforward_used
         )
 
     def _finish_trial(self, raw: _RawTrial) -> DivergenceVerdict:
@@ -566,15 +565,13 @@ class TrialLoop:
         if self.log is not None and self.scheduler is not None:
             self.log.timing(self.timing.records(block, first_cycle=first_cycle))
 
+    def _clamped_count(self) -> int:
+        return self.limiter.clamped_count if self.limiter is not None else 0
+
     def _quick_stop(self) -> None:
         # best effort on the way out: the caller's finally follows with safe_stop (disable)
         with contextlib.suppress(Exception):
             self.drive.quick_stop()
-
-
-def trial_sse_from_samples(errors: Sequence[float]) -> float:
-    """The SSE of a trial recomputed from its ``/ilc/sample`` ``error`` fields (what the tests cross-check)."""
-    return float(np.sum(np.square(np.asarray(errors, dtype=float))))
 
 
 # --- a whole run: design, law, bus or embedded emulator, drive, log ---------------------------------------------
@@ -663,59 +660,167 @@ def command_limiter(config: Any) -> CommandLimiter:
     return CommandLimiter.symmetric(limit, u_min=saturation.u_min, u_max=saturation.u_max)
 
 
-class _McapSink:
-    """Adapter from the loop's :class:`LogSink` to the queued MCAP writer (enqueues; the writer thread writes)."""
+def loop_settings(config: Any, mode: TimingMode | None = None, *, settle_between_trials: bool = True) -> LoopSettings:
+    """The loop's settings from ``sample_time`` and the ``bench:`` section; ``mode`` overrides ``bench.mode``."""
+    bench = config.bench
+    return LoopSettings(
+        period=config.sample_time,
+        mode=TimingMode(mode or bench.mode),
+        watchdog_cycles=bench.watchdog_cycles,
+        divergence_factor=bench.divergence_factor,
+        settle_time=bench.settle_time,
+        settle_tolerance=bench.settle_tolerance,
+        settle_between_trials=settle_between_trials,
+    )
 
-    def __init__(self, writer: Any, command_limits: tuple[float, float]) -> None:
+
+class McapSink:
+    """The loop's :class:`LogSink` over an MCAP writer (a :class:`~foilc_hil.io.mcap_log.QueuedLogWriter` only
+    enqueues; its thread writes).
+
+    Parameters
+    ----------
+    writer
+        Where the trials go.
+    command_limits
+        The limits the law clamped to (the bench's limiter); ``None``: no limiter (the offline simulator), and
+        ``/ilc/trial`` then has neither ``clamped`` nor ``command_limits``.
+    """
+
+    def __init__(self, writer: McapLogWriter | QueuedLogWriter, command_limits: tuple[float, float] | None) -> None:
         self.writer = writer
-        self.command_limits = [float(command_limits[0]), float(command_limits[1])]
+        self.command_limits = None if command_limits is None else [float(limit) for limit in command_limits]
 
     def trial_finished(self, record: TrialRecord) -> None:
-        log_sample = self.writer.log_sample
-        for message in record.sample_messages():
-            log_sample(
-                message["trial"],
-                message["t"],
-                message["reference"],
-                message["output"],
-                message["control"],
-                message["error"],
-                message["E"],
-                sample=message["sample"],
-            )
+        write_sample = self.writer.write_sample
+        for sample in record.sample_records():
+            write_sample(sample)
         # final_output = y(N Ts): with the rows' outputs it rebuilds the trial's output array (replay --verify)
-        # command_limits: the limits the law clamped to (replay --verify rebuilds the law with them)
-        self.writer.log_trial(
-            record.metrics,
-            clamped=record.clamped,
-            final_output=float(record.seen[-1]),
-            command_limits=self.command_limits,
-        )
+        final_output = float(record.seen[-1])
+        if self.command_limits is None:
+            self.writer.log_trial(record.metrics, final_output=final_output)
+        else:  # command_limits: the limits the law clamped to (replay --verify rebuilds the law with them)
+            self.writer.log_trial(
+                record.metrics, clamped=record.clamped, final_output=final_output, command_limits=self.command_limits
+            )
         self.writer.end_trial()
 
-    def timing(self, records: Iterator[dict[str, Any]]) -> None:
+    def timing(self, records: Iterator[CycleTiming]) -> None:
         previous: float | None = None
         for record in records:
-            sync_time = record["sync_time"]
+            sync_time = record.sync_time
             period_us = (sync_time - previous) * 1e6 if previous is not None else 0.0
             previous = sync_time
             self.writer.log_timing(
-                record["cycle"],
-                record["trial"],
-                record["sample"],
-                record["lateness_us"] if record["lateness_us"] is not None else 0.0,
+                record.cycle,
+                record.trial,
+                record.sample,
+                record.lateness_us if record.lateness_us is not None else 0.0,
                 period_us,
-                record["feedback_latency_us"],
-                record["skipped_deadlines"] > 0,
+                record.feedback_latency_us,
+                record.skipped_deadlines > 0,
             )
 
 
-def emulator_settings(config: Config) -> EmulatorConfig:
-    """The embedded emulator's settings: the bench config's ``emulator:`` section is the emulator's own schema."""
-    return config.emulator
-
-
 _MODES = {"csv": "CYCLIC_SYNC_VELOCITY", "cst": "CYCLIC_SYNC_TORQUE", "pv": "PROFILE_VELOCITY"}
+
+
+@dataclass(frozen=True)
+class _RunPlan:
+    """What a run will do, decided before anything is opened: the law, its design, limits and loop settings."""
+
+    law_kind: str
+    trials: int
+    bus: Any
+    reference: np.ndarray
+    design: Any
+    limiter: CommandLimiter
+    law: LawLike
+    settings: LoopSettings
+    title: str
+
+
+def _plan_run(request: RunRequest) -> _RunPlan:
+    """Resolve the request against its config, design (tune + synthesize unless given) and build the law."""
+    from pathlib import Path
+
+    from foilc_hil.errors import LogFormatError
+    from foilc_hil.laws.learning import make_law
+    from foilc_hil.references import reference_profile
+
+    config = request.config
+    if request.out is not None and not Path(request.out).resolve().parent.is_dir():
+        # before the (possibly slow) design: a log that cannot be written is a usage error
+        raise LogFormatError(f"{request.out}: cannot create: no such directory {Path(request.out).resolve().parent}")
+    law_kind = request.law or config.law.kind
+    bus = request.bus if request.bus is not None else config.bus
+    reference = reference_profile(config.reference, config.sample_time)
+    n_samples = int(reference.shape[0])
+    design = request.design if request.design is not None else build_design(config, law_kind, n_samples)
+    limiter = command_limiter(config)
+    # The law clamps to the limiter's limits and learns from what is applied; the limiter stays as the safety layer.
+    law = make_law(design, config.law, n_samples, limits=(limiter.lower, limiter.upper))
+    where = "the embedded emulator" if bus.interface == "embedded" else f"{bus.interface}:{bus.channel}"
+    return _RunPlan(
+        law_kind=law_kind,
+        trials=request.trials or config.trials,
+        bus=bus,
+        reference=reference,
+        design=design,
+        limiter=limiter,
+        law=law,
+        settings=loop_settings(config, request.mode),
+        title=request.title or f"{law_kind.upper()} on {where}",
+    )
+
+
+def _open_log(stack: contextlib.ExitStack, request: RunRequest, plan: _RunPlan) -> McapSink | None:
+    from foilc_hil.config import dump_config
+    from foilc_hil.io.mcap_log import QueuedLogWriter
+
+    if request.out is None:
+        return None
+    writer = QueuedLogWriter.open(request.out, config_yaml=dump_config(request.config), design=plan.design.to_json())
+    stack.callback(writer.close)
+    return McapSink(writer, (plan.limiter.lower, plan.limiter.upper))
+
+
+def _start_emulator(stack: contextlib.ExitStack, config: Any, bus: Any) -> tuple[Any, Callable[[int], None] | None]:
+    """``interface: embedded``: start the in-process emulator; returns the bus to open and the trial hook."""
+    if bus.interface != "embedded":
+        return bus, None
+    from plant_emulator.embedded import EmbeddedEmulator
+
+    emulator = EmbeddedEmulator.from_config(config)
+    stack.enter_context(emulator)
+    return emulator.bus_config, emulator.begin_trial
+
+
+def _open_drive(
+    stack: contextlib.ExitStack, config: Any, bus_cfg: Any, sink: McapSink | None, stops: list[StopReport]
+) -> Any:
+    """Open the bus and the CiA 402 master (safe-stopped on exit)."""
+    from drivers.bus import open_bus
+    from drivers.cia402_master import Cia402Drive
+
+    bus = open_bus(bus_cfg)
+    stack.callback(bus.shutdown)
+    drive = Cia402Drive.open(bus, config.drive, sample_time=config.sample_time)
+    stack.callback(drive.close)
+    if sink is not None:  # the master passes "tx" or "rx", the writer's Direction
+        drive.add_frame_listener(cast("Callable[[can.Message, str], None]", sink.writer.log_frame))
+    # LIFO: safe_stop runs before the drive is closed and before the log is closed, so its frames are logged
+    stack.callback(lambda: stops.append(drive.safe_stop()))
+    return drive
+
+
+def _enable(drive: Any, config: Any) -> None:
+    """Connect, configure the drive's mode and cycle and walk it to OPERATION ENABLED."""
+    from drivers.cia402 import OperationMode
+
+    drive.connect()
+    drive.configure(OperationMode[_MODES[config.drive.mode]], config.sample_time)
+    drive.enable()
 
 
 def run_bench(request: RunRequest) -> RunReport:
@@ -725,82 +830,34 @@ def run_bench(request: RunRequest) -> RunReport:
     :class:`~foilc_hil.errors.FoilcHilError` subclasses (after the log is closed); a divergence stop does not
     raise -- the report's ``outcome.stopped`` says why and ``outcome.diverged`` is set.
     """
-    from contextlib import ExitStack
-    from pathlib import Path
-
-    from drivers.bus import open_bus
-    from drivers.cia402 import OperationMode
-    from drivers.cia402_master import Cia402Drive
-    from foilc_hil.config import dump_config
-    from foilc_hil.errors import LogFormatError
-    from foilc_hil.io.mcap_log import QueuedLogWriter
-    from foilc_hil.laws.learning import make_law
     from foilc_hil.progress import make_progress
-    from foilc_hil.references import reference_profile
 
     config = request.config
-    if request.out is not None and not Path(request.out).resolve().parent.is_dir():
-        # before the (possibly slow) design: a log that cannot be written is a usage error
-        raise LogFormatError(f"{request.out}: cannot create: no such directory {Path(request.out).resolve().parent}")
-    law_kind = request.law or config.law.kind
-    trials = request.trials or config.trials
-    mode: TimingMode = request.mode or config.bench.mode
-    bus_cfg = request.bus if request.bus is not None else config.bus
-    reference = reference_profile(config.reference, config.sample_time)
-    n_samples = int(reference.shape[0])
-    design = request.design if request.design is not None else build_design(config, law_kind, n_samples)
-    limiter = command_limiter(config)
-    # The law clamps to the limiter's limits and learns from what is applied; the limiter stays as the safety layer.
-    law = make_law(design, config.law, n_samples, limits=(limiter.lower, limiter.upper))
-    settings = LoopSettings(
-        period=config.sample_time,
-        mode=mode,
-        watchdog_cycles=config.bench.watchdog_cycles,
-        divergence_factor=config.bench.divergence_factor,
-        settle_time=config.bench.settle_time,
-        settle_tolerance=config.bench.settle_tolerance,
-    )
-    design_json = design.to_json()
-    before_trial: Callable[[int], None] | None = None
-    where = "the embedded emulator" if bus_cfg.interface == "embedded" else f"{bus_cfg.interface}:{bus_cfg.channel}"
-    title = request.title or f"{law_kind.upper()} on {where}"
+    plan = _plan_run(request)
     stops: list[StopReport] = []
-    with _truth_about_the_stop(stops, config.drive.node_id), ExitStack() as stack:
-        sink: _McapSink | None = None
-        if request.out is not None:
-            writer = QueuedLogWriter.open(request.out, config_yaml=dump_config(config), design=design_json)
-            stack.callback(writer.close)
-            sink = _McapSink(writer, (limiter.lower, limiter.upper))
-        if bus_cfg.interface == "embedded":
-            from plant_emulator.embedded import EmbeddedEmulator
-
-            emulator = EmbeddedEmulator.for_drive(
-                config.plant, emulator_settings(config), config.drive, sample_time=config.sample_time
-            )
-            stack.enter_context(emulator)
-            bus_cfg = emulator.bus_config
-            before_trial = getattr(emulator, "begin_trial", None)
-        bus = open_bus(bus_cfg)
-        stack.callback(bus.shutdown)
-        drive = Cia402Drive.open(bus, config.drive, sample_time=config.sample_time)
-        stack.callback(drive.close)
-        if sink is not None:
-            drive.add_frame_listener(sink.writer.log_frame)
-        # LIFO: safe_stop runs before the drive is closed and before the log is closed, so its frames are logged
-        stack.callback(lambda: stops.append(drive.safe_stop()))
-        progress = make_progress(title, quiet=request.quiet)
+    with _truth_about_the_stop(stops, config.drive.node_id), contextlib.ExitStack() as stack:
+        sink = _open_log(stack, request, plan)
+        bus_cfg, before_trial = _start_emulator(stack, config, plan.bus)
+        drive = _open_drive(stack, config, bus_cfg, sink, stops)
+        progress = make_progress(plan.title, quiet=request.quiet)
         stack.callback(progress.close)
         stop = stack.enter_context(StopRequest())
-        drive.connect()
-        drive.configure(OperationMode[_MODES[config.drive.mode]], config.sample_time)
-        drive.enable()
+        _enable(drive, config)
         loop = TrialLoop(
-            drive, law, reference, limiter, settings, log=sink, progress=progress, stop=stop, before_trial=before_trial
+            drive,
+            plan.law,
+            plan.reference,
+            plan.limiter,
+            plan.settings,
+            log=sink,
+            progress=progress,
+            stop=stop,
+            before_trial=before_trial,
         )
-        outcome = loop.run(trials)
-        cycles = loop.cycles
+        outcome = loop.run(plan.trials)
+    design = plan.design
     return RunReport(
-        law=law_kind,
+        law=plan.law_kind,
         outcome=outcome,
         log=str(request.out) if request.out is not None else "",
         design={
@@ -808,10 +865,10 @@ def run_bench(request: RunRequest) -> RunReport:
             "r": design.r,
             "input_delay": design.input_delay,
             "gain_scale": design.gain_scale,
-            "certificates": design_json.get("certificates", {}),
+            "certificates": design.to_json().get("certificates", {}),
         },
         bus=f"{bus_cfg.interface}:{bus_cfg.channel}",
-        cycles=cycles,
+        cycles=loop.cycles,
         drive_stop=stops[-1],
     )
 

@@ -4,6 +4,8 @@
 - :class:`FeedbackWatchdog` bounds the wait for each cycle's TPDO feedback to ``bench.watchdog_cycles`` cycles.
 - :class:`DivergenceGuard` compares each trial's SSE with the best so far and trips when it exceeds
   ``bench.divergence_factor`` times the best; it keeps the best trial's feedforward so the bench can restore it.
+  It is the one divergence rule: ``foilc-hil run`` and ``foilc-hil simulate`` run the same loop and so the same
+  guard. A disturbance that appears after the error has converged raises the SSE by a jump the factor must exceed.
 - :func:`require_finite` is the NaN/inf guard for outputs and commands.
 - :class:`StopRequest` turns SIGINT/SIGTERM into a flag the loop polls once per cycle, so a Ctrl-C never
   interrupts the loop between a SYNC and its command: the loop then quick-stops the drive itself.

@@ -31,7 +31,10 @@ from typing import Any
 
 import numpy as np
 
+from plant_emulator.device import TimingMode
+
 __all__ = [
+    "CycleTiming",
     "DeadlineScheduler",
     "TimingRecorder",
     "TimingSummary",
@@ -131,7 +134,7 @@ class TimingSummary:
     (law, clamp, RPDO encode and send, log enqueue).
     """
 
-    mode: str
+    mode: TimingMode
     period: float
     cycles: int
     missed_deadlines: int
@@ -148,7 +151,31 @@ class TimingSummary:
     cycles_per_second: float | None
 
     def to_json(self) -> dict[str, Any]:
-        return {key: getattr(self, key) for key in self.__dataclass_fields__}
+        document = {key: getattr(self, key) for key in self.__dataclass_fields__}
+        document["mode"] = str(self.mode)  # the plain string value, as the JSON document has always had it
+        return document
+
+
+@dataclass(frozen=True, slots=True)
+class CycleTiming:
+    """One cycle of a block, as :meth:`TimingRecorder.records` hands it to the log (``None``: not measured).
+
+    ``sync_time`` and ``deadline`` are ``perf_counter`` seconds; the durations are microseconds. ``sample`` is the
+    cycle's index within its block (the trial's sample for ``phase == "trial"``).
+    """
+
+    cycle: int
+    trial: int
+    phase: str
+    sample: int
+    sync_time: float
+    deadline: float | None
+    lateness_us: float | None
+    feedback_latency_us: float | None
+    compute_us: float | None
+    skipped_deadlines: int
+    late_feedback: bool
+    missing_feedback: bool
 
 
 class TimingRecorder:
@@ -165,7 +192,7 @@ class TimingRecorder:
 
     FIELDS = ("sync_time", "deadline", "lateness", "feedback_latency", "compute_time", "skipped", "late", "missing")
 
-    def __init__(self, mode: str, period: float) -> None:
+    def __init__(self, mode: TimingMode, period: float) -> None:
         self.mode = mode
         self.period = period
         self._block_arrays: list[np.ndarray] = []
@@ -217,23 +244,23 @@ class TimingRecorder:
         self._count = 0
         return block
 
-    def records(self, block: np.ndarray, *, first_cycle: int) -> Iterator[dict[str, Any]]:
-        """``/timing`` messages of a finished block: one per cycle, times in microseconds."""
+    def records(self, block: np.ndarray, *, first_cycle: int) -> Iterator[CycleTiming]:
+        """The cycles of a finished block, one record each (the source of the ``/timing`` messages)."""
         for offset, row in enumerate(block):
-            yield {
-                "cycle": first_cycle + offset,
-                "trial": self._trial,
-                "phase": self._phase,
-                "sample": offset,
-                "sync_time": float(row[0]),
-                "deadline": None if math.isnan(row[1]) else float(row[1]),
-                "lateness_us": None if math.isnan(row[2]) else float(row[2] * 1e6),
-                "feedback_latency_us": None if math.isnan(row[3]) else float(row[3] * 1e6),
-                "compute_us": None if math.isnan(row[4]) else float(row[4] * 1e6),
-                "skipped_deadlines": int(row[5]),
-                "late_feedback": bool(row[6]),
-                "missing_feedback": bool(row[7]),
-            }
+            yield CycleTiming(
+                cycle=first_cycle + offset,
+                trial=self._trial,
+                phase=self._phase,
+                sample=offset,
+                sync_time=float(row[0]),
+                deadline=None if math.isnan(row[1]) else float(row[1]),
+                lateness_us=None if math.isnan(row[2]) else float(row[2] * 1e6),
+                feedback_latency_us=None if math.isnan(row[3]) else float(row[3] * 1e6),
+                compute_us=None if math.isnan(row[4]) else float(row[4] * 1e6),
+                skipped_deadlines=int(row[5]),
+                late_feedback=bool(row[6]),
+                missing_feedback=bool(row[7]),
+            )
 
     def summary(self, missed_deadlines: int) -> TimingSummary:
         """Statistics over every finished block."""

@@ -1,11 +1,14 @@
-"""Offline learning trials on the one physics code path (``plant_emulator.physics.build_plant``).
+"""Offline learning trials: the bench's trial loop on a simulated drive, over the one physics code path.
 
-Each trial runs sample by sample exactly as the bench does: reset the plant for trial ``k`` (initial condition,
-disturbance armed from ``disturbance.start_trial``), then for ``t = 0 .. N-1`` hand the measured output
-``y(t Ts)`` to :meth:`~foilc_hil.laws.learning.LearningLaw.command`, hold the returned ``u(t)`` over one sample (after
-``input_delay`` samples, the CAN loop's transport delay when emulated), and finally pass the trial arrays
-(values at ``(i + 1) Ts``, see :mod:`foilc_hil.references`) to :meth:`~foilc_hil.laws.learning.LearningLaw.end_trial`.
-No plant dynamics are written here.
+:func:`simulate` runs :class:`~foilc_hil.loop.bench.TrialLoop` -- the loop ``foilc-hil run`` runs over CAN -- in
+lockstep on a :class:`~foilc_hil.loop.simulated_drive.SimulatedDrive`, which puts
+``plant_emulator.physics.build_plant(config.plant)`` behind the bench's drive interface with a transport delay of
+the law's ``input_delay`` cycles (1: the SYNC-driven CAN loop; 0: the ideal loop). Each trial: the drive resets
+the plant for trial ``k`` (initial condition, disturbance armed from ``disturbance.start_trial``), then for
+``t = 0 .. N-1`` the law gets the measured output ``y(t Ts)`` and returns ``u(t)``, and finally the trial arrays
+(values at ``(i + 1) Ts``, see :mod:`foilc_hil.references`) go to
+:meth:`~foilc_hil.laws.learning.LearningLaw.end_trial`. The divergence rule, the per-sample log and the metrics are
+the bench's. No plant dynamics and no trial loop are written here.
 
 ``python -m foilc_hil.loop.simulation --paper-table [--config configs/paper_sim.yaml]`` prints the Markdown table of
 ``docs/paper-reproduction.md`` from fresh runs.
@@ -14,10 +17,11 @@ No plant dynamics are written here.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -32,6 +36,8 @@ if TYPE_CHECKING:
     from foilc_hil.config import Config
     from foilc_hil.design.record import Design
     from foilc_hil.laws.learning import LearningLaw
+    from foilc_hil.loop.bench import McapSink, TrialRecord
+    from foilc_hil.loop.scheduler import CycleTiming
 
 __all__ = [
     "SimulationResult",
@@ -145,7 +151,7 @@ def build_law(
     return make_law(design, config.law, n_samples), design, certificates
 
 
-# --- the trial loop ---------------------------------------------------------------------------------------------
+# --- the trial loop: the bench's, on a simulated drive ----------------------------------------------------------
 
 
 def simulate(
@@ -159,6 +165,11 @@ def simulate(
 ) -> SimulationResult:
     """Run ``trials`` learning trials of ``law`` offline on ``build_plant(config.plant)``.
 
+    The trials run in the bench's :class:`~foilc_hil.loop.bench.TrialLoop`, in lockstep, on a
+    :class:`~foilc_hil.loop.simulated_drive.SimulatedDrive` whose transport delay is the law's input delay; the
+    drive resets the plant before each trial, so there is no settle phase, and it has no command limits of its own
+    (the plant's ``saturation`` acts inside the plant).
+
     Parameters
     ----------
     config
@@ -170,146 +181,127 @@ def simulate(
     design
         A ready design (skips tuning and synthesis).
     input_delay
-        Samples between issuing ``u(t)`` and the plant applying it (1 emulates a SYNC-driven CAN loop); the
-        design is made for the same delay.
+        Samples between issuing ``u(t)`` and the plant applying it (1 emulates a SYNC-driven CAN loop, 0 is the
+        ideal loop); the design is made for the same delay.
     out
         Optional MCAP file (layout of ``../shared/interface.md``).
 
     Returns
     -------
     SimulationResult
-        If learning diverges (non-finite values, or a trial's SSE above ``bench.divergence_factor`` times the
-        SSE of trial 1, which runs the initial feedforward unlearned) the run stops after that trial and
-        ``stopped`` says why.
+        If learning diverges the run stops after that trial and ``stopped`` says why: non-finite values, or the
+        bench's rule (:class:`~foilc_hil.loop.safety.DivergenceGuard`): a trial's SSE above
+        ``bench.divergence_factor`` times the best SSE so far.
     """
-    from foilc_hil.references import reference_profile, sample_times, trial_samples
-    from plant_emulator.physics import build_plant
+    from foilc_hil.references import trial_samples
 
     if trials < 1:
         raise ConfigError(f"must be >= 1, got {trials}", key="trials")
-    ts = config.sample_time
-    n = trial_samples(config.reference, ts)
+    n = trial_samples(config.reference, config.sample_time)
     learning_law, used_design, certificates = build_law(config, law, n, design=design, input_delay=input_delay)
-    p, m = learning_law.n_outputs, learning_law.n_inputs
-    plant = build_plant(config.plant)
-    if plant.n_inputs != m or plant.n_outputs != p:
-        raise ConfigError(f"the plant is {plant.n_outputs}x{plant.n_inputs} but the law is {p}x{m}", key="plant")
-    reference = np.repeat(reference_profile(config.reference, ts)[:, None], p, axis=1)
-    delay = learning_law.input_delay
-
-    outputs = np.zeros((trials, n, p))
-    feedback = np.zeros((trials, n, p))
-    controls = np.zeros((trials, n, m))
-    errors = np.zeros((trials, n, p))
-    learned = np.zeros((trials, n, p))
-    metrics: list[TrialMetrics] = []
-    stopped = ""
-    writer = _open_log(out, config, used_design) if out is not None else None
+    if learning_law.n_inputs != 1 or learning_law.n_outputs != 1:
+        raise ConfigError(
+            f"the trial loop drives one axis; the law is {learning_law.n_outputs}x{learning_law.n_inputs}", key="plant"
+        )
     started = time.perf_counter()
+    with contextlib.ExitStack() as stack:
+        collector = _TrialCollector(_open_log(stack, out, config, used_design) if out is not None else None)
+        stopped = _run_trials(config, learning_law, trials, collector)
+    return _result(config, law, collector.records, certificates, used_design, stopped, time.perf_counter() - started)
+
+
+class _TrialCollector:
+    """The loop's log sink offline: keeps every finished trial (the result's arrays) and passes it to the log."""
+
+    def __init__(self, log: McapSink | None) -> None:
+        self.log = log
+        self.records: list[TrialRecord] = []
+
+    def trial_finished(self, record: TrialRecord) -> None:
+        self.records.append(record)
+        if self.log is not None:
+            self.log.trial_finished(record)
+
+    def timing(self, records: Iterator[CycleTiming]) -> None:
+        if self.log is not None:
+            self.log.timing(records)
+
+
+def _run_trials(config: Config, law: LearningLaw, trials: int, collector: _TrialCollector) -> str:
+    """The bench's trial loop on a simulated drive, in lockstep; returns why it stopped early (``""``: it did not)."""
+    from foilc_hil.loop.bench import TrialLoop, loop_settings
+    from foilc_hil.loop.simulated_drive import SimulatedDrive
+    from foilc_hil.references import reference_profile
+    from plant_emulator.device import TimingMode
+    from plant_emulator.physics import build_plant
+
+    drive = SimulatedDrive(build_plant(config.plant), sample_time=config.sample_time, input_delay=law.input_delay)
+    loop = TrialLoop(
+        drive,
+        law,
+        reference_profile(config.reference, config.sample_time),
+        None,
+        loop_settings(config, TimingMode.LOCKSTEP, settle_between_trials=False),
+        log=collector,
+        before_trial=drive.begin_trial,
+    )
+    drive.enable()
     try:
-        pending = np.zeros((delay + 1, m))  # FIFO of issued commands: row 0 is applied now
-        for k in range(1, trials + 1):
-            plant.reset(k)
-            learning_law.begin_trial()
-            pending.fill(0.0)  # the plant rests before the trial: nothing in flight
-            y = np.array(plant.output(), dtype=float).reshape(p)
-            trial_out, trial_fb, trial_u = outputs[k - 1], feedback[k - 1], controls[k - 1]
-            try:
-                for t in range(n):
-                    trial_fb[t] = y
-                    u = learning_law.command(t, y)
-                    trial_u[t] = u
-                    pending[delay] = u
-                    y = np.array(plant.step(pending[0], ts), dtype=float).reshape(p)
-                    trial_out[t] = y
-                    if delay:
-                        pending[:-1] = pending[1:]
-                update = learning_law.end_trial(reference, trial_out)
-            except LearningDivergedError as exc:
-                stopped = str(exc)
-                break
-            errors[k - 1] = update.error
-            learned[k - 1] = update.E
-            metrics.append(update.metrics)
-            if writer is not None:
-                _log_trial(writer, k, ts, reference, trial_fb, trial_u, update.error, update.E, trial_out, update)
-            # Divergence: learning made the error much worse than not learning at all (trial 1 runs the initial
-            # feedforward unchanged). Measured against trial 1 rather than the best trial, so that a new
-            # disturbance after near-perfect tracking (a large ratio to a tiny best SSE) is not taken for it.
-            baseline = max(metrics[0].sse, np.finfo(float).tiny)
-            if update.metrics.sse > config.bench.divergence_factor * baseline:
-                stopped = (
-                    f"trial {k}: SSE {update.metrics.sse:.6g} exceeds bench.divergence_factor "
-                    f"{config.bench.divergence_factor:g} x trial 1's SSE {metrics[0].sse:.6g}; learning diverged"
-                )
-                break
-    finally:
-        if writer is not None:
-            writer.close()
-    done = len(metrics)
+        return loop.run(trials).stopped or ""
+    except LearningDivergedError as exc:  # a non-finite output or command: the trials before it are the result
+        return str(exc)
+
+
+def _result(
+    config: Config,
+    law: str,
+    records: Sequence[TrialRecord],
+    certificates: dict[str, Any],
+    design: Design | None,
+    stopped: str,
+    seconds: float,
+) -> SimulationResult:
+    """The per-trial arrays of the finished trials, as ``(K, N, 1)`` (one output, one input)."""
+    from foilc_hil.references import reference_profile, sample_times
+
+    ts = config.sample_time
+    reference = reference_profile(config.reference, ts)
+    n = reference.shape[0]
+
+    def stacked(rows: list[np.ndarray]) -> np.ndarray:
+        return np.array(rows, dtype=float).reshape(len(rows), n, 1)
+
     return SimulationResult(
         law=law,
-        metrics=metrics,
+        metrics=[record.metrics for record in records],
         time=sample_times(config.reference, ts),
-        reference=reference,
-        outputs=outputs[:done],
-        controls=controls[:done],
-        errors=errors[:done],
-        learned=learned[:done],
-        feedback=feedback[:done],
+        reference=reference[:, None],
+        outputs=stacked([record.output for record in records]),
+        controls=stacked([record.control for record in records]),
+        errors=stacked([record.error for record in records]),
+        learned=stacked([record.E for record in records]),
+        # y_i the law saw at sample i: the first N of the trial's N + 1 feedbacks (the last closes the output array)
+        feedback=stacked([record.seen[:-1] for record in records]),
         certificates=certificates,
-        design=used_design,
+        design=design,
         stopped=stopped,
-        seconds=time.perf_counter() - started,
+        seconds=seconds,
     )
 
 
-def _open_log(out: str | Path, config: Config, design: Design | None) -> Any:
+def _open_log(stack: contextlib.ExitStack, out: str | Path, config: Config, design: Design | None) -> McapSink:
     from foilc_hil.config import dump_config
     from foilc_hil.io.mcap_log import McapLogWriter
+    from foilc_hil.loop.bench import McapSink
 
-    return McapLogWriter(
+    writer = McapLogWriter(
         out,
         config_yaml=dump_config(config),
         design=design.to_json() if design is not None else None,
         fsync=False,
     )
-
-
-def _log_trial(
-    writer: Any,
-    trial: int,
-    ts: float,
-    reference: np.ndarray,
-    feedback: np.ndarray,
-    control: np.ndarray,
-    error: np.ndarray,
-    learned: np.ndarray,
-    output: np.ndarray,
-    update: Any,
-) -> None:
-    """One ``/ilc/sample`` per sample, then ``/ilc/trial``.
-
-    In the sample message of sample ``i``: ``t = i Ts``; ``output`` is the feedback the law saw (``y(i Ts)``) and
-    ``control`` its command ``u(i)``; ``reference``, ``error`` and ``E`` are the trial arrays at index ``i`` (at
-    ``(i + 1) Ts``, the first output ``u(i)`` moves). The trial message adds ``final_output`` (``y(N Ts)``), so
-    a replay can rebuild ``end_trial``'s output array exactly: feedback of samples ``1 .. N-1`` plus it.
-    """
-    squeeze = feedback.shape[1] == 1
-    for i in range(feedback.shape[0]):
-        writer.log_sample(
-            trial,
-            i * ts,
-            reference[i, 0] if squeeze else reference[i],
-            feedback[i, 0] if squeeze else feedback[i],
-            control[i, 0] if control.shape[1] == 1 else control[i],
-            error[i, 0] if squeeze else error[i],
-            learned[i, 0] if squeeze else learned[i],
-            sample=i,
-        )
-    final = output[-1, 0] if squeeze else output[-1].tolist()
-    writer.log_trial(update.metrics, final_output=float(final) if squeeze else final)
-    writer.end_trial()
+    stack.callback(writer.close)
+    return McapSink(writer, None)  # no limiter offline: /ilc/trial without clamped / command_limits
 
 
 # --- plots ------------------------------------------------------------------------------------------------------

@@ -1,0 +1,75 @@
+"""The typed records the trial loop hands to the log writer.
+
+A sample is built once, as a :class:`SampleRecord`, by whoever produced it (the trial loop after a trial, a test,
+a tool) and travels unchanged through :class:`~foilc_hil.io.mcap_log.QueuedLogWriter`'s queue to
+:class:`~foilc_hil.io.mcap_log.McapLogWriter`, which encodes it with :meth:`SampleRecord.to_json`: one form from
+the loop to the file.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+__all__ = ["SampleRecord", "Signal"]
+
+#: a signal value: a float for a single-output axis, a sequence/array (one entry per output or input) otherwise
+Signal = Any
+
+
+def _scalar_or_list(value: Signal) -> Any:
+    """A Python float for a scalar (SISO), a list for a vector; numpy values converted."""
+    if isinstance(value, float):
+        return value
+    if isinstance(value, np.ndarray):
+        return value.item() if value.ndim == 0 else value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+@dataclass(frozen=True, slots=True)
+class SampleRecord:
+    """One ``/ilc/sample`` message: sample ``sample`` of trial ``trial``.
+
+    Attributes
+    ----------
+    trial
+        The trial (from 1).
+    t
+        ``i Ts``: the instant of ``output``, the feedback the law saw when it computed ``control``.
+    reference, error, E
+        The trial arrays at index ``i`` (values at ``(i + 1) Ts``); ``E`` may be ``None``.
+    output
+        The feedback the law was given at sample ``i`` (exactly the float64 it saw).
+    control
+        The law's command ``u(i)``.
+    sample
+        The index ``i`` within the trial; ``None`` writes no ``sample`` field (logs of other tools).
+    """
+
+    trial: int
+    t: float
+    reference: Signal
+    output: Signal
+    control: Signal
+    error: Signal
+    E: Signal = None
+    sample: int | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        """The ``/ilc/sample`` document (:data:`foilc_hil.io.schemas.ILC_SAMPLE_SCHEMA`); values are not rounded."""
+        document: dict[str, Any] = {
+            "trial": self.trial,
+            "t": self.t,
+            "reference": _scalar_or_list(self.reference),
+            "output": _scalar_or_list(self.output),
+            "control": _scalar_or_list(self.control),
+            "error": _scalar_or_list(self.error),
+            "E": _scalar_or_list(self.E),
+        }
+        if self.sample is not None:
+            document["sample"] = self.sample
+        return document

@@ -1,0 +1,161 @@
+"""A simulated drive: the physics of ``plant_emulator.physics`` behind the bench's :class:`~drivers.drive.Drive`.
+
+The offline simulator runs the bench's own :class:`~foilc_hil.loop.bench.TrialLoop` on this drive, in lockstep,
+so there is one trial loop; only what answers the SYNC differs (a CiA 402 drive over CAN, or this object).
+
+Cycle order at SYNC ``k`` (the virtual drive's lockstep order, :mod:`plant_emulator.device`, for ``input_delay = 1``):
+
+1. advance the plant one period with the command received ``input_delay`` SYNCs ago (the oldest slot of a FIFO);
+2. shift the FIFO: the command set since the last SYNC is now in flight (``input_delay = 0``: it is applied at
+   the next SYNC's step, the ideal loop without transport delay);
+3. answer with the output after that step.
+
+So with the loop's ``SYNC -> feedback y_i -> u_i = law(y_i) -> set_target(u_i)``, ``y_{i+1}`` is the output of a
+step driven by ``u_{i - input_delay}``: with ``input_delay = 1`` a command first moves the axis one cycle after it
+is computed, exactly as over CAN.
+
+A trial starts at the SYNC at which the plant is reset: :meth:`SimulatedDrive.begin_trial` (the loop's
+``before_trial`` hook) resets the plant for that trial and empties the FIFO, and the next SYNC reports the initial
+condition without stepping. (The virtual drive resets between two SYNCs and steps once, with a zero command,
+before its first report; for a plant at rest at ``x0 = 0`` with no disturbance at ``t = 0`` both are the same.)
+
+The plant is the one definition of the physics (``build_plant``), stepped once per SYNC; a compiled kernel that
+advances a whole trial later only has to replace :meth:`SimulatedDrive.sync`'s step.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import can
+import numpy as np
+
+from drivers.cia301 import NmtState
+from drivers.cia402 import STATE_STATUSWORD, OperationMode, State402
+from drivers.drive import DeviceInfo, Drive, Feedback, StopPath, StopReport
+from foilc_hil.errors import ConfigError, FeedbackTimeoutError, InputError
+from plant_emulator.physics import Plant
+
+__all__ = ["SimulatedDrive"]
+
+
+class SimulatedDrive(Drive):
+    """A single-axis drive whose SYNC advances ``plant`` by one period (see the module docstring).
+
+    Parameters
+    ----------
+    plant
+        A single-input single-output plant (``plant_emulator.physics.build_plant``).
+    sample_time
+        The period one SYNC advances the plant (seconds); :meth:`configure` may set another.
+    input_delay
+        SYNCs between :meth:`set_target` and the step that applies the command, minus one: 1 is the CAN loop, 0 the
+        ideal loop (the command acts over the very next period).
+    """
+
+    def __init__(self, plant: Plant, *, sample_time: float, input_delay: int = 1) -> None:
+        if plant.n_inputs != 1 or plant.n_outputs != 1:
+            raise ConfigError(
+                f"the trial loop drives one axis; the plant is {plant.n_outputs}x{plant.n_inputs}", key="plant"
+            )
+        if input_delay < 0:
+            raise InputError(f"input_delay: must be >= 0, got {input_delay}")
+        if not (sample_time > 0 and math.isfinite(sample_time)):
+            raise InputError(f"sample_time: must be positive, got {sample_time!r}")
+        self.plant = plant
+        self.period = float(sample_time)
+        self.input_delay = int(input_delay)
+        self.mode = OperationMode.CYCLIC_SYNC_VELOCITY
+        self._pending = np.zeros(self.input_delay + 1)  # slot 0 is applied at the next step, the last one is new
+        self._at_trial_start = True  # the plant was just built or reset: the next SYNC reports it as it is
+        self._cycle = 0
+        self._state = State402.SWITCH_ON_DISABLED
+        self._feedback: Feedback | None = None
+
+    # -- trials --------------------------------------------------------------------------------------------------
+
+    def begin_trial(self, trial: int) -> None:
+        """Reset the plant for ``trial`` (its initial condition, disturbance and noise of that trial), nothing in
+        flight; the next SYNC is the trial's first sample."""
+        self.plant.reset(trial)
+        self._pending.fill(0.0)
+        self._at_trial_start = True
+
+    # -- the cyclic path -----------------------------------------------------------------------------------------
+
+    def set_target(self, value: float) -> float:
+        """The command for the next SYNC (the newest FIFO slot); no limits or quantisation of its own."""
+        self._pending[-1] = value
+        return value
+
+    def sync(self) -> int:
+        """Advance the plant one period with the oldest command in flight and prepare the answer."""
+        self._cycle += 1
+        pending = self._pending
+        if self._at_trial_start:
+            self._at_trial_start = False
+            y = self.plant.output()
+        else:
+            command = pending[0] if self._state is State402.OPERATION_ENABLED else 0.0
+            y = self.plant.step(np.array([command]), self.period)
+        if self.input_delay:
+            pending[:-1] = pending[1:]  # the newest slot keeps its value: a drive holds its last set-point
+        self._feedback = Feedback(
+            cycle=self._cycle,
+            statusword=STATE_STATUSWORD[self._state],
+            state=self._state,
+            velocity=float(y[0]),
+            torque=0.0,
+            position=0,
+            timestamp=0.0,
+        )
+        return self._cycle
+
+    def wait_feedback(self, timeout: float) -> Feedback:
+        """The answer to the last SYNC (there is no waiting: the plant answered in :meth:`sync`)."""
+        if self._feedback is None:
+            raise FeedbackTimeoutError("no SYNC was sent to the simulated drive")
+        return self._feedback
+
+    # -- state machine ---------------------------------------------------------------------------------------------
+
+    def connect(self) -> DeviceInfo:
+        """A simulated drive is always there: its identity is all zeros."""
+        return DeviceInfo(0, 0, 0, 0, 0, 0, NmtState.PRE_OPERATIONAL, tuple(OperationMode))
+
+    def configure(self, mode: OperationMode, cycle_period: float) -> None:
+        """Record the mode (the plant's input is what its config says) and the period one SYNC advances."""
+        self.mode = mode
+        self.period = float(cycle_period)
+
+    def enable(self) -> None:
+        self._state = State402.OPERATION_ENABLED
+
+    def disable(self) -> None:
+        self._state = State402.SWITCH_ON_DISABLED
+
+    def quick_stop(self) -> None:
+        """Stop commanding the plant: from now on each SYNC steps it with a zero command."""
+        self._state = State402.QUICK_STOP_ACTIVE
+        self._pending.fill(0.0)
+
+    def fault_reset(self) -> None:
+        """A simulated drive never faults: nothing to clear."""
+
+    def safe_stop(self) -> StopReport:
+        """Disable; confirmed by construction (the simulated statusword is this object's own state)."""
+        self.disable()
+        return StopReport(
+            commanded=True,
+            confirmed=True,
+            state=self._state,
+            statusword=STATE_STATUSWORD[self._state],
+            via=StopPath.PDO,
+        )
+
+    def close(self) -> None:
+        """No bus resources to release."""
+
+    def add_frame_listener(self, listener: Callable[[can.Message, str], None]) -> None:
+        """No bus, no frames: the listener is never called."""

@@ -1,0 +1,61 @@
+"""The typed sample record: built once by the producer, encoded by the writer, read back field for field."""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from foilc_hil.io.mcap_log import LogOp, McapLogWriter, QueuedLogWriter, read_log
+from foilc_hil.io.records import SampleRecord
+
+
+def _records() -> list[SampleRecord]:
+    siso = SampleRecord(trial=2, t=0.25, reference=1.0, output=0.1 + 0.2, control=-1 / 3, error=0.7, E=None, sample=5)
+    mimo = SampleRecord(1, 0.0, np.array([1.0, 2.0]), np.float64(0.5), [0.25, -0.5], np.array([1e-300, -2.5]), 0.125)
+    return [siso, mimo]
+
+
+@pytest.mark.parametrize("queued", [False, True], ids=["direct", "queued"])
+def test_records_round_trip_through_the_writer(tmp_path: Path, queued: bool) -> None:
+    out = tmp_path / "records.mcap"
+    direct = McapLogWriter(out, config_yaml=None, fsync=False)
+    writer: McapLogWriter | QueuedLogWriter = QueuedLogWriter(direct) if queued else direct
+    with writer:
+        for record in _records():
+            writer.write_sample(record)
+    samples = read_log(out).samples
+    assert samples == [
+        {"trial": 2, "t": 0.25, "reference": 1.0, "output": 0.30000000000000004, "control": -1 / 3, "error": 0.7,
+         "E": None, "sample": 5},
+        {"trial": 1, "t": 0.0, "reference": [1.0, 2.0], "output": 0.5, "control": [0.25, -0.5],
+         "error": [1e-300, -2.5], "E": 0.125},  # no sample index given: no field
+    ]
+
+
+def test_the_positional_spelling_builds_the_same_record(tmp_path: Path) -> None:
+    record = _records()[0]
+    paths = tmp_path / "typed.mcap", tmp_path / "positional.mcap"
+    with McapLogWriter(paths[0], config_yaml=None, fsync=False) as typed:
+        typed.write_sample(record)
+    with McapLogWriter(paths[1], config_yaml=None, fsync=False) as positional:
+        positional.log_sample(
+            record.trial, record.t, record.reference, record.output, record.control, record.error, record.E,
+            sample=record.sample,
+        )
+    assert read_log(paths[0]).samples == read_log(paths[1]).samples == [record.to_json()]
+
+
+def test_sample_record_is_frozen_and_slotted() -> None:
+    record = _records()[0]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        record.trial = 3  # type: ignore[misc]
+    assert not hasattr(record, "__dict__")
+
+
+def test_log_opcodes_are_a_unique_int_enum() -> None:
+    assert issubclass(LogOp, enum.IntEnum)
+    assert len(LogOp.__members__) == len(LogOp) == 7  # no aliases: every opcode has its own value
