@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import struct
 import time
+from collections.abc import Iterator
 
 import can
 import pytest
@@ -194,11 +195,24 @@ def test_send_emcy_and_stop_responding() -> None:
 # --- the master's view -----------------------------------------------------------------------------------------
 
 
+_MASTER_BUSES: list[can.BusABC] = []
+
+
+@pytest.fixture(autouse=True)
+def _shut_master_buses() -> Iterator[None]:
+    """The bus belongs to the caller, not to the master: shut the ones :func:`_master` opened."""
+    yield
+    while _MASTER_BUSES:
+        _MASTER_BUSES.pop().shutdown()
+
+
 def _master(emulator: EmbeddedEmulator, **drive: float) -> Cia402Drive:
     cfg = DriveConfig.model_validate(
         {"node_id": 2, "heartbeat_producer_ms": 50, "heartbeat_consumer_ms": 200, **drive}
     )
-    master = Cia402Drive.open(open_bus(emulator.bus_config), cfg, sample_time=0.01)
+    bus = open_bus(emulator.bus_config)
+    _MASTER_BUSES.append(bus)
+    master = Cia402Drive.open(bus, cfg, sample_time=0.01)
     master.connect()
     master.configure(OperationMode.CYCLIC_SYNC_VELOCITY, 0.01)
     master.enable()

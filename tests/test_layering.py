@@ -1,55 +1,153 @@
-"""The dependency rule: imports point down the layers of docs/architecture.md, never up."""
+"""The dependency rule of docs/architecture.md: imports point down the ranks, and the import graph has no cycle.
+
+Every import counts: module level, ``TYPE_CHECKING`` blocks and function-local imports alike (a cycle hidden behind
+a function-local import is still a cycle in the design). Relative imports are resolved.
+"""
 
 from __future__ import annotations
 
 import ast
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-LAYER0 = {"foilc_hil.errors", "foilc_hil.schema", "foilc_hil"}
+PACKAGES = ("foilc_hil", "drivers", "plant_emulator")
+
+# Rank of each part of the data path: config -> design -> law -> loop -> log -> tools -> commands.
+# A module may import modules of its own rank or lower. The longest matching prefix decides.
+RANKS: dict[str, int] = {
+    "foilc_hil": 0,  # the package itself (__init__ imports nothing)
+    "foilc_hil.errors": 0,
+    "foilc_hil.schema": 1,
+    "drivers": 2,
+    "plant_emulator": 3,
+    "foilc_hil.config": 4,
+    "foilc_hil.metrics": 4,
+    "foilc_hil.references": 5,
+    "foilc_hil.progress": 5,
+    "foilc_hil.design": 6,
+    "foilc_hil.laws": 7,
+    "foilc_hil.io": 8,
+    "foilc_hil.loop": 9,
+    "foilc_hil.logtools": 10,
+    "foilc_hil.commission": 10,
+    "foilc_hil.commands": 11,
+    "foilc_hil.cli": 12,
+}
 
 
-def _layer(module: str) -> int:
-    if module in LAYER0:
-        return 0
-    top = module.split(".")[0]
-    return {"drivers": 1, "plant_emulator": 2, "foilc_hil": 3}.get(top, -1)
+def rank(module: str) -> int | None:
+    """The rank of ``module`` (None: not ours)."""
+    parts = module.split(".")
+    for end in range(len(parts), 0, -1):
+        prefix = ".".join(parts[:end])
+        if prefix in RANKS:
+            return RANKS[prefix]
+    return None
 
 
-def _imports(path: Path) -> list[str]:
-    tree = ast.parse(path.read_text(encoding="utf-8"))
-    found: list[str] = []
-    for node in ast.walk(tree):
+def module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def project_modules() -> dict[str, Path]:
+    return {module_name(path): path for package in PACKAGES for path in sorted((ROOT / package).rglob("*.py"))}
+
+
+def imports_of(module: str, source: str, known: Iterable[str], *, is_package: bool = False) -> set[str]:
+    """Project modules ``module`` imports anywhere in ``source`` (``from a import b`` counts ``a.b`` if a module)."""
+    known = set(known)
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(source)):
         if isinstance(node, ast.Import):
-            found.extend(alias.name for alias in node.names)
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            found.append(node.module)
-    return found
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = module.split(".")
+                anchor = parts[: len(parts) - node.level + (1 if is_package else 0)]
+                base = ".".join([*anchor, base] if base else anchor)
+            found.add(base)
+            found.update(f"{base}.{alias.name}" for alias in node.names if f"{base}.{alias.name}" in known)
+    return {name for name in found if rank(name) is not None and name != module}
 
 
-def _project_modules() -> list[tuple[str, Path]]:
-    modules = []
-    for package in ("foilc_hil", "drivers", "plant_emulator"):
-        for path in sorted((ROOT / package).rglob("*.py")):
-            parts = path.relative_to(ROOT).with_suffix("").parts
-            name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
-            modules.append((name, path))
-    return modules
+def import_graph(modules: Mapping[str, Path]) -> dict[str, set[str]]:
+    graph: dict[str, set[str]] = {}
+    for module, path in modules.items():
+        targets = imports_of(module, path.read_text(encoding="utf-8"), modules, is_package=path.name == "__init__.py")
+        # an import of a package means its __init__; a submodule import implies its parents' __init__ (empty here)
+        graph[module] = {target for target in targets if target in modules}
+    return graph
 
 
-@pytest.mark.parametrize(("module", "path"), _project_modules(), ids=lambda v: str(v))
-def test_imports_point_down(module: str, path: Path) -> None:
-    own = _layer(module)
-    for imported in _imports(path):
-        other = _layer(imported)
-        if other < 0:
-            continue  # third party or stdlib
-        assert other <= own, f"{module} (layer {own}) imports {imported} (layer {other})"
+def find_cycle(graph: Mapping[str, set[str]]) -> list[str] | None:
+    """One cycle of ``graph`` as a path ``[a, b, ..., a]``, or None (iterative DFS, three colours)."""
+    white, grey, black = 0, 1, 2
+    colour = dict.fromkeys(graph, white)
+    for start in sorted(graph):
+        if colour[start] != white:
+            continue
+        stack: list[tuple[str, list[str]]] = [(start, sorted(graph[start]))]
+        colour[start] = grey
+        while stack:
+            node, todo = stack[-1]
+            if not todo:
+                colour[node] = black
+                stack.pop()
+                continue
+            nxt = todo.pop()
+            if colour.get(nxt, black) == grey:
+                path = [entry for entry, _ in stack]
+                return [*path[path.index(nxt):], nxt]
+            if colour.get(nxt) == white:
+                colour[nxt] = grey
+                stack.append((nxt, sorted(graph.get(nxt, ()))))
+    return None
 
 
-def test_the_rule_can_fail() -> None:
-    """The checker itself flags an upward import."""
-    assert _layer("foilc_hil.bench") > _layer("drivers.cia402")
-    assert _layer("foilc_hil.errors") < _layer("drivers.cia402")
+MODULES = project_modules()
+GRAPH = import_graph(MODULES)
+
+
+def test_every_module_has_a_rank() -> None:
+    unranked = sorted(module for module in MODULES if rank(module) is None)
+    assert not unranked, f"give these a rank in RANKS (and docs/architecture.md): {unranked}"
+
+
+@pytest.mark.parametrize("module", sorted(MODULES))
+def test_imports_point_down(module: str) -> None:
+    own = rank(module)
+    assert own is not None
+    upward = sorted(f"{target} (rank {rank(target)})" for target in GRAPH[module] if (rank(target) or 0) > own)
+    assert not upward, f"{module} (rank {own}) imports up: {upward}"
+
+
+def test_the_import_graph_has_no_cycle() -> None:
+    cycle = find_cycle(GRAPH)
+    assert cycle is None, "import cycle: " + " -> ".join(cycle or [])
+
+
+def test_function_local_imports_are_seen() -> None:
+    source = "def f():\n    from foilc_hil.loop import bench\n    import drivers.cia402\n"
+    assert imports_of("foilc_hil.design.x", source, MODULES) >= {"foilc_hil.loop", "drivers.cia402"}
+
+
+def test_a_planted_cycle_is_found() -> None:
+    """The checker fails on a cycle planted through a function-local import (the shape that hid one before)."""
+    planted = {module: set(targets) for module, targets in GRAPH.items()}
+    low, high = "foilc_hil.design.certificates", "foilc_hil.design.lmi"
+    assert low in planted and high in planted
+    planted[low] |= imports_of(low, "def late():\n    from foilc_hil.design.lmi import synthesize\n", MODULES)
+    planted[high].add(low)
+    cycle = find_cycle(planted)
+    assert cycle is not None and cycle[0] == cycle[-1] and {low, high} <= set(cycle)
+
+
+def test_a_planted_upward_import_is_flagged() -> None:
+    assert (rank("foilc_hil.loop.bench") or 0) > (rank("foilc_hil.design.lmi") or 0)
+    assert (rank("foilc_hil.errors") or 0) < (rank("drivers.cia402") or 0)
+    assert rank("numpy") is None
