@@ -1,4 +1,4 @@
-"""``foilc-hil``: the command line. Subcommands are fixed in ``../shared/interface.md``.
+"""``foilc-hil``: the command line. Subcommands are fixed in ``docs/interface.md``.
 
 The CLI does the shared work -- argument parsing, ``--json`` output, mapping errors to exit codes -- and
 each subcommand module in :mod:`foilc_hil.commands` does its own (python-can's ``BusABC.recv`` /

@@ -3,7 +3,7 @@
 Every exception the product raises on purpose derives from :class:`FoilcHilError`. As in python-can
 (``CanTimeoutError(CanError, TimeoutError)``), each subclass also inherits the builtin it refines, so callers
 that only know the builtin still catch it. Each class carries the process exit code the CLI maps it to
-(see ``../shared/interface.md``): 1 runtime failure, 2 usage or configuration error, 3 infeasible design.
+(see ``docs/interface.md``): 1 runtime failure, 2 usage or configuration error, 3 infeasible design.
 """
 
 from __future__ import annotations

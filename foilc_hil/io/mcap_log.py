@@ -1,6 +1,6 @@
 """The bench's MCAP log: a writer (a python-can listener), a queued writer for the real-time loop, and a reader.
 
-Layout (topics, schemas, metadata) is in :mod:`foilc_hil.io.schemas` and ``../shared/interface.md``.
+Layout (topics, schemas, metadata) is in :mod:`foilc_hil.io.schemas` and ``docs/interface.md``.
 
 Durability
 ----------

@@ -1,6 +1,6 @@
 """The MCAP layout of a foilc-hil log: topics, JSON schemas, metadata record names.
 
-Fixed by ``../shared/interface.md`` ("MCAP layout"). Schema encoding ``jsonschema``, message encoding ``json``,
+Fixed by ``docs/interface.md`` ("MCAP layout"). Schema encoding ``jsonschema``, message encoding ``json``,
 so Foxglove opens the files as they are. The schemas here are what is registered in every file; changing a field
 name is a breaking change for users' scripts.
 

@@ -184,7 +184,7 @@ def simulate(
         Samples between issuing ``u(t)`` and the plant applying it (1 emulates a SYNC-driven CAN loop, 0 is the
         ideal loop); the design is made for the same delay.
     out
-        Optional MCAP file (layout of ``../shared/interface.md``).
+        Optional MCAP file (layout of ``docs/interface.md``).
 
     Returns
     -------
