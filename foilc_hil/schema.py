@@ -31,6 +31,7 @@ __all__ = [
     "apply_overrides",
     "as_array",
     "load_document",
+    "load_yaml_text",
     "validate",
 ]
 
@@ -121,7 +122,7 @@ def load_document(path: str | Path) -> dict[str, Any]:
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"cannot read: {exc}", source=source) from None
     try:
-        document = _load_yaml(text)
+        document = load_yaml_text(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}: " if mark is not None else ""
@@ -134,7 +135,7 @@ def load_document(path: str | Path) -> dict[str, Any]:
     return document
 
 
-def _load_yaml(text: str) -> Any:
+def load_yaml_text(text: str) -> Any:
     """``yaml.safe_load`` that refuses duplicate keys, deep nesting and alias expansion beyond the bounds.
 
     The node graph is composed first (aliases stay shared nodes, so composing is linear in the text) and checked

@@ -245,13 +245,13 @@ def law_from_log(contents: LogContents, n_samples: int) -> LawLike:
     import yaml
 
     from foilc_hil.config import Config, LawKind
-    from foilc_hil.schema import validate
+    from foilc_hil.schema import load_yaml_text, validate
 
     config_yaml = contents.config_yaml
     if config_yaml is None:
         raise LogFormatError(f"{contents.path}: no foilc_hil.config metadata; --verify needs the run's config")
     try:
-        document = yaml.safe_load(config_yaml) or {}
+        document = load_yaml_text(config_yaml) or {}  # a log is input too: the same bounds as a config file
     except yaml.YAMLError as exc:
         raise LogFormatError(f"{contents.path}: metadata foilc_hil.config is not YAML: {exc}") from None
     if not isinstance(document, dict):
