@@ -381,3 +381,31 @@ def test_verify_rebuilds_a_clamping_law_with_the_logged_command_limits(tmp_path:
     for record in contents.trials:  # without the logged limits the rebuilt law does not clamp: it diverges
         del record["command_limits"]
     assert verify_log(contents).first_divergence is not None
+
+
+def test_verify_of_a_damaged_log_is_partial_and_exits_1(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A checksum error mid-file: --verify checks what precedes it and says so; it never passes for the whole log."""
+    from tests.test_bench_e2e import bench_config
+
+    config = bench_config(tmp_path)
+    log = tmp_path / "sim.mcap"
+    assert main(["simulate", "--config", str(config), "--trials", "4", "--input-delay", "1", "--out", str(log)]) == 0
+    capsys.readouterr()
+    assert main(["replay", str(log), "--verify", "--json"]) == 0  # intact: the whole log verifies
+    intact = json.loads(capsys.readouterr().out)
+    assert intact["verified"] is True and intact["partial"] is False and intact["trials_checked"] == 4
+    data = bytearray(log.read_bytes())
+    middle = len(data) // 2
+    data[middle : middle + 8] = bytes(b ^ 0xFF for b in data[middle : middle + 8])  # inside a compressed chunk
+    log.write_bytes(bytes(data))
+    code = main(["replay", str(log), "--verify", "--json"])
+    captured = capsys.readouterr()
+    document = json.loads(captured.out)
+    assert code == 1
+    assert document["partial"] is True and document["truncated"] is True and document["damage"]
+    assert document["trials_checked"] < 4
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("foilc-hil replay: partial: ")
+    assert f"checked {document['samples_checked']} commands in {document['trials_checked']} trials" in lines[0]

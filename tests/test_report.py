@@ -95,12 +95,14 @@ def test_report_of_a_truncated_log_reports_what_it_has(tmp_path: Path, capsys: p
     data = log.read_bytes()
     log.write_bytes(data[: int(len(data) * 0.6)])
     out = tmp_path / "r"
-    assert main(["report", str(log), "--out", str(out), "--json"]) == 0
+    assert main(["report", str(log), "--out", str(out), "--json"]) == 1  # partial: not the whole run
     captured = capsys.readouterr()
     document = json.loads(captured.out)
-    assert document["truncated"] is True and document["damage"]
+    assert document["truncated"] is True and document["damage"] and document["partial"] is True
     assert 1 <= document["completed_trials"] < 4
-    assert "before its footer" in captured.err
+    assert len(captured.err.strip().splitlines()) == 1
+    assert captured.err.startswith("foilc-hil report: partial: ") and "before its footer" in captured.err
+    assert f"reported the {document['completed_trials']} trials read before it" in captured.err
     assert "Truncated log" in (out / "summary.md").read_text()
     assert (out / "sse.png").read_bytes()[:8] == PNG_MAGIC
 

@@ -67,7 +67,7 @@ def execute(args: argparse.Namespace) -> CommandResult:
         raise InputError(f"--rate: must be > 0, got {args.rate}")
     bus_cfg = _check_bus(args.bus, args.allow_real_bus) if args.bus else None
     contents = read_log(args.log)
-    if contents.truncated:
+    if contents.truncated and not args.verify:
         sys.stderr.write(f"foilc-hil replay: {args.log}: {contents.damage}; using what was read before it\n")
     directions = ("tx", "rx") if args.direction == "both" else (args.direction,)
     frames = select_frames(
@@ -82,6 +82,7 @@ def execute(args: argparse.Namespace) -> CommandResult:
         "first_divergence": None,
         "truncated": contents.truncated,
         "damage": contents.damage or None,
+        "partial": bool(args.verify and contents.truncated),
     }
     if args.verify:
         verification = verify_log(contents)
@@ -101,7 +102,8 @@ def execute(args: argparse.Namespace) -> CommandResult:
         document["frames_sent"] = playback.frames_sent
         document["duration"] = playback.duration
         document["max_lateness"] = playback.max_lateness
-    lines = [f"{args.log}: {len(frames)} frames selected, {document['frames_sent']} sent"]
+    lines = [f"{args.log}: {len(frames)} frames selected, {document['frames_sent']} sent" if bus_cfg is not None
+             else f"{args.log}: {len(frames)} frames selected (no --bus: nothing replayed onto a bus)"]
     if contents.truncated:
         lines.append(f"truncated: {contents.damage}")
     if args.verify:
@@ -125,5 +127,14 @@ def execute(args: argparse.Namespace) -> CommandResult:
             exit_code=ExitCode.RUNTIME_FAILURE,
             message=f"replay differs from the log at trial {divergence['trial']}, sample {divergence['sample']}: "
             f"{divergence['reason']}",
+        )
+    if document["partial"]:
+        # Why exit 1: "verified" must mean the whole log was checked; a damaged log was only checked up to the damage
+        return CommandResult(
+            document,
+            text,
+            exit_code=ExitCode.RUNTIME_FAILURE,
+            message=f"partial: {args.log}: {contents.damage}; checked {document['samples_checked']} commands in "
+            f"{document['trials_checked']} trials before it, the rest is unchecked",
         )
     return CommandResult(document, text)

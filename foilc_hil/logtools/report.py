@@ -119,6 +119,7 @@ def summarize(contents: LogContents) -> dict[str, Any]:
         "log": contents.path,
         "truncated": contents.truncated,
         "damage": contents.damage or None,
+        "partial": contents.truncated,  # the report covers only what was read before the damage
         "trials": trials,
         "completed_trials": len(completed),
         "incomplete_trials": incomplete,
