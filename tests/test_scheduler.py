@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from foilc_hil.loop.scheduler import DeadlineScheduler, TimingRecorder
+from foilc_hil.loop.scheduler import DeadlineScheduler, StreamingDistribution, TimingRecorder
 from plant_emulator.device import TimingMode
 
 
@@ -99,3 +99,50 @@ def test_recorder_summary_matches_numpy() -> None:
     assert records[7].missing_feedback is True
     assert records[7].cycle == 107
     assert records[0].lateness_us == pytest.approx(lateness[0] * 1e6)
+
+
+def test_streaming_distribution_is_exact_then_within_its_precision() -> None:
+    rng = np.random.default_rng(11)
+    small = rng.uniform(-1e-5, 2e-4, size=1000)
+    distribution = StreamingDistribution()
+    distribution.add(small)
+    for q in (1.0, 50.0, 99.0):
+        assert distribution.percentile(q) == np.percentile(small, q)  # exact while it fits
+    large = np.concatenate([small, rng.lognormal(-9.0, 1.0, size=60_000), -rng.lognormal(-12.0, 0.5, size=2000)])
+    distribution.add(large[small.size :])
+    assert distribution.count == large.size and distribution.maximum == large.max()
+    for q in (0.5, 1.0, 10.0, 50.0, 90.0, 99.0, 99.9):
+        truth = float(np.percentile(large, q, method="inverted_cdf"))  # nearest rank, as the histogram defines it
+        found = distribution.percentile(q)
+        assert found is not None
+        assert abs(found - truth) <= StreamingDistribution.RELATIVE_PRECISION * abs(truth) + 1e-12, (q, found, truth)
+
+
+def test_timing_memory_stays_bounded_over_a_long_run() -> None:
+    """The soak leak: the recorder must not keep a row per cycle (88 bytes a cycle before)."""
+    recorder = TimingRecorder(TimingMode.REALTIME, 0.001)
+
+    def size(value: object) -> int:
+        if isinstance(value, np.ndarray):
+            return int(value.nbytes)
+        if isinstance(value, (list, tuple)):
+            return 8 * len(value) + sum(size(item) for item in value)
+        if isinstance(value, StreamingDistribution):
+            return sum(size(item) for item in vars(value).values())
+        return 0
+
+    def retained() -> int:  # everything the recorder holds between blocks
+        return sum(size(value) for value in vars(recorder).values())
+
+    def run_blocks(blocks: int) -> None:
+        for trial in range(blocks):
+            recorder.begin_block(1000, phase="trial", trial=trial)
+            for i in range(1000):
+                recorder.record(i * 1e-3, i * 1e-3, 1e-5 + i * 1e-9, 2e-4, 1e-5, 0, False, False)
+            recorder.finish_block()
+
+    run_blocks(40)  # past the exact limit: every distribution has switched to its histogram
+    after_warm_up = retained()
+    run_blocks(40)
+    assert retained() == after_warm_up
+    assert recorder.summary(0).cycles == 80_000
