@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
-from enum import IntEnum
+from enum import IntEnum, unique
 
 from foilc_hil.errors import ProtocolError
 
@@ -127,6 +127,7 @@ _HEARTBEAT_NODE_SHIFT = 16
 _HEARTBEAT_TIME_MASK = 0xFFFF
 
 
+@unique
 class NmtState(IntEnum):
     """NMT states as carried in the heartbeat byte."""
 
@@ -136,6 +137,7 @@ class NmtState(IntEnum):
     PRE_OPERATIONAL = 0x7F
 
 
+@unique
 class NmtCommand(IntEnum):
     """NMT command specifiers (first byte of a frame on COB-ID 0x000)."""
 
@@ -146,6 +148,7 @@ class NmtCommand(IntEnum):
     RESET_COMMUNICATION = 0x82
 
 
+@unique
 class ErrorRegister(IntEnum):
     """Bits of the error register 0x1001."""
 
@@ -158,6 +161,7 @@ class ErrorRegister(IntEnum):
     MANUFACTURER = 0x80
 
 
+@unique
 class EmcyCode(IntEnum):
     """Emergency error codes used by the emulator and understood by the master (CiA 301 / CiA 402)."""
 
@@ -205,6 +209,7 @@ def emcy_text(code: int) -> str:
     return f"{classes.get(code >> 12, 'unknown')} error"
 
 
+@unique
 class SdoAbortCode(IntEnum):
     """CiA 301 SDO abort codes the product raises or decodes."""
 

@@ -6,9 +6,10 @@ object indices. Everything is an ``IntEnum``/``IntFlag``; no bare integers for s
 
 from __future__ import annotations
 
-from enum import IntEnum, IntFlag
+from enum import IntEnum, IntFlag, unique
 
 
+@unique
 class Obj(IntEnum):
     """Object dictionary indices used by the product (CiA 301 communication + CiA 402 profile)."""
 
@@ -47,6 +48,7 @@ class Obj(IntEnum):
     SUPPORTED_DRIVE_MODES = 0x6502
 
 
+@unique
 class IdentitySub(IntEnum):
     """Sub-indices of the identity object 0x1018."""
 
@@ -56,6 +58,7 @@ class IdentitySub(IntEnum):
     SERIAL = 4
 
 
+@unique
 class OperationMode(IntEnum):
     """Modes of operation (0x6060 / 0x6061) the product uses."""
 
@@ -72,6 +75,7 @@ SUPPORTED_MODE_BITS: dict[OperationMode, int] = {
 }
 
 
+@unique
 class State402(IntEnum):
     """The CiA 402 power drive system states."""
 
@@ -148,7 +152,11 @@ class Controlword(IntFlag):
 
 
 class Command402(IntEnum):
-    """Device control commands: the controlword value that requests each transition (CiA 402-2)."""
+    """Device control commands: the controlword value that requests each transition (CiA 402-2).
+
+    Not ``@unique`` on purpose: CiA 402 gives SWITCH_ON and DISABLE_OPERATION the same code 0x07 (the state decides
+    the transition), so DISABLE_OPERATION is an alias by the standard's own definition.
+    """
 
     SHUTDOWN = 0x06  # -> READY_TO_SWITCH_ON (transitions 2, 6, 8)
     SWITCH_ON = 0x07  # -> SWITCHED_ON (3, 5)
@@ -192,6 +200,7 @@ def decode_command(controlword: int) -> Command402 | None:
     return None
 
 
+@unique
 class QuickStopOption(IntEnum):
     """Quick stop option code 0x605A values (CiA 402-2)."""
 
@@ -202,6 +211,7 @@ class QuickStopOption(IntEnum):
     QUICK_STOP_RAMP_STAY = 6
 
 
+@unique
 class AbortConnectionOption(IntEnum):
     """Abort connection option code 0x6007 values (CiA 402-2)."""
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
-from enum import IntEnum
+from enum import IntEnum, unique
 
 from drivers.cia301 import COB_ID_INVALID
 from drivers.cia402 import Obj
@@ -34,6 +34,7 @@ _FORMAT = {(8, False): "B", (8, True): "b", (16, False): "H", (16, True): "h", (
 _FORMAT |= {(64, False): "Q", (64, True): "q"}
 
 
+@unique
 class PdoDirection(IntEnum):
     """Which way a PDO travels, seen from the drive: RPDO = to the drive, TPDO = from it."""
 
@@ -41,6 +42,7 @@ class PdoDirection(IntEnum):
     TPDO = 1
 
 
+@unique
 class TransmissionType(IntEnum):
     """Sub-index 2 of a PDO communication parameter (CiA 301) the product uses."""
 

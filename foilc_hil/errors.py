@@ -8,9 +8,10 @@ that only know the builtin still catch it. Each class carries the process exit c
 
 from __future__ import annotations
 
-from enum import IntEnum
+from enum import IntEnum, unique
 
 
+@unique
 class ExitCode(IntEnum):
     """Process exit codes fixed by the interface."""
 

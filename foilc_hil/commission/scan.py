@@ -22,7 +22,7 @@ import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from enum import IntEnum
+from enum import IntEnum, unique
 from typing import Any
 
 import can
@@ -47,6 +47,7 @@ __all__ = ["NodeReport", "ScanResult", "SdoCommand", "scan_bus"]
 DEVICE_PROFILE_MASK = 0xFFFF
 
 
+@unique
 class SdoCommand(IntEnum):
     """SDO command specifiers (byte 0) the probe sends and recognises (CiA 301 SDO protocol)."""
 
