@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from foilc_hil.config import LawKind
 from foilc_hil.design.record import jsonable
 from foilc_hil.errors import ConfigError, LearningDivergedError
 from foilc_hil.metrics import TrialMetrics
@@ -43,14 +44,10 @@ __all__ = [
     "SimulationResult",
     "build_law",
     "design_for",
-    "nominal_discrete_model",
     "paper_table",
     "plot_simulation",
     "simulate",
 ]
-
-LAWS = ("foilc", "ioilc", "p-type")
-
 
 @dataclass
 class SimulationResult:
@@ -115,17 +112,6 @@ class SimulationResult:
 
 
 # --- design and law ---------------------------------------------------------------------------------------------
-
-
-def nominal_discrete_model(config: Config, input_delay: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The nominal ``(A, B, C_measured)`` sampled with ``config.synthesis.discretization`` and augmented by
-    ``input_delay`` cycles (:func:`foilc_hil.design.models.augment_input_delay`) -- what a P-type law needs."""
-    from foilc_hil.design.models import augment_input_delay, discretize
-    from plant_emulator.linear import continuous_model
-
-    model = discretize(continuous_model(config.plant), config.sample_time, config.synthesis.discretization)
-    augmented, _ = augment_input_delay(model, input_delay)
-    return augmented.A, augmented.B, augmented.measured_output
 
 
 def design_for(config: Config, law: str, input_delay: int = 0) -> Design:
@@ -431,7 +417,7 @@ def paper_table(config: Config, *, trials: int | None = None, tolerance_fraction
     rows: list[PaperRow] = []
     timings: list[str] = []
     refused: list[str] = []
-    for law in LAWS:
+    for law in LawKind:
         began = time.perf_counter()
         try:
             result = simulate(config, law=law, trials=count)
