@@ -23,12 +23,11 @@ from foilc_hil.config import load_config
 from foilc_hil.design.tuning import (
     CONTROL_CROSSOVER_RTOL,
     CONTROL_PHASE_TOL_DEG,
+    OpenLoop,
+    PlantTf,
     evaluate_pair,
     frequency_sweep,
-    loop_response,
     oustaloup,
-    plant_phase,
-    plant_phase_slope,
     tune,
     tune_loop,
 )
@@ -43,7 +42,7 @@ def _closed_form(num: list[float], den: list[float], delay: float, wc: float, pm
 
 
 def _phase_at(num: list[float], den: list[float], delay: float, K: float, kp: float, r: float, w: float) -> float:
-    return float(np.angle(loop_response(num, den, delay, K, kp, r, np.array([w]))[0]))
+    return float(np.angle(OpenLoop(PlantTf(num, den, delay), K, kp, r).response(np.array([w]))[0]))
 
 
 PAPER_NUM = [1.68]
@@ -54,7 +53,7 @@ def test_paper_literal_spec_is_infeasible_with_computed_numbers() -> None:
     plant_deg = -math.degrees(math.atan2(70.0, 1.23))  # -88.99: first-order lag, independent of the solver
     for flat in (False, True):
         with pytest.raises(TuningInfeasibleError) as info:
-            tune_loop(PAPER_NUM, PAPER_DEN, 0.0, 70.0, 70.0, flat_phase=flat)
+            tune_loop(PlantTf(PAPER_NUM, PAPER_DEN, 0.0), 70.0, 70.0, flat_phase=flat)
         message = str(info.value)
         assert f"{plant_deg:.2f} deg" in message
         assert "-110.00 deg" in message
@@ -62,13 +61,13 @@ def test_paper_literal_spec_is_infeasible_with_computed_numbers() -> None:
         assert f"({180.0 + plant_deg:.2f}, 180.00)" in message  # what is reachable instead
     # just inside the reachable window it becomes feasible, just outside it does not
     edge = 180.0 + plant_deg
-    assert tune_loop(PAPER_NUM, PAPER_DEN, 0.0, 70.0, edge + 0.5).kp > 0
+    assert tune_loop(PlantTf(PAPER_NUM, PAPER_DEN, 0.0), 70.0, edge + 0.5).kp > 0
     with pytest.raises(TuningInfeasibleError):
-        tune_loop(PAPER_NUM, PAPER_DEN, 0.0, 70.0, edge - 0.5)
+        tune_loop(PlantTf(PAPER_NUM, PAPER_DEN, 0.0), 70.0, edge - 0.5)
 
 
 def test_feasible_with_one_cycle_delay_matches_closed_form() -> None:
-    result = tune_loop(PAPER_NUM, PAPER_DEN, 0.01, 70.0, 70.0)
+    result = tune_loop(PlantTf(PAPER_NUM, PAPER_DEN, 0.01), 70.0, 70.0)
     kp, r = _closed_form(PAPER_NUM, PAPER_DEN, 0.01, 70.0, 70.0)
     assert result.K == 1.0
     assert result.r == pytest.approx(r, rel=1e-9)
@@ -101,14 +100,14 @@ def test_k1_solver_matches_closed_form(
     kp, r = _closed_form(num, den, delay, wc, pm)
     if not 0.0 < r < 2.0 - 1e-9 or r < 1e-9:
         with pytest.raises(TuningInfeasibleError):
-            tune_loop(num, den, delay, wc, pm)
+            tune_loop(PlantTf(num, den, delay), wc, pm)
         return
     assume(r > 1e-6)  # a PD order this close to 0 is at the grid's resolution
-    result = tune_loop(num, den, delay, wc, pm)
+    result = tune_loop(PlantTf(num, den, delay), wc, pm)
     assert result.r == pytest.approx(r, rel=1e-7, abs=1e-10)
     assert result.kp == pytest.approx(kp, rel=1e-6)
     # the spec itself, evaluated directly
-    value = loop_response(num, den, delay, 1.0, result.kp, result.r, np.array([wc]))[0]
+    value = OpenLoop(PlantTf(num, den, delay), 1.0, result.kp, result.r).response(np.array([wc]))[0]
     assert abs(value) == pytest.approx(1.0, rel=1e-7)  # brentq's r tolerance times d log|P| / dr
     assert math.degrees(cmath.phase(value)) % 360 == pytest.approx((pm - 180.0) % 360, abs=1e-6)
 
@@ -124,34 +123,34 @@ def test_k1_solver_matches_closed_form(
 def test_flat_phase_solutions_meet_all_three_specs(
     num: list[float], den: list[float], delay: float, wc: float, pm: float
 ) -> None:
-    result = tune_loop(num, den, delay, wc, pm, flat_phase=True)
+    result = tune_loop(PlantTf(num, den, delay), wc, pm, flat_phase=True)
     assert result.solutions
     step = wc * 1e-5
     for solution in result.solutions:
         K, kp, r = solution.K, solution.kp, solution.r
         assert K > 0 and kp > 0 and 0 < r < 2
-        value = loop_response(num, den, delay, K, kp, r, np.array([wc]))[0]
+        value = OpenLoop(PlantTf(num, den, delay), K, kp, r).response(np.array([wc]))[0]
         assert abs(value) == pytest.approx(1.0, rel=1e-8)
         assert math.degrees(cmath.phase(value)) % 360 == pytest.approx((pm - 180.0) % 360, abs=1e-6)
         slope = np.unwrap(
             [_phase_at(num, den, delay, K, kp, r, wc - step), _phase_at(num, den, delay, K, kp, r, wc + step)]
         )
-        assert abs(slope[1] - slope[0]) / (2 * step) < 1e-6 * (1 + abs(plant_phase_slope(num, den, delay, wc)))
+        assert abs(slope[1] - slope[0]) / (2 * step) < 1e-6 * (1 + abs(PlantTf(num, den, delay).phase_slope(wc)))
 
 
 def test_flat_phase_infeasible_when_plant_phase_rises() -> None:
     num, den = [100.0, 100.0], list(np.polymul([1.0, 100.0], [1.0, 200.0]))  # lead: zero at 1, poles at 100, 200
-    assert plant_phase_slope(num, den, 0.0, 5.0) > 0
-    assert tune_loop(num, den, 0.0, 5.0, 40.0).kp > 0  # the K = 1 spec is reachable
+    assert PlantTf(num, den, 0.0).phase_slope(5.0) > 0
+    assert tune_loop(PlantTf(num, den, 0.0), 5.0, 40.0).kp > 0  # the K = 1 spec is reachable
     with pytest.raises(TuningInfeasibleError, match="not negative"):
-        tune_loop(num, den, 0.0, 5.0, 40.0, flat_phase=True)
+        tune_loop(PlantTf(num, den, 0.0), 5.0, 40.0, flat_phase=True)
 
 
 def test_wrapped_plant_phase_with_long_delay() -> None:
     num, den, delay, wc = [1.0], [1.0, 1.0], 0.1, 30.0
     expected = -math.atan2(wc, 1.0) - delay * wc  # below -180 deg: the modulo-360 spec must still work
-    assert plant_phase(num, den, delay, wc) == pytest.approx(expected)
-    result = tune_loop(num, den, delay, wc, 45.0)
+    assert PlantTf(num, den, delay).phase(wc) == pytest.approx(expected)
+    result = tune_loop(PlantTf(num, den, delay), wc, 45.0)
     assert result.achieved_phase_margin_deg == pytest.approx(45.0, abs=1e-3)
     kp, r = _closed_form(num, den, delay, wc, 45.0)
     assert result.r == pytest.approx(r, rel=1e-8)
@@ -161,13 +160,13 @@ def test_wrapped_plant_phase_with_long_delay() -> None:
 def test_sweep_matches_textbook_margins() -> None:
     w0, delay = 10.0, 0.05
     # L = w0/s: crossover w0, phase margin 90 deg, no phase crossover
-    sweep = frequency_sweep([w0], [1.0, 0.0], 0.0, 1.0, 0.0, 1.0, 0.01, 1e4)
+    sweep = frequency_sweep(OpenLoop(PlantTf([w0], [1.0, 0.0], 0.0), 1.0, 0.0, 1.0), 0.01, 1e4)
     assert len(sweep.crossings) == 1
     assert sweep.crossings[0].frequency == pytest.approx(w0, rel=1e-6)
     assert sweep.crossings[0].phase_margin_deg == pytest.approx(90.0, abs=1e-6)
     assert sweep.gain_margin_db is None
     # L = w0/s e^{-Ts}: PM = 90 - w0 T (deg); phase crossover at w = pi/(2T), GM = -20 log10(w0 / w)
-    sweep = frequency_sweep([w0], [1.0, 0.0], delay, 1.0, 0.0, 1.0, 0.01, 1e3)
+    sweep = frequency_sweep(OpenLoop(PlantTf([w0], [1.0, 0.0], delay), 1.0, 0.0, 1.0), 0.01, 1e3)
     assert sweep.crossings[0].phase_margin_deg == pytest.approx(90.0 - math.degrees(w0 * delay), abs=1e-5)
     w180 = math.pi / (2 * delay)
     assert sweep.phase_crossover == pytest.approx(w180, rel=1e-5)
@@ -175,8 +174,8 @@ def test_sweep_matches_textbook_margins() -> None:
 
 
 def test_evaluate_pair_round_trip_and_direct_evaluation() -> None:
-    solved = tune_loop([10.0], [1.0, 3.0, 2.0], 0.02, 5.0, 55.0)
-    direct = evaluate_pair([10.0], [1.0, 3.0, 2.0], 0.02, 1.0, solved.kp, solved.r)
+    solved = tune_loop(PlantTf([10.0], [1.0, 3.0, 2.0], 0.02), 5.0, 55.0)
+    direct = evaluate_pair(OpenLoop(PlantTf([10.0], [1.0, 3.0, 2.0], 0.02), 1.0, solved.kp, solved.r))
     assert direct.mode == "direct"
     assert direct.achieved_crossover == pytest.approx(5.0, rel=1e-5)
     assert direct.achieved_phase_margin_deg == pytest.approx(55.0, abs=1e-3)
@@ -185,11 +184,11 @@ def test_evaluate_pair_round_trip_and_direct_evaluation() -> None:
 
 def test_evaluate_pair_without_crossover_reports_none() -> None:
     # |L| = |1 + kp (jw)^r| * 1.68 / |jw + 1.23| stays above 1 when kp is large and r is close to 1
-    result = evaluate_pair(PAPER_NUM, PAPER_DEN, 0.0, 1.0, 3.0, 1.05)
+    result = evaluate_pair(OpenLoop(PlantTf(PAPER_NUM, PAPER_DEN, 0.0), 1.0, 3.0, 1.05))
     assert result.achieved_crossover is None and result.crossover is None
     assert result.checks["warnings"]
     w = np.logspace(-3, 4, 500)
-    assert np.all(np.abs(loop_response(PAPER_NUM, PAPER_DEN, 0.0, 1.0, 3.0, 1.05, w)) > 1)
+    assert np.all(np.abs(OpenLoop(PlantTf(PAPER_NUM, PAPER_DEN, 0.0), 1.0, 3.0, 1.05).response(w)) > 1)
 
 
 @pytest.mark.parametrize("alpha", [-0.5, -0.2, 0.3, 0.5])
@@ -214,7 +213,7 @@ def test_oustaloup_is_close_to_s_alpha_mid_band(alpha: float) -> None:
 def test_python_control_check_agrees(
     num: list[float], den: list[float], delay: float, wc: float, pm: float, flat: bool
 ) -> None:
-    result = tune_loop(num, den, delay, wc, pm, flat_phase=flat)
+    result = tune_loop(PlantTf(num, den, delay), wc, pm, flat_phase=flat)
     check = result.checks["python_control"]
     assert check["agrees_with_sweep"] is True
     assert abs(check["crossover"] / result.achieved_crossover - 1) <= CONTROL_CROSSOVER_RTOL
@@ -224,7 +223,7 @@ def test_python_control_check_agrees(
 def test_flat_phase_with_delay_is_flagged() -> None:
     """Flat phase with the one-cycle delay meets the three specs at wc, but r > 1 on a first-order plant never
     rolls off: the tuner must say so rather than hide it."""
-    result = tune_loop(PAPER_NUM, PAPER_DEN, 0.01, 70.0, 70.0, flat_phase=True)
+    result = tune_loop(PlantTf(PAPER_NUM, PAPER_DEN, 0.01), 70.0, 70.0, flat_phase=True)
     assert result.r > 1
     warnings = " ".join(result.checks["warnings"])
     assert "does not roll off" in warnings
@@ -234,13 +233,13 @@ def test_flat_phase_with_delay_is_flagged() -> None:
 
 def test_bad_parameters_are_named() -> None:
     with pytest.raises(ConfigError, match=r"tuning\.crossover"):
-        tune_loop(PAPER_NUM, PAPER_DEN, 0.0, -1.0, 45.0)
+        tune_loop(PlantTf(PAPER_NUM, PAPER_DEN, 0.0), -1.0, 45.0)
     with pytest.raises(ConfigError, match=r"tuning\.phase_margin_deg"):
-        tune_loop(PAPER_NUM, PAPER_DEN, 0.0, 10.0, 190.0)
+        tune_loop(PlantTf(PAPER_NUM, PAPER_DEN, 0.0), 10.0, 190.0)
     with pytest.raises(ConfigError, match=r"plant\.delay"):
-        tune_loop(PAPER_NUM, PAPER_DEN, -0.1, 10.0, 45.0)
+        PlantTf(PAPER_NUM, PAPER_DEN, -0.1)  # validated once, at construction
     with pytest.raises(ConfigError, match=r"tuning\.r"):
-        evaluate_pair(PAPER_NUM, PAPER_DEN, 0.0, 1.0, 1.0, 2.0)
+        OpenLoop(PlantTf(PAPER_NUM, PAPER_DEN, 0.0), 1.0, 1.0, 2.0)
 
 
 def _config(tmp_path: Path, tuning: str) -> Path:
