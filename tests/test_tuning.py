@@ -11,12 +11,13 @@ Truths used:
 from __future__ import annotations
 
 import cmath
+import dataclasses
 import math
 from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import assume, given, settings
+from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 
 from foilc_hil.config import load_config
@@ -39,6 +40,16 @@ def _closed_form(num: list[float], den: list[float], delay: float, wc: float, pm
     needed = cmath.exp(1j * (math.radians(pm_deg) - math.pi)) / g - 1.0
     r = 2.0 * cmath.phase(needed) / math.pi
     return abs(needed) / wc**r, r
+
+
+def _only_touches_one(num: list[float], den: list[float], wc: float, kp: float, r: float) -> bool:
+    """``|L|`` (K = 1) is on the same side of 1 one sweep step either side of ``wc``: a tangent, not a crossing."""
+    step = 10.0 ** (1.0 / 2000)  # the dense sweep's grid ratio (2000 points per decade)
+    sides = [
+        abs((1.0 + kp * (1j * w) ** r) * np.polyval(num, 1j * w) / np.polyval(den, 1j * w)) > 1.0
+        for w in (wc / step, wc * step)
+    ]
+    return sides[0] == sides[1]
 
 
 def _phase_at(num: list[float], den: list[float], delay: float, K: float, kp: float, r: float, w: float) -> float:
@@ -92,6 +103,8 @@ def test_feasible_with_one_cycle_delay_matches_closed_form() -> None:
     wc=st.floats(0.5, 100.0),
     pm=st.floats(5.0, 175.0),
 )
+# found by hypothesis: r -> 2 puts a notch of |L| at wc, which then only touches 1 there
+@example(pole=0.5, second_pole=0.5, gain=40.0, delay=0.0, wc=0.5, pm=175.0)
 def test_k1_solver_matches_closed_form(
     pole: float, second_pole: float | None, gain: float, delay: float, wc: float, pm: float
 ) -> None:
@@ -103,6 +116,11 @@ def test_k1_solver_matches_closed_form(
             tune_loop(PlantTf(num, den, delay), wc, pm)
         return
     assume(r > 1e-6)  # a PD order this close to 0 is at the grid's resolution
+    if _only_touches_one(num, den, wc, kp, r):
+        # no gain crossover for the independent sweep to confirm: the tuner must refuse, not report
+        with pytest.raises(TuningInfeasibleError, match="fails the independent frequency sweep"):
+            tune_loop(PlantTf(num, den, delay), wc, pm)
+        return
     result = tune_loop(PlantTf(num, den, delay), wc, pm)
     assert result.r == pytest.approx(r, rel=1e-7, abs=1e-10)
     assert result.kp == pytest.approx(kp, rel=1e-6)
@@ -262,3 +280,72 @@ def test_tune_from_config(tmp_path: Path) -> None:
     assert both.checks["configured_pair"]["kp"] == 1.0
     pair = tune(load_config(_config(tmp_path, "{kp: 1.0, r: 0.5}")))
     assert pair.mode == "direct" and pair.kp == 1.0 and pair.r == 0.5
+
+
+# --- the value objects ----------------------------------------------------------------------------------------
+
+
+def test_plant_tf_validates_once_with_the_named_errors() -> None:
+    with pytest.raises(ConfigError, match=r"plant\.num: must be finite and non-zero"):
+        PlantTf([0.0, 0.0], [1.0, 1.0])
+    with pytest.raises(ConfigError, match=r"plant\.den: must be finite and non-zero"):
+        PlantTf([1.0], [1.0, math.nan])
+    with pytest.raises(ConfigError, match=r"plant\.delay: must be finite and >= 0, got inf"):
+        PlantTf([1.0], [1.0, 1.0], math.inf)
+    plant = PlantTf([0.0, 2.0], [0.0, 0.0, 1.0, 3.0], 0.1)  # leading zeros are not a higher order
+    assert plant.num.tolist() == [2.0] and plant.den.tolist() == [1.0, 3.0]
+    with pytest.raises(ValueError, match="read-only"):
+        plant.num[0] = 5.0
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        plant.delay = 0.2  # type: ignore[misc]
+
+
+def test_plant_tf_equality_is_by_value() -> None:
+    plant = PlantTf([2.0], [1.0, 3.0], 0.1)
+    same = PlantTf(np.array([0.0, 2.0]), (1, 3), 0.1)
+    assert plant == same and hash(plant) == hash(same)
+    assert plant != PlantTf([2.0], [1.0, 3.0], 0.2)
+    assert plant != PlantTf([2.0], [1.0, 4.0], 0.1)
+
+
+def test_plant_tf_response_phase_and_slope_match_first_order_closed_forms() -> None:
+    b, a, delay = 1.68, 1.23, 0.01
+    plant = PlantTf([b], [1.0, a], delay)
+    for w in (0.1, 1.23, 70.0, 500.0):  # 500 rad/s: arg G below -180 deg, unwrapped
+        expected = b / complex(a, w) * cmath.exp(-1j * delay * w)
+        assert complex(plant.response(w)) == pytest.approx(expected, rel=1e-12)
+        assert plant.phase(w) == pytest.approx(-math.atan2(w, a) - delay * w, rel=1e-12)
+        assert plant.phase_slope(w) == pytest.approx(-a / (a * a + w * w) - delay, rel=1e-12)
+
+
+def test_plant_tf_corners_are_pole_zero_magnitudes_and_inverse_delay() -> None:
+    # zero at -10, poles at 0 (no corner), -2, -5; delay 0.25 s: corner 4 rad/s
+    plant = PlantTf([1.0, 10.0], np.polymul([1.0, 0.0], np.polymul([1.0, 2.0], [1.0, 5.0])), 0.25)
+    assert sorted(plant.corners()) == pytest.approx([2.0, 4.0, 5.0, 10.0])
+    assert PlantTf([1.0], [1.0, 0.0]).corners() == []
+
+
+@pytest.mark.parametrize(("K", "kp", "r"), [(1.0, 0.0, 1.0), (0.7, 0.05, 0.4), (2.5, 0.3, 1.6)])
+def test_open_loop_response_matches_the_complex_power(K: float, kp: float, r: float) -> None:
+    plant = PlantTf([10.0], [1.0, 3.0, 2.0], 0.02)
+    loop = OpenLoop(plant, K, kp, r)
+    for w in (0.05, 1.0, 7.0, 300.0):
+        s = 1j * w
+        # Python's complex power is the principal branch: an independent (j w)^r
+        expected = K * (1.0 + kp * s**r) * 10.0 / (s * s + 3.0 * s + 2.0) * cmath.exp(-plant.delay * s)
+        assert complex(loop.response(w)) == pytest.approx(expected, rel=1e-12)
+        assert loop.gain_at(w) == pytest.approx(abs(expected), rel=1e-12)
+
+
+def test_open_loop_validates_once_with_the_named_errors() -> None:
+    plant = PlantTf(PAPER_NUM, PAPER_DEN)
+    with pytest.raises(ConfigError, match=r"tuning\.kp: must be >= 0, got -0\.1"):
+        OpenLoop(plant, 1.0, -0.1, 0.5)
+    with pytest.raises(ConfigError, match=r"tuning\.kp"):
+        OpenLoop(plant, 1.0, math.nan, 0.5)
+    with pytest.raises(ConfigError, match=r"tuning\.r: must satisfy 0 < r < 2, got 0\.0"):
+        OpenLoop(plant, 1.0, 1.0, 0.0)
+    with pytest.raises(ConfigError, match=r"K: must be > 0, got 0\.0"):
+        OpenLoop(plant, 0.0, 1.0, 0.5)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        OpenLoop(plant).kp = 1.0  # type: ignore[misc]
