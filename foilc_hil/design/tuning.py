@@ -803,7 +803,7 @@ def _warnings(sweep: SweepResult, achieved: Crossing, loop_at_w_max: float) -> l
 
 
 def evaluate_pair(loop: OpenLoop) -> TuningResult:
-    """The achieved crossover and phase margin of a given ``K``, ``kp``, ``r`` (no solving).
+    """The achieved crossover and phase margin of ``loop`` as given (its ``K``, ``kp``, ``r``; no solving).
 
     The sweep window spans three decades beyond the plant's poles, zeros, ``1/delay`` and the PD corner
     ``kp^(-1/r)``. With several gain crossovers, the one with the smallest phase margin is reported.
