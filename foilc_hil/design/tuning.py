@@ -73,15 +73,14 @@ __all__ = [
     "DENSE_PHASE_TOL_DEG",
     "Crossing",
     "LoopSolution",
+    "OpenLoop",
+    "PlantTf",
     "SweepResult",
     "TuningResult",
     "control_check",
     "evaluate_pair",
     "frequency_sweep",
-    "loop_response",
     "oustaloup",
-    "plant_phase",
-    "plant_phase_slope",
     "tune",
     "tune_loop",
 ]
@@ -220,59 +219,155 @@ def _finite_or_none(value: Any) -> Any:
     return value
 
 
-# --- plant frequency response ---------------------------------------------------------------------------------
+# --- the plant and the open loop -------------------------------------------------------------------------------
 
 
-def _validated_plant(num: Coefficients, den: Coefficients, delay: float) -> tuple[np.ndarray, np.ndarray]:
-    num_a = np.trim_zeros(np.asarray(num, dtype=float), "f")
-    den_a = np.trim_zeros(np.asarray(den, dtype=float), "f")
-    if num_a.size == 0 or not np.all(np.isfinite(num_a)):
-        raise ConfigError("must be finite and non-zero", key="plant.num")
-    if den_a.size == 0 or not np.all(np.isfinite(den_a)):
-        raise ConfigError("must be finite and non-zero", key="plant.den")
-    if not (math.isfinite(delay) and delay >= 0.0):
-        raise ConfigError(f"must be finite and >= 0, got {delay!r}", key="plant.delay")
-    return num_a, den_a
+def _frozen_array(values: Coefficients) -> np.ndarray:
+    """Leading zeros trimmed, as a read-only float array (a frozen value object must not change under us)."""
+    array = np.trim_zeros(np.asarray(values, dtype=float), "f")
+    array.flags.writeable = False
+    return array
 
 
-def _rational(num: np.ndarray, den: np.ndarray, w: np.ndarray | float) -> np.ndarray:
-    s = 1j * np.asarray(w, dtype=float)
-    return np.asarray(np.polyval(num, s) / np.polyval(den, s))
+@dataclass(frozen=True, eq=False, init=False)
+class PlantTf:
+    """The plant ``G(s) = num(s) / den(s) * exp(-delay s)``, validated once at construction.
 
+    Parameters
+    ----------
+    num, den
+        Numerator and denominator, highest power first; leading zeros are trimmed and the arrays made read-only.
+    delay
+        Transport delay, seconds, finite and ``>= 0``.
 
-def plant_phase(num: Coefficients, den: Coefficients, delay: float, w: float) -> float:
-    """Continuous phase of ``G(j w)`` in radians: sum of the factors' angles minus ``delay * w``.
-
-    Each factor ``(j w - z)`` has an angle continuous in ``w > 0`` (no root on the imaginary axis at ``w``), so
-    this is the phase unwrapped from ``w -> 0+`` -- e.g. ``-pi/2 - 0.7`` for ``1.68/(s + 1.23) e^{-0.01 s}`` at
-    ``w = 70`` rather than a value folded into ``(-pi, pi]``.
+    Raises
+    ------
+    foilc_hil.errors.ConfigError
+        ``plant.num`` / ``plant.den`` empty (all zeros) or not finite, ``plant.delay`` negative or not finite.
     """
-    num_a, den_a = _validated_plant(num, den, delay)
-    s = 1j * w
-    phase = float(np.angle(num_a[0] / den_a[0]))
-    phase += float(np.sum(np.angle(s - np.roots(num_a)))) if num_a.size > 1 else 0.0
-    phase -= float(np.sum(np.angle(s - np.roots(den_a)))) if den_a.size > 1 else 0.0
-    return phase - delay * w
+
+    num: np.ndarray
+    den: np.ndarray
+    delay: float
+
+    def __init__(self, num: Coefficients, den: Coefficients, delay: float = 0.0) -> None:
+        # a hand-written __init__: it takes any coefficient sequence, the fields hold only validated arrays
+        num_a = _frozen_array(num)
+        den_a = _frozen_array(den)
+        if num_a.size == 0 or not np.all(np.isfinite(num_a)):
+            raise ConfigError("must be finite and non-zero", key="plant.num")
+        if den_a.size == 0 or not np.all(np.isfinite(den_a)):
+            raise ConfigError("must be finite and non-zero", key="plant.den")
+        if not (math.isfinite(delay) and delay >= 0.0):
+            raise ConfigError(f"must be finite and >= 0, got {delay!r}", key="plant.delay")
+        object.__setattr__(self, "num", num_a)
+        object.__setattr__(self, "den", den_a)
+        object.__setattr__(self, "delay", float(delay))
+
+    def __eq__(self, other: object) -> bool:
+        # by value: the generated __eq__ would compare arrays elementwise and fail on their truth value
+        if not isinstance(other, PlantTf):
+            return NotImplemented
+        return self._key() == other._key()
+
+    def __hash__(self) -> int:
+        return hash(self._key())
+
+    def _key(self) -> tuple[tuple[float, ...], tuple[float, ...], float]:
+        return tuple(float(x) for x in self.num), tuple(float(x) for x in self.den), self.delay
+
+    def rational(self, w: np.ndarray | float) -> np.ndarray:
+        """``num(j w) / den(j w)``: the response without the delay."""
+        s = 1j * np.asarray(w, dtype=float)
+        return np.asarray(np.polyval(self.num, s) / np.polyval(self.den, s))
+
+    def response(self, w: np.ndarray | float) -> np.ndarray:
+        """``G(j w)``, delay included."""
+        return np.asarray(self.rational(w) * np.exp(-1j * self.delay * np.asarray(w, dtype=float)))
+
+    def rational_phase(self, w: float) -> float:
+        """Continuous phase of ``num(j w) / den(j w)`` in radians: the sum of the factors' angles.
+
+        Each factor ``(j w - z)`` has an angle continuous in ``w > 0`` (no root on the imaginary axis at ``w``),
+        so this is the phase unwrapped from ``w -> 0+``.
+        """
+        s = 1j * w
+        phase = float(np.angle(self.num[0] / self.den[0]))
+        phase += float(np.sum(np.angle(s - np.roots(self.num)))) if self.num.size > 1 else 0.0
+        phase -= float(np.sum(np.angle(s - np.roots(self.den)))) if self.den.size > 1 else 0.0
+        return phase
+
+    def phase(self, w: float) -> float:
+        """Continuous phase of ``G(j w)`` in radians: :meth:`rational_phase` minus ``delay * w``.
+
+        E.g. ``-pi/2 - 0.7`` for ``1.68/(s + 1.23) e^{-0.01 s}`` at ``w = 70`` rather than a value folded into
+        ``(-pi, pi]``.
+        """
+        return self.rational_phase(w) - self.delay * w
+
+    def phase_slope(self, w: float) -> float:
+        """``d arg G(j w) / d w`` in rad per rad/s: ``Re(num'/num - den'/den)(j w) - delay``."""
+        s = 1j * w
+        log_derivative = np.polyval(np.polyder(self.num), s) / np.polyval(self.num, s) - np.polyval(
+            np.polyder(self.den), s
+        ) / np.polyval(self.den, s)
+        return float(np.real(log_derivative)) - self.delay
+
+    def corners(self) -> list[float]:
+        """The non-zero poles' and zeros' magnitudes and ``1 / delay``: where ``|G|`` and ``arg G`` bend."""
+        roots = np.concatenate([np.roots(self.num), np.roots(self.den)])
+        corners = [float(abs(z)) for z in roots if abs(z) > 0]
+        if self.delay > 0:
+            corners.append(1.0 / self.delay)
+        return corners
+
+    def scaled(self, wc: float) -> tuple[np.ndarray, np.ndarray]:
+        """``num(wc sigma)``, ``den(wc sigma)``: the polynomials in ``sigma = s / wc`` (well conditioned near wc)."""
+        return (
+            self.num * wc ** np.arange(self.num.size - 1, -1, -1),
+            self.den * wc ** np.arange(self.den.size - 1, -1, -1),
+        )
 
 
-def plant_phase_slope(num: Coefficients, den: Coefficients, delay: float, w: float) -> float:
-    """``d arg G(j w) / d w`` in rad per rad/s: ``Re(num'/num - den'/den)(j w) - delay``."""
-    num_a, den_a = _validated_plant(num, den, delay)
-    s = 1j * w
-    log_derivative = np.polyval(np.polyder(num_a), s) / np.polyval(num_a, s) - np.polyval(
-        np.polyder(den_a), s
-    ) / np.polyval(den_a, s)
-    return float(np.real(log_derivative)) - delay
+@dataclass(frozen=True)
+class OpenLoop:
+    """The open loop ``L(s) = K (1 + kp s^r) G(s)``, validated once at construction.
 
+    Raises
+    ------
+    foilc_hil.errors.ConfigError
+        ``tuning.kp`` negative, ``tuning.r`` outside ``(0, 2)``, ``K`` not positive (or any not finite).
+    """
 
-def loop_response(
-    num: Coefficients, den: Coefficients, delay: float, K: float, kp: float, r: float, w: np.ndarray
-) -> np.ndarray:
-    """``L(j w) = K (1 + kp (j w)^r) G(j w)`` evaluated exactly (principal branch of ``(j w)^r``)."""
-    num_a, den_a = _validated_plant(num, den, delay)
-    w = np.asarray(w, dtype=float)
-    pd_term = 1.0 + kp * w**r * np.exp(1j * r * math.pi / 2.0)
-    return np.asarray(K * pd_term * _rational(num_a, den_a, w) * np.exp(-1j * delay * w))
+    plant: PlantTf
+    K: float = 1.0
+    kp: float = 0.0
+    r: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.kp) and self.kp >= 0):
+            raise ConfigError(f"must be >= 0, got {self.kp!r}", key="tuning.kp")
+        if not (math.isfinite(self.r) and 0 < self.r < 2):
+            raise ConfigError(f"must satisfy 0 < r < 2, got {self.r!r}", key="tuning.r")
+        if not (math.isfinite(self.K) and self.K > 0):
+            raise ConfigError(f"must be > 0, got {self.K!r}", key="K")
+
+    def pd_term(self, w: np.ndarray | float) -> np.ndarray:
+        """``1 + kp (j w)^r`` (principal branch of ``(j w)^r``)."""
+        w = np.asarray(w, dtype=float)
+        return np.asarray(1.0 + self.kp * w**self.r * np.exp(1j * self.r * math.pi / 2.0))
+
+    def rational(self, w: np.ndarray | float) -> np.ndarray:
+        """``L(j w)`` without the plant's delay."""
+        return np.asarray(self.K * self.pd_term(w) * self.plant.rational(w))
+
+    def response(self, w: np.ndarray | float) -> np.ndarray:
+        """``L(j w) = K (1 + kp (j w)^r) G(j w)`` evaluated exactly."""
+        return np.asarray(self.rational(w) * np.exp(-1j * self.plant.delay * np.asarray(w, dtype=float)))
+
+    def gain_at(self, w: float) -> float:
+        """``|L(j w)|`` at one frequency."""
+        return float(np.abs(self.response(np.array([w]))[0]))
 
 
 def _wrap_deg(angle: np.ndarray | float) -> np.ndarray:
@@ -284,32 +379,22 @@ def _wrap_deg(angle: np.ndarray | float) -> np.ndarray:
 
 
 def frequency_sweep(
-    num: Coefficients,
-    den: Coefficients,
-    delay: float,
-    K: float,
-    kp: float,
-    r: float,
-    w_min: float,
-    w_max: float,
-    points_per_decade: int = _SWEEP_POINTS_PER_DECADE,
+    loop: OpenLoop, w_min: float, w_max: float, points_per_decade: int = _SWEEP_POINTS_PER_DECADE
 ) -> SweepResult:
     """Every gain crossover of ``L(j w)`` on a dense log grid, by linear interpolation in ``log w``.
 
     Independent of the solver: it only evaluates ``L`` and interpolates. Phase is unwrapped along the grid
     (rational part) with the delay's ``-delay * w`` added exactly, so wrapping is never guessed.
     """
-    num_a, den_a = _validated_plant(num, den, delay)
     decades = math.log10(w_max / w_min)
     w = np.logspace(math.log10(w_min), math.log10(w_max), max(64, int(decades * points_per_decade)) + 1)
-    pd_term = 1.0 + kp * w**r * np.exp(1j * r * math.pi / 2.0)
-    rational = K * pd_term * _rational(num_a, den_a, w)
+    rational = loop.rational(w)
     log_mag = np.log(np.abs(rational))
     phase = np.unwrap(np.angle(rational))
     # anchor the unwrapped branch on the plant's continuous phase at the first grid point
-    anchor = plant_phase(num_a, den_a, 0.0, float(w[0])) + float(np.angle(pd_term[0]))
+    anchor = loop.plant.rational_phase(float(w[0])) + float(np.angle(loop.pd_term(w[0])))
     phase += 2 * math.pi * round((anchor - phase[0]) / (2 * math.pi))
-    phase_deg = np.degrees(phase - delay * w)
+    phase_deg = np.degrees(phase - loop.plant.delay * w)
     log_w = np.log(w)
 
     crossings: list[Crossing] = []
@@ -354,16 +439,7 @@ def oustaloup(
     return -zero_freqs, -pole_freqs, w_high**alpha
 
 
-def control_check(
-    num: Coefficients,
-    den: Coefficients,
-    delay: float,
-    K: float,
-    kp: float,
-    r: float,
-    crossover: float,
-    reference: Crossing | None = None,
-) -> dict[str, Any]:
+def control_check(loop: OpenLoop, crossover: float, reference: Crossing | None = None) -> dict[str, Any]:
     """python-control's margins of ``L`` with ``s^r`` -> ``s^n`` times Oustaloup, and delay -> Padé.
 
     Frequencies are scaled by ``crossover`` (``s = wc * sigma``) so the polynomials stay well conditioned.
@@ -373,12 +449,9 @@ def control_check(
     """
     import control
 
-    num_a, den_a = _validated_plant(num, den, delay)
     wc = crossover
-    # plant in sigma = s / wc: num(wc sigma) / den(wc sigma)
-    num_s = num_a * wc ** np.arange(num_a.size - 1, -1, -1)
-    den_s = den_a * wc ** np.arange(den_a.size - 1, -1, -1)
-    plant = control.tf(num_s, den_s)
+    K, kp, r, delay = loop.K, loop.kp, loop.r, loop.plant.delay
+    plant = control.tf(*loop.plant.scaled(wc))
     # s^r = s^n * s^alpha with |alpha| <= 1/2: Oustaloup's band-edge phase error grows with |alpha|
     integer_part = round(r)
     alpha = r - integer_part
@@ -394,12 +467,12 @@ def control_check(
         pnum, pden = control.pade(delay * wc, pade_order)
         delay_model = control.tf(pnum, pden)
     try:
-        loop = control.minreal(K * pd_term * plant * delay_model, verbose=False)
+        model = control.minreal(K * pd_term * plant * delay_model, verbose=False)
         # stability_margins also computes the Nyquist distance (unused here) from a high-degree polynomial that
         # can overflow; the phase margin and crossover it returns are checked against the sweep below.
         with np.errstate(over="ignore", invalid="ignore"), warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
-            _, pm, _, _, wgc, _ = control.stability_margins(loop, returnall=True)
+            _, pm, _, _, wgc, _ = control.stability_margins(model, returnall=True)
     except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
         # the check could not run: say so; it never counts as agreement
         return {"method": "python-control stability_margins", "error": str(exc), "agrees_with_sweep": False}
@@ -419,7 +492,7 @@ def control_check(
         result["crossover"] = float(wgc[i] * wc)
         result["phase_margin_deg"] = float(_wrap_deg(pm[i]))
     try:
-        closed = control.feedback(loop, 1)
+        closed = control.feedback(model, 1)
         max_real = float(np.max(np.real(closed.poles()))) * wc
         result["closed_loop_max_real_pole"] = max_real
         result["closed_loop_stable"] = bool(max_real < 0)
@@ -491,6 +564,7 @@ def _deg(x: float) -> str:
 class _Spec:
     """The loop specification at the crossover and what the plant contributes there."""
 
+    plant: PlantTf
     wc: float
     phase_margin_deg: float
     gain: float  # |G(j wc)|
@@ -519,25 +593,25 @@ class _Spec:
         return math.sin(a) / math.sin(a - self.theta)
 
 
-def _spec(num: np.ndarray, den: np.ndarray, delay: float, crossover: float, phase_margin_deg: float) -> _Spec:
+def _spec(plant: PlantTf, crossover: float, phase_margin_deg: float) -> _Spec:
     """Validate the spec and read the plant at ``wc``; infeasible when the PD lead cannot reach the phase."""
     if not (math.isfinite(crossover) and crossover > 0):
         raise ConfigError(f"must be > 0 rad/s, got {crossover!r}", key="tuning.crossover")
     if not (math.isfinite(phase_margin_deg) and 0 < phase_margin_deg < 180):
         raise ConfigError(f"must be in (0, 180) degrees, got {phase_margin_deg!r}", key="tuning.phase_margin_deg")
     wc = float(crossover)
-    g = complex(_rational(num, den, wc) * np.exp(-1j * delay * wc))
+    g = complex(plant.response(wc))
     gain = abs(g)
     if gain == 0.0 or not math.isfinite(gain):
         raise TuningInfeasibleError(f"the plant's gain at wc={wc:g} rad/s is {gain:g}; no finite K, kp can fix it")
-    phase_g = plant_phase(num, den, delay, wc)
+    phase_g = plant.phase(wc)
     target = -math.pi + math.radians(phase_margin_deg)
     theta = float(np.mod(target - phase_g, 2 * math.pi))
     where = (
         f"the plant's phase at wc={wc:g} rad/s is {_deg(phase_g)} deg; the spec needs arg L = "
         f"{_deg(target)} deg (mod 360)"
     )
-    return _Spec(wc, float(phase_margin_deg), gain, phase_g, theta, where)
+    return _Spec(plant, wc, float(phase_margin_deg), gain, phase_g, theta, where)
 
 
 def _unreachable(spec: _Spec, flat_phase: bool) -> TuningInfeasibleError:
@@ -552,7 +626,7 @@ def _unreachable(spec: _Spec, flat_phase: bool) -> TuningInfeasibleError:
     )
 
 
-def _candidates(spec: _Spec, slope_g: float, flat_phase: bool) -> list[tuple[float, float, float]]:
+def _candidates(spec: _Spec, slope_g: float, flat_phase: bool) -> list[OpenLoop]:
     """Every ``(K, kp, r)`` meeting the spec: ``K = 1`` and ``|L(j wc)| = 1``, or flat phase solving for ``K``."""
     wc, r_grid = spec.wc, spec.r_grid
     if not flat_phase:
@@ -562,7 +636,7 @@ def _candidates(spec: _Spec, slope_g: float, flat_phase: bool) -> list[tuple[flo
                 f"{spec.where}; with K = 1 the needed |1 + kp*(j wc)^r| = {1 / spec.gain:.4g} is not met for any r "
                 f"in ({spec.r_min:.4g}, 2) (it needs r closer to an end than {_GRID_FRACTIONS[0]:.0e})"
             )
-        return [(1.0, spec.x_of(r) / wc**r, r) for r in roots]
+        return [OpenLoop(spec.plant, 1.0, spec.x_of(r) / wc**r, r) for r in roots]
 
     def flatness(r: float) -> float:
         a = r * math.pi / 2.0
@@ -576,28 +650,26 @@ def _candidates(spec: _Spec, slope_g: float, flat_phase: bool) -> list[tuple[flo
             if slope_g >= 0
             else f"{spec.where}; no r in ({spec.r_min:.4g}, 2) makes d arg L/dw = 0 at wc"
         )
-    return [(1.0 / (spec.magnitude_of(r) * spec.gain), spec.x_of(r) / wc**r, r) for r in roots]
+    return [OpenLoop(spec.plant, 1.0 / (spec.magnitude_of(r) * spec.gain), spec.x_of(r) / wc**r, r) for r in roots]
 
 
-def _ranked_solutions(
-    num: np.ndarray, den: np.ndarray, delay: float, wc: float, candidates: list[tuple[float, float, float]]
-) -> list[tuple[LoopSolution, SweepResult]]:
+def _ranked_solutions(wc: float, candidates: list[OpenLoop]) -> list[tuple[LoopSolution, SweepResult, OpenLoop]]:
     """Each candidate with its dense sweep, best first (the selection rule of ``checks["selection"]``)."""
-    ranked: list[tuple[LoopSolution, SweepResult]] = []
-    for K, kp, r in candidates:
-        sweep = frequency_sweep(num, den, delay, K, kp, r, wc * 1e-3, wc * 1e3)
+    ranked: list[tuple[LoopSolution, SweepResult, OpenLoop]] = []
+    for loop in candidates:
+        sweep = frequency_sweep(loop, wc * 1e-3, wc * 1e3)
         worst = sweep.worst()
         solution = LoopSolution(
-            K=K,
-            kp=kp,
-            r=r,
+            K=loop.K,
+            kp=loop.kp,
+            r=loop.r,
             worst_phase_margin_deg=worst.phase_margin_deg if worst else 180.0,
             gain_margin_db=sweep.gain_margin_db,
             n_crossings=len(sweep.crossings),
         )
-        ranked.append((solution, sweep))
+        ranked.append((solution, sweep, loop))
 
-    def preference(item: tuple[LoopSolution, SweepResult]) -> tuple[bool, float, float, float]:
+    def preference(item: tuple[LoopSolution, SweepResult, OpenLoop]) -> tuple[bool, float, float, float]:
         solution = item[0]
         gain_margin = solution.gain_margin_db if solution.gain_margin_db is not None else math.inf
         return (gain_margin <= 0.0, -solution.worst_phase_margin_deg, -gain_margin, solution.kp)
@@ -621,22 +693,13 @@ def _achieved(spec: _Spec, chosen: LoopSolution, sweep: SweepResult) -> Crossing
     return achieved
 
 
-def tune_loop(
-    num: Coefficients,
-    den: Coefficients,
-    delay: float,
-    crossover: float,
-    phase_margin_deg: float,
-    flat_phase: bool = False,
-) -> TuningResult:
+def tune_loop(plant: PlantTf, crossover: float, phase_margin_deg: float, flat_phase: bool = False) -> TuningResult:
     """Solve ``|L(j wc)| = 1``, ``arg L(j wc) = -180 + phase_margin_deg`` (and flatness) for ``kp, r`` (``K``).
 
     Parameters
     ----------
-    num, den
-        Plant numerator and denominator, highest power first.
-    delay
-        Plant transport delay, seconds.
+    plant
+        The plant ``G`` (validated at construction).
     crossover
         Gain crossover ``wc``, rad/s.
     phase_margin_deg
@@ -656,15 +719,14 @@ def tune_loop(
     foilc_hil.errors.ConfigError
         A parameter is out of range (named).
     """
-    num_a, den_a = _validated_plant(num, den, delay)
-    spec = _spec(num_a, den_a, delay, crossover, phase_margin_deg)
+    spec = _spec(plant, crossover, phase_margin_deg)
     if not 0.0 < spec.theta < math.pi:
         raise _unreachable(spec, flat_phase)
-    slope_g = plant_phase_slope(num_a, den_a, delay, spec.wc)
-    ranked = _ranked_solutions(num_a, den_a, delay, spec.wc, _candidates(spec, slope_g, flat_phase))
-    chosen, sweep = ranked[0]
+    slope_g = plant.phase_slope(spec.wc)
+    ranked = _ranked_solutions(spec.wc, _candidates(spec, slope_g, flat_phase))
+    chosen, sweep, loop = ranked[0]
     achieved = _achieved(spec, chosen, sweep)
-    checks = _checks(num_a, den_a, delay, chosen.K, chosen.kp, chosen.r, sweep, achieved)
+    checks = _checks(loop, sweep, achieved)
     checks["plant_phase_deg"] = math.degrees(spec.phase_g)
     checks["plant_gain"] = spec.gain
     checks["pd_phase_deg"] = math.degrees(spec.theta)
@@ -681,13 +743,13 @@ def tune_loop(
         crossover=spec.wc,
         phase_margin_deg=spec.phase_margin_deg,
         flat_phase=flat_phase,
-        plant_num=tuple(float(x) for x in num_a),
-        plant_den=tuple(float(x) for x in den_a),
-        plant_delay=float(delay),
+        plant_num=tuple(float(x) for x in loop.plant.num),
+        plant_den=tuple(float(x) for x in loop.plant.den),
+        plant_delay=loop.plant.delay,
         achieved_crossover=achieved.frequency,
         achieved_phase_margin_deg=achieved.phase_margin_deg,
         mode="spec",
-        solutions=tuple(solution for solution, _ in ranked),
+        solutions=tuple(solution for solution, _, _ in ranked),
         checks=checks,
     )
 
@@ -704,19 +766,9 @@ def _reachable_margins(pm_low: float) -> str:
     return f"phase margins reachable at this crossover: {text} deg"
 
 
-def _checks(
-    num: np.ndarray,
-    den: np.ndarray,
-    delay: float,
-    K: float,
-    kp: float,
-    r: float,
-    sweep: SweepResult,
-    achieved: Crossing,
-) -> dict[str, Any]:
-    loop_at_w_max = float(np.abs(loop_response(num, den, delay, K, kp, r, np.array([sweep.w_max]))[0]))
+def _checks(loop: OpenLoop, sweep: SweepResult, achieved: Crossing) -> dict[str, Any]:
     return {
-        "warnings": _warnings(sweep, achieved, loop_at_w_max),
+        "warnings": _warnings(sweep, achieved, loop.gain_at(sweep.w_max)),
         "sweep": {
             "w_min": sweep.w_min,
             "w_max": sweep.w_max,
@@ -726,7 +778,7 @@ def _checks(
             "phase_crossover": sweep.phase_crossover,
             "tolerance": {"crossover_rel": DENSE_CROSSOVER_RTOL, "phase_margin_deg": DENSE_PHASE_TOL_DEG},
         },
-        "python_control": control_check(num, den, delay, K, kp, r, achieved.frequency, achieved),
+        "python_control": control_check(loop, achieved.frequency, achieved),
     }
 
 
@@ -750,34 +802,25 @@ def _warnings(sweep: SweepResult, achieved: Crossing, loop_at_w_max: float) -> l
     return warnings
 
 
-def evaluate_pair(num: Coefficients, den: Coefficients, delay: float, K: float, kp: float, r: float) -> TuningResult:
-    """The achieved crossover and phase margin of a given ``K``, ``kp``, ``r`` (no solving).
+def evaluate_pair(loop: OpenLoop) -> TuningResult:
+    """The achieved crossover and phase margin of ``loop`` as given (its ``K``, ``kp``, ``r``; no solving).
 
     The sweep window spans three decades beyond the plant's poles, zeros, ``1/delay`` and the PD corner
     ``kp^(-1/r)``. With several gain crossovers, the one with the smallest phase margin is reported.
     """
-    num_a, den_a = _validated_plant(num, den, delay)
-    if not (math.isfinite(kp) and kp >= 0):
-        raise ConfigError(f"must be >= 0, got {kp!r}", key="tuning.kp")
-    if not (math.isfinite(r) and 0 < r < 2):
-        raise ConfigError(f"must satisfy 0 < r < 2, got {r!r}", key="tuning.r")
-    if not (math.isfinite(K) and K > 0):
-        raise ConfigError(f"must be > 0, got {K!r}", key="K")
-    corners = [abs(z) for z in np.concatenate([np.roots(num_a), np.roots(den_a)]) if abs(z) > 0]
-    if delay > 0:
-        corners.append(1.0 / delay)
-    if kp > 0:
-        corners.append(kp ** (-1.0 / r))
+    corners = loop.plant.corners()
+    if loop.kp > 0:
+        corners.append(loop.kp ** (-1.0 / loop.r))
     corners = corners or [1.0]
     w_min = max(min(corners) * 1e-3, 1e-6)
     w_max = min(max(corners) * 1e3, 1e7)
-    sweep = frequency_sweep(num_a, den_a, delay, K, kp, r, w_min, w_max, points_per_decade=1000)
+    sweep = frequency_sweep(loop, w_min, w_max, points_per_decade=1000)
     worst = sweep.worst()
     checks: dict[str, Any]
     if worst is not None:
-        checks = _checks(num_a, den_a, delay, K, kp, r, sweep, worst)
+        checks = _checks(loop, sweep, worst)
     else:
-        loop_at_w_max = float(np.abs(loop_response(num_a, den_a, delay, K, kp, r, np.array([w_max]))[0]))
+        loop_at_w_max = loop.gain_at(w_max)
         checks = {
             "warnings": [
                 f"|L| stays {'above' if loop_at_w_max > 1 else 'below'} 1 over [{sweep.w_min:.4g}, "
@@ -792,15 +835,15 @@ def evaluate_pair(num: Coefficients, den: Coefficients, delay: float, K: float, 
             },
         }
     return TuningResult(
-        K=float(K),
-        kp=float(kp),
-        r=float(r),
+        K=float(loop.K),
+        kp=float(loop.kp),
+        r=float(loop.r),
         crossover=worst.frequency if worst else None,
         phase_margin_deg=worst.phase_margin_deg if worst else None,
         flat_phase=False,
-        plant_num=tuple(float(x) for x in num_a),
-        plant_den=tuple(float(x) for x in den_a),
-        plant_delay=float(delay),
+        plant_num=tuple(float(x) for x in loop.plant.num),
+        plant_den=tuple(float(x) for x in loop.plant.den),
+        plant_delay=loop.plant.delay,
         achieved_crossover=worst.frequency if worst else None,
         achieved_phase_margin_deg=worst.phase_margin_deg if worst else None,
         mode="direct",
@@ -838,13 +881,13 @@ def tune(config: Config) -> TuningResult:
             key="tuning.crossover",
         )
     model = continuous_model(config.plant)
-    num, den = model.transfer_function()
+    plant = PlantTf(*model.transfer_function(), delay=model.delay)
     if has_spec:
         assert tuning.crossover is not None and tuning.phase_margin_deg is not None
-        result = tune_loop(num, den, model.delay, tuning.crossover, tuning.phase_margin_deg, tuning.flat_phase)
+        result = tune_loop(plant, tuning.crossover, tuning.phase_margin_deg, tuning.flat_phase)
         if has_pair:
             assert tuning.kp is not None and tuning.r is not None
-            pair = evaluate_pair(num, den, model.delay, 1.0, tuning.kp, tuning.r)
+            pair = evaluate_pair(OpenLoop(plant, 1.0, tuning.kp, tuning.r))
             result.checks["configured_pair"] = {
                 "kp": pair.kp,
                 "r": pair.r,
@@ -853,4 +896,4 @@ def tune(config: Config) -> TuningResult:
             }
         return result
     assert tuning.kp is not None and tuning.r is not None
-    return evaluate_pair(num, den, model.delay, 1.0, tuning.kp, tuning.r)
+    return evaluate_pair(OpenLoop(plant, 1.0, tuning.kp, tuning.r))
