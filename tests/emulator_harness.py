@@ -16,6 +16,7 @@ import can
 import canopen
 
 from drivers.cia301 import SYNC_COB_ID, FunctionCode, NmtCommand, cob_id
+from drivers.cia402 import AbortConnectionOption, State402
 from drivers.od import load_od
 from plant_emulator.config import PlantConfig
 from plant_emulator.device import VirtualDrive
@@ -23,6 +24,14 @@ from plant_emulator.physics import build_plant
 from plant_emulator.settings import EmulatorConfig
 
 NODE_ID = 3
+
+#: the state each abort-connection option (0x6007) leaves an OPERATION ENABLED drive in
+ABORT_REACTIONS = [
+    (AbortConnectionOption.NO_ACTION, State402.OPERATION_ENABLED),
+    (AbortConnectionOption.FAULT, State402.FAULT),
+    (AbortConnectionOption.DISABLE_VOLTAGE, State402.SWITCH_ON_DISABLED),
+    (AbortConnectionOption.QUICK_STOP, State402.QUICK_STOP_ACTIVE),
+]
 
 
 @dataclass

@@ -29,7 +29,7 @@ from plant_emulator.config import PlantConfig, PmsmConfig
 from plant_emulator.device import FaultKind
 from plant_emulator.embedded import EmbeddedEmulator
 from plant_emulator.settings import EmulatorConfig
-from tests.emulator_harness import Harness
+from tests.emulator_harness import ABORT_REACTIONS, Harness
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -132,12 +132,7 @@ def test_sustained_torque_limit_is_an_over_current_fault() -> None:
 
 @pytest.mark.parametrize(
     ("option", "state_after"),
-    [
-        (AbortConnectionOption.NO_ACTION, State402.OPERATION_ENABLED),
-        (AbortConnectionOption.FAULT, State402.FAULT),
-        (AbortConnectionOption.DISABLE_VOLTAGE, State402.SWITCH_ON_DISABLED),
-        (AbortConnectionOption.QUICK_STOP, State402.QUICK_STOP_ACTIVE),
-    ],
+    ABORT_REACTIONS,
 )
 def test_heartbeat_loss_reacts_per_0x6007(option: int, state_after: State402) -> None:
     with Harness() as h:
@@ -302,12 +297,7 @@ def test_short_rpdo_is_refused_with_emcy() -> None:
 @pytest.mark.parametrize("command", [NmtCommand.STOP, NmtCommand.ENTER_PRE_OPERATIONAL])
 @pytest.mark.parametrize(
     ("option", "state_after"),
-    [
-        (AbortConnectionOption.NO_ACTION, State402.OPERATION_ENABLED),
-        (AbortConnectionOption.FAULT, State402.FAULT),
-        (AbortConnectionOption.DISABLE_VOLTAGE, State402.SWITCH_ON_DISABLED),
-        (AbortConnectionOption.QUICK_STOP, State402.QUICK_STOP_ACTIVE),
-    ],
+    ABORT_REACTIONS,
 )
 def test_leaving_operational_reacts_per_0x6007(command: NmtCommand, option: int, state_after: State402) -> None:
     """Outside OPERATIONAL no RPDO reaches the drive: the drive applies its abort-connection reaction itself."""

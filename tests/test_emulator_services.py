@@ -20,6 +20,7 @@ from plant_emulator.node import EmulatedNode, load_object_dictionary
 from plant_emulator.pdo_engine import PdoEngine
 from plant_emulator.sdo_guard import SdoGuard
 from plant_emulator.settings import EmulatorConfig
+from tests.emulator_harness import ABORT_REACTIONS
 
 NODE_ID = 3
 
@@ -129,12 +130,7 @@ def test_application_fault_and_fault_reset(node: EmulatedNode) -> None:
 
 @pytest.mark.parametrize(
     ("option", "after"),
-    [
-        (AbortConnectionOption.NO_ACTION, State402.OPERATION_ENABLED),
-        (AbortConnectionOption.FAULT, State402.FAULT),
-        (AbortConnectionOption.DISABLE_VOLTAGE, State402.SWITCH_ON_DISABLED),
-        (AbortConnectionOption.QUICK_STOP, State402.QUICK_STOP_ACTIVE),
-    ],
+    ABORT_REACTIONS,
 )
 def test_application_leaving_operational_applies_0x6007(
     node: EmulatedNode, option: AbortConnectionOption, after: State402
