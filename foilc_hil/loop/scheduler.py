@@ -195,9 +195,12 @@ class StreamingDistribution:
     _BINS = math.ceil(math.log(_CEILING / _FLOOR) / math.log1p(RELATIVE_PRECISION)) + 1
 
     def __init__(self) -> None:
-        self._exact = np.empty(self.EXACT_LIMIT)
+        # Both arrays are written through at construction (np.full, not np.empty/np.zeros): the pages are then
+        # resident from the start, so a long run's memory does not creep up as new bins are first touched.
+        self._exact = np.full(self.EXACT_LIMIT, np.nan)
         self._n_exact = 0
-        self._counts: np.ndarray | None = None  # [negative bins reversed..., zero, positive bins...]
+        self._counts = np.full(2 * self._BINS + 1, 0, dtype=np.int64)  # [negative bins reversed, zero, positive]
+        self._folded = False
         self.count = 0
         self.maximum = -math.inf
 
@@ -209,12 +212,12 @@ class StreamingDistribution:
             return
         self.count += int(finite.size)
         self.maximum = max(self.maximum, float(finite.max()))
-        if self._counts is None and self._n_exact + finite.size <= self.EXACT_LIMIT:
+        if not self._folded and self._n_exact + finite.size <= self.EXACT_LIMIT:
             self._exact[self._n_exact : self._n_exact + finite.size] = finite
             self._n_exact += int(finite.size)
             return
-        if self._counts is None:
-            self._counts = np.zeros(2 * self._BINS + 1, dtype=np.int64)
+        if not self._folded:
+            self._folded = True
             self._fold(self._exact[: self._n_exact])
             self._n_exact = 0
         self._fold(finite)
@@ -223,7 +226,7 @@ class StreamingDistribution:
         """The ``q``-th percentile (0..100), or None without values."""
         if self.count == 0:
             return None
-        if self._counts is None:
+        if not self._folded:
             return float(np.percentile(self._exact[: self._n_exact], q))
         rank = max(1, math.ceil(q / 100.0 * self.count))
         index = int(np.searchsorted(np.cumsum(self._counts), rank))
@@ -234,7 +237,6 @@ class StreamingDistribution:
         return math.copysign(centre, offset)
 
     def _fold(self, values: np.ndarray) -> None:
-        assert self._counts is not None
         magnitude = np.clip(np.abs(values), self._FLOOR, self._CEILING)
         bins = 1 + np.floor(np.log(magnitude / self._FLOOR) / math.log1p(self.RELATIVE_PRECISION)).astype(np.int64)
         bins = np.minimum(bins, self._BINS)
