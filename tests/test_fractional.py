@@ -23,6 +23,7 @@ from scipy.special import gamma, rgamma
 
 from foilc_hil.design.fractional import (
     FFT_THRESHOLD,
+    NEAR_FIELD,
     FractionalPD,
     caputo_derivative,
     estimate_initial_slope,
@@ -302,3 +303,17 @@ def test_zero_history_matrix_is_lower_triangular_toeplitz_with_the_first_weight(
         np.testing.assert_allclose(np.diag(m, -k), np.diag(m, -k)[0], rtol=1e-13)
     with pytest.raises(ConfigError, match="history"):
         FractionalPD(1.0, 0.5, 0.1, history="riemann")  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(("r", "p"), [(0.3, 0.5), (0.7, 1.5), (0.9, 3.0)])
+def test_long_fft_keeps_every_sample_to_1e9_of_the_direct_sum(r: float, p: float) -> None:
+    """The FFT path on a long trial: every sample within 1e-9 (relative) of the direct linear convolution, and the
+    first NEAR_FIELD samples are direct sums, equal to rounding (the FFT's absolute rounding never reaches them)."""
+    n, h = 20_000, 1e-3
+    f = (np.arange(n) * h) ** p
+    fast = gl_derivative(f, r, h, method="fft")
+    exact = gl_derivative(f, r, h, method="direct")
+    nonzero = exact != 0.0
+    relative = np.abs(fast[nonzero] - exact[nonzero]) / np.abs(exact[nonzero])
+    assert relative.max() <= 1e-9
+    np.testing.assert_allclose(fast[:NEAR_FIELD], exact[:NEAR_FIELD], rtol=1e-12, atol=0.0)

@@ -34,9 +34,12 @@ Memory (``history``)
   The learning law uses this mode on the controllable part of the error (:mod:`foilc_hil.laws.learning`).
 
 The sum is a *linear* (not circular) convolution of the weights with ``g``. Short signals use a direct
-convolution, long ones a zero-padded FFT (``scipy.signal.fftconvolve``, which pads to the full ``2N - 1``
-length). The third-party ``differint`` package's GL uses an unpadded (circular) FFT and is only right at the
-last sample, so it is not used.
+convolution; long ones sum the first :data:`NEAR_FIELD` weights directly and the rest by a zero-padded FFT
+(``scipy.signal.fftconvolve``), so the FFT's rounding never dominates the small early samples (at N = 200,000,
+r = 0.7, f = t^1.5: within 6.8e-11 of the direct sum at every sample, 0.04 s against 5.8 s). For r > 1 the sum
+itself cancels (alternating weights against a growing signal) and both methods lose digits alike. The
+third-party ``differint`` package's GL uses an unpadded (circular) FFT and is only right at the last sample, so it
+is not used.
 """
 
 from __future__ import annotations
@@ -50,6 +53,7 @@ from foilc_hil.errors import ConfigError, InputError
 
 __all__ = [
     "FFT_THRESHOLD",
+    "NEAR_FIELD",
     "FractionalPD",
     "History",
     "caputo_derivative",
@@ -60,6 +64,8 @@ __all__ = [
 
 #: Signals at least this long use the zero-padded FFT convolution; shorter ones the direct sum.
 FFT_THRESHOLD = 512
+#: With the FFT, the first this many weights are still summed directly (see :func:`_linear_convolution`).
+NEAR_FIELD = 256
 
 ConvolutionMethod = Literal["auto", "direct", "fft"]
 #: Lower terminal of the fractional memory (module notes).
@@ -141,12 +147,20 @@ def _linear_convolution(weights: np.ndarray, g: np.ndarray, method: ConvolutionM
     n = g.shape[0]
     use_fft = method == "fft" or (method == "auto" and n >= FFT_THRESHOLD)
     kernel = weights if g.ndim == 1 else weights[:, None]
-    if use_fft:
-        # fftconvolve pads both operands to the full linear length 2N-1: no wrap-around.
-        full = signal.fftconvolve(kernel, g, mode="full", axes=0)
-    else:
-        full = signal.convolve(kernel, g, mode="full", method="direct")
-    return np.asarray(full[:n])
+    if not use_fft:
+        return np.asarray(signal.convolve(kernel, g, mode="full", method="direct")[:n])
+    # Near field direct, far field by FFT. An FFT's rounding error is absolute, on the scale of the whole product
+    # (~eps * |w| * |g|); on the first samples, where the derivative is small, that is a large relative error
+    # (3.7e-6 at N = 200,000). The first NEAR_FIELD weights carry almost all of each sample's value and are summed
+    # exactly as the direct method does; the far weights decay like j^(-1-r), so their FFT rounding is small
+    # against every sample, and the first NEAR_FIELD samples get no FFT contribution at all.
+    near = min(n, NEAR_FIELD)
+    out = np.asarray(signal.convolve(kernel[:near], g, mode="full", method="direct")[:n])
+    if n > near:
+        # fftconvolve pads both operands to the full linear length: no wrap-around.
+        far = signal.fftconvolve(kernel[near:], g[: n - near], mode="full", axes=0)[: n - near]
+        out[near:] += far
+    return out
 
 
 def gl_derivative(
