@@ -280,6 +280,9 @@ class Cia402Drive(Drive):
         #: a frame from the drive that does not decode is raised (BadFrameError) by the next wait_feedback; False:
         #: only counted in stats.bad_frames (the bench's ``bench.faults.bad_frame: count``)
         self.fatal_bad_frames = True
+        # the drive left NMT OPERATIONAL (its heartbeat said so) and the error was not yet raised by wait_feedback:
+        # the final stop reports it even when another error (e.g. the drive's own EMCY) ended the run first
+        self._nmt_departure: DriveNmtStateError | None = None
 
         self.heartbeat = HeartbeatMonitor(self.node_id)
         self._producer: HeartbeatProducer | None = None
@@ -401,6 +404,7 @@ class Cia402Drive(Drive):
         with self._cv:
             self._errors.clear()
             self._heartbeat_fault = False
+            self._nmt_departure = None
         self._start_master_heartbeat()
 
         rpdos, tpdos = pdo_layouts(mode, self.node_id, self.od)
@@ -551,7 +555,10 @@ class Cia402Drive(Drive):
             # not a stop: the caller decides whether one unanswered SYNC is fatal (the bench counts a lost feedback
             # and holds the last good one); the drive keeps its last command meanwhile
             raise
-        except (FoilcHilError, can.CanError):
+        except (FoilcHilError, can.CanError) as exc:
+            with self._cv:
+                if exc is self._nmt_departure:
+                    self._nmt_departure = None  # the caller has it
             self._fail_safe()
             raise
 
@@ -746,9 +753,12 @@ class Cia402Drive(Drive):
         state = self.heartbeat.last_state
         if (state is not None and state != NmtState.OPERATIONAL and before == NmtState.OPERATIONAL
                 and self._operational and self.heartbeat.timeout > 0):
-            self._post_error(DriveNmtStateError(
+            departure = DriveNmtStateError(
                 f"node {self.node_id} left NMT OPERATIONAL: its heartbeat reports {_nmt_name(state)} while the "
-                "bench runs (a drive outside OPERATIONAL ignores RPDOs)"))
+                "bench runs (a drive outside OPERATIONAL ignores RPDOs)")
+            with self._cv:
+                self._nmt_departure = departure
+            self._post_error(departure)
 
     def _on_heartbeat_lost(self, error: HeartbeatLostError) -> None:
         self._post_error(error)
@@ -900,9 +910,12 @@ class Cia402Drive(Drive):
     def _pending_faults(self) -> tuple[str, ...]:
         """Errors the drive reported that nobody raised yet (e.g. an EMCY during the final stop)."""
         with self._cv:
-            pending = tuple(str(error) for error in self._errors)
+            errors = list(self._errors)
+            if self._nmt_departure is not None and self._nmt_departure not in errors:
+                errors.append(self._nmt_departure)  # raised by a stop attempt, never to the caller: say it
             self._errors.clear()
-        return pending
+            self._nmt_departure = None
+        return tuple(str(error) for error in errors)
 
     def _fail_safe(self, command: Command402 = Command402.QUICK_STOP) -> None:
         """Best effort: command ``command`` with target 0 and apply it with one SYNC; never raises."""
