@@ -951,8 +951,9 @@ def _truth_about_the_stop(stops: list[StopReport], node_id: int) -> Iterator[Non
     except FoilcHilError as exc:
         for report in stops:
             exc.add_note(report.describe(node_id))
-            if report.faults:
-                exc.add_note("the drive also reported: " + "; ".join(report.faults))
+            also = [fault for fault in report.faults if fault != str(exc)]  # the same error again says nothing new
+            if also:
+                exc.add_note("the drive also reported: " + "; ".join(also))
         raise
     report = stops[-1]
     if not report.confirmed:
