@@ -29,7 +29,8 @@ Errors: EMCY -> :class:`~foilc_hil.errors.EmergencyError` (code decoded), status
 :class:`~foilc_hil.errors.HeartbeatLostError` (checked by ``wait_feedback`` and by a watchdog thread), no TPDO set
 in time -> :class:`~foilc_hil.errors.FeedbackTimeoutError`, SDO abort -> :class:`~foilc_hil.errors.SdoError`
 (abort code decoded), no SDO answer -> :class:`~foilc_hil.errors.DriveTimeoutError`.
-Before any of these leaves ``wait_feedback`` the master commands quick stop (controlword 0x02, target 0, one SYNC).
+Before any of these but ``FeedbackTimeoutError`` leaves ``wait_feedback`` the master commands quick stop (controlword
+0x02, target 0, one SYNC); one unanswered SYNC leaves the command as it was, for the caller to judge.
 Received frames: a TPDO/EMCY/heartbeat of the drive that does not decode (wrong DLC, impossible statusword) is
 counted in :attr:`Cia402Drive.stats` (``bad_frames``); with ``fatal_bad_frames`` (the default) it is also a
 :class:`~foilc_hil.errors.BadFrameError` (a run-time error, exit 1) raised by the next ``wait_feedback``, otherwise

@@ -30,20 +30,24 @@ Hot path: the per-trial arrays are allocated before the trial; per cycle the loo
 the law and the drive, and the frame tap enqueues CAN frames for the log writer thread. ``/ilc/sample``,
 ``/ilc/trial`` and ``/timing`` messages are built after the trial.
 
-Safety (:mod:`foilc_hil.loop.safety`): commands are clamped to the drive limits and the plant saturation; the
-watchdog bounds the wait for each SYNC's feedback to ``bench.watchdog_cycles`` cycles (one period each in
-realtime, :data:`LOCKSTEP_FEEDBACK_TIMEOUT` in lockstep) -- no further SYNC is sent while waiting, the drive holds
-its last command, and feedback that arrives after half a period is counted late; when it trips the master has
-already quick-stopped the drive and the run aborts with :class:`~foilc_hil.errors.FeedbackTimeoutError`. EMCY,
-a fault statusword or a drive leaving OPERATION ENABLED aborts; non-finite outputs or commands abort; a trial
+Safety (:mod:`foilc_hil.loop.safety`): commands are clamped to the drive limits and the plant saturation. The
+wait for each SYNC's feedback is bounded (:attr:`LoopSettings.feedback_timeout`: one period in realtime,
+``bench.watchdog_cycles`` x :data:`LOCKSTEP_FEEDBACK_TIMEOUT` in lockstep) -- no further SYNC is sent while
+waiting, the drive holds its last command, and realtime feedback that arrives after half a period is counted late.
+A wait that expires is a *lost feedback* (``bench.faults``): counted, and the law is given the last good feedback
+again (hold); more than ``bench.faults.lost_feedback`` in a row abort with
+:class:`~foilc_hil.errors.FeedbackTimeoutError`. Frames that do not decode are the master's to count or raise
+(``bench.faults.bad_frame``). EMCY, a fault statusword, the drive's heartbeat leaving NMT OPERATIONAL or a drive
+leaving OPERATION ENABLED aborts; non-finite outputs or commands abort; a trial
 whose SSE exceeds ``bench.divergence_factor`` x the best SSE so far stops learning and restores the best
 feedforward (:class:`~foilc_hil.loop.safety.DivergenceGuard`, the same rule offline: ``simulate`` runs this loop);
 SIGINT/SIGTERM stop the loop at the next cycle. Every abort quick-stops the drive first; on every exit path the caller's
 ``finally`` disables the drive (``safe_stop``) and closes the log.
 
 What ``/ilc/sample`` holds (the contract with ``replay --verify``): row ``i`` of trial ``k`` has
-``output = y_i`` -- exactly the float64 the law was given at sample ``i`` -- and ``control = u_i``, the law's
-command before the bench's limiter (what the law computed, so ``replay --verify`` can reproduce it bit for bit;
+``output = y_i`` -- exactly the float64 the law was given at sample ``i``, the held one for a lost feedback -- and
+``control = u_i``, the law's command before the bench's limiter (what the law computed, so ``replay --verify``
+can reproduce it bit for bit;
 the clamped, quantised value actually sent is kept in :attr:`TrialRecord.applied`, and ``/ilc/trial`` counts the
 clamped commands in ``clamped``). The law is built with the limiter's limits (``make_law(..., limits=...)``) and
 clamps internally, so it learns from the input that was applied (saturation-aware learning, see
