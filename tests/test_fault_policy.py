@@ -295,3 +295,23 @@ def test_losses_in_a_row_beyond_the_limit_abort_after_quick_stop() -> None:
         loop.run(1)
     assert law.given == [1.0, 1.0]  # SYNC 2 lost and held; SYNC 3, the second in a row, aborts
     assert drive.quick_stops == 1
+
+
+def test_timing_records_carry_the_lost_feedback_flag() -> None:
+    from foilc_hil.loop.bench import McapSink
+    from foilc_hil.loop.scheduler import CycleTiming
+
+    class Writer:
+        def __init__(self) -> None:
+            self.flags: list[bool] = []
+
+        def log_timing(self, *args: Any, lost_feedback: bool = False) -> None:
+            self.flags.append(lost_feedback)
+
+    writer = Writer()
+    records = [
+        CycleTiming(cycle, 1, "trial", cycle, 0.01 * cycle, None, 0.0, None if lost else 50.0, 1.0, 0, False, lost)
+        for cycle, lost in enumerate([False, True, False])
+    ]
+    McapSink(writer, None).timing(iter(records))  # type: ignore[arg-type]
+    assert writer.flags == [False, True, False]
