@@ -873,11 +873,12 @@ def _open_drive(
     """Open the bus and the CiA 402 master (safe-stopped on exit)."""
     from drivers.bus import open_bus
     from drivers.cia402_master import Cia402Drive
+    from foilc_hil.config import BadFramePolicy
 
     bus = open_bus(bus_cfg)
     stack.callback(bus.shutdown)
     drive = Cia402Drive.open(bus, config.drive, sample_time=config.sample_time)
-    drive.fatal_bad_frames = config.bench.faults.bad_frame == "abort"
+    drive.fatal_bad_frames = config.bench.faults.bad_frame is BadFramePolicy.ABORT
     stack.callback(drive.close)
     if sink is not None:  # the master passes "tx" or "rx", the writer's Direction
         drive.add_frame_listener(cast("Callable[[can.Message, str], None]", sink.writer.log_frame))
