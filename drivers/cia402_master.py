@@ -29,10 +29,18 @@ Errors: EMCY -> :class:`~foilc_hil.errors.EmergencyError` (code decoded), status
 :class:`~foilc_hil.errors.HeartbeatLostError` (checked by ``wait_feedback`` and by a watchdog thread), no TPDO set
 in time -> :class:`~foilc_hil.errors.FeedbackTimeoutError`, SDO abort -> :class:`~foilc_hil.errors.SdoError`
 (abort code decoded), no SDO answer -> :class:`~foilc_hil.errors.DriveTimeoutError`.
-Before any of these leaves ``wait_feedback`` the master commands quick stop (controlword 0x02, target 0, one SYNC).
-Received frames: a TPDO/EMCY/heartbeat of the drive with the wrong DLC is a
-:class:`~foilc_hil.errors.ProtocolError` (raised by the next ``wait_feedback``); a frame with a COB-ID nobody
-subscribed to (another node's traffic) is ignored and counted in :attr:`Cia402Drive.stats`.
+Before any of these but ``FeedbackTimeoutError`` leaves ``wait_feedback`` the master commands quick stop (controlword
+0x02, target 0, one SYNC); one unanswered SYNC leaves the command as it was, for the caller to judge.
+Received frames: a TPDO/EMCY/heartbeat of the drive that does not decode (wrong DLC, impossible statusword) is
+counted in :attr:`Cia402Drive.stats` (``bad_frames``); with ``fatal_bad_frames`` (the default) it is also a
+:class:`~foilc_hil.errors.BadFrameError` (a run-time error, exit 1) raised by the next ``wait_feedback``, otherwise
+it is only counted (a TPDO set left incomplete by it then simply never answers its SYNC). A frame with a COB-ID
+nobody subscribed to (another node's traffic) is ignored and counted (``unknown_frames``).
+
+NMT supervision: once the drive's heartbeat has reported OPERATIONAL after ``configure`` (the heartbeat is armed),
+a heartbeat reporting any other NMT state while the master is operational is a
+:class:`~foilc_hil.errors.DriveNmtStateError` raised by the next ``wait_feedback``: a drive out of OPERATIONAL
+ignores RPDOs, so the cyclic path no longer reaches it. The master's own NMT commands disarm the heartbeat first.
 
 Thread safety
 -------------
@@ -98,9 +106,11 @@ from drivers.heartbeat import HeartbeatMonitor, HeartbeatProducer
 from drivers.od import load_od, mapped_variable
 from drivers.pdo import MappedVariable, PdoCodec, PdoDirection, PdoLayout
 from foilc_hil.errors import (
+    BadFrameError,
     ConfigError,
     DriveError,
     DriveFaultError,
+    DriveNmtStateError,
     DriveTimeoutError,
     FeedbackTimeoutError,
     FoilcHilError,
@@ -202,7 +212,7 @@ class RxStats:
     tpdo_frames: int
     emcy_frames: int
     heartbeat_frames: int
-    bad_frames: int  # wrong DLC or impossible content: raised as ProtocolError
+    bad_frames: int  # wrong DLC or impossible content: counted, and raised as BadFrameError when fatal
     unknown_frames: int  # COB-ID nobody subscribed to: ignored
 
 
@@ -268,6 +278,12 @@ class Cia402Drive(Drive):
         self._heartbeat_frames = 0
         self._bad_frames = 0
         self._heartbeat_fault = False
+        #: a frame from the drive that does not decode is raised (BadFrameError) by the next wait_feedback; False:
+        #: only counted in stats.bad_frames (the bench's ``bench.faults.bad_frame: count``)
+        self.fatal_bad_frames = True
+        # the drive left NMT OPERATIONAL (its heartbeat said so) and the error was not yet raised by wait_feedback:
+        # the final stop reports it even when another error (e.g. the drive's own EMCY) ended the run first
+        self._nmt_departure: DriveNmtStateError | None = None
 
         self.heartbeat = HeartbeatMonitor(self.node_id)
         self._producer: HeartbeatProducer | None = None
@@ -389,6 +405,7 @@ class Cia402Drive(Drive):
         with self._cv:
             self._errors.clear()
             self._heartbeat_fault = False
+            self._nmt_departure = None
         self._start_master_heartbeat()
 
         rpdos, tpdos = pdo_layouts(mode, self.node_id, self.od)
@@ -535,7 +552,14 @@ class Cia402Drive(Drive):
         """Block until the TPDO set answering the last SYNC arrived (see :class:`~drivers.drive.Drive`)."""
         try:
             return self._await_feedback(timeout, raise_on_fault=True)
-        except (FoilcHilError, can.CanError):
+        except FeedbackTimeoutError:
+            # not a stop: the caller decides whether one unanswered SYNC is fatal (the bench counts a lost feedback
+            # and holds the last good one); the drive keeps its last command meanwhile
+            raise
+        except (FoilcHilError, can.CanError) as exc:
+            with self._cv:
+                if exc is self._nmt_departure:
+                    self._nmt_departure = None  # the caller has it
             self._fail_safe()
             raise
 
@@ -575,6 +599,7 @@ class Cia402Drive(Drive):
         """NMT pre-operational and consumer heartbeat off (best effort), then release the Notifier, producer, tap."""
         if self._closed:
             return
+        self.heartbeat.disarm()  # our own NMT command below is not a drive leaving OPERATIONAL
         if self._operational:
             try:
                 self._nmt(NmtCommand.ENTER_PRE_OPERATIONAL)
@@ -623,6 +648,12 @@ class Cia402Drive(Drive):
                            self._unknown.count)
 
     @property
+    def bad_frames(self) -> int:
+        """Frames from the drive that did not decode (:attr:`RxStats.bad_frames`)."""
+        with self._cv:
+            return self._bad_frames
+
+    @property
     def pdo_codecs(self) -> dict[int, PdoCodec]:
         """The configured PDO codecs by COB-ID (RPDO and TPDOs), e.g. for :func:`drivers.trace.describe_frame`."""
         codecs = dict(self._tpdo_codecs)
@@ -668,7 +699,8 @@ class Cia402Drive(Drive):
                 feedback = self._assemble(received)
             except ProtocolError as exc:
                 self._bad_frames += 1
-                self._errors.append(exc)
+                if self.fatal_bad_frames:
+                    self._errors.append(BadFrameError(str(exc)))
             else:
                 self._feedback = feedback
             self._cv.notify_all()
@@ -717,7 +749,17 @@ class Cia402Drive(Drive):
             return
         with self._cv:
             self._heartbeat_frames += 1
+        before = self.heartbeat.last_state
         self.heartbeat.beat(data[0])
+        state = self.heartbeat.last_state
+        if (state is not None and state != NmtState.OPERATIONAL and before == NmtState.OPERATIONAL
+                and self._operational and self.heartbeat.timeout > 0):
+            departure = DriveNmtStateError(
+                f"node {self.node_id} left NMT OPERATIONAL: its heartbeat reports {_nmt_name(state)} while the "
+                "bench runs (a drive outside OPERATIONAL ignores RPDOs)")
+            with self._cv:
+                self._nmt_departure = departure
+            self._post_error(departure)
 
     def _on_heartbeat_lost(self, error: HeartbeatLostError) -> None:
         self._post_error(error)
@@ -728,6 +770,9 @@ class Cia402Drive(Drive):
         with self._cv:
             if bad_frame:
                 self._bad_frames += 1
+                if not self.fatal_bad_frames:
+                    return
+                error = BadFrameError(str(error))
             self._errors.append(error)
             self._cv.notify_all()
 
@@ -866,9 +911,12 @@ class Cia402Drive(Drive):
     def _pending_faults(self) -> tuple[str, ...]:
         """Errors the drive reported that nobody raised yet (e.g. an EMCY during the final stop)."""
         with self._cv:
-            pending = tuple(str(error) for error in self._errors)
+            errors = list(self._errors)
+            if self._nmt_departure is not None and self._nmt_departure not in errors:
+                errors.append(self._nmt_departure)  # raised by a stop attempt, never to the caller: say it
             self._errors.clear()
-        return pending
+            self._nmt_departure = None
+        return tuple(str(error) for error in errors)
 
     def _fail_safe(self, command: Command402 = Command402.QUICK_STOP) -> None:
         """Best effort: command ``command`` with target 0 and apply it with one SYNC; never raises."""

@@ -188,8 +188,16 @@ class Drive(ABC):
 
     @abstractmethod
     def wait_feedback(self, timeout: float) -> Feedback:
-        """The feedback answering the last SYNC. Raises ``FeedbackTimeoutError``, ``EmergencyError``,
-        ``DriveFaultError``, ``HeartbeatLostError`` or ``ProtocolError``; each leaves the drive commanded to stop."""
+        """The feedback answering the last SYNC, waiting at most ``timeout`` seconds.
+
+        Raises ``FeedbackTimeoutError`` when no feedback answered in time: the drive keeps its last command (one
+        unanswered SYNC is the caller's to judge). ``EmergencyError``, ``DriveFaultError``, ``HeartbeatLostError``,
+        ``DriveNmtStateError`` and ``BadFrameError`` leave the drive commanded to stop."""
+
+    @property
+    def bad_frames(self) -> int:
+        """Frames received from the drive that did not decode, so far (0 for a drive without a bus)."""
+        return 0
 
     @abstractmethod
     def safe_stop(self) -> StopReport:

@@ -123,14 +123,31 @@ class LawConfig(Section):
     fractional_memory: FractionalMemory = FractionalMemory.CONTROLLABLE  # see FractionalMemory
 
 
+class BadFramePolicy(StrEnum):
+    """``bench.faults.bad_frame``: what a frame from the drive that does not decode does to the run."""
+
+    COUNT = "count"  # counted (/ilc/trial bad_frames) and ignored; an incomplete TPDO set is a lost feedback
+    ABORT = "abort"  # the run aborts (BadFrameError, exit 1)
+
+
+class FaultPolicyConfig(Section):
+    """``bench.faults``: the bench's reaction per kind of fault (EMCY and a fault statusword always abort)."""
+
+    bad_frame: BadFramePolicy = BadFramePolicy.COUNT
+    # consecutive SYNCs without a complete TPDO set tolerated (the law holds the last good feedback); one more aborts
+    lost_feedback: int = Field(default=3, ge=0)
+
+
 class BenchConfig(Section):
     """The trial loop over CAN: timing and safety."""
 
     mode: Literal["lockstep", "realtime"] = "lockstep"
+    # lockstep: one SYNC's feedback may take watchdog_cycles x 0.1 s before it counts as lost
     watchdog_cycles: int = Field(default=5, ge=1)
     divergence_factor: float = Field(default=10.0, gt=1)
     settle_time: float = Field(default=0.5, ge=0)  # initial-condition reset between trials, seconds
     settle_tolerance: float = Field(default=1.0, ge=0)  # |y| below this counts as at rest
+    faults: FaultPolicyConfig = FaultPolicyConfig()
 
 
 class Config(Section):

@@ -118,6 +118,18 @@ class DriveFaultError(DriveError):
     """The drive reports a fault (statusword fault bit)."""
 
 
+class DriveNmtStateError(DriveError):
+    """The drive's heartbeat reported that it left NMT OPERATIONAL while the bench ran its cyclic path."""
+
+
+class BadFrameError(DriveError):
+    """A frame received from the drive at run time does not decode (wrong DLC, malformed EMCY or heartbeat,
+    impossible statusword), under ``bench.faults.bad_frame: abort``.
+
+    A run-time failure of the link (exit 1), not bad input: :class:`ProtocolError` (exit 2) is for frames a user
+    handed the product (e.g. a trace to decode)."""
+
+
 class DriveNotStoppedError(DriveError):
     """The drive's disabled state could not be confirmed by reading it back after the stop."""
 

@@ -229,7 +229,8 @@ def test_third_party_nmt_mid_trial_ends_confirmed_disabled(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], command: NmtCommand, abort_option: int
 ) -> None:
     """Another node takes the drive out of OPERATIONAL mid-trial. Whether or not the drive reacts itself (0x6007),
-    the run exits 1 naming the fault and the drive ends disabled, read back from the drive, not assumed."""
+    the run exits 1 naming the node and the NMT state its heartbeat reported (DriveNmtStateError), and the drive
+    ends disabled, read back from the drive, not assumed."""
     from plant_emulator.embedded import EmbeddedEmulator
 
     config_path = bench_config(tmp_path, watchdog_cycles=3)
@@ -251,6 +252,13 @@ def test_third_party_nmt_mid_trial_ends_confirmed_disabled(
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 1
     assert len(err) == 1 and err[0].startswith("foilc-hil run: "), err
+    # noticed from the drive's heartbeat, not when the feedback watchdog trips: the error of the run (NMT STOP),
+    # or, when the drive's own EMCY (0x8100, sent in PRE-OPERATIONAL) ended the run first, a note on it
+    reported = "STOPPED" if command is NmtCommand.STOP else "PRE_OPERATIONAL"
+    assert f"node {NODE} left NMT OPERATIONAL: its heartbeat reports {reported}" in err[0], err[0]
+    if command is NmtCommand.STOP:  # a stopped node sends no EMCY: the heartbeat is the only news
+        assert err[0].startswith(f"foilc-hil run: node {NODE} left NMT OPERATIONAL"), err[0]
+    assert "watchdog" not in err[0], err[0]
     assert f"drive {NODE} confirmed disabled" in err[0], err[0]
     assert state_after in DISABLED_STATES
     assert_completed_trials_intact(read_log(out), 1)

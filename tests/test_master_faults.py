@@ -7,6 +7,7 @@ stop) or 0x00 (disable voltage), target 0, and a SYNC follows it so a synchronou
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 import uuid
@@ -21,8 +22,10 @@ from drivers.cia402_master import Cia402Drive
 from drivers.emcy import decode_emcy
 from drivers.heartbeat import HeartbeatMonitor
 from foilc_hil.errors import (
+    BadFrameError,
     DriveError,
     DriveFaultError,
+    DriveNmtStateError,
     EmergencyError,
     FeedbackTimeoutError,
     HeartbeatLostError,
@@ -152,12 +155,17 @@ def test_heartbeat_watchdog_reports_without_polling(rig: tuple[MiniServo, Cia402
     recorder.assert_commanded_safe()
 
 
-def test_missing_tpdo_raises_feedback_timeout(rig: tuple[MiniServo, Cia402Drive, TxRecorder]) -> None:
+def test_missing_tpdo_raises_feedback_timeout_and_keeps_the_command(
+    rig: tuple[MiniServo, Cia402Drive, TxRecorder],
+) -> None:
+    """One unanswered SYNC is the caller's to judge (the bench counts a lost feedback): no stop is commanded."""
     servo, drive, recorder = rig
     servo.mute_tpdo = True
     with pytest.raises(FeedbackTimeoutError, match=r"answered SYNC \d+ within 0.050 s"):
         cycle(drive, timeout=0.05)
-    recorder.assert_commanded_safe()
+    assert recorder.last_command()[0] == int(Command402.ENABLE_OPERATION)
+    servo.mute_tpdo = False
+    cycle(drive)  # the next SYNC is answered as usual
 
 
 def test_state_that_never_changes_names_the_stuck_state(rig: tuple[MiniServo, Cia402Drive, TxRecorder]) -> None:
@@ -169,20 +177,44 @@ def test_state_that_never_changes_names_the_stuck_state(rig: tuple[MiniServo, Ci
     recorder.assert_commanded_safe()
 
 
-def test_wrong_dlc_tpdo_is_a_protocol_error(rig: tuple[MiniServo, Cia402Drive, TxRecorder]) -> None:
+def test_wrong_dlc_tpdo_is_a_runtime_bad_frame_error(rig: tuple[MiniServo, Cia402Drive, TxRecorder]) -> None:
     servo, drive, recorder = rig
     servo.short_tpdo = True
-    with pytest.raises(ProtocolError, match="DLC 5 does not match the mapped length 6"):
+    with pytest.raises(BadFrameError, match="DLC 5 does not match the mapped length 6") as caught:
         cycle(drive)
-    assert drive.stats.bad_frames >= 1
+    assert caught.value.exit_code == 1  # a run-time failure of the link, not a usage error (2)
+    assert drive.stats.bad_frames >= 1 and drive.bad_frames == drive.stats.bad_frames
     recorder.assert_commanded_safe()
 
 
-def test_wrong_dlc_emcy_is_a_protocol_error(rig: tuple[MiniServo, Cia402Drive, TxRecorder]) -> None:
+def test_wrong_dlc_tpdo_only_counted_when_not_fatal(rig: tuple[MiniServo, Cia402Drive, TxRecorder]) -> None:
+    servo, drive, recorder = rig
+    drive.fatal_bad_frames = False
+    servo.short_tpdo = True
+    with pytest.raises(FeedbackTimeoutError):  # the TPDO set stays incomplete: the SYNC is unanswered
+        cycle(drive, timeout=0.1)
+    assert drive.bad_frames >= 1
+    assert recorder.last_command()[0] == int(Command402.ENABLE_OPERATION)
+    servo.short_tpdo = False
+    cycle(drive)
+
+
+def test_wrong_dlc_emcy_is_a_bad_frame_error(rig: tuple[MiniServo, Cia402Drive, TxRecorder]) -> None:
     servo, drive, recorder = rig
     servo.network.send_message(cob_id(FunctionCode.EMCY, NODE_ID), b"\x10\x23\x01")
-    with pytest.raises(ProtocolError, match="EMCY frame has DLC 3"):
+    with pytest.raises(BadFrameError, match="EMCY frame has DLC 3"):
         cycle(drive)
+    recorder.assert_commanded_safe()
+
+
+def test_drive_leaving_nmt_operational_is_a_typed_error(rig: tuple[MiniServo, Cia402Drive, TxRecorder]) -> None:
+    servo, drive, recorder = rig
+    cycle(drive)
+    servo.node.nmt.state = "PRE-OPERATIONAL"  # e.g. another master's NMT command; the heartbeat reports it
+    with pytest.raises(DriveNmtStateError, match=rf"node {NODE_ID} left NMT OPERATIONAL.*PRE_OPERATIONAL"):
+        for _ in range(50):  # each cycle times out (no TPDO outside OPERATIONAL) until the heartbeat tells
+            with contextlib.suppress(FeedbackTimeoutError):
+                cycle(drive, timeout=0.1)
     recorder.assert_commanded_safe()
 
 

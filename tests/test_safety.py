@@ -32,16 +32,26 @@ def test_limiter_refuses_nan_and_bad_limits() -> None:
         CommandLimiter(1.0, 1.0)
 
 
-def test_watchdog_timeout_and_message() -> None:
-    watchdog = FeedbackWatchdog(5, 0.002)
+def test_watchdog_tolerates_max_lost_in_a_row_then_trips() -> None:
+    watchdog = FeedbackWatchdog(0.010, 2)
     assert watchdog.timeout == pytest.approx(0.010)
+    assert watchdog.lost(40) is None and watchdog.lost(41) is None
+    watchdog.answered()  # an answered SYNC ends the run of losses
+    assert watchdog.lost(43) is None and watchdog.lost(44) is None
     assert not watchdog.tripped
-    error = watchdog.trip(42, FeedbackTimeoutError("no TPDO set answered SYNC 42"))
+    error = watchdog.lost(45, FeedbackTimeoutError("no TPDO set answered SYNC 45"))
     assert isinstance(error, FeedbackTimeoutError)
-    assert watchdog.tripped
-    assert "5 cycles" in str(error) and "cycle 42" in str(error) and "SYNC 42" in str(error)
-    with pytest.raises(ValueError, match="limit"):
-        FeedbackWatchdog(0, 0.001)
+    assert watchdog.tripped and watchdog.total == 5
+    assert "3 consecutive SYNCs" in str(error) and "cycle 45" in str(error) and "SYNC 45" in str(error)
+    with pytest.raises(ValueError, match="lost"):
+        FeedbackWatchdog(0.001, -1)
+    with pytest.raises(ValueError, match="timeout"):
+        FeedbackWatchdog(0.0, 1)
+
+
+def test_watchdog_with_no_tolerance_trips_at_the_first_loss() -> None:
+    error = FeedbackWatchdog(0.1, 0).lost(7)
+    assert error is not None and "1 consecutive SYNCs" in str(error)
 
 
 def test_divergence_guard_keeps_best_feedforward() -> None:

@@ -301,8 +301,13 @@ class McapLogWriter(_ClosingListener):
         feedback_latency_us: float | None,
         missed: bool,
         log_time_ns: int | None = None,
+        *,
+        lost_feedback: bool = False,
     ) -> None:
-        """Log one real-time cycle on ``/timing`` (see :data:`foilc_hil.io.schemas.TIMING_SCHEMA`)."""
+        """Log one real-time cycle on ``/timing`` (see :data:`foilc_hil.io.schemas.TIMING_SCHEMA`).
+
+        ``lost_feedback``: no TPDO set answered the cycle's SYNC within its bound (the law held the last good one).
+        """
         document = {
             "cycle": cycle,
             "trial": trial,
@@ -311,6 +316,7 @@ class McapLogWriter(_ClosingListener):
             "period_us": period_us,
             "feedback_latency_us": feedback_latency_us,
             "missed": bool(missed),
+            "lost_feedback": bool(lost_feedback),
         }
         self._add(TOPIC_TIMING, document, time.time_ns() if log_time_ns is None else log_time_ns)
 
@@ -468,10 +474,13 @@ class QueuedLogWriter(_ClosingListener):
         period_us: float,
         feedback_latency_us: float | None,
         missed: bool,
+        *,
+        lost_feedback: bool = False,
     ) -> None:
         """Enqueue one ``/timing`` message (see :meth:`McapLogWriter.log_timing`)."""
         self._queue.put(
-            (LogOp.TIMING, time.time_ns(), cycle, trial, sample, lateness_us, period_us, feedback_latency_us, missed)
+            (LogOp.TIMING, time.time_ns(), cycle, trial, sample, lateness_us, period_us, feedback_latency_us, missed,
+             lost_feedback)
         )
 
     # -- between trials and at the end ---------------------------------------------------------------------
@@ -543,8 +552,9 @@ class QueuedLogWriter(_ClosingListener):
                 elif op is LogOp.TRIAL:
                     writer.log_trial_at(item[1], item[2], item[3])
                 elif op is LogOp.TIMING:
-                    _, stamp, cycle, trial, sample, lateness, period, latency, missed = item
-                    writer.log_timing(cycle, trial, sample, lateness, period, latency, missed, log_time_ns=stamp)
+                    _, stamp, cycle, trial, sample, lateness, period, latency, missed, lost = item
+                    writer.log_timing(cycle, trial, sample, lateness, period, latency, missed, log_time_ns=stamp,
+                                      lost_feedback=lost)
                 elif op is LogOp.END_TRIAL:
                     writer.end_trial()
             except Exception as exc:  # kept, then raised on the caller's thread by end_trial/sync/close

@@ -100,6 +100,12 @@ ILC_TRIAL_SCHEMA: Final[dict[str, Any]] = {
         "sse": {"type": "number", "description": "sum of squared errors"},
         "rmse": {"type": "number"},
         "max_abs_error": {"type": "number"},
+        "lost_feedback": {
+            "type": "integer",
+            "minimum": 0,
+            "description": "SYNCs of the trial without a complete TPDO set in time (the law held the last good one)",
+        },
+        "bad_frames": {"type": "integer", "minimum": 0, "description": "frames of the trial that did not decode"},
     },
     "required": ["trial", "sse", "rmse", "max_abs_error"],
     "additionalProperties": True,
@@ -120,6 +126,10 @@ TIMING_SCHEMA: Final[dict[str, Any]] = {
             "description": "SYNC to TPDO feedback; null when no feedback arrived",
         },
         "missed": {"type": "boolean", "description": "the cycle missed its deadline"},
+        "lost_feedback": {
+            "type": "boolean",
+            "description": "no TPDO set answered the SYNC within its bound; the law held the last good feedback",
+        },
     },
     "required": ["cycle", "trial", "sample", "lateness_us", "period_us", "feedback_latency_us", "missed"],
 }

@@ -30,20 +30,24 @@ Hot path: the per-trial arrays are allocated before the trial; per cycle the loo
 the law and the drive, and the frame tap enqueues CAN frames for the log writer thread. ``/ilc/sample``,
 ``/ilc/trial`` and ``/timing`` messages are built after the trial.
 
-Safety (:mod:`foilc_hil.loop.safety`): commands are clamped to the drive limits and the plant saturation; the
-watchdog bounds the wait for each SYNC's feedback to ``bench.watchdog_cycles`` cycles (one period each in
-realtime, :data:`LOCKSTEP_FEEDBACK_TIMEOUT` in lockstep) -- no further SYNC is sent while waiting, the drive holds
-its last command, and feedback that arrives after half a period is counted late; when it trips the master has
-already quick-stopped the drive and the run aborts with :class:`~foilc_hil.errors.FeedbackTimeoutError`. EMCY,
-a fault statusword or a drive leaving OPERATION ENABLED aborts; non-finite outputs or commands abort; a trial
+Safety (:mod:`foilc_hil.loop.safety`): commands are clamped to the drive limits and the plant saturation. The
+wait for each SYNC's feedback is bounded (:attr:`LoopSettings.feedback_timeout`: one period in realtime,
+``bench.watchdog_cycles`` x :data:`LOCKSTEP_FEEDBACK_TIMEOUT` in lockstep) -- no further SYNC is sent while
+waiting, the drive holds its last command, and realtime feedback that arrives after half a period is counted late.
+A wait that expires is a *lost feedback* (``bench.faults``): counted, and the law is given the last good feedback
+again (hold); more than ``bench.faults.lost_feedback`` in a row abort with
+:class:`~foilc_hil.errors.FeedbackTimeoutError`. Frames that do not decode are the master's to count or raise
+(``bench.faults.bad_frame``). EMCY, a fault statusword, the drive's heartbeat leaving NMT OPERATIONAL or a drive
+leaving OPERATION ENABLED aborts; non-finite outputs or commands abort; a trial
 whose SSE exceeds ``bench.divergence_factor`` x the best SSE so far stops learning and restores the best
 feedforward (:class:`~foilc_hil.loop.safety.DivergenceGuard`, the same rule offline: ``simulate`` runs this loop);
 SIGINT/SIGTERM stop the loop at the next cycle. Every abort quick-stops the drive first; on every exit path the caller's
 ``finally`` disables the drive (``safe_stop``) and closes the log.
 
 What ``/ilc/sample`` holds (the contract with ``replay --verify``): row ``i`` of trial ``k`` has
-``output = y_i`` -- exactly the float64 the law was given at sample ``i`` -- and ``control = u_i``, the law's
-command before the bench's limiter (what the law computed, so ``replay --verify`` can reproduce it bit for bit;
+``output = y_i`` -- exactly the float64 the law was given at sample ``i``, the held one for a lost feedback -- and
+``control = u_i``, the law's command before the bench's limiter (what the law computed, so ``replay --verify``
+can reproduce it bit for bit;
 the clamped, quantised value actually sent is kept in :attr:`TrialRecord.applied`, and ``/ilc/trial`` counts the
 clamped commands in ``clamped``). The law is built with the limiter's limits (``make_law(..., limits=...)``) and
 clamps internally, so it learns from the input that was applied (saturation-aware learning, see
@@ -100,6 +104,7 @@ __all__ = [
     "MIN_SETTLE_TIMEOUT",
     "SETTLE_TIMEOUT_FACTOR",
     "BenchOutcome",
+    "FaultCounts",
     "LoopSettings",
     "TrialLoop",
     "TrialRecord",
@@ -158,6 +163,25 @@ class LogSink(Protocol):
 
 
 @dataclass(frozen=True)
+class FaultCounts:
+    """Faults the policy counted instead of aborting (``bench.faults``), over one trial or a whole run.
+
+    Attributes
+    ----------
+    lost_feedback
+        SYNCs whose TPDO set did not arrive within the wait's bound; the law was given the last good feedback.
+    bad_frames
+        Frames from the drive that did not decode (``bench.faults.bad_frame: count``).
+    """
+
+    lost_feedback: int = 0
+    bad_frames: int = 0
+
+    def to_json(self) -> dict[str, int]:
+        return {"lost_feedback": self.lost_feedback, "bad_frames": self.bad_frames}
+
+
+@dataclass(frozen=True)
 class TrialRecord:
     """One completed trial, as logged."""
 
@@ -173,6 +197,7 @@ class TrialRecord:
     metrics: TrialMetrics
     sync_times: np.ndarray  # (N + 1,) perf_counter time of each SYNC
     clamped: int = 0  # commands of this trial the limiter clamped
+    faults: FaultCounts = field(default_factory=FaultCounts)  # lost feedbacks, bad frames in the trial
 
     def sample_records(self) -> Iterator[SampleRecord]:
         """The ``/ilc/sample`` messages of this trial (module docstring: what each field is)."""
@@ -200,6 +225,8 @@ class BenchOutcome:
     diverged: bool = False
     clamped_commands: int = 0
     settle_cycles: int = 0
+    faults: FaultCounts = field(default_factory=FaultCounts)  # over the whole run, settle phases included
+    trial_faults: list[FaultCounts] = field(default_factory=list)  # per completed trial
 
 
 @dataclass(frozen=True)
@@ -213,6 +240,8 @@ class LoopSettings:
     settle_time: float = 0.5
     settle_tolerance: float = 1.0
     lockstep_feedback_timeout: float = LOCKSTEP_FEEDBACK_TIMEOUT
+    #: ``bench.faults.lost_feedback``: consecutive lost feedbacks tolerated (the law holds the last good one)
+    max_lost_feedback: int = 3
     #: False when the drive itself starts every trial at rest (the simulated drive resets its plant in
     #: ``before_trial``): no settle phase between trials
     settle_between_trials: bool = True
@@ -221,6 +250,14 @@ class LoopSettings:
     def settle_cycles(self) -> int:
         """Consecutive at-rest cycles that count as settled (at least one)."""
         return max(1, math.ceil(self.settle_time / self.period - 1e-9))
+
+    @property
+    def feedback_timeout(self) -> float:
+        """The bound of one SYNC's wait for feedback: the period in realtime, ``watchdog_cycles`` x the lockstep
+        allowance in lockstep (no deadline there: only an expired bound makes a lost feedback)."""
+        if self.mode is TimingMode.REALTIME:
+            return self.period
+        return self.watchdog_cycles * self.lockstep_feedback_timeout
 
     @property
     def settle_timeout_cycles(self) -> int:
@@ -238,6 +275,7 @@ class _RawTrial:
     sync_times: np.ndarray
     clamped: int
     feedforward_used: np.ndarray
+    faults: FaultCounts
 
 
 class _TrialUpdateThread:
@@ -303,6 +341,9 @@ class TrialLoop:
         Called with the trial number once the axis has settled, just before the trial's first SYNC. The embedded
         emulator and the simulated drive use it to start their plant's trial (initial condition, a disturbance that
         begins at a given trial, per-trial noise); a real drive has no such hook.
+    bad_frames
+        The drive's count of received frames that did not decode so far (``Drive.bad_frames``); ``None``: a drive
+        without a bus (none).
     """
 
     def __init__(
@@ -318,6 +359,7 @@ class TrialLoop:
         stop: StopRequest | None = None,
         clock: Callable[[], float] = time.perf_counter,
         before_trial: Callable[[int], None] | None = None,
+        bad_frames: Callable[[], int] | None = None,
     ) -> None:
         ref = np.asarray(reference, dtype=float)
         if ref.ndim != 1 or ref.size == 0:
@@ -332,10 +374,9 @@ class TrialLoop:
         self.stop = stop if stop is not None else StopRequest()
         self._clock = clock
         self._before_trial = before_trial
-        self.watchdog = FeedbackWatchdog(
-            settings.watchdog_cycles,
-            settings.period if settings.mode is TimingMode.REALTIME else settings.lockstep_feedback_timeout,
-        )
+        self._bad_frames: Callable[[], int] = bad_frames if bad_frames is not None else lambda: 0
+        self.watchdog = FeedbackWatchdog(settings.feedback_timeout, settings.max_lost_feedback)
+        self._held = 0.0  # the last good feedback: what the law is given again for a lost one
         self.guard = DivergenceGuard(settings.divergence_factor)
         self.timing = TimingRecorder(settings.mode, settings.period)
         realtime = settings.mode is TimingMode.REALTIME
@@ -403,6 +444,7 @@ class TrialLoop:
                 with contextlib.suppress(Exception):
                     update.result()
             self.outcome.clamped_commands = self._clamped_count()
+            self.outcome.faults = FaultCounts(self.watchdog.total, self._bad_frames())
             self.outcome.timing = self.timing.summary(
                 self.scheduler.missed_deadlines if self.scheduler is not None else 0
             )
@@ -452,6 +494,7 @@ class TrialLoop:
         output_buffer = self._output_buffer
         clamp: Callable[[float], float] = self.limiter.clamp if self.limiter is not None else float
         clamped_before = self._clamped_count()
+        lost_before, bad_before = self.watchdog.total, self._bad_frames()
         drive = self.drive
         law = self.law
         try:
@@ -475,8 +518,10 @@ class TrialLoop:
         finally:
             self._flush_timing(first_cycle)
         self.progress.advance(n)
+        faults = FaultCounts(self.watchdog.total - lost_before, self._bad_frames() - bad_before)
         return _RawTrial(
-            trial, seen, control, applied, sync_times, self._clamped_count() - clamped_before, self._feedforward_used
+            trial, seen, control, applied, sync_times, self._clamped_count() - clamped_before, self._feedforward_used,
+            faults,
         )
 
     def _finish_trial(self, raw: _RawTrial) -> DivergenceVerdict:
@@ -500,8 +545,10 @@ class TrialLoop:
             metrics=metrics,
             sync_times=raw.sync_times,
             clamped=raw.clamped,
+            faults=raw.faults,
         )
         self.outcome.trials.append(metrics)
+        self.outcome.trial_faults.append(raw.faults)
         self.progress.end_trial(raw.trial, metrics.sse, metrics.rmse, metrics.max_abs_error)
         if self.log is not None:
             self.log.trial_finished(record)
@@ -531,9 +578,8 @@ class TrialLoop:
         try:
             feedback = self.drive.wait_feedback(self.watchdog.timeout)
         except FeedbackTimeoutError as exc:
-            self._missing = True
-            self.timing.record(sync_time, deadline, lateness, math.nan, math.nan, skipped, False, True)
-            raise self.watchdog.trip(self._cycle, exc) from exc
+            return self._lost_feedback(exc)
+        self.watchdog.answered()
         received = self._clock()
         self._received = received
         self._missing = False
@@ -545,7 +591,22 @@ class TrialLoop:
             )
         y = float(feedback.velocity)
         require_finite(y, "drive feedback", self._cycle)
+        self._held = y
         return y
+
+    def _lost_feedback(self, cause: FeedbackTimeoutError) -> float:
+        """This SYNC's wait expired: count it, and hold the last good feedback -- or trip the watchdog."""
+        error = self.watchdog.lost(self._cycle, cause)
+        self._missing = True
+        self._late = False
+        self._latency = math.nan
+        self._received = self._clock()
+        if error is not None:
+            self.timing.record(
+                self._sync_time, self._deadline, self._lateness, math.nan, math.nan, self._skipped, False, True
+            )
+            raise error from cause
+        return self._held
 
     def _finish_cycle(self) -> None:
         self.timing.record(
@@ -638,6 +699,10 @@ class RunReport:
             "clamped_commands": self.outcome.clamped_commands,
             "settle_cycles": self.outcome.settle_cycles,
             "stopped": self.outcome.stopped,
+            "faults": {
+                **self.outcome.faults.to_json(),
+                "trials": [faults.to_json() for faults in self.outcome.trial_faults],
+            },
         }
 
 
@@ -670,6 +735,7 @@ def loop_settings(config: Any, mode: TimingMode | None = None, *, settle_between
         divergence_factor=bench.divergence_factor,
         settle_time=bench.settle_time,
         settle_tolerance=bench.settle_tolerance,
+        max_lost_feedback=bench.faults.lost_feedback,
         settle_between_trials=settle_between_trials,
     )
 
@@ -701,7 +767,11 @@ class McapSink:
             self.writer.log_trial(record.metrics, final_output=final_output)
         else:  # command_limits: the limits the law clamped to (replay --verify rebuilds the law with them)
             self.writer.log_trial(
-                record.metrics, clamped=record.clamped, final_output=final_output, command_limits=self.command_limits
+                record.metrics,
+                clamped=record.clamped,
+                final_output=final_output,
+                command_limits=self.command_limits,
+                **record.faults.to_json(),
             )
         self.writer.end_trial()
 
@@ -719,6 +789,7 @@ class McapSink:
                 period_us,
                 record.feedback_latency_us,
                 record.skipped_deadlines > 0,
+                lost_feedback=record.missing_feedback,
             )
 
 
@@ -802,10 +873,12 @@ def _open_drive(
     """Open the bus and the CiA 402 master (safe-stopped on exit)."""
     from drivers.bus import open_bus
     from drivers.cia402_master import Cia402Drive
+    from foilc_hil.config import BadFramePolicy
 
     bus = open_bus(bus_cfg)
     stack.callback(bus.shutdown)
     drive = Cia402Drive.open(bus, config.drive, sample_time=config.sample_time)
+    drive.fatal_bad_frames = config.bench.faults.bad_frame is BadFramePolicy.ABORT
     stack.callback(drive.close)
     if sink is not None:  # the master passes "tx" or "rx", the writer's Direction
         drive.add_frame_listener(cast("Callable[[can.Message, str], None]", sink.writer.log_frame))
@@ -853,6 +926,7 @@ def run_bench(request: RunRequest) -> RunReport:
             progress=progress,
             stop=stop,
             before_trial=before_trial,
+            bad_frames=lambda: drive.bad_frames,
         )
         outcome = loop.run(plan.trials)
     design = plan.design
@@ -882,8 +956,9 @@ def _truth_about_the_stop(stops: list[StopReport], node_id: int) -> Iterator[Non
     except FoilcHilError as exc:
         for report in stops:
             exc.add_note(report.describe(node_id))
-            if report.faults:
-                exc.add_note("the drive also reported: " + "; ".join(report.faults))
+            also = [fault for fault in report.faults if fault != str(exc)]  # the same error again says nothing new
+            if also:
+                exc.add_note("the drive also reported: " + "; ".join(also))
         raise
     report = stops[-1]
     if not report.confirmed:

@@ -1,7 +1,8 @@
 """Safety logic of the bench, free of CAN so it is unit-tested on its own.
 
 - :class:`CommandLimiter` clamps every command to the drive's limits (and the plant's actuator saturation).
-- :class:`FeedbackWatchdog` bounds the wait for each cycle's TPDO feedback to ``bench.watchdog_cycles`` cycles.
+- :class:`FeedbackWatchdog` counts SYNCs whose feedback did not arrive within the bound and trips after more than
+  ``bench.faults.lost_feedback`` of them in a row.
 - :class:`DivergenceGuard` compares each trial's SSE with the best so far and trips when it exceeds
   ``bench.divergence_factor`` times the best; it keeps the best trial's feedforward so the bench can restore it.
   It is the one divergence rule: ``foilc-hil run`` and ``foilc-hil simulate`` run the same loop and so the same
@@ -83,41 +84,48 @@ class CommandLimiter:
 
 
 class FeedbackWatchdog:
-    """The feedback watchdog: no TPDO feedback for ``limit`` cycles trips it.
+    """The feedback watchdog: counts SYNCs that went unanswered and trips after too many in a row.
 
-    The bench waits for each SYNC's feedback at most :attr:`timeout` (``limit`` cycles' worth) and sends no
-    further SYNC meanwhile; the drive holds its last command. The CiA 402 master quick-stops the drive the moment
-    that wait times out, so the watchdog is a single bounded wait rather than a count of separate misses (a
-    second SYNC after a missed answer would already run on a stopped drive).
+    The bench waits for each SYNC's feedback at most :attr:`timeout`; a wait that expires is a *lost feedback*
+    (:meth:`lost`): the law is given the last good feedback again (hold) and the cycle goes on. ``max_lost``
+    consecutive lost feedbacks are tolerated; one more trips the watchdog. Any answered SYNC (:meth:`answered`)
+    resets the run of losses.
 
     Parameters
     ----------
-    limit
-        ``bench.watchdog_cycles`` (>= 1).
-    cycle_time
-        The time one cycle's feedback may take: the period in realtime, the lockstep per-cycle allowance otherwise.
+    timeout
+        How long one SYNC's feedback may take, seconds: the period in realtime, ``bench.watchdog_cycles`` x the
+        lockstep per-cycle allowance in lockstep (lockstep has no deadline, so a slow answer is not a lost one).
+    max_lost
+        ``bench.faults.lost_feedback`` (>= 0): consecutive lost feedbacks tolerated.
     """
 
-    def __init__(self, limit: int, cycle_time: float) -> None:
-        if limit < 1:
-            raise ValueError(f"watchdog limit must be >= 1 cycle, got {limit!r}")
-        if not (cycle_time > 0 and math.isfinite(cycle_time)):
-            raise ValueError(f"watchdog cycle time must be positive, got {cycle_time!r}")
-        self.limit = int(limit)
-        self.cycle_time = float(cycle_time)
+    def __init__(self, timeout: float, max_lost: int) -> None:
+        if not (timeout > 0 and math.isfinite(timeout)):
+            raise ValueError(f"watchdog timeout must be positive, got {timeout!r}")
+        if max_lost < 0:
+            raise ValueError(f"tolerated lost feedbacks must be >= 0, got {max_lost!r}")
+        self.timeout = float(timeout)
+        self.max_lost = int(max_lost)
+        self.consecutive = 0
+        self.total = 0
         self.tripped = False
 
-    @property
-    def timeout(self) -> float:
-        """How long one SYNC's feedback may take before the watchdog trips, seconds."""
-        return self.limit * self.cycle_time
+    def answered(self) -> None:
+        """A SYNC was answered: the run of lost feedbacks ends."""
+        self.consecutive = 0
 
-    def trip(self, cycle: int, cause: BaseException | None = None) -> FeedbackTimeoutError:
-        """The error to raise when the wait at ``cycle`` timed out (marks the watchdog tripped)."""
+    def lost(self, cycle: int, cause: BaseException | None = None) -> FeedbackTimeoutError | None:
+        """Count a lost feedback at ``cycle``; the error to raise when that makes too many in a row, else ``None``."""
+        self.consecutive += 1
+        self.total += 1
+        if self.consecutive <= self.max_lost:
+            return None
         self.tripped = True
         detail = f": {cause}" if cause is not None and str(cause) else ""
         return FeedbackTimeoutError(
-            f"watchdog: no feedback from the drive for {self.limit} cycles ({self.timeout:.3g} s) at cycle {cycle}; "
+            f"watchdog: {self.consecutive} consecutive SYNCs without feedback from the drive (each waited "
+            f"{self.timeout:.3g} s; bench.faults.lost_feedback tolerates {self.max_lost}) at cycle {cycle}; "
             f"quick stop commanded{detail}"
         )
 
