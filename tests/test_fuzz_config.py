@@ -9,7 +9,7 @@ from typing import Any
 
 import pytest
 import yaml
-from hypothesis import example, given
+from hypothesis import event, example, given
 from hypothesis import strategies as st
 
 from foilc_hil.cli import main
@@ -90,12 +90,15 @@ def test_mutated_config_loads_or_is_one_config_error(
     try:
         load_config(path)
     except ConfigError as exc:
+        event("ConfigError")
         assert exc.source == str(path) or str(path) in str(exc)
         capsys.readouterr()
         code = main(["simulate", "--config", str(path), "--json"])
         captured = capsys.readouterr()
         _check_one_error(code, captured.out, captured.err, path)
         assert "Traceback" not in captured.err
+    else:
+        event("loads")
 
 
 @given(text=mutated_config())
@@ -112,6 +115,7 @@ def test_tune_on_a_mutated_config_exits_cleanly(
     assert "Traceback" not in captured.err
     document = json.loads(captured.out)  # exactly one document, whatever happened
     assert code in (0, 2, 3), (code, captured.err)
+    event(f"tune exit {code}")
     if code == 0:
         assert "error" not in document and captured.err == ""
         return

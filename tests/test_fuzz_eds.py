@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from hypothesis import example, given
+from hypothesis import event, example, given
 from hypothesis import strategies as st
 
 from drivers.od import REQUIRED_OBJECTS, load_od
@@ -63,7 +63,9 @@ def test_mutated_eds_loads_or_is_one_eds_error(data: bytes, tmp_path: Path) -> N
     try:
         od = load_od(path, NODE_ID)
     except EdsError as exc:
+        event("EdsError")
         assert exc.exit_code == ExitCode.USAGE
         assert str(path) in str(exc)
         return
+    event("loads")
     assert all(index in od for index in REQUIRED_OBJECTS)  # it loaded: what the check requires is there

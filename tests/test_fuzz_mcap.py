@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 
 import pytest
-from hypothesis import example, given
+from hypothesis import event, example, given
 from hypothesis import strategies as st
 
 from foilc_hil.cli import main
@@ -65,8 +65,10 @@ def test_read_log_of_a_damaged_log_returns_or_raises_log_format_error(
     try:
         contents = read_log(path)
     except LogFormatError as exc:
+        event("LogFormatError")
         assert str(path) in str(exc) or "/can" in str(exc) or "/ilc" in str(exc)
         return
+    event("read, truncated" if contents.truncated else "read, intact")
     assert len(contents.trials) <= TRIALS
     if not contents.truncated:
         assert contents.damage == ""
@@ -96,6 +98,7 @@ def test_cli_on_a_damaged_log_exits_0_1_or_2_with_one_line(
     assert "Traceback" not in captured.err
     document = json.loads(captured.out)  # exactly one document
     assert code in (0, 1, 2), (code, captured.err)
+    event(f"{command} exit {code}")
     lines = captured.err.strip().splitlines()
     if code == 0:  # export writes what it could read and says so in one line: its documented exit 0
         assert "error" not in document
