@@ -5,11 +5,14 @@ partial result of a damaged log) or 2, with one stderr line and, under ``--json`
 from __future__ import annotations
 
 import json
+import struct
 from pathlib import Path
 
 import pytest
 from hypothesis import event, example, given
 from hypothesis import strategies as st
+from mcap.opcode import Opcode
+from mcap.stream_reader import MAGIC_SIZE
 
 from foilc_hil.cli import main
 from foilc_hil.errors import LogFormatError
@@ -72,6 +75,35 @@ def test_read_log_of_a_damaged_log_returns_or_raises_log_format_error(
     assert len(contents.trials) <= TRIALS
     if not contents.truncated:
         assert contents.damage == ""
+
+
+def _first_chunk_data_length_offset(data: bytes) -> int:
+    """Where the first chunk's ``data_length`` field is (MCAP: magic, then records of opcode, u64 length, content;
+    a chunk's content starts with start, end, uncompressed size (u64 each), crc, compression length (u32 each),
+    then the compression name and the u64 data length)."""
+    offset = MAGIC_SIZE
+    while True:
+        opcode = data[offset]
+        (length,) = struct.unpack_from("<Q", data, offset + 1)
+        content = offset + 9
+        if opcode == Opcode.CHUNK:
+            (name_length,) = struct.unpack_from("<I", data, content + 28)
+            return content + 32 + name_length
+        offset = content + length
+
+
+# regression, found by the long run of docs/fuzzing.md (a flip at 14 % of the file): mcap checks a record's own length
+# against the file but reads the length fields inside it unchecked, and asked the file for that many bytes at once --
+# MemoryError, or OverflowError past sys.maxsize. Reads now go piecewise: the cut-short chunk is damage.
+@pytest.mark.parametrize("length", [2**40, 2**62, 2**63, 2**64 - 1])
+def test_a_huge_length_inside_a_record_is_damage(length: int, intact_log: Path, tmp_path: Path) -> None:
+    data = bytearray(intact_log.read_bytes())
+    struct.pack_into("<Q", data, _first_chunk_data_length_offset(bytes(data)), length)
+    path = tmp_path / "huge.mcap"
+    path.write_bytes(bytes(data))
+    contents = read_log(path)
+    assert contents.truncated
+    assert contents.damage
 
 
 COMMANDS = {
