@@ -21,6 +21,9 @@ from tests.fuzz_settings import fuzz_settings
 from tests.test_bench_e2e import bench_config
 
 TRIALS = 2
+ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+#: a zstd frame header descriptor byte: single segment, 8-byte frame content size
+ZSTD_SINGLE_SEGMENT_8_BYTE_SIZE = 0xE0
 
 
 @pytest.fixture(scope="module")
@@ -104,6 +107,23 @@ def test_a_huge_length_inside_a_record_is_damage(length: int, intact_log: Path, 
     contents = read_log(path)
     assert contents.truncated
     assert contents.damage
+
+
+
+def test_a_huge_zstd_content_size_is_damage(intact_log: Path, tmp_path: Path) -> None:
+    """A zstd frame header claiming an 8-byte content size of ~9 EB: zstandard's allocation fails, the log is damaged
+    there (found while fixing the case above; the writer compresses chunks with zstd by default)."""
+    data = bytearray(intact_log.read_bytes())
+    length_at = _first_chunk_data_length_offset(bytes(data))
+    frame = length_at + 8
+    assert data[frame : frame + 4] == ZSTD_MAGIC
+    data[frame + 4] = ZSTD_SINGLE_SEGMENT_8_BYTE_SIZE
+    data[frame + 5 : frame + 13] = b"\x7f" * 8
+    path = tmp_path / "zstd.mcap"
+    path.write_bytes(bytes(data))
+    contents = read_log(path)
+    assert contents.truncated
+    assert "MemoryError" in contents.damage
 
 
 COMMANDS = {

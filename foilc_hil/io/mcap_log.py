@@ -602,8 +602,9 @@ class LogContents:
 
 # What a damaged or cut file can raise inside mcap's stream reader: its own errors, CRC mismatches
 # (ValueError), short reads decoded by struct, and the decompressors' errors (zstandard.ZstdError derives from
-# Exception only; lz4.frame raises RuntimeError).
-_DAMAGE: tuple[type[BaseException], ...] = (McapError, ValueError, struct.error, RuntimeError, EOFError)
+# Exception only; lz4.frame raises RuntimeError). A corrupt zstd frame header declares its content size, up to
+# 2^64 bytes, and zstandard allocates that before it decompresses: the MemoryError is the file's damage.
+_DAMAGE: tuple[type[BaseException], ...] = (McapError, ValueError, struct.error, RuntimeError, EOFError, MemoryError)
 try:
     import zstandard
 
