@@ -151,8 +151,10 @@ class EnabledMaster:
         if self.master is None:
             # NMT reset node restores the drive's whole object dictionary and its power stage after any example
             self.inject(NMT_COB_ID, bytes([NmtCommand.RESET_NODE, DRIVE_NODE_ID]))
+            # generous heartbeat supervision both ways: a stall of this shared machine must not fail an example
             cfg = DriveConfig.model_validate({"node_id": DRIVE_NODE_ID, "heartbeat_producer_ms": 50,
-                                              "heartbeat_consumer_ms": 500, "velocity_scale": 1000.0})
+                                              "heartbeat_timeout_factor": 20.0, "heartbeat_consumer_ms": 2000,
+                                              "velocity_scale": 1000.0})
             master = Cia402Drive.open(self.bus, cfg, sample_time=0.01)
             self.master = master
             master.connect()
