@@ -4,8 +4,8 @@ canopen answers SDO requests and aborts for unknown objects / sub-indices / read
 The guard adds, through ``LocalNode``'s write callbacks (which run before the value is stored and may raise
 ``SdoAbortedError``): the value range from the EDS limits, the supported modes of operation, the range of 0x605A,
 and the PDO mapping checks of CiA 301 (object exists, is mappable in that direction, has the size the entry says,
-and the whole mapping fits 64 bits). It also answers no SDO request in NMT *stopped* (canopen would), and ignores
-a frame that is not 8 bytes long, as CANopenNode's server does (every CiA 301 SDO request has DLC 8), and aborts a
+and the whole mapping fits 64 bits). It also answers no SDO request in NMT *stopped* (canopen would); it ignores a
+frame that is not 8 bytes long, as CANopenNode's server does (every CiA 301 SDO request has DLC 8); and it aborts a
 segment that belongs to no open transfer.
 """
 
@@ -66,8 +66,8 @@ class SdoGuard:
         if len(data) != SDO_FRAME_BYTES:  # canopen would unpack past the end of a short frame and log an error
             return
         with self._lock:
-            if data[0] & _CLIENT_COMMAND in (REQUEST_SEGMENT_DOWNLOAD, REQUEST_SEGMENT_UPLOAD) and \
-                    self.node.sdo._buffer is None:
+            segment = (data[0] & _CLIENT_COMMAND) in (REQUEST_SEGMENT_DOWNLOAD, REQUEST_SEGMENT_UPLOAD)
+            if segment and self.node.sdo._buffer is None:
                 # no transfer was ever opened: canopen would fail on its missing buffer, then on its missing index
                 self.node.sdo.send_response(_ABORT.pack(RESPONSE_ABORTED, 0, 0, SdoAbortCode.INVALID_COMMAND))
                 return
