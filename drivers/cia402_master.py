@@ -74,6 +74,7 @@ from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
 from drivers.bus import FrameListener, FrameTap
 from drivers.cia301 import (
+    NMT_COB_ID,
     RPDO_BASES,
     SYNC_COB_ID,
     TPDO_BASES,
@@ -305,11 +306,16 @@ class Cia402Drive(Drive):
         self._sync_message = can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False)
 
         # canopen's EMCY consumer unpacks without a length check and would stop the callbacks of a short frame:
-        # ours replaces it. Our heartbeat callback runs before canopen's NMT state tracking, for the same reason.
+        # ours replaces it. canopen's NMT state tracking unpacks heartbeats and NMT commands unchecked too: ours
+        # replace its subscriptions and pass it the well-formed frames only.
         emcy_cob = cob_id(FunctionCode.EMCY, self.node_id)
         self.network.unsubscribe(emcy_cob, self.node.emcy.on_emcy)
         self.network.subscribe(emcy_cob, self._on_emcy)
-        self.network.subscribers[cob_id(FunctionCode.HEARTBEAT, self.node_id)].insert(0, self._on_heartbeat)
+        heartbeat_cob = cob_id(FunctionCode.HEARTBEAT, self.node_id)
+        self.network.unsubscribe(heartbeat_cob, self._master_nmt.on_heartbeat)
+        self.network.subscribe(heartbeat_cob, self._on_heartbeat)
+        self.network.unsubscribe(NMT_COB_ID, self._master_nmt.on_command)
+        self.network.subscribe(NMT_COB_ID, self._on_nmt_command)
 
     # --- construction -----------------------------------------------------------------------------------------
 
@@ -760,6 +766,11 @@ class Cia402Drive(Drive):
             with self._cv:
                 self._nmt_departure = departure
             self._post_error(departure)
+        self._master_nmt.on_heartbeat(can_id, data, timestamp)
+
+    def _on_nmt_command(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        if len(data) >= 2:  # command and node id; a drive ignores a shorter frame, and so does the tracking here
+            self._master_nmt.on_command(can_id, data, timestamp)
 
     def _on_heartbeat_lost(self, error: HeartbeatLostError) -> None:
         self._post_error(error)

@@ -4,17 +4,21 @@ canopen answers SDO requests and aborts for unknown objects / sub-indices / read
 The guard adds, through ``LocalNode``'s write callbacks (which run before the value is stored and may raise
 ``SdoAbortedError``): the value range from the EDS limits, the supported modes of operation, the range of 0x605A,
 and the PDO mapping checks of CiA 301 (object exists, is mappable in that direction, has the size the entry says,
-and the whole mapping fits 64 bits). It also answers no SDO request in NMT *stopped* (canopen would).
+and the whole mapping fits 64 bits). It also answers no SDO request in NMT *stopped* (canopen would); it ignores a
+frame that is not 8 bytes long, as CANopenNode's server does (every CiA 301 SDO request has DLC 8); and it aborts a
+segment that belongs to no open transfer.
 """
 
 from __future__ import annotations
 
+import struct
 import threading
 from typing import Any
 
 import canopen
 from canopen import objectdictionary as cod
 from canopen.sdo import SdoAbortedError
+from canopen.sdo.constants import REQUEST_SEGMENT_DOWNLOAD, REQUEST_SEGMENT_UPLOAD, RESPONSE_ABORTED
 
 from drivers.cia301 import NmtState, SdoAbortCode
 from drivers.cia402 import Obj, OperationMode
@@ -25,6 +29,9 @@ __all__ = ["PDO_CHANNELS", "SdoGuard"]
 
 PDO_CHANNELS = 512  # 0x1400..0x15FF / 0x1800..0x19FF
 PDO_MAX_BITS = 64
+SDO_FRAME_BYTES = 8  # CiA 301: every SDO request and response has DLC 8
+_CLIENT_COMMAND = 0xE0  # the client command specifier bits of an SDO request's first byte
+_ABORT = struct.Struct("<BHBL")  # command, index, subindex, abort code
 QUICK_STOP_OPTION_MAX = 8  # 0x605A: 0..8 are defined by CiA 402-2
 SUPPORTED_MODES = frozenset(int(m) for m in OperationMode)
 _RPDO_MAPPING_AREA = range(Obj.RPDO_MAPPING, Obj.RPDO_MAPPING + PDO_CHANNELS)
@@ -56,7 +63,14 @@ class SdoGuard:
         """canopen's SDO server, except in NMT stopped (CiA 301: no SDO there) or after ``stop_responding``."""
         if not self.node.alive or self.node.nmt_state is NmtState.STOPPED:
             return
+        if len(data) != SDO_FRAME_BYTES:  # canopen would unpack past the end of a short frame and log an error
+            return
         with self._lock:
+            segment = (data[0] & _CLIENT_COMMAND) in (REQUEST_SEGMENT_DOWNLOAD, REQUEST_SEGMENT_UPLOAD)
+            if segment and self.node.sdo._buffer is None:
+                # no transfer was ever opened: canopen would fail on its missing buffer, then on its missing index
+                self.node.sdo.send_response(_ABORT.pack(RESPONSE_ABORTED, 0, 0, SdoAbortCode.INVALID_COMMAND))
+                return
             self.node.sdo.on_request(can_id, data, timestamp)
 
     def validate_write(self, index: int, subindex: int, od: cod.ODVariable, data: bytes, **_: Any) -> None:

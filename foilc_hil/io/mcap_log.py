@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from queue import SimpleQueue
 from types import TracebackType
-from typing import IO, Any, Final, Literal, Self
+from typing import IO, Any, Final, Literal, Self, cast
 
 import can
 import numpy as np
@@ -612,14 +612,39 @@ class LogContents:
 
 # What a damaged or cut file can raise inside mcap's stream reader: its own errors, CRC mismatches
 # (ValueError), short reads decoded by struct, and the decompressors' errors (zstandard.ZstdError derives from
-# Exception only; lz4.frame raises RuntimeError).
-_DAMAGE: tuple[type[BaseException], ...] = (McapError, ValueError, struct.error, RuntimeError, EOFError)
+# Exception only; lz4.frame raises RuntimeError). A corrupt zstd frame header declares its content size, up to
+# 2^64 bytes, and zstandard allocates that before it decompresses: the MemoryError is the file's damage.
+_DAMAGE: tuple[type[BaseException], ...] = (McapError, ValueError, struct.error, RuntimeError, EOFError, MemoryError)
 try:
     import zstandard
 
     _DAMAGE = (*_DAMAGE, zstandard.ZstdError)
 except ImportError:  # pragma: no cover - zstandard is a declared dependency
     pass
+
+#: the most one read asks of the file at once
+_READ_PIECE = 1 << 20
+
+
+class _PiecewiseReads:
+    """The file as mcap's stream reader sees it: ``read(n)`` asks the file for at most :data:`_READ_PIECE` bytes at a
+    time, so a corrupt length field inside a record (mcap bounds only the record's own) costs what the file holds,
+    not an ``n``-byte buffer (``MemoryError``, or ``OverflowError`` past ``sys.maxsize``)."""
+
+    def __init__(self, stream: IO[bytes]) -> None:
+        self._stream = stream
+
+    def read(self, n: int = -1) -> bytes:
+        if n < 0:
+            return self._stream.read()
+        pieces = []
+        while n > 0:
+            piece = self._stream.read(min(n, _READ_PIECE))
+            if not piece:
+                break
+            pieces.append(piece)
+            n -= len(piece)
+        return b"".join(pieces)
 
 
 class McapLogReader:
@@ -683,7 +708,7 @@ class McapLogReader:
         wanted = None if topics is None else set(topics)
         # A corrupt length field must not make the reader allocate gigabytes: no record exceeds the file.
         reader = StreamReader(
-            self._stream,
+            cast(IO[bytes], _PiecewiseReads(self._stream)),  # mcap calls read() only
             skip_magic=not self._stream.seekable(),  # the magic was consumed by the check above
             validate_crcs=True,
             record_size_limit=self._size,
