@@ -262,7 +262,8 @@ def test_master_surfaces_each_fault_as_typed_error(kind: FaultKind, code: int) -
 def test_master_detects_a_dead_drive() -> None:
     plant = PlantConfig(model="pmsm")
     with EmbeddedEmulator(plant, EmulatorConfig(), node_id=2, sample_time=0.01, velocity_scale=1000.0) as emulator:
-        master = _master(emulator, velocity_scale=1000.0)
+        # short SDO/state timeouts: the final stop walks every path against a drive that answers none of them
+        master = _master(emulator, velocity_scale=1000.0, sdo_timeout=0.2, state_timeout=0.5)
         try:
             emulator.drive.stop_responding()
             error = _cycle_until_error(master, cycles=20)
