@@ -33,6 +33,8 @@ class InMemoryDrive:
     """A drive with no bus: a ZOH first-order plant that answers each SYNC at once, with the CAN loop's
     one-cycle delay (a target set now is applied at the next SYNC)."""
 
+    bad_frames = 0  # no bus: nothing to decode
+
     def __init__(self, a: float, b: float, sample_time: float) -> None:
         self._ad = math.exp(a * sample_time)
         self._bd = (self._ad - 1.0) / a * b

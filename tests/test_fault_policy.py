@@ -218,6 +218,8 @@ def test_nmt_stop_mid_trial_raises_the_typed_error_in_process(
 class _LossyDrive:
     """Answers each SYNC with the SYNC's number as velocity, except the SYNCs in ``lost`` (no answer in time)."""
 
+    bad_frames = 0  # no bus: nothing to decode
+
     def __init__(self, lost: set[int]) -> None:
         self.lost = lost
         self.count = 0

@@ -101,6 +101,8 @@ def test_stop_request_turns_sigint_into_a_flag_and_restores_the_handler() -> Non
 class _InMemoryDrive:
     """ZOH first-order axis answering each SYNC at once, with the CAN loop's one-cycle command delay."""
 
+    bad_frames = 0  # no bus: nothing to decode
+
     def __init__(self, *, output_override: float | None = None, fault_at_cycle: int | None = None) -> None:
         self.a_d = math.exp(-1.23 * 0.01)
         self.b_d = (1.0 - self.a_d) / 1.23 * 1.68

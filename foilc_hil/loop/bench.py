@@ -135,6 +135,9 @@ class DriveLike(Protocol):
 
     def quick_stop(self) -> None: ...
 
+    @property
+    def bad_frames(self) -> int: ...
+
 
 class LawLike(Protocol):
     """The subset of ``foilc_hil.laws.learning.LearningLaw`` the loop uses."""
@@ -341,9 +344,6 @@ class TrialLoop:
         Called with the trial number once the axis has settled, just before the trial's first SYNC. The embedded
         emulator and the simulated drive use it to start their plant's trial (initial condition, a disturbance that
         begins at a given trial, per-trial noise); a real drive has no such hook.
-    bad_frames
-        The drive's count of received frames that did not decode so far (``Drive.bad_frames``); ``None``: a drive
-        without a bus (none).
     """
 
     def __init__(
@@ -359,7 +359,6 @@ class TrialLoop:
         stop: StopRequest | None = None,
         clock: Callable[[], float] = time.perf_counter,
         before_trial: Callable[[int], None] | None = None,
-        bad_frames: Callable[[], int] | None = None,
     ) -> None:
         ref = np.asarray(reference, dtype=float)
         if ref.ndim != 1 or ref.size == 0:
@@ -374,7 +373,6 @@ class TrialLoop:
         self.stop = stop if stop is not None else StopRequest()
         self._clock = clock
         self._before_trial = before_trial
-        self._bad_frames: Callable[[], int] = bad_frames if bad_frames is not None else lambda: 0
         self.watchdog = FeedbackWatchdog(settings.feedback_timeout, settings.max_lost_feedback)
         self._held = 0.0  # the last good feedback: what the law is given again for a lost one
         self.guard = DivergenceGuard(settings.divergence_factor)
@@ -444,7 +442,7 @@ class TrialLoop:
                 with contextlib.suppress(Exception):
                     update.result()
             self.outcome.clamped_commands = self._clamped_count()
-            self.outcome.faults = FaultCounts(self.watchdog.total, self._bad_frames())
+            self.outcome.faults = FaultCounts(self.watchdog.total, self.drive.bad_frames)
             self.outcome.timing = self.timing.summary(
                 self.scheduler.missed_deadlines if self.scheduler is not None else 0
             )
@@ -494,7 +492,7 @@ class TrialLoop:
         output_buffer = self._output_buffer
         clamp: Callable[[float], float] = self.limiter.clamp if self.limiter is not None else float
         clamped_before = self._clamped_count()
-        lost_before, bad_before = self.watchdog.total, self._bad_frames()
+        lost_before, bad_before = self.watchdog.total, self.drive.bad_frames
         drive = self.drive
         law = self.law
         try:
@@ -518,7 +516,7 @@ class TrialLoop:
         finally:
             self._flush_timing(first_cycle)
         self.progress.advance(n)
-        faults = FaultCounts(self.watchdog.total - lost_before, self._bad_frames() - bad_before)
+        faults = FaultCounts(self.watchdog.total - lost_before, self.drive.bad_frames - bad_before)
         return _RawTrial(
             trial, seen, control, applied, sync_times, self._clamped_count() - clamped_before, self._feedforward_used,
             faults,
@@ -926,7 +924,6 @@ def run_bench(request: RunRequest) -> RunReport:
             progress=progress,
             stop=stop,
             before_trial=before_trial,
-            bad_frames=lambda: drive.bad_frames,
         )
         outcome = loop.run(plan.trials)
     design = plan.design
