@@ -704,9 +704,7 @@ class Cia402Drive(Drive):
             try:
                 feedback = self._assemble(received)
             except ProtocolError as exc:
-                self._bad_frames += 1
-                if self.fatal_bad_frames:
-                    self._errors.append(BadFrameError(str(exc)))
+                self._post_error(exc, bad_frame=True)  # self._cv is reentrant (an RLock)
             else:
                 self._feedback = feedback
             self._cv.notify_all()
@@ -895,18 +893,16 @@ class Cia402Drive(Drive):
                 raise DriveError("no PDO path (the drive was never started)")
             if nmt is not None and nmt != NmtState.OPERATIONAL:
                 raise DriveError(f"the drive reports NMT {_nmt_name(nmt)}: it ignores RPDOs")
-        elif path is StopPath.SDO:
-            if nmt == NmtState.STOPPED:
-                raise DriveError("the drive reports NMT STOPPED: it answers no SDO")
-            self._operational = False  # from here on, commands go over SDO
-        elif path is StopPath.NMT_SDO:
-            self._operational = False
-            self._enter_nmt(NmtCommand.ENTER_PRE_OPERATIONAL, (NmtState.PRE_OPERATIONAL,), short)
         else:
-            self._operational = False
-            self._enter_nmt(NmtCommand.RESET_NODE, (NmtState.INITIALISING, NmtState.PRE_OPERATIONAL),
-                            self.cfg.state_timeout)
-            return self._read(Obj.STATUSWORD, 0, _U16)  # the application reset itself disabled the power stage
+            self._operational = False  # from here on, commands go over SDO
+            if path is StopPath.SDO and nmt == NmtState.STOPPED:
+                raise DriveError("the drive reports NMT STOPPED: it answers no SDO")
+            if path is StopPath.NMT_SDO:
+                self._enter_nmt(NmtCommand.ENTER_PRE_OPERATIONAL, (NmtState.PRE_OPERATIONAL,), short)
+            elif path is StopPath.NMT_RESET:
+                self._enter_nmt(NmtCommand.RESET_NODE, (NmtState.INITIALISING, NmtState.PRE_OPERATIONAL),
+                                self.cfg.state_timeout)
+                return self._read(Obj.STATUSWORD, 0, _U16)  # the application reset itself disabled the power stage
         self._drive_to(Command402.QUICK_STOP, _QUICK_STOP_GOAL, short, ignore_errors=True)
         self._drive_to(Command402.DISABLE_VOLTAGE, _DISABLE_GOAL, short, ignore_errors=True)
         return self._last_statusword
