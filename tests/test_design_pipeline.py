@@ -72,10 +72,8 @@ def test_bench_and_simulate_build_identical_designs_with_the_q_filter(kind: LawK
     n = trial_samples(config.reference, config.sample_time)
     delay = bench.CAN_INPUT_DELAY
     on_bench = bench.build_design(config, kind, n)
-    offline = simulation.design_for(config, kind, input_delay=delay)
-    _, via_law, certificates = simulation.build_law(config, kind, n, input_delay=delay)
+    _, via_law, certificates = simulation.build_law(config, kind, n, input_delay=delay)  # what simulate calls
     assert via_law is not None
-    assert json.dumps(_without_timing(on_bench)) == json.dumps(_without_timing(offline))
     assert json.dumps(_without_timing(on_bench)) == json.dumps(_without_timing(via_law))
     assert certificates["spectral_radius"] == on_bench.to_json()["certificates"]["spectral_radius"]
     # ... and the design is of the law as it runs over CAN: the Q-filter and the input delay are certified.

@@ -43,7 +43,6 @@ if TYPE_CHECKING:
 __all__ = [
     "SimulationResult",
     "build_law",
-    "design_for",
     "paper_table",
     "plot_simulation",
     "simulate",
@@ -112,14 +111,6 @@ class SimulationResult:
 
 
 # --- design and law ---------------------------------------------------------------------------------------------
-
-
-def design_for(config: Config, law: str, input_delay: int = 0) -> Design:
-    """The design of ``law`` for a whole trial of ``config`` (:func:`foilc_hil.design.pipeline.build_design`)."""
-    from foilc_hil.design.pipeline import build_design
-    from foilc_hil.references import trial_samples
-
-    return build_design(config, law, trial_samples(config.reference, config.sample_time), input_delay=input_delay)
 
 
 def build_law(
