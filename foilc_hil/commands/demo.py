@@ -106,11 +106,10 @@ def execute(args: argparse.Namespace) -> CommandResult:
 
 
 def _design_one(config: Any, law: str, n_samples: int) -> dict[str, Any]:
-    """One law's design as JSON (runs in a worker process)."""
-    from foilc_hil.design.pipeline import build_design
-    from foilc_hil.loop.bench import CAN_INPUT_DELAY
+    """One law's design as JSON (runs in a worker process): the bench's own design for its CAN loop."""
+    from foilc_hil.loop.bench import build_design
 
-    return dict(build_design(config, law, n_samples, input_delay=CAN_INPUT_DELAY).to_json())
+    return dict(build_design(config, law, n_samples).to_json())
 
 
 def design_all(config: Any, laws: tuple[str, ...]) -> dict[str, Any]:
