@@ -66,10 +66,14 @@ def _leaked_threads(before: set[threading.Thread]) -> list[threading.Thread]:
         time.sleep(0.01)
 
 
+_LIBRARY_DATA = (sys.prefix, sys.base_prefix, "/usr/share/")
+
+
 def _leaked_fds(before: set[int]) -> list[str]:
     """Descriptors opened during the test and still open, by target; collected garbage first (only when needed:
-    a full collection per test is slow). Files inside the Python installation are library caches (matplotlib keeps
-    its fonts open), not leaks of the test."""
+    a full collection per test is slow). Files of the Python installation and the system's shared data are library
+    caches, not leaks of the test: matplotlib keeps the font it loaded open, its own copy or, depending on its font
+    cache, the system's (/usr/share/fonts)."""
     if not _open_fds() - before:
         return []
     gc.collect()
@@ -77,7 +81,7 @@ def _leaked_fds(before: set[int]) -> list[str]:
     for fd in sorted(_open_fds() - before):
         with contextlib.suppress(OSError):
             target = os.readlink(f"/proc/self/fd/{fd}")
-            if not target.startswith(sys.prefix):
+            if not target.startswith(_LIBRARY_DATA):
                 leaked.append(target)
     return leaked
 
