@@ -48,7 +48,7 @@ from mcap.stream_reader import StreamReader
 
 from foilc_hil.errors import FoilcHilError, LogFormatError
 from foilc_hil.io.mcap_chunks import MCAP_MAGIC, ChunkedMcapWriter
-from foilc_hil.io.records import SampleRecord
+from foilc_hil.io.records import SampleRecord, TimingRecord
 from foilc_hil.io.schemas import (
     MESSAGE_ENCODING,
     METADATA_CONFIG,
@@ -130,7 +130,8 @@ def _encode(document: dict[str, Any]) -> bytes:
 
 class _ClosingListener(can.Listener):
     """What both writers share: the lifecycle (python-can's ``stop()`` and the context manager both mean
-    :meth:`close`) and :meth:`log_sample`, the positional spelling of :meth:`write_sample`."""
+    :meth:`close`), :meth:`log_sample` and :meth:`log_timing`, the positional spellings of :meth:`write_sample` and
+    :meth:`write_timing`."""
 
     @abstractmethod
     def close(self) -> None: ...
@@ -152,6 +153,27 @@ class _ClosingListener(can.Listener):
     ) -> None:
         """Log one sample on ``/ilc/sample`` (builds the :class:`~foilc_hil.io.records.SampleRecord`; see there)."""
         self.write_sample(SampleRecord(trial, t, reference, output, control, error, E, sample))
+
+    @abstractmethod
+    def write_timing(self, record: TimingRecord) -> None: ...
+
+    def log_timing(
+        self,
+        cycle: int,
+        trial: int,
+        sample: int,
+        lateness_us: float,
+        period_us: float,
+        feedback_latency_us: float | None,
+        missed: bool,
+        *,
+        lost_feedback: bool = False,
+    ) -> None:
+        """Log one real-time cycle on ``/timing`` (builds the :class:`~foilc_hil.io.records.TimingRecord`; see
+        there)."""
+        self.write_timing(
+            TimingRecord(cycle, trial, sample, lateness_us, period_us, feedback_latency_us, missed, lost_feedback)
+        )
 
     def stop(self) -> None:
         """python-can listener hook: same as :meth:`close`."""
@@ -290,34 +312,9 @@ class McapLogWriter(_ClosingListener):
             raise LogFormatError(f"/ilc/trial message lacks {', '.join(missing)}")
         self._add(TOPIC_TRIAL, {**base, **extra}, log_time_ns)
 
-    def log_timing(
-        self,
-        cycle: int,
-        trial: int,
-        sample: int,
-        lateness_us: float,
-        period_us: float,
-        feedback_latency_us: float | None,
-        missed: bool,
-        log_time_ns: int | None = None,
-        *,
-        lost_feedback: bool = False,
-    ) -> None:
-        """Log one real-time cycle on ``/timing`` (see :data:`foilc_hil.io.schemas.TIMING_SCHEMA`).
-
-        ``lost_feedback``: no TPDO set answered the cycle's SYNC within its bound (the law held the last good one).
-        """
-        document = {
-            "cycle": cycle,
-            "trial": trial,
-            "sample": sample,
-            "lateness_us": lateness_us,
-            "period_us": period_us,
-            "feedback_latency_us": feedback_latency_us,
-            "missed": bool(missed),
-            "lost_feedback": bool(lost_feedback),
-        }
-        self._add(TOPIC_TIMING, document, time.time_ns() if log_time_ns is None else log_time_ns)
+    def write_timing(self, record: TimingRecord, log_time_ns: int | None = None) -> None:
+        """Log one real-time cycle on ``/timing`` (see :data:`foilc_hil.io.schemas.TIMING_SCHEMA`)."""
+        self._add(TOPIC_TIMING, record.to_json(), time.time_ns() if log_time_ns is None else log_time_ns)
 
     def log_design(self, design: Mapping[str, Any]) -> None:
         """Write the ``foilc_hil.design`` metadata record (if it was not known at construction)."""
@@ -462,23 +459,9 @@ class QueuedLogWriter(_ClosingListener):
         """Enqueue one ``/ilc/trial`` message (see :meth:`McapLogWriter.log_trial`)."""
         self._queue.put((LogOp.TRIAL, time.time_ns(), metrics, extra))
 
-    def log_timing(
-        self,
-        cycle: int,
-        trial: int,
-        sample: int,
-        lateness_us: float,
-        period_us: float,
-        feedback_latency_us: float | None,
-        missed: bool,
-        *,
-        lost_feedback: bool = False,
-    ) -> None:
-        """Enqueue one ``/timing`` message (see :meth:`McapLogWriter.log_timing`)."""
-        self._queue.put(
-            (LogOp.TIMING, time.time_ns(), cycle, trial, sample, lateness_us, period_us, feedback_latency_us, missed,
-             lost_feedback)
-        )
+    def write_timing(self, record: TimingRecord) -> None:
+        """Enqueue one ``/timing`` message (see :meth:`McapLogWriter.write_timing`)."""
+        self._queue.put((LogOp.TIMING, time.time_ns(), record))
 
     # -- between trials and at the end ---------------------------------------------------------------------
 
@@ -549,9 +532,7 @@ class QueuedLogWriter(_ClosingListener):
                 elif op is LogOp.TRIAL:
                     writer.log_trial_at(item[1], item[2], item[3])
                 elif op is LogOp.TIMING:
-                    _, stamp, cycle, trial, sample, lateness, period, latency, missed, lost = item
-                    writer.log_timing(cycle, trial, sample, lateness, period, latency, missed, log_time_ns=stamp,
-                                      lost_feedback=lost)
+                    writer.write_timing(item[2], log_time_ns=item[1])
                 elif op is LogOp.END_TRIAL:
                     writer.end_trial()
             except Exception as exc:  # kept, then raised on the caller's thread by end_trial/sync/close
