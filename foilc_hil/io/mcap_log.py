@@ -285,7 +285,8 @@ class McapLogWriter(_ClosingListener):
             "data": binascii.b2a_base64(msg.data, newline=False).decode("ascii"),
             "dir": direction,
         }
-        self._add(TOPIC_CAN, document, now, publish_time_ns=round(timestamp * 1e9))
+        # the frame document holds only ints, bools, strings and one float: orjson directly, no fallback needed
+        self._append(self._channels[TOPIC_CAN], orjson.dumps(document), now, round(timestamp * 1e9))
 
     def write_sample(self, record: SampleRecord, log_time_ns: int | None = None) -> None:
         """Log one sample on ``/ilc/sample``: ``output`` is the feedback the law saw, ``control`` its command.
@@ -364,13 +365,14 @@ class McapLogWriter(_ClosingListener):
 
     # -- internals -------------------------------------------------------------------------------------------
 
-    def _add(self, topic: str, document: dict[str, Any], log_time_ns: int, publish_time_ns: int | None = None) -> None:
-        data = _encode(document)
-        publish = log_time_ns if publish_time_ns is None else publish_time_ns
+    def _add(self, topic: str, document: dict[str, Any], log_time_ns: int) -> None:
+        self._append(self._channels[topic], _encode(document), log_time_ns, log_time_ns)
+
+    def _append(self, channel: int, data: bytes, log_time_ns: int, publish_time_ns: int) -> None:
         with self._lock:
             self._check_open()
             try:
-                self._writer.add_message(self._channels[topic], log_time_ns, data, publish)
+                self._writer.add_message(channel, log_time_ns, data, publish_time_ns)
             except OSError as exc:
                 raise LogWriteError(f"{self.path}: {exc.strerror or exc}") from None
 
