@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.comparison import Comparison, comparisons_json, repeat, seconds
+from benchmarks.comparison import Comparison, alternate, comparisons_json, seconds
 from benchmarks.output import emit, json_parser
 
 #: the last commit with the pure-Python physics (the "before" column of the physics rows)
@@ -60,14 +60,15 @@ def _before(module: str) -> ModuleType | None:
     return loaded
 
 
-def _per_step_us(plant: Any, command: float, repeats: int) -> list[float]:
+def _step_us(plant: Any, command: float) -> Callable[[], float]:
+    """A measurement: microseconds per 1 ms step of ``plant`` over the benchmark's 1 s, from its trial start."""
     u = np.array([command])
 
     def run() -> float:
         plant.reset(1)
         return seconds(lambda: [plant.step(u, DT) for _ in range(STEPS)]) / STEPS * 1e6
 
-    return repeat(run, repeats).runs  # type: ignore[return-value]
+    return run
 
 
 def _pmsm_ode_seconds() -> float:
@@ -92,11 +93,13 @@ def _pmsm_ode_seconds() -> float:
     return _solve_seconds(rhs, [0.0, 0.0, 0.0])
 
 
-def _first_order_ode_seconds(a: float, b: float, variation: tuple[float, float, float, float]) -> float:
-    amp_a, freq_a, amp_b, freq_b = variation
+def _first_order_ode_seconds(a: float, b: float, variation: tuple[Any, Any]) -> float:
+    delta_a, delta_b = variation
 
     def rhs(t: float, x: np.ndarray) -> list[float]:
-        return [(a + amp_a * math.sin(freq_a * t)) * x[0] + (b + amp_b * math.sin(freq_b * t)) * 1.0]
+        a_t = a + delta_a.amplitude * math.sin(delta_a.frequency * t)
+        b_t = b + delta_b.amplitude * math.sin(delta_b.frequency * t)
+        return [a_t * x[0] + b_t * 1.0]
 
     return _solve_seconds(rhs, [0.0])
 
@@ -109,18 +112,12 @@ def _solve_seconds(rhs: Callable[[float, np.ndarray], list[float]], x0: list[flo
     return seconds(lambda: solve_ivp(rhs, (0.0, times[-1]), x0, t_eval=times, rtol=1e-6, atol=1e-9)) / STEPS
 
 
-def _row(target: str, project: list[float], peer: list[float] | None, peer_name: str, **goal: Any) -> Comparison:
-    from benchmarks.comparison import Figure
-
-    return Comparison(
-        target=target,
-        unit="us/step",
-        higher_is_better=False,
-        project=Figure(tuple(project)),
-        peer=None if peer is None else Figure(tuple(peer)),
-        peer_name=peer_name,
-        **goal,
-    )
+def _row(
+    target: str, project: Callable[[], float], peer: Callable[[], float], repeats: int, **fields: Any
+) -> Comparison:
+    """A us/step row, the project's and the peer's repetitions alternated."""
+    mine, theirs = alternate(project, peer, repeats)
+    return Comparison(target=target, unit="us/step", higher_is_better=False, project=mine, peer=theirs, **fields)
 
 
 def physics_comparisons(repeats: int = 5) -> list[Comparison]:
@@ -132,59 +129,50 @@ def physics_comparisons(repeats: int = 5) -> list[Comparison]:
     demo = load_config(ROOT / "configs" / "demo.yaml").plant
     paper = load_config(ROOT / "configs" / "paper_sim.yaml").plant
     rows: list[Comparison] = []
-    pmsm_now = _per_step_us(build_plant(demo), 400.0, repeats)
     before_pmsm, before_first = _before("pmsm"), _before("first_order")
+    before = f"the same plant in pure Python ({BEFORE_COMMIT})"
     if before_pmsm is not None:
-        old = before_pmsm.PmsmPlant(demo, seed=demo.seed)
-        rows.append(
-            _row(
-                "PMSM axis (demo config, velocity loop), one 1 ms step",
-                pmsm_now,
-                _per_step_us(old, 400.0, repeats),
-                f"the same plant in pure Python ({BEFORE_COMMIT})",
-                min_ratio=20.0,
-            )
-        )
+        old = _step_us(before_pmsm.PmsmPlant(demo, seed=demo.seed), 400.0)
+        target = "PMSM axis (demo config, velocity loop), one 1 ms step"
+        rows.append(_row(target, _step_us(build_plant(demo), 400.0), old, repeats, peer_name=before, min_ratio=20.0))
     torque_plant = build_plant(PlantConfig.model_validate({"model": "pmsm", "pmsm": PMSM_TORQUE_MODE}))
-    ode = repeat(_pmsm_ode_seconds, repeats).runs
     rows.append(
         _row(
             "PMSM axis (torque mode), 1 ms of simulated time",
-            _per_step_us(torque_plant, 0.4, repeats),
-            [value * 1e6 for value in ode],
-            "scipy solve_ivp RK45 of the reduced ODE",
+            _step_us(torque_plant, 0.4),
+            lambda: _pmsm_ode_seconds() * 1e6,
+            repeats,
+            peer_name="scipy solve_ivp RK45 of the reduced ODE",
             note="the peer integrates 3 states without the current PI or the resolver: less work than the plant",
         )
     )
-    first_now = _per_step_us(build_plant(paper), 1.0, repeats)
+    first_now = _step_us(build_plant(paper), 1.0)
     if before_first is not None:
-        old = before_first.FirstOrderPlant(paper, seed=paper.seed)
-        rows.append(
-            _row(
-                "first-order plant (48), time-varying, one 1 ms step",
-                first_now,
-                _per_step_us(old, 1.0, repeats),
-                f"the same plant in pure Python ({BEFORE_COMMIT})",
-            )
-        )
-    variation = (
-        paper.variation.a.amplitude,
-        paper.variation.a.frequency,
-        paper.variation.b.amplitude,
-        paper.variation.b.frequency,
-    )
-    ode = repeat(lambda: _first_order_ode_seconds(paper.a[0][0], paper.b[0][0], variation), repeats).runs  # type: ignore[index]
+        old = _step_us(before_first.FirstOrderPlant(paper, seed=paper.seed), 1.0)
+        target = "first-order plant (48), time-varying, one 1 ms step"
+        rows.append(_row(target, first_now, old, repeats, peer_name=before))
+    variation = (paper.variation.a, paper.variation.b)
+    a, b = continuous_scalars(paper)
     rows.append(
         _row(
             "first-order plant (48), 1 ms of simulated time",
             first_now,
-            [value * 1e6 for value in ode],
-            "scipy solve_ivp RK45 of the same ODE",
+            lambda: _first_order_ode_seconds(a, b, variation) * 1e6,
+            repeats,
+            peer_name="scipy solve_ivp RK45 of the same ODE",
             note="the peer integrates 1 s with a constant input in one call, taking large adaptive steps; the plant "
             "answers every 1 ms step with the input of that step (ZOH), as the bench needs",
         )
     )
     return rows
+
+
+def continuous_scalars(plant: Any) -> tuple[float, float]:
+    """``(a, b)`` of a scalar first-order plant section."""
+    from plant_emulator.linear import continuous_model
+
+    model = continuous_model(plant)
+    return float(model.a[0, 0]), float(model.b[0, 0])
 
 
 def jit_cost() -> dict[str, float]:

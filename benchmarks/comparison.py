@@ -14,7 +14,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["Comparison", "Figure", "comparisons_json", "repeat", "seconds"]
+__all__ = ["Comparison", "Figure", "alternate", "comparisons_json", "repeat", "seconds"]
 
 
 @dataclass(frozen=True)
@@ -34,6 +34,16 @@ class Figure:
 def repeat(measure: Callable[[], float], repeats: int) -> Figure:
     """``repeats`` calls of ``measure`` (each returns one value) as a :class:`Figure`."""
     return Figure(tuple(float(measure()) for _ in range(repeats)))
+
+
+def alternate(first: Callable[[], float], second: Callable[[], float], repeats: int) -> tuple[Figure, Figure]:
+    """``repeats`` measurements of each, alternated (first, second, first, ...), so that a load change on the shared
+    machine hits both sides alike."""
+    runs: tuple[list[float], list[float]] = ([], [])
+    for _ in range(repeats):
+        runs[0].append(float(first()))
+        runs[1].append(float(second()))
+    return Figure(tuple(runs[0])), Figure(tuple(runs[1]))
 
 
 def seconds(call: Callable[[], object]) -> float:
