@@ -59,6 +59,7 @@ InputKind = Literal["velocity", "torque"]
 _NOISE_STREAM = 3
 _DRAW_STREAM = 10
 _RUN_TRIAL = 0  # parameter draws belong to the run, not to a trial
+_SUBSTEP_CACHE = 64  # step lengths remembered (bounded: a caller passing measured periods must not grow it)
 
 
 class PmsmPlant:
@@ -135,8 +136,10 @@ class PmsmPlant:
         applied = min(max(command, self._u_min), self._u_max)
         self.saturated = applied != command
         steps = self._substeps.get(dt)
-        if steps is None:  # a new step length: checked once, its sub-step count kept
+        if steps is None:  # a new step length: checked once, its sub-step count kept (a few lengths in practice)
             steps = max(1, math.ceil(check_step(dt) / self._config.internal_step - 1e-9))
+            if len(self._substeps) >= _SUBSTEP_CACHE:
+                self._substeps.clear()
             self._substeps[dt] = steps
         state = self._state
         count_start = state[PmsmState.COUNT]
