@@ -76,7 +76,9 @@ def lmi(sample_time: float = 0.01) -> list[dict[str, Any]]:
     from plant_emulator.linear import continuous_model
 
     model = discretize(continuous_model(PlantConfig(a=-1.23, b=1.68, c=1.0)), sample_time, "zoh")
-    uncertainty = Uncertainty(G1=np.array([[0.01]]), H1=np.array([[1.0]]), G2=np.array([[0.002]]), H2=np.array([[1.0]]))
+    uncertainty = Uncertainty(
+        G1=np.array([[0.01]]), H1=np.array([[1.0]]), G2=np.array([[0.002]]), H2=np.array([[1.0]])
+    )
     rows = []
     for solver in ("CLARABEL", "SCS"):
         start = time.perf_counter()
@@ -103,7 +105,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = json_parser("python -m benchmarks.bench_science", __doc__).parse_args(argv)
     emit(collect(), args.out)
     return 0
-
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -59,14 +59,8 @@ class Sampler:
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            self.samples.append(
-                Sample(
-                    time.monotonic() - self._started,
-                    _rss_mib(),
-                    threading.active_count(),
-                    len(os.listdir("/proc/self/fd")),
-                )
-            )
+            self.samples.append(Sample(time.monotonic() - self._started, _rss_mib(), threading.active_count(),
+                                       len(os.listdir("/proc/self/fd"))))
             self._stop.wait(self.every)
 
 
