@@ -22,7 +22,8 @@ Every project figure below was measured in the same run as the peer it is compar
 after the other, so that both see the same machine state. The machine is shared (the load average is recorded), so
 read ratios rather than absolute times, and treat ratios within the spread of the repetitions as noise. Ratios are
 oriented so that above 1 means the project is better (faster, or more per second). Nothing here is asserted by the
-test suite: unit tests never depend on wall-clock speed.
+test suite: unit tests never depend on wall-clock speed. Each row is a `benchmarks.comparison.Comparison` returned by
+one of the `benchmarks/bench_*.py` modules and collected by `benchmarks/run.py`; a goal is judged on the medians.
 """
 
 
