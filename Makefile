@@ -27,7 +27,7 @@ pytest: $(STAMP)
 	$(BIN)/pytest
 
 bench: $(STAMP)
-	$(BIN)/python -m benchmarks.run --out benchmarks/results.json
+	$(BIN)/python -m benchmarks.run --out benchmarks/results.json --doc docs/benchmarks.md
 
 # 200 lockstep trials on the PMSM emulator (uncertainty, load disturbance), watched for leaks (docs/reliability.md)
 soak: $(STAMP)

@@ -74,7 +74,7 @@ def test_writer_listens_on_a_virtual_bus(tmp_path: Path) -> None:
         for i in range(10):
             tx.send(can.Message(arbitration_id=0x701, data=[i], is_extended_id=False))
         deadline = time.monotonic() + 5.0
-        while time.monotonic() < deadline and writer._sequences["/can"] < 10:
+        while time.monotonic() < deadline and writer.message_count("/can") < 10:
             time.sleep(0.01)
         notifier.stop()  # stops the listener, which closes the log
     assert writer.closed

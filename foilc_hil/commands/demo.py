@@ -8,12 +8,16 @@ the offline simulator. Each run writes an MCAP log and a report (PNG plots + sum
 :mod:`foilc_hil.logtools.report`) and the command prints a side-by-side table at the end. The designs of both
 laws are computed first, in parallel.
 
-Sample time: ``Ts = 10 ms`` (600 samples per 6 s trial; 2 x 30 x (601 trial + ~100 settle) ~= 41k cycles). The
-embedded CAN path with the PMSM physics (200 sub-steps of 50 us per 10 ms cycle) runs about 550-700 lockstep
-cycles/s on the shared two-core reference machine, and 2600-3800 cycles/s with a first-order plant (``make bench``
-measures the latter), so the whole demo takes about 1.5 minutes there (measured 94 s: 17 s of design, 36 s FOILC,
-31 s IOILC). A 5 ms cycle gives the same cycle count per second of physics but twice the cycles, about 3 minutes;
-10 ms keeps the demo short while the velocity loop's 10 ms time constant is still one sample.
+Sample time: ``Ts = 10 ms`` (600 samples per 6 s trial; 2 x 30 x (601 trial + ~80 settle) ~= 41k cycles). With the
+compiled physics (:mod:`plant_emulator.physics.kernels`) the embedded CAN path runs the PMSM at about 3000 lockstep
+cycles/s on the shared two-core reference machine (it ran 550-700 before), so the demo takes about 45-50 s there
+(measured 48 s at load average 12: 15 s of design, 8 s FOILC, 7 s IOILC, the rest reports and start-up).
+
+The paper's own scale, ``Ts = 1 ms`` and 6000 samples, is 2 x 30 x (6001 + 200) = 372k cycles: at the same rate
+about 2 minutes of loop plus the N = 6000 certificates (about 18 s), so more than the ~90 s a demo may take. It
+also needs a design change: with the demo's model and an uncertainty bound scaled to 1 ms (|dA|, |dB| <= 0.023),
+the second trial's learned command drives the velocity loop into its torque limit and the drive faults (EMCY
+0x2310). Neither is a question of the physics' speed any more (a 1 ms PMSM step costs a few microseconds).
 """
 
 from __future__ import annotations

@@ -19,8 +19,8 @@ A trial starts at the SYNC at which the plant is reset: :meth:`SimulatedDrive.be
 condition without stepping. (The virtual drive resets between two SYNCs and steps once, with a zero command,
 before its first report; for a plant at rest at ``x0 = 0`` with no disturbance at ``t = 0`` both are the same.)
 
-The plant is the one definition of the physics (``build_plant``), stepped once per SYNC; a compiled kernel that
-advances a whole trial later only has to replace :meth:`SimulatedDrive.sync`'s step.
+The plant is the one definition of the physics (``build_plant``, whose arithmetic is the compiled kernels of
+:mod:`plant_emulator.physics.kernels`), stepped once per SYNC.
 """
 
 from __future__ import annotations
@@ -67,7 +67,9 @@ class SimulatedDrive(Drive):
         self.period = float(sample_time)
         self.input_delay = int(input_delay)
         self.mode = OperationMode.CYCLIC_SYNC_VELOCITY
-        self._pending = np.zeros(self.input_delay + 1)  # slot 0 is applied at the next step, the last one is new
+        # slot 0 is applied at the next step, the last one is new; a list: shifting it is cheaper than an array's
+        self._pending = [0.0] * (self.input_delay + 1)
+        self._command = np.zeros(1)  # the plant's input vector, reused every SYNC
         self._at_trial_start = True  # the plant was just built or reset: the next SYNC reports it as it is
         self._cycle = 0
         self._state = State402.SWITCH_ON_DISABLED
@@ -79,14 +81,14 @@ class SimulatedDrive(Drive):
         """Reset the plant for ``trial`` (its initial condition, disturbance and noise of that trial), nothing in
         flight; the next SYNC is the trial's first sample."""
         self.plant.reset(trial)
-        self._pending.fill(0.0)
+        self._pending = [0.0] * (self.input_delay + 1)
         self._at_trial_start = True
 
     # -- the cyclic path -----------------------------------------------------------------------------------------
 
     def set_target(self, value: float) -> float:
         """The command for the next SYNC (the newest FIFO slot); no limits or quantisation of its own."""
-        self._pending[-1] = value
+        self._pending[-1] = float(value)
         return value
 
     def sync(self) -> int:
@@ -97,10 +99,11 @@ class SimulatedDrive(Drive):
             self._at_trial_start = False
             y = self.plant.output()
         else:
-            command = pending[0] if self._state is State402.OPERATION_ENABLED else 0.0
-            y = self.plant.step(np.array([command]), self.period)
+            self._command[0] = pending[0] if self._state is State402.OPERATION_ENABLED else 0.0
+            y = self.plant.step(self._command, self.period)
         if self.input_delay:
-            pending[:-1] = pending[1:]  # the newest slot keeps its value: a drive holds its last set-point
+            del pending[0]
+            pending.append(pending[-1])  # the newest slot keeps its value: a drive holds its last set-point
         self._feedback = Feedback(
             cycle=self._cycle,
             statusword=STATE_STATUSWORD[self._state],
@@ -138,7 +141,7 @@ class SimulatedDrive(Drive):
     def quick_stop(self) -> None:
         """Stop commanding the plant: from now on each SYNC steps it with a zero command."""
         self._state = State402.QUICK_STOP_ACTIVE
-        self._pending.fill(0.0)
+        self._pending = [0.0] * (self.input_delay + 1)
 
     def fault_reset(self) -> None:
         """A simulated drive never faults: nothing to clear."""

@@ -8,6 +8,7 @@ seed and the trial number, so runs reproduce bit for bit.
 
 from __future__ import annotations
 
+import math
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -54,10 +55,13 @@ def trial_rng(seed: int, trial: int, stream: int) -> np.random.Generator:
 
 def check_input(u: np.ndarray | float | list[float], n_inputs: int) -> np.ndarray:
     """``u`` as a float vector of length ``n_inputs``; a scalar is accepted for a single-input plant."""
-    vector = np.atleast_1d(np.asarray(u, dtype=float)).reshape(-1)
+    vector = np.asarray(u, dtype=float)
     if vector.shape != (n_inputs,):
-        raise InputError(f"u must have {n_inputs} entries, got {vector.size}")
-    if not np.all(np.isfinite(vector)):
+        vector = np.atleast_1d(vector).reshape(-1)
+        if vector.shape != (n_inputs,):
+            raise InputError(f"u must have {n_inputs} entries, got {vector.size}")
+    # math.isfinite over a short list: called every step, and ~10x cheaper than np.all(np.isfinite(.)) on tiny arrays
+    if not all(map(math.isfinite, vector.tolist())):
         raise InputError("u must be finite")
     return vector
 

@@ -2,46 +2,48 @@
 
 from __future__ import annotations
 
-import math
-
 from plant_emulator.config import DisturbanceConfig
+from plant_emulator.physics.kernels import DisturbanceCode, disturbance_value
 
 __all__ = ["Disturbance"]
 
 
 class Disturbance:
-    """``d(t)`` within trial ``trial``: zero before ``start_trial``; see :class:`DisturbanceConfig` for shapes."""
+    """``d(t)`` within trial ``trial``: zero before ``start_trial``; see :class:`DisturbanceConfig` for shapes.
+
+    The value is the compiled :func:`~plant_emulator.physics.kernels.disturbance_value`, the same function the PMSM
+    kernel evaluates inside its sub-steps.
+    """
 
     def __init__(self, config: DisturbanceConfig) -> None:
         self._config = config
-        self._active = False
+        self._kind = DisturbanceCode[config.kind.upper()]
+        self._code = DisturbanceCode.NONE
 
     @property
     def active(self) -> bool:
         """Whether the disturbance acts in the current trial."""
-        return self._active
+        return self._code is not DisturbanceCode.NONE
+
+    @property
+    def code(self) -> DisturbanceCode:
+        """The shape acting in the current trial (``NONE`` while the disturbance is not armed)."""
+        return self._code
+
+    @property
+    def config(self) -> DisturbanceConfig:
+        """The ``plant.disturbance`` section."""
+        return self._config
 
     def reset(self, trial: int) -> None:
         """Arm (or disarm) the disturbance for ``trial``."""
-        config = self._config
-        self._active = config.kind != "none" and trial >= config.start_trial
+        armed = trial >= self._config.start_trial
+        self._code = self._kind if armed else DisturbanceCode.NONE
 
     def value(self, t: float) -> float:
         """``d(t)``, ``t`` in seconds since the start of the trial."""
-        if not self._active:
-            return 0.0
         config = self._config
-        if config.kind == "constant":
-            return config.amplitude
-        elapsed = t - config.start_time
-        if elapsed < 0:
-            return 0.0
-        if config.kind == "step":
-            return config.amplitude
-        phase = math.sin(config.frequency * elapsed)
-        if config.kind == "sine":
-            return config.amplitude * phase
-        return config.amplitude if phase >= 0 else -config.amplitude  # square
+        return float(disturbance_value(int(self._code), config.amplitude, config.frequency, config.start_time, t))
 
     def over_step(self, t0: float, dt: float) -> float:
         """The value held over ``[t0, t0 + dt]`` (sampled at the midpoint, like ``Delta``)."""

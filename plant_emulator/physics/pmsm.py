@@ -30,6 +30,9 @@ Limits: velocity commands are clamped to ``+-rated_speed``; ``torque_limited`` i
 was clipped during the last step, ``over_speed`` when ``|w|`` exceeded ``speed_limit`` during it, so the
 virtual drive can raise EMCY. ``plant.saturation`` clips the raw input first, in the input's unit.
 
+The sub-steps run in the compiled kernel :func:`~plant_emulator.physics.kernels.pmsm_advance` (one call per
+caller step); this class holds the configuration, the seeded draws and noise, and the ``Plant`` protocol.
+
 The state is ``[theta (rad, unwrapped mechanical angle), w (rad/s), id (A), iq (A)]``; the output is the
 measured velocity in rpm. ``plant.a``/``b``/``c``/``delay``/``uncertainty`` are the *design* model of a PMSM
 plant and are not used by the physics.
@@ -43,9 +46,10 @@ from typing import Literal
 import numpy as np
 
 from foilc_hil.errors import ConfigError
-from plant_emulator.config import PlantConfig, PmsmConfig
+from plant_emulator.config import DisturbanceConfig, PlantConfig, PmsmConfig
 from plant_emulator.physics.base import check_input, check_step, check_trial, trial_rng
 from plant_emulator.physics.disturbance import Disturbance
+from plant_emulator.physics.kernels import PMSM_PARAM_SIZE, PMSM_STATE_SIZE, PmsmParam, PmsmState, pmsm_advance
 
 __all__ = ["RAD_PER_S_PER_RPM", "InputKind", "PmsmPlant", "nominal_first_order"]
 
@@ -55,6 +59,7 @@ InputKind = Literal["velocity", "torque"]
 _NOISE_STREAM = 3
 _DRAW_STREAM = 10
 _RUN_TRIAL = 0  # parameter draws belong to the run, not to a trial
+_SUBSTEP_CACHE = 64  # step lengths remembered (bounded: a caller passing measured periods must not grow it)
 
 
 class PmsmPlant:
@@ -87,17 +92,13 @@ class PmsmPlant:
         self._noise_std = plant.output_noise
         self._disturbance = Disturbance(plant.disturbance)
         self._input_kind: InputKind = config.input_kind
+        self._velocity_mode = config.input_kind == "velocity"
         self._drawn = _draw_parameters(config, seed)
         self._count_angle = 2.0 * math.pi / float(2**config.resolver_bits)
-        # The drive is tuned on the nominal (datasheet) parameters, not on the drawn ones.
-        p = config.pole_pairs
-        self._psi_nominal = config.torque_constant / (1.5 * p)
-        self._psi = self._drawn["torque_constant"] / (1.5 * p)
-        wc = config.current_bandwidth
-        self._kp_d, self._kp_q = config.inductance_d * wc, config.inductance_q * wc
-        self._ki_current = config.resistance * wc
-        self._v_max = config.dc_bus_voltage / math.sqrt(3.0)
-        self._step_cache: dict[float, tuple[float, float, float, float]] = {}
+        self._params = _kernel_parameters(config, self._drawn, self._count_angle)
+        _set_disturbance_shape(self._params, plant.disturbance)
+        self._state = np.zeros(PMSM_STATE_SIZE)
+        self._substeps: dict[float, int] = {}
         self._noise_rng = trial_rng(seed, 1, _NOISE_STREAM)
         self._trial = 1
         self.reset(1)
@@ -107,63 +108,63 @@ class PmsmPlant:
     def reset(self, trial: int) -> None:
         """Start ``trial`` at rest (or at ``plant.x0`` rpm) at angle 0 with every controller state cleared."""
         self._trial = check_trial(trial)
-        self._theta = 0.0
-        self._omega = self._initial_speed
-        self._id = 0.0
-        self._iq = 0.0
-        self._int_d = 0.0
-        self._int_q = 0.0
-        self._int_velocity = 0.0
-        self._omega_estimate = self._omega
-        self._count = math.floor(self._theta / self._count_angle)
-        self._torque = 0.0
-        self._torque_command = 0.0
-        self._t = 0.0
-        self._reported_rpm = self._omega / RAD_PER_S_PER_RPM
+        state = self._state
+        state.fill(0.0)
+        state[PmsmState.OMEGA] = self._initial_speed
+        state[PmsmState.OMEGA_ESTIMATE] = self._initial_speed
+        self._reported_rpm = self._initial_speed / RAD_PER_S_PER_RPM
         self._disturbance.reset(self._trial)
+        self._params[PmsmParam.DISTURBANCE_CODE] = float(self._disturbance.code)
         self._noise_rng = trial_rng(self._seed, self._trial, _NOISE_STREAM)
-        self.torque_limited = False
-        """Whether the torque command was clipped to ``torque_limit`` during the last step."""
-        self.over_speed = False
-        """Whether ``|w|`` exceeded ``speed_limit`` during the last step."""
         self.saturated = False
         """Whether the last input was clipped by ``plant.saturation``."""
-        self._y = np.array([self._reported_rpm + self._noise()])
+        self._y = self._reported_rpm + self._noise()
+
+    @property
+    def torque_limited(self) -> bool:
+        """Whether the torque command was clipped to ``torque_limit`` during the last step."""
+        return bool(self._state[PmsmState.TORQUE_LIMITED])
+
+    @property
+    def over_speed(self) -> bool:
+        """Whether ``|w|`` exceeded ``speed_limit`` during the last step."""
+        return bool(self._state[PmsmState.OVER_SPEED])
 
     def step(self, u: np.ndarray, dt: float) -> np.ndarray:
         """Hold ``u`` (rpm in velocity mode, N m in torque mode) over ``dt`` seconds; return the measured rpm."""
         command = float(check_input(u, 1)[0])
-        dt = check_step(dt)
         applied = min(max(command, self._u_min), self._u_max)
         self.saturated = applied != command
-        steps = max(1, math.ceil(dt / self._config.internal_step - 1e-9))
-        h = dt / steps
-        count_start = self._count
-        self.torque_limited = False
-        self.over_speed = False
-        for _ in range(steps):
-            self._substep(applied, h)
-        measured = (self._count - count_start) * self._count_angle / dt / RAD_PER_S_PER_RPM
+        steps = self._substeps.get(dt)
+        if steps is None:  # a new step length: checked once, its sub-step count kept (a few lengths in practice)
+            steps = max(1, math.ceil(check_step(dt) / self._config.internal_step - 1e-9))
+            if len(self._substeps) >= _SUBSTEP_CACHE:
+                self._substeps.clear()
+            self._substeps[dt] = steps
+        state = self._state
+        count_start = state[PmsmState.COUNT]
+        pmsm_advance(state, self._params, applied, dt / steps, steps, self._velocity_mode, self._trial)
+        measured = (state[PmsmState.COUNT] - count_start) * self._count_angle / dt / RAD_PER_S_PER_RPM
         tau = self._config.velocity_filter
         if tau > 0:
             self._reported_rpm += (1.0 - math.exp(-dt / tau)) * (measured - self._reported_rpm)
         else:
-            self._reported_rpm = measured
-        self._y = np.array([self._reported_rpm + self._noise()])
-        return self._y.copy()
+            self._reported_rpm = float(measured)
+        self._y = self._reported_rpm + self._noise()
+        return np.array([self._y])
 
     def output(self) -> np.ndarray:
         """The measured velocity in rpm (quantisation, filter and noise included)."""
-        return self._y.copy()
+        return np.array([self._y])
 
     def state(self) -> np.ndarray:
         """``[theta (rad), w (rad/s), id (A), iq (A)]``."""
-        return np.array([self._theta, self._omega, self._id, self._iq])
+        return self._state[[PmsmState.THETA, PmsmState.OMEGA, PmsmState.ID, PmsmState.IQ]].copy()
 
     @property
     def time(self) -> float:
         """Seconds since :meth:`reset`."""
-        return self._t
+        return float(self._state[PmsmState.TIME])
 
     # --- drive-facing extras ----------------------------------------------------------------------------------
 
@@ -178,23 +179,27 @@ class PmsmPlant:
         if kind not in ("velocity", "torque"):
             raise ConfigError(f"must be 'velocity' or 'torque', got {kind!r}", key="plant.pmsm.input_kind")
         if kind == "velocity" and self._input_kind == "torque":
-            self._int_velocity = self._torque_command + self._config.velocity_kp * self._omega_estimate
+            state = self._state
+            state[PmsmState.INT_VELOCITY] = (
+                state[PmsmState.TORQUE_COMMAND] + self._config.velocity_kp * state[PmsmState.OMEGA_ESTIMATE]
+            )
         self._input_kind = kind
+        self._velocity_mode = kind == "velocity"
 
     @property
     def torque(self) -> float:
         """The electromagnetic torque ``Te`` (N m) at the end of the last step."""
-        return self._torque
+        return float(self._state[PmsmState.TORQUE])
 
     @property
     def torque_command(self) -> float:
         """The torque the drive commanded (N m) in the last internal step, after the torque limit."""
-        return self._torque_command
+        return float(self._state[PmsmState.TORQUE_COMMAND])
 
     @property
     def position_counts(self) -> int:
         """The resolver position, multi-turn, in counts (``counts_per_revolution`` per revolution)."""
-        return self._count
+        return int(self._state[PmsmState.COUNT])
 
     @property
     def counts_per_revolution(self) -> int:
@@ -220,109 +225,6 @@ class PmsmPlant:
     def _noise(self) -> float:
         return float(self._noise_std * self._noise_rng.standard_normal()) if self._noise_std > 0 else 0.0
 
-    def _electrical_factors(self, h: float) -> tuple[float, float, float, float]:
-        cached = self._step_cache.get(h)
-        if cached is None:
-            r = self._drawn["resistance"]
-            decay_d = math.exp(-r * h / self._drawn["inductance_d"])
-            decay_q = math.exp(-r * h / self._drawn["inductance_q"])
-            cached = (decay_d, (1.0 - decay_d) / r, decay_q, (1.0 - decay_q) / r)
-            if len(self._step_cache) > 64:
-                self._step_cache.clear()
-            self._step_cache[h] = cached
-        return cached
-
-    def _substep(self, command: float, h: float) -> None:
-        c = self._config
-        drawn = self._drawn
-        p = c.pole_pairs
-        # 1. The velocity estimate sensed at the end of the previous internal step.
-        omega_est = self._omega_estimate
-        # 2. Torque command: velocity loop (CSV) or direct (CST).
-        limit = c.torque_limit
-        if self._input_kind == "velocity":
-            speed_cap = c.rated_speed * RAD_PER_S_PER_RPM
-            reference = min(max(command * RAD_PER_S_PER_RPM, -speed_cap), speed_cap)
-            error = reference - omega_est
-            wanted = c.velocity_kp * (c.velocity_setpoint_weight * reference - omega_est) + self._int_velocity
-            torque_command = min(max(wanted, -limit), limit)
-            # Conditional integration: stop integrating into the limit (anti-windup).
-            if torque_command == wanted or (error > 0) != (wanted > 0):
-                self._int_velocity += c.velocity_ki * error * h
-                self._int_velocity = min(
-                    max(self._int_velocity, -limit - c.velocity_kp * abs(omega_est)),
-                    limit + c.velocity_kp * abs(omega_est),
-                )
-        else:
-            wanted = command
-            torque_command = min(max(wanted, -limit), limit)
-        if torque_command != wanted:
-            self.torque_limited = True
-        self._torque_command = torque_command
-        # 3. Current loop: PI with decoupling on nominal parameters, voltage vector limit.
-        iq_ref = torque_command / c.torque_constant
-        we_est = p * omega_est
-        error_d = -self._id
-        error_q = iq_ref - self._iq
-        vd = self._kp_d * error_d + self._int_d - we_est * c.inductance_q * self._iq
-        vq = self._kp_q * error_q + self._int_q + we_est * (c.inductance_d * self._id + self._psi_nominal)
-        magnitude = math.hypot(vd, vq)
-        if magnitude > self._v_max:
-            scale = self._v_max / magnitude
-            vd *= scale
-            vq *= scale
-        else:
-            self._int_d += self._ki_current * error_d * h
-            self._int_q += self._ki_current * error_q * h
-        # 4. Electrical plant: each axis exact over h with the cross-coupling held.
-        we = p * self._omega
-        ld, lq = drawn["inductance_d"], drawn["inductance_q"]
-        decay_d, gain_d, decay_q, gain_q = self._electrical_factors(h)
-        id_old, iq_old = self._id, self._iq
-        self._id = decay_d * id_old + gain_d * (vd + we * lq * iq_old)
-        self._iq = decay_q * iq_old + gain_q * (vq - we * (ld * id_old + self._psi))
-        id_mean = 0.5 * (id_old + self._id)
-        iq_mean = 0.5 * (iq_old + self._iq)
-        torque = 1.5 * p * (self._psi * iq_mean + (ld - lq) * id_mean * iq_mean)
-        # 5. Mechanics: Heun with Te and the load held over h.
-        load = self._disturbance.over_step(self._t, h)
-        drive = torque + load
-        inertia = drawn["inertia"]
-        if c.drift.amplitude > 0:
-            phase = c.drift.frequency * (self._t + 0.5 * h) + c.drift.phase_per_trial * (self._trial - 1)
-            inertia *= 1.0 + c.drift.amplitude * math.sin(phase)
-        theta0, omega0 = self._theta, self._omega
-        accel0 = (drive - self._losses(theta0, omega0)) / inertia
-        omega_pred = omega0 + h * accel0
-        theta_pred = theta0 + h * omega0
-        accel1 = (drive - self._losses(theta_pred, omega_pred)) / inertia
-        self._omega = omega0 + 0.5 * h * (accel0 + accel1)
-        self._theta = theta0 + 0.5 * h * (omega0 + self._omega)
-        self._torque = 1.5 * p * (self._psi * self._iq + (ld - lq) * self._id * self._iq)
-        self._t += h
-        # 6. Sensing at the end of the step (used by the next one): the quantised angle, differentiated over the
-        # internal step and low-passed -- the drive's own velocity estimate.
-        count = math.floor(self._theta / self._count_angle)
-        raw = (count - self._count) * self._count_angle / h
-        self._count = count
-        if c.velocity_loop_filter > 0:
-            self._omega_estimate += (1.0 - math.exp(-h / c.velocity_loop_filter)) * (raw - self._omega_estimate)
-        else:
-            self._omega_estimate = raw
-        if abs(self._omega) > c.speed_limit * RAD_PER_S_PER_RPM:
-            self.over_speed = True
-
-    def _losses(self, theta: float, omega: float) -> float:
-        """Friction and cogging torque (N m) opposing the motion at (theta, omega)."""
-        c = self._config
-        drawn = self._drawn
-        losses = drawn["viscous"] * omega
-        if drawn["coulomb"] > 0:
-            losses += drawn["coulomb"] * math.tanh(omega / (c.coulomb_velocity_scale * RAD_PER_S_PER_RPM))
-        if c.cogging_amplitude > 0:
-            losses += c.cogging_amplitude * math.sin(c.cogging_periods * theta)
-        return losses
-
 
 def _draw_parameters(config: PmsmConfig, seed: int) -> dict[str, float]:
     """Nominal parameters scaled by factors drawn uniformly in ``[1 - spread, 1 + spread]`` (seeded per run)."""
@@ -342,6 +244,59 @@ def _draw_parameters(config: PmsmConfig, seed: int) -> dict[str, float]:
         "inductance_d": config.inductance_d * factors["inductance"],
         "inductance_q": config.inductance_q * factors["inductance"],
     }
+
+
+def _kernel_parameters(config: PmsmConfig, drawn: dict[str, float], count_angle: float) -> np.ndarray:
+    """The parameter vector of :func:`~plant_emulator.physics.kernels.pmsm_advance`.
+
+    The drive is tuned on the nominal (datasheet) parameters, not on the drawn ones: the current PI by pole-zero
+    cancellation (``kp = L wc``, ``ki = R wc``) and the decoupling on the nominal ``L`` and flux linkage.
+    """
+    p = config.pole_pairs
+    wc = config.current_bandwidth
+    values = {
+        PmsmParam.POLE_PAIRS: p,
+        PmsmParam.SPEED_CAP: config.rated_speed * RAD_PER_S_PER_RPM,
+        PmsmParam.VELOCITY_KP: config.velocity_kp,
+        PmsmParam.VELOCITY_KI: config.velocity_ki,
+        PmsmParam.SETPOINT_WEIGHT: config.velocity_setpoint_weight,
+        PmsmParam.TORQUE_LIMIT: config.torque_limit,
+        PmsmParam.TORQUE_CONSTANT: config.torque_constant,
+        PmsmParam.INDUCTANCE_D_NOMINAL: config.inductance_d,
+        PmsmParam.INDUCTANCE_Q_NOMINAL: config.inductance_q,
+        PmsmParam.PSI_NOMINAL: config.torque_constant / (1.5 * p),
+        PmsmParam.KP_D: config.inductance_d * wc,
+        PmsmParam.KP_Q: config.inductance_q * wc,
+        PmsmParam.KI_CURRENT: config.resistance * wc,
+        PmsmParam.V_MAX: config.dc_bus_voltage / math.sqrt(3.0),
+        PmsmParam.PSI: drawn["torque_constant"] / (1.5 * p),
+        PmsmParam.RESISTANCE: drawn["resistance"],
+        PmsmParam.INDUCTANCE_D: drawn["inductance_d"],
+        PmsmParam.INDUCTANCE_Q: drawn["inductance_q"],
+        PmsmParam.INERTIA: drawn["inertia"],
+        PmsmParam.VISCOUS: drawn["viscous"],
+        PmsmParam.COULOMB: drawn["coulomb"],
+        PmsmParam.COULOMB_SCALE: config.coulomb_velocity_scale * RAD_PER_S_PER_RPM,
+        PmsmParam.COGGING_AMPLITUDE: config.cogging_amplitude,
+        PmsmParam.COGGING_PERIODS: config.cogging_periods,
+        PmsmParam.DRIFT_AMPLITUDE: config.drift.amplitude,
+        PmsmParam.DRIFT_FREQUENCY: config.drift.frequency,
+        PmsmParam.DRIFT_PHASE_PER_TRIAL: config.drift.phase_per_trial,
+        PmsmParam.COUNT_ANGLE: count_angle,
+        PmsmParam.VELOCITY_LOOP_FILTER: config.velocity_loop_filter,
+        PmsmParam.SPEED_LIMIT: config.speed_limit * RAD_PER_S_PER_RPM,
+    }
+    params = np.zeros(PMSM_PARAM_SIZE)
+    for slot, value in values.items():
+        params[slot] = value
+    return params
+
+
+def _set_disturbance_shape(params: np.ndarray, disturbance: DisturbanceConfig) -> None:
+    """Write the load torque's amplitude, frequency and start time (its code is set per trial by ``reset``)."""
+    params[PmsmParam.DISTURBANCE_AMPLITUDE] = disturbance.amplitude
+    params[PmsmParam.DISTURBANCE_FREQUENCY] = disturbance.frequency
+    params[PmsmParam.DISTURBANCE_START] = disturbance.start_time
 
 
 def nominal_first_order(config: PmsmConfig, input_kind: InputKind | None = None) -> tuple[float, float]:
