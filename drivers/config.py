@@ -6,7 +6,14 @@ from typing import Literal
 
 from pydantic import Field, field_validator
 
+from drivers.cia402 import OperationMode
 from foilc_hil.schema import Section
+
+_OPERATION_MODES = {
+    "csv": OperationMode.CYCLIC_SYNC_VELOCITY,
+    "cst": OperationMode.CYCLIC_SYNC_TORQUE,
+    "pv": OperationMode.PROFILE_VELOCITY,
+}
 
 
 class BusConfig(Section):
@@ -49,3 +56,8 @@ class DriveConfig(Section):
     state_timeout: float = Field(default=2.0, gt=0)  # per 402 transition
     quick_stop_option: int = Field(default=2, ge=0, le=8)  # 0x605A
     abort_connection_option: int = Field(default=3, ge=0, le=3)  # 0x6007
+
+    @property
+    def operation_mode(self) -> OperationMode:
+        """The CiA 402 mode (0x6060) ``mode`` names: the one ``run`` configures and ``commission enable`` checks."""
+        return _OPERATION_MODES[self.mode]

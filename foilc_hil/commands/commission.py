@@ -206,11 +206,14 @@ def _power(args: argparse.Namespace) -> CommandResult:
     _positive(args.state_timeout, "--state-timeout")
     config, emulator_config, drive_cfg = _load(args)
     timeout = args.state_timeout if args.state_timeout is not None else drive_cfg.state_timeout
-    walk = {"enable": power.enable, "disable": power.disable, "fault-reset": power.fault_reset}[args.action]
     with _target(args, config, emulator_config, drive_cfg.node_id) as target:
         drive = _open_drive(target, drive_cfg, config.sample_time)
         try:
-            report = walk(drive, state_timeout=timeout)
+            if args.action == "enable":  # run's own checks first: enable and run agree on what a drive must have
+                report = power.enable(drive, state_timeout=timeout, mode=drive_cfg.operation_mode)
+            else:
+                walk = power.disable if args.action == "disable" else power.fault_reset
+                report = walk(drive, state_timeout=timeout)
         finally:
             drive.close()
     return CommandResult(report.to_json(), report.render())

@@ -791,9 +791,6 @@ class McapSink:
             )
 
 
-_MODES = {"csv": "CYCLIC_SYNC_VELOCITY", "cst": "CYCLIC_SYNC_TORQUE", "pv": "PROFILE_VELOCITY"}
-
-
 @dataclass(frozen=True)
 class _RunPlan:
     """What a run will do, decided before anything is opened: the law, its design, limits and loop settings."""
@@ -887,10 +884,8 @@ def _open_drive(
 
 def _enable(drive: Any, config: Any) -> None:
     """Connect, configure the drive's mode and cycle and walk it to OPERATION ENABLED."""
-    from drivers.cia402 import OperationMode
-
     drive.connect()
-    drive.configure(OperationMode[_MODES[config.drive.mode]], config.sample_time)
+    drive.configure(config.drive.operation_mode, config.sample_time)
     drive.enable()
 
 
