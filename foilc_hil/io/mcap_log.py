@@ -497,6 +497,11 @@ class QueuedLogWriter(_ClosingListener):
         self.sync()
         self.writer.log_design(design)
 
+    def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
+        """Write another metadata record (waits for the queue first, to keep the order)."""
+        self.sync()
+        self.writer.add_metadata(name, data)
+
     def sync(self, timeout: float | None = None) -> bool:
         """Block until everything enqueued so far is written; ``False`` if ``timeout`` expired first."""
         done = threading.Event()
