@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import shutil
 from pathlib import Path
+
 import pytest
 
 from foilc_hil.cli import main
