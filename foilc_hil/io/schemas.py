@@ -66,17 +66,33 @@ _SIGNAL: Final[dict[str, Any]] = {
     ],
 }
 
+def _flag(description: str) -> dict[str, Any]:
+    return {"type": "boolean", "default": False, "description": description}
+
+
 CAN_FRAME_SCHEMA: Final[dict[str, Any]] = {
     "title": "foilc_hil.CanFrame",
-    "description": "One classic CAN frame the bench sent (tx) or received (rx).",
+    "description": "One CAN frame the bench sent (tx) or received (rx); the flags are written only when set.",
     "type": "object",
     "properties": {
         "timestamp": {"type": "number", "description": "bus timestamp, seconds (python-can Message.timestamp)"},
         "id": {"type": "integer", "minimum": 0, "description": "arbitration id"},
         "extended": {"type": "boolean", "description": "29-bit identifier"},
-        "dlc": {"type": "integer", "minimum": 0, "maximum": 15},
+        "dlc": {
+            "type": "integer",
+            "minimum": 0,
+            "maximum": 64,
+            "description": "python-can Message.dlc: the DLC code of a classic frame (0..15), the data length of an "
+            "FD frame (up to 64)",
+        },
         "data": {"type": "string", "contentEncoding": "base64", "description": "payload bytes"},
         "dir": {"type": "string", "enum": list(DIRECTIONS)},
+        "remote": _flag("remote transmission request (RTR)"),
+        "error": _flag("an error frame: a bus event, never a frame to transmit"),
+        "fd": _flag("CAN FD frame"),
+        "brs": _flag("CAN FD bit rate switch"),
+        "esi": _flag("CAN FD error state indicator"),
+        "channel": {"type": ["string", "integer"], "description": "python-can Message.channel, where known"},
     },
     "required": ["timestamp", "id", "extended", "dlc", "data", "dir"],
 }

@@ -3,9 +3,9 @@
 Frames
 ------
 :func:`select_frames` picks the ``/can`` frames to re-emit (direction ``tx`` by default -- what the bench sent --,
-a time window relative to the log's first frame, optional arbitration ids); :func:`play_frames` sends them with
-their original relative timing scaled by ``rate``, each on an absolute deadline from one start instant (no drift
-accumulates, a late frame does not delay the following ones' deadlines).
+a time window relative to the log's first frame, optional arbitration ids; never an error frame); :func:`play_frames`
+sends them with their original relative timing scaled by ``rate``, each on an absolute deadline from one start
+instant (no drift accumulates, a late frame does not delay the following ones' deadlines).
 
 Verification
 ------------
@@ -93,8 +93,8 @@ def select_frames(
     selected = []
     for frame in frames:
         offset = float(frame["timestamp"]) - t0
-        if frame["dir"] not in wanted_dirs or not start <= offset < end:
-            continue
+        if frame["dir"] not in wanted_dirs or not start <= offset < end or frame.get("error"):
+            continue  # an error frame is a bus event, never a frame to transmit
         if wanted_ids is not None and int(frame["id"]) not in wanted_ids:
             continue
         selected.append(frame)
