@@ -909,26 +909,31 @@ def run_bench(request: RunRequest) -> RunReport:
     config = request.config
     plan = _plan_run(request)
     stops: list[StopReport] = []
-    with _truth_about_the_stop(stops, config.drive.node_id), contextlib.ExitStack() as stack:
-        sink = _open_log(stack, request, plan)
-        bus_cfg, before_trial = _start_emulator(stack, config, plan.bus)
-        drive = _open_drive(stack, config, bus_cfg, sink, stops)
-        progress = make_progress(plan.title, quiet=request.quiet)
-        stack.callback(progress.close)
-        stop = stack.enter_context(StopRequest())
-        _enable(drive, config)
-        loop = TrialLoop(
-            drive,
-            plan.law,
-            plan.reference,
-            plan.limiter,
-            plan.settings,
-            log=sink,
-            progress=progress,
-            stop=stop,
-            before_trial=before_trial,
-        )
-        outcome = loop.run(plan.trials)
+    loops: list[TrialLoop] = []
+    try:
+        with _truth_about_the_stop(stops, config.drive.node_id), contextlib.ExitStack() as stack:
+            sink = _open_log(stack, request, plan)
+            bus_cfg, before_trial = _start_emulator(stack, config, plan.bus)
+            drive = _open_drive(stack, config, bus_cfg, sink, stops)
+            progress = make_progress(plan.title, quiet=request.quiet)
+            stack.callback(progress.close)
+            stop = stack.enter_context(StopRequest())
+            _enable(drive, config)
+            loop = TrialLoop(drive, plan.law, plan.reference, plan.limiter, plan.settings, log=sink,
+                             progress=progress, stop=stop, before_trial=before_trial)
+            loops.append(loop)
+            outcome = loop.run(plan.trials)
+    except FoilcHilError as exc:
+        # what the run had done: the CLI's --json error document carries it (trials, the stop, the log)
+        done = loops[0].outcome if loops else BenchOutcome()
+        exc.partial = {
+            "law": plan.law_kind,
+            "trials": [metrics.to_json() for metrics in done.trials],
+            "stopped": str(exc).splitlines()[0] if str(exc) else type(exc).__name__,
+            "log": str(request.out) if request.out is not None else "",
+            "drive_stop": stops[-1].to_json() if stops else None,
+        }
+        raise
     design = plan.design
     return RunReport(
         law=plan.law_kind,
