@@ -12,6 +12,7 @@ thread ("rx"), so they must be thread-safe (e.g. put the frame on a queue).
 
 from __future__ import annotations
 
+import errno
 import threading
 from collections.abc import Callable
 from typing import Any
@@ -94,6 +95,9 @@ def open_bus(cfg: BusConfig) -> can.BusABC:
                 f"{cfg.channel}` (virtual) or bring the adapter up with `ip link set {cfg.channel} up type can "
                 "bitrate ...`"
             )
+            if isinstance(exc, OSError) and exc.errno == errno.EAFNOSUPPORT:  # no AF_CAN in this kernel/namespace
+                then = hint.replace(";", ", then", 1)
+                hint = f"; this kernel has no SocketCAN: load it with `sudo modprobe can-raw vcan`{then}"
         raise DriveError(f"cannot open CAN bus {where}: {exc}{hint}") from exc
 
 

@@ -5,12 +5,15 @@ Start-up follows what real CANopen masters do, using only standard objects, so a
 0. Construction (``Cia402Drive.open``) is inert, like canopen's ``Network()``: no thread, nothing on the bus.
 1. ``connect``: ``listen`` (Notifier, frame tap, heartbeat watchdog); NMT reset communication, wait for the
    boot-up, NMT pre-operational, read 0x1000 (must be a 402 device), 0x1018:1..4 and 0x6502 over SDO.
-2. ``configure``: start the master's heartbeat producer; for every RPDO/TPDO 1..4: disable it (COB-ID bit 31),
-   and for those the mode uses: transmission type 1, mapping count 0, mapping entries, count, COB-ID enabled;
-   then 0x6060 mode, 0x605A, 0x6007 (both optional in CiA 402: skipped with a warning when the drive lacks
-   them), 0x1006 (cycle period in us), 0x60C2 (interpolation time period, only if the drive's EDS has it),
-   0x1017 (drive heartbeat), 0x1016:1 (drive watches the master); read all of it back (0x6061 must show the
-   mode); NMT start; wait for the operational heartbeat.
+2. ``configure``: :meth:`Cia402Drive.preflight` first (mode in 0x6502, :func:`pdo_plan`: the PDOs and objects
+   the drive's EDS has); start the master's heartbeat producer; for every RPDO/TPDO 1..4: disable it (COB-ID
+   bit 31), and for those the plan uses: transmission type 1, mapping count 0, mapping entries, count, COB-ID
+   enabled; then 0x6060 mode, 0x605A, 0x6007 (optional in CiA 402), 0x1006 (cycle period in us; optional in
+   CiA 301), 0x60C2 (interpolation time period), 0x1017 (drive heartbeat), 0x1016:1 (drive watches the master;
+   optional in CiA 301). An optional object the EDS lacks is not written (a warning and a plan note say so); one
+   the EDS has but the drive refuses with "no object" is skipped with a warning. Read all of it back (0x6061 must
+   show the mode); NMT start; wait for the operational heartbeat. Torque (0x6077) and position (0x6064) feedback
+   are mapped only when the drive has them (then :class:`~drivers.drive.Feedback` has NaN torque / position 0).
 3. ``enable``: controlword 0x06 / 0x07 / 0x0F through the RPDO, one SYNC each, until the TPDO statusword shows
    OPERATION_ENABLED.
 
@@ -121,7 +124,7 @@ from foilc_hil.errors import (
     StateTransitionError,
 )
 
-__all__ = ["Cia402Drive", "RxStats", "interpolation_time_period", "pdo_layouts"]
+__all__ = ["Cia402Drive", "PdoPlan", "RxStats", "interpolation_time_period", "pdo_plan"]
 
 logger = logging.getLogger(__name__)
 
@@ -132,12 +135,11 @@ MASTER_HEARTBEATS_PER_CONSUMER_TIME = 4
 """The master beats this many times per drive consumer time (0x1016), so one lost or late frame never trips it."""
 HEARTBEAT_WATCHDOG_POLL = 0.05  # s between checks of the drive's heartbeat deadline
 
-_FEEDBACK_OBJECTS = (
-    Obj.STATUSWORD,
-    Obj.VELOCITY_ACTUAL_VALUE,
-    Obj.TORQUE_ACTUAL_VALUE,
-    Obj.POSITION_ACTUAL_VALUE,
-)
+_REQUIRED_FEEDBACK = (Obj.STATUSWORD, Obj.VELOCITY_ACTUAL_VALUE)
+"""Feedback every mode needs: the 402 state and the axis output."""
+_OPTIONAL_FEEDBACK = (Obj.TORQUE_ACTUAL_VALUE, Obj.POSITION_ACTUAL_VALUE)
+"""Feedback mapped when the drive has it (:class:`~drivers.drive.Feedback` has NaN torque / 0 position without)."""
+PDO_PAYLOAD_BITS = 64  # a classic CAN PDO carries at most 8 bytes
 
 
 _U8, _U16, _U32 = ("B", False), ("H", False), ("I", False)
@@ -160,37 +162,86 @@ def interpolation_time_period(period: float) -> tuple[int, int]:
     raise ConfigError(f"{period} s is not expressible in 0x60C2 (1..255 x 10^-1..10^-6 s)", key="sample_time")
 
 
-def pdo_layouts(
-    mode: OperationMode, node_id: int, od: ObjectDictionary | None
-) -> tuple[tuple[PdoLayout, ...], tuple[PdoLayout, ...]]:
-    """The RPDOs and TPDOs the master configures for ``mode`` (standard objects only).
+@dataclass(frozen=True, slots=True)
+class PdoPlan:
+    """The PDOs the master configures on one drive for one mode, and what it left out (and why).
+
+    Attributes
+    ----------
+    rpdos, tpdos
+        The layouts ``configure`` writes (numbers the drive's EDS has, in order).
+    notes
+        One line per optional object or PDO the drive lacks, e.g. ``"0x6077 not mapped: ..."``.
+    """
+
+    rpdos: tuple[PdoLayout, ...]
+    tpdos: tuple[PdoLayout, ...]
+    notes: tuple[str, ...] = ()
+
+
+def _pdo_numbers(od: ObjectDictionary | None, communication: int, mapping: int) -> tuple[int, ...]:
+    """PDO numbers 1..4 whose communication and mapping objects the EDS describes (all four without an EDS)."""
+    numbers = range(1, len(TPDO_BASES) + 1)
+    if od is None:
+        return tuple(numbers)
+    return tuple(n for n in numbers if communication + n - 1 in od and mapping + n - 1 in od)
+
+
+def _pack_feedback(groups: list[list[MappedVariable]], slots: int) -> tuple[list[list[MappedVariable]], list[int]]:
+    """The feedback groups in ``slots`` PDOs: one group per PDO while PDOs remain, else first fit in 8 bytes.
+
+    Returns the PDO contents and the objects that fit nowhere (the caller decides whether they were optional).
+    """
+    if len(groups) <= slots:
+        return groups, []
+    bins: list[list[MappedVariable]] = [[] for _ in range(slots)]
+    dropped: list[int] = []
+    for variable in (v for group in groups for v in group):
+        fit = next((b for b in bins if sum(v.bits for v in b) + variable.bits <= PDO_PAYLOAD_BITS), None)
+        if fit is None:
+            dropped.append(variable.index)
+        else:
+            fit.append(variable)
+    return [b for b in bins if b], dropped
+
+
+def pdo_plan(mode: OperationMode, node_id: int, od: ObjectDictionary | None) -> PdoPlan:
+    """The RPDOs and TPDOs the master configures for ``mode`` on a drive described by ``od`` (standard objects).
 
     RPDO1 = controlword + target (0x60FF for CSV/PV, 0x6071 for CST); TPDO1 = statusword + velocity actual;
-    TPDO2 = torque actual + position actual. All synchronous (transmission type 1), default COB-IDs.
+    TPDO2 = torque actual + position actual. All synchronous (transmission type 1), default COB-IDs. Only objects
+    and PDOs the EDS has are used: a drive without 0x6077 or 0x6064 gets them left out (a note says so), one
+    without TPDO2 gets what fits into TPDO1. What the mode truly needs -- controlword, target, statusword, velocity
+    actual, an RPDO and a TPDO -- is refused with a :class:`~foilc_hil.errors.DriveError` naming the object.
     """
     target = Obj.TARGET_TORQUE if mode is OperationMode.CYCLIC_SYNC_TORQUE else Obj.TARGET_VELOCITY
-
-    def variables(*indices: int) -> tuple[MappedVariable, ...]:
-        return tuple(mapped_variable(od, index) for index in indices)
-
-    rpdos = (
-        PdoLayout(PdoDirection.RPDO, 1, cob_id(RPDO_BASES[0], node_id), variables(Obj.CONTROLWORD, target)),
-    )
-    tpdos = (
-        PdoLayout(
-            PdoDirection.TPDO,
-            1,
-            cob_id(TPDO_BASES[0], node_id),
-            variables(Obj.STATUSWORD, Obj.VELOCITY_ACTUAL_VALUE),
-        ),
-        PdoLayout(
-            PdoDirection.TPDO,
-            2,
-            cob_id(TPDO_BASES[1], node_id),
-            variables(Obj.TORQUE_ACTUAL_VALUE, Obj.POSITION_ACTUAL_VALUE),
-        ),
-    )
-    return rpdos, tpdos
+    needed = (Obj.CONTROLWORD, target, *_REQUIRED_FEEDBACK)
+    if od is not None:
+        lacking = [f"0x{int(index):04X} ({index.name.lower()})" for index in needed if index not in od]
+        if lacking:
+            raise DriveError(f"node {node_id}: the drive's EDS lacks {', '.join(lacking)}, which {mode.name} needs")
+    rpdo_numbers = _pdo_numbers(od, Obj.RPDO_COMMUNICATION, Obj.RPDO_MAPPING)
+    tpdo_numbers = _pdo_numbers(od, Obj.TPDO_COMMUNICATION, Obj.TPDO_MAPPING)
+    for kind, numbers, base in (("RPDO", rpdo_numbers, Obj.RPDO_COMMUNICATION),
+                                ("TPDO", tpdo_numbers, Obj.TPDO_COMMUNICATION)):
+        if not numbers:
+            raise DriveError(f"node {node_id}: the drive's EDS has no {kind} (0x{int(base):04X}.. with its mapping), "
+                             f"which {mode.name} needs")
+    notes = [f"0x{int(index):04X} ({index.name.lower()}) not mapped: the drive's EDS lacks it"
+             for index in _OPTIONAL_FEEDBACK if od is not None and index not in od]
+    present = [index for index in _OPTIONAL_FEEDBACK if od is None or index in od]
+    groups = [[mapped_variable(od, index) for index in _REQUIRED_FEEDBACK]]
+    if present:
+        groups.append([mapped_variable(od, index) for index in present])
+    contents, dropped = _pack_feedback(groups, len(tpdo_numbers))
+    room = f"the drive's {len(tpdo_numbers)} TPDO(s) have no room left"
+    notes += [f"0x{index:04X} not mapped: {room}" for index in dropped]
+    rpdo = rpdo_numbers[0]
+    rpdos = (PdoLayout(PdoDirection.RPDO, rpdo, cob_id(RPDO_BASES[rpdo - 1], node_id),
+                       (mapped_variable(od, Obj.CONTROLWORD), mapped_variable(od, target))),)
+    tpdos = tuple(PdoLayout(PdoDirection.TPDO, number, cob_id(TPDO_BASES[number - 1], node_id), tuple(variables))
+                  for number, variables in zip(tpdo_numbers, contents, strict=False))
+    return PdoPlan(rpdos, tpdos, tuple(notes))
 
 
 def _nmt_name(state: int) -> str:
@@ -394,9 +445,13 @@ class Cia402Drive(Drive):
             supported_modes=supported,
         )
 
-    def configure(self, mode: OperationMode, cycle_period: float) -> None:
-        """Configure PDOs, mode, timing and heartbeats over SDO, verify by reading back, then NMT start."""
-        self._require_connected()
+    def preflight(self, mode: OperationMode, cycle_period: float) -> PdoPlan:
+        """What :meth:`configure` checks before it writes anything: the mode (0x6502), the PDOs the EDS allows
+        (:func:`pdo_plan`), the settings it can encode; raises what ``configure`` would raise.
+
+        ``commission enable`` runs it too, so a drive ``run`` would refuse is refused there as well. The plan's
+        notes name the optional objects the drive lacks (also logged as warnings by ``configure``).
+        """
         mode = OperationMode(mode)
         if not (cycle_period > 0 and math.isfinite(cycle_period)):
             raise ConfigError(f"must be a positive number of seconds, got {cycle_period}", key="cycle_period")
@@ -405,6 +460,19 @@ class Cia402Drive(Drive):
             names = ", ".join(m.name for m in supported)
             raise ConfigError(f"node {self.node_id} does not support {mode.name} (0x6502 offers {names})",
                               key="drive.mode")
+        plan = pdo_plan(mode, self.node_id, self.od)
+        skipped = [f"0x{index:04X}:{sub:02X} not configured: the drive's EDS lacks it"
+                   for index, sub, _, _, optional in self._settings(mode, cycle_period)
+                   if optional and index not in self.od]
+        return PdoPlan(plan.rpdos, plan.tpdos, (*plan.notes, *skipped))
+
+    def configure(self, mode: OperationMode, cycle_period: float) -> None:
+        """Configure PDOs, mode, timing and heartbeats over SDO, verify by reading back, then NMT start."""
+        self._require_connected()
+        mode = OperationMode(mode)
+        plan = self.preflight(mode, cycle_period)
+        for note in plan.notes:
+            logger.warning("node %d: %s", self.node_id, note)
         self.heartbeat.disarm()
         self._operational = False
         self._nmt(NmtCommand.ENTER_PRE_OPERATIONAL)
@@ -414,7 +482,7 @@ class Cia402Drive(Drive):
             self._nmt_departure = None
         self._start_master_heartbeat()
 
-        rpdos, tpdos = pdo_layouts(mode, self.node_id, self.od)
+        rpdos, tpdos = plan.rpdos, plan.tpdos
         for layouts, bases, direction in ((rpdos, RPDO_BASES, PdoDirection.RPDO),
                                           (tpdos, TPDO_BASES, PdoDirection.TPDO)):
             used = {layout.number: layout for layout in layouts}
@@ -425,7 +493,7 @@ class Cia402Drive(Drive):
                     self._disable_pdo(direction, number, cob_id(bases[number - 1], self.node_id))
 
         settings = self._settings(mode, cycle_period)
-        written = [row for row in settings if self._write_setting(row)]
+        written = [row for row in settings if (row[0] in self.od or not row[4]) and self._write_setting(row)]
 
         # read everything back: a drive may accept a write and keep another value
         for layout in (*rpdos, *tpdos):
@@ -725,8 +793,8 @@ class Cia402Drive(Drive):
             statusword=statusword,
             state=state,
             velocity=by_object[Obj.VELOCITY_ACTUAL_VALUE] / self.cfg.velocity_scale,
-            torque=by_object[Obj.TORQUE_ACTUAL_VALUE] / self.cfg.torque_scale,
-            position=by_object[Obj.POSITION_ACTUAL_VALUE],
+            torque=by_object.get(Obj.TORQUE_ACTUAL_VALUE, math.nan) / self.cfg.torque_scale,  # NaN: not mapped
+            position=by_object.get(Obj.POSITION_ACTUAL_VALUE, 0),  # 0: not mapped
             timestamp=received,
         )
 
@@ -1008,7 +1076,7 @@ class Cia402Drive(Drive):
             (Obj.MODES_OF_OPERATION, 0, _I8, int(mode), False),
             (Obj.QUICK_STOP_OPTION, 0, _I16, self.cfg.quick_stop_option, True),  # optional in CiA 402
             (Obj.ABORT_CONNECTION_OPTION, 0, _I16, self.cfg.abort_connection_option, True),  # optional
-            (Obj.COMMUNICATION_CYCLE_PERIOD, 0, _U32, round(cycle_period * 1e6), False),
+            (Obj.COMMUNICATION_CYCLE_PERIOD, 0, _U32, round(cycle_period * 1e6), True),  # optional in CiA 301
         ]
         if Obj.INTERPOLATION_TIME_PERIOD in self.od:  # cyclic synchronous modes take their cycle from here
             value, exponent = interpolation_time_period(cycle_period)
@@ -1018,7 +1086,7 @@ class Cia402Drive(Drive):
             ]
         rows += [
             (Obj.PRODUCER_HEARTBEAT_TIME, 0, _U16, self.cfg.heartbeat_producer_ms, False),
-            (Obj.CONSUMER_HEARTBEAT_TIME, 1, _U32, consumer, False),
+            (Obj.CONSUMER_HEARTBEAT_TIME, 1, _U32, consumer, True),  # optional: the drive then cannot watch us
         ]
         return rows
 
@@ -1091,7 +1159,7 @@ class Cia402Drive(Drive):
         target = codec.variables[1]
         tpdo_codecs = {layout.cob_id: layout.codec() for layout in tpdos}
         mapped = {variable.index for c in tpdo_codecs.values() for variable in c.variables}
-        missing = [f"0x{index:04X}" for index in _FEEDBACK_OBJECTS if index not in mapped]
+        missing = [f"0x{index:04X}" for index in _REQUIRED_FEEDBACK if index not in mapped]
         if missing:
             raise DriveError(f"TPDO mapping lacks {', '.join(missing)}")
         with self._cv:

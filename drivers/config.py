@@ -6,7 +6,14 @@ from typing import Literal
 
 from pydantic import Field, field_validator
 
+from drivers.cia402 import OperationMode
 from foilc_hil.schema import Section
+
+_OPERATION_MODES = {
+    "csv": OperationMode.CYCLIC_SYNC_VELOCITY,
+    "cst": OperationMode.CYCLIC_SYNC_TORQUE,
+    "pv": OperationMode.PROFILE_VELOCITY,
+}
 
 
 class BusConfig(Section):
@@ -41,6 +48,9 @@ class DriveConfig(Section):
     # 0x2000), so 1000 makes the plant unit rpm; set 1 for a drive that counts whole rpm.
     velocity_scale: float = Field(default=1000.0, gt=0)
     torque_scale: float = Field(default=1.0, gt=0)  # plant input unit -> drive torque unit (0x6071)
+    # the plant units after the scales above: axis labels of reports, signal units of the DBC (commission info --dbc)
+    velocity_unit: str = Field(default="rpm", min_length=1, max_length=32)
+    torque_unit: str = Field(default="permille", min_length=1, max_length=32)  # of rated torque (CiA 402)
     heartbeat_producer_ms: int = Field(default=100, ge=0, le=65535)  # the drive's 0x1017
     heartbeat_consumer_ms: int = Field(default=500, ge=0, le=65535)  # the drive watching the master
     master_node_id: int = Field(default=127, ge=1, le=127)  # the id whose heartbeat the drive consumes
@@ -49,3 +59,8 @@ class DriveConfig(Section):
     state_timeout: float = Field(default=2.0, gt=0)  # per 402 transition
     quick_stop_option: int = Field(default=2, ge=0, le=8)  # 0x605A
     abort_connection_option: int = Field(default=3, ge=0, le=3)  # 0x6007
+
+    @property
+    def operation_mode(self) -> OperationMode:
+        """The CiA 402 mode (0x6060) ``mode`` names: the one ``run`` configures and ``commission enable`` checks."""
+        return _OPERATION_MODES[self.mode]

@@ -67,7 +67,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser = build_parser(chosen if chosen in COMMANDS else None)
         args = parser.parse_args(args_list)
     except SystemExit as exc:  # --help, --version, usage errors
-        return int(exc.code) if isinstance(exc.code, int) else ExitCode.USAGE
+        code = int(exc.code) if isinstance(exc.code, int) else ExitCode.USAGE
+        if code != ExitCode.OK and "--json" in args_list:  # the one-line message went to stderr; a document too
+            _write_json({"error": _error_detail("UsageError", "invalid command line (see stderr)", code)})
+        return code
     module = _load(args.command)
     want_json = bool(getattr(args, "json", False))
     try:
@@ -80,7 +83,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except FoilcHilError as exc:
         return _fail(args.command, exc, want_json)
     if want_json:
-        sys.stdout.write(json.dumps(result.document, indent=2, allow_nan=False) + "\n")
+        document = result.document
+        if result.exit_code != ExitCode.OK:  # a command that finished but failed: its document plus the error
+            detail = _error_detail(f"{args.command.capitalize()}Failed", result.message or "failed", result.exit_code)
+            document = {**document, "error": detail}
+        sys.stdout.write(json.dumps(document, indent=2, allow_nan=False) + "\n")
     elif result.text:
         sys.stdout.write(result.text.rstrip("\n") + "\n")
     if result.exit_code != ExitCode.OK and result.message:
@@ -105,13 +112,25 @@ def _fail(command: str, error: FoilcHilError, want_json: bool) -> int:
         message = "; ".join([message, *notes])
     sys.stderr.write(f"foilc-hil {command}: {message}\n")
     if want_json:
-        detail: dict[str, object] = {"type": type(error).__name__, "message": message,
-                                     "exit_code": int(error.exit_code)}
+        detail = _error_detail(type(error).__name__, message, error.exit_code)
         if isinstance(error, ConfigError):
             detail.update(key=error.key, source=error.source)
-        sys.stdout.write(json.dumps({"error": detail}) + "\n")
-        sys.stdout.flush()
+        _write_json({**(error.partial or {}), "error": detail})  # with what the command had done, if anything
     return int(error.exit_code)
+
+
+def _error_detail(type_name: str, message: str, exit_code: int) -> dict[str, object]:
+    """The ``"error"`` member of a ``--json`` failure document; ``kind`` names the exit code's class."""
+    try:
+        kind = ExitCode(exit_code).name.lower()
+    except ValueError:
+        kind = "unknown"
+    return {"type": type_name, "message": message, "exit_code": int(exit_code), "kind": kind}
+
+
+def _write_json(document: dict[str, object]) -> None:
+    sys.stdout.write(json.dumps(document, allow_nan=False, default=str) + "\n")
+    sys.stdout.flush()
 
 
 def run() -> NoReturn:

@@ -9,6 +9,7 @@ that only know the builtin still catch it. Each class carries the process exit c
 from __future__ import annotations
 
 from enum import IntEnum, unique
+from typing import Any
 
 
 @unique
@@ -23,9 +24,14 @@ class ExitCode(IntEnum):
 
 
 class FoilcHilError(Exception):
-    """Root of every error the product raises on purpose."""
+    """Root of every error the product raises on purpose.
+
+    ``partial`` is what the failing command had done so far, as its JSON document (e.g. the trials a run
+    completed, its log path): the CLI's ``--json`` error document includes it.
+    """
 
     exit_code: ExitCode = ExitCode.RUNTIME_FAILURE
+    partial: dict[str, Any] | None = None
 
 
 # --- usage and input (exit 2) ---------------------------------------------------------------------------------

@@ -16,6 +16,8 @@ class TrialMetrics:
     ``rmse_learnable`` is the RMSE over the samples an input of the trial can move: with ``d`` cycles of input
     delay the first ``d`` error samples are fixed by the initial condition (e.g. a step reference from rest over a
     SYNC-driven CAN loop) and no law can reduce them, so this is the figure learning is judged by.
+    ``max_abs_error_learnable`` is the peak error over the same samples: ``max_abs_error`` of a trial that starts
+    from rest under a stepped reference is that first, unlearnable sample in every trial (e.g. the demo's 400 rpm).
     """
 
     trial: int
@@ -23,6 +25,7 @@ class TrialMetrics:
     rmse: float
     max_abs_error: float
     rmse_learnable: float
+    max_abs_error_learnable: float
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -46,4 +49,5 @@ def trial_metrics(trial: int, error: np.ndarray, *, first_learnable: int = 0) ->
         rmse=float(np.sqrt(sse / e.size)),
         max_abs_error=float(np.max(np.abs(e))),
         rmse_learnable=float(np.sqrt(np.sum(learnable * learnable) / learnable.size)),
+        max_abs_error_learnable=float(np.max(np.abs(learnable))),
     )

@@ -5,8 +5,8 @@ Checks, each against something the bench did not compute itself:
 - the ``/can`` frames account exactly for the cycles: every SYNC is answered by both TPDOs, and the SYNCs are the
   commissioning steps + the loop's cycles (``timing.cycles``) + the shutdown steps, told apart by the controlword
   of the RPDO before each SYNC;
-- each trial's SSE recomputed from its ``/ilc/sample`` rows equals ``/ilc/trial``, and every row's error is
-  ``reference - y`` with ``y`` the next row's output (the trial array ``output[i] = y((i+1) Ts)``);
+- each trial's SSE recomputed from its ``/ilc/sample`` rows equals ``/ilc/trial``, and every row describes one
+  instant: its error is its own ``reference - output`` (``output[i] = y((i+1) Ts)`` at ``t = (i+1) Ts``);
 - the learning reduces the error (the trial-1 SSE is the reference's energy, as the axis starts at rest);
 - ``foilc-hil replay --verify`` re-runs the law on the logged outputs and finds every command bit-identical.
 """
@@ -195,9 +195,11 @@ def test_trial_sse_recomputed_from_samples(bench_run: dict[str, Any]) -> None:
         rows = sorted((s for s in samples if s["trial"] == k), key=lambda s: s["sample"])
         assert [r["sample"] for r in rows] == list(range(SAMPLES))
         sse = 0.0
+        assert rows[-1]["output"] == record["final_output"]
         for i, row in enumerate(rows):
-            y_next = rows[i + 1]["output"] if i + 1 < SAMPLES else record["final_output"]
-            assert row["error"] == row["reference"] - y_next
+            # one instant per row (layout 2): t = (i + 1) Ts, and the error is the row's own reference - output
+            assert row["t"] == pytest.approx((i + 1) * SAMPLE_TIME, rel=1e-12)
+            assert row["error"] == row["reference"] - row["output"]
             sse += row["error"] ** 2
         assert sse == pytest.approx(record["sse"], rel=1e-12, abs=0.0)
         assert record["rmse"] == pytest.approx((record["sse"] / SAMPLES) ** 0.5, rel=1e-12)

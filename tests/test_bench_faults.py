@@ -105,7 +105,7 @@ def when_mid_trial(emulator: Any, log: Path, completed: int, action: Callable[[]
     return thread
 
 
-def run_cli(config_path: Path, channel: str, out: Path, trials: int) -> int:
+def run_cli(config_path: Path, channel: str, out: Path, trials: int, *extra: str) -> int:
     return main(
         [
             "run",
@@ -118,6 +118,7 @@ def run_cli(config_path: Path, channel: str, out: Path, trials: int) -> int:
             "--out",
             str(out),
             "--quiet",
+            *extra,
         ]
     )
 
@@ -147,10 +148,17 @@ def test_drive_fault_mid_trial(
     emulator, channel, config_path = emulator_on_channel
     out = tmp_path / "fault.mcap"
     watcher = when_mid_trial(emulator, out, 2, lambda: emulator.drive.inject_fault("over-current"))
-    code = run_cli(config_path, channel, out, trials=20)
+    code = run_cli(config_path, channel, out, 20, "--json")
     watcher.join(timeout=5)
-    err = capsys.readouterr().err.strip().splitlines()
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()
     assert code == 1
+    # --json: one document on stdout, the error and what the run had done (the partial result)
+    document = json.loads(captured.out)
+    assert document["error"]["exit_code"] == 1 and document["error"]["kind"] == "runtime_failure"
+    assert [trial["trial"] for trial in document["trials"]] == [1, 2]
+    assert document["log"] == str(out) and document["drive_stop"]["confirmed"] is True
+    assert document["stopped"] == document["error"]["message"].split("; ")[0]
     assert len(err) == 1 and err[0].startswith("foilc-hil run: ")
     assert "EMCY" in err[0] or "fault" in err[0]
     assert f"drive {NODE} confirmed disabled" in err[0]

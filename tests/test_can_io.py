@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import time
 import uuid
 from pathlib import Path
@@ -106,3 +107,119 @@ def test_non_mcap_file_is_refused_with_its_name(tmp_path: Path) -> None:
     path.write_text("date Sat Nov 21\n")
     with pytest.raises(LogFormatError, match=r"x\.mcap"):
         list(can.LogReader(path))
+
+
+# --- every can.Message field survives the plugin ----------------------------------------------------------------
+
+
+def _flagged_frames() -> list[can.Message]:
+    """One frame per kind python-can knows: classic, remote, error, FD (64 bytes, BRS, ESI), extended, on channels."""
+    return [
+        can.Message(timestamp=1.0, arbitration_id=0x123, data=b"\x01\x02", is_extended_id=False, channel="vcan0"),
+        can.Message(timestamp=1.1, arbitration_id=0x705, is_remote_frame=True, dlc=1, is_extended_id=False),
+        can.Message(timestamp=1.2, arbitration_id=0x20000080, is_error_frame=True, dlc=8,
+                    data=bytes(range(8)), is_extended_id=True, is_rx=True, channel=1),
+        can.Message(timestamp=1.3, arbitration_id=0x181, data=bytes(range(64)), is_fd=True, bitrate_switch=True,
+                    error_state_indicator=True, is_extended_id=False),
+        can.Message(timestamp=1.4, arbitration_id=0x18DAF110, data=bytes(range(12)), is_fd=True,
+                    is_extended_id=True, is_rx=True),
+    ]
+
+
+_FIELDS = ("timestamp", "arbitration_id", "is_extended_id", "is_remote_frame", "is_error_frame", "is_fd",
+           "bitrate_switch", "error_state_indicator", "channel", "dlc", "is_rx")
+
+
+def _fields(msg: can.Message) -> tuple[object, ...]:
+    return (*(getattr(msg, name) for name in _FIELDS), bytes(msg.data))
+
+
+def _conforms(value: object, schema: dict[str, object]) -> bool:
+    """A minimal JSON Schema check of the keywords the MCAP schemas use (type, minimum, maximum, enum,
+    required, properties): independent of the writer, which never consults the schema."""
+    kinds: dict[str, type | tuple[type, ...]] = {
+        "object": dict, "string": str, "boolean": bool, "number": (int, float), "integer": int,
+    }
+    types = schema.get("type")
+    if types is not None:
+        names = types if isinstance(types, list) else [types]
+        if not any(isinstance(value, kinds[str(name)]) for name in names):
+            return False
+        if isinstance(value, bool) and "boolean" not in names:
+            return False
+    if "enum" in schema and value not in schema["enum"]:  # type: ignore[operator]
+        return False
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        if "minimum" in schema and value < schema["minimum"]:  # type: ignore[operator]
+            return False
+        if "maximum" in schema and value > schema["maximum"]:  # type: ignore[operator]
+            return False
+    if isinstance(value, dict):
+        properties = schema.get("properties", {})
+        assert isinstance(properties, dict)
+        if any(key not in value for key in schema.get("required", [])):  # type: ignore[attr-defined]
+            return False
+        return all(_conforms(item, properties[key]) for key, item in value.items() if key in properties)
+    return True
+
+
+def test_every_message_flag_round_trips_through_the_plugin(tmp_path: Path) -> None:
+    path = tmp_path / "flags.mcap"
+    with can.Logger(path) as logger:
+        for msg in _flagged_frames():
+            logger.on_message_received(msg)
+    got = list(can.LogReader(path))
+    assert [_fields(m) for m in got] == [_fields(m) for m in _flagged_frames()]
+    error = got[2]
+    assert error.is_error_frame and error.arbitration_id != 0  # never a frame on 0x000, the NMT broadcast
+
+
+def test_every_record_validates_against_the_files_own_schema(tmp_path: Path) -> None:
+    from mcap.reader import make_reader
+
+    path = tmp_path / "flags.mcap"
+    with can.Logger(path) as logger:
+        for msg in _flagged_frames():
+            logger.on_message_received(msg)
+    with path.open("rb") as stream:
+        records = [(json.loads(schema.data), json.loads(message.data))
+                   for schema, _, message in make_reader(stream).iter_messages() if schema is not None]
+    assert len(records) == len(_flagged_frames())
+    for schema, record in records:
+        assert _conforms(record, schema), record
+    assert max(record["dlc"] for _, record in records) == 64
+    # the checker can fail: a dlc beyond the schema's maximum is refused
+    assert not _conforms({**records[0][1], "dlc": 65}, records[0][0])
+
+
+def test_can_logconvert_and_can_player_keep_the_flags_and_never_send_an_error_frame(tmp_path: Path) -> None:
+    import sys
+
+    from can import logconvert, player
+
+    source = tmp_path / "flags.mcap"
+    with can.Logger(source) as logger:
+        for msg in _flagged_frames():
+            logger.on_message_received(msg)
+    converted = tmp_path / "converted.mcap"
+    argv = sys.argv
+    try:
+        sys.argv = ["can_logconvert", str(source), str(converted)]
+        logconvert.main()
+    finally:
+        sys.argv = argv
+    assert [_fields(m) for m in can.LogReader(converted)] == [_fields(m) for m in _flagged_frames()]
+
+    channel = f"test-player-{uuid.uuid4()}"
+    with can.Bus(interface="virtual", channel=channel, fd=True) as listener:
+        try:
+            sys.argv = ["can_player", "-i", "virtual", "-c", channel, "--ignore-timestamps", str(source)]
+            player.main()
+        finally:
+            sys.argv = argv
+        sent: list[can.Message] = []
+        while (received := listener.recv(0.2)) is not None:
+            sent.append(received)
+    assert not any(m.is_error_frame for m in sent)
+    assert [m.arbitration_id for m in sent] == [m.arbitration_id for m in _flagged_frames() if not m.is_error_frame]
+    assert sent[2].is_fd and sent[2].bitrate_switch and bytes(sent[2].data) == bytes(range(64))

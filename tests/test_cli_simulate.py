@@ -34,7 +34,7 @@ def test_json_document(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
     assert document["law"] == "p-type"
     assert [t["trial"] for t in document["trials"]] == [1, 2, 3, 4]
     for trial in document["trials"]:
-        assert set(trial) == {"trial", "sse", "rmse", "max_abs_error", "rmse_learnable"}
+        assert set(trial) == {"trial", "sse", "rmse", "max_abs_error", "rmse_learnable", "max_abs_error_learnable"}
     # the reference is 1 on every sample and trial 1 runs u = 0 from rest: e = 1 everywhere
     assert document["trials"][0]["sse"] == pytest.approx(20.0)
     assert document["trials"][-1]["sse"] < document["trials"][0]["sse"]

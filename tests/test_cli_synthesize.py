@@ -81,6 +81,7 @@ def test_refused_filter_exits_3(tmp_path: Path, capsys: pytest.CaptureFixture[st
     code, out, err = _run(capsys, "synthesize", "--config", str(path), "--json")
     assert code == 3
     assert json.loads(out)["error"]["type"] == "ConvergenceCertificateError"
+    assert json.loads(out)["error"]["kind"] == "infeasible"
     assert "not certified" in err and len(err.strip().splitlines()) == 1
 
 

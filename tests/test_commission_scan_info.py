@@ -10,7 +10,7 @@ import can
 import canmatrix.formats
 import pytest
 
-from drivers.cia301 import NMT_COB_ID, NmtCommand, NmtState
+from drivers.cia301 import NMT_COB_ID, FunctionCode, NmtCommand, NmtState, cob_id
 from drivers.cia402 import Obj, State402
 from tests.commission_bus import emulated_bus, run_cli, run_json
 
@@ -95,8 +95,8 @@ def test_info_decodes_the_drive(capsys: pytest.CaptureFixture[str]) -> None:
     assert [(m["index"], m["bits"]) for m in tpdo1["mapped"]] == [(0x6041, 16), (0x606C, 32)]
 
 
-def test_info_dbc_loads_in_canmatrix_with_the_mapped_signals(capsys: pytest.CaptureFixture[str],
-                                                              tmp_path: Path) -> None:
+def test_info_dbc_loads_in_canmatrix_with_the_mapping_run_installs(capsys: pytest.CaptureFixture[str],
+                                                                   tmp_path: Path) -> None:
     dbc = tmp_path / "drive.dbc"
     with emulated_bus([6]) as bus:
         code, document, _ = run_json(capsys, "commission", "info", "--bus", bus.spec, "--node-id", "6",
@@ -106,17 +106,18 @@ def test_info_dbc_loads_in_canmatrix_with_the_mapped_signals(capsys: pytest.Capt
     assert db is not None
     loaded: list[Any] = list(db.frames)  # canmatrix's Frame is not typed for mypy
     frames = {frame.arbitration_id.id: frame for frame in loaded}
-    valid = [p for p in document["pdos"] if p["valid"] and p["mapped"]]
-    assert set(frames) == {p["cob_id"] for p in valid}
-    for pdo in valid:
-        frame = frames[pdo["cob_id"]]
-        sizes = [signal.size for signal in sorted(frame.signals, key=lambda s: s.start_bit)]
-        assert sizes == [m["bits"] for m in pdo["mapped"]]
-        assert frame.size == sum(sizes) // 8
-    tpdo1 = frames[0x186]
-    assert {s.name for s in tpdo1.signals} == {"Statusword", "Velocity_actual_value"}
-    velocity = next(s for s in tpdo1.signals if s.name == "Velocity_actual_value")
-    assert velocity.is_signed and velocity.start_bit == 16
+    # the EDS defaults (info's "pdos") map RPDO2 too; run installs RPDO1, TPDO1 and TPDO2 only (velocity mode)
+    assert any(p["direction"] == "RPDO" and p["number"] == 2 and p["valid"] for p in document["pdos"])
+    rpdo1, tpdo1_id, tpdo2 = (cob_id(code, 6) for code in (FunctionCode.RPDO1, FunctionCode.TPDO1, FunctionCode.TPDO2))
+    assert set(frames) == {rpdo1, tpdo1_id, tpdo2}
+    for frame in loaded:
+        assert frame.size == max(s.start_bit + s.size for s in frame.signals) // 8
+    tpdo1 = frames[tpdo1_id]
+    assert [s.name for s in sorted(tpdo1.signals, key=lambda s: s.start_bit)] == [
+        "statusword_state", "statusword_flags", "velocity_actual_value",
+    ]
+    velocity = next(s for s in tpdo1.signals if s.name == "velocity_actual_value")
+    assert velocity.is_signed and velocity.start_bit == 16 and velocity.unit == "rpm"
 
 
 def test_info_text_and_bad_dbc_suffix(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:

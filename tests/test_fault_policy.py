@@ -263,7 +263,8 @@ class _RecordingLaw:
         from foilc_hil.metrics import TrialMetrics
 
         error = reference - output
-        metrics = TrialMetrics(trial=1, sse=float(error @ error), rmse=0.0, max_abs_error=0.0, rmse_learnable=0.0)
+        metrics = TrialMetrics(trial=1, sse=float(error @ error), rmse=0.0, max_abs_error=0.0, rmse_learnable=0.0,
+                               max_abs_error_learnable=0.0)
         return TrialUpdate(trial=1, error=error, E=error, metrics=metrics)
 
     def restore(self, feedforward: np.ndarray) -> None:
@@ -309,6 +310,9 @@ def test_timing_records_carry_the_lost_feedback_flag() -> None:
 
         def log_timing(self, *args: Any, lost_feedback: bool = False) -> None:
             self.flags.append(lost_feedback)
+
+        def add_metadata(self, name: str, data: Any) -> None:  # the sink names its /ilc/sample layout
+            pass
 
     writer = Writer()
     records = [

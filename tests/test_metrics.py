@@ -18,6 +18,7 @@ def test_metrics_of_a_known_error() -> None:
     assert metrics.rmse == pytest.approx(2.5)
     assert metrics.max_abs_error == 4.0
     assert metrics.rmse_learnable == metrics.rmse  # no input delay: every sample is learnable
+    assert metrics.max_abs_error_learnable == metrics.max_abs_error
 
 
 def test_learnable_rmse_leaves_out_the_delayed_samples() -> None:
@@ -26,6 +27,7 @@ def test_learnable_rmse_leaves_out_the_delayed_samples() -> None:
     metrics = trial_metrics(1, error, first_learnable=1)
     assert metrics.rmse == pytest.approx(math.sqrt((400.0**2 + 3) / 4))
     assert metrics.rmse_learnable == pytest.approx(1.0)
+    assert metrics.max_abs_error == 400.0 and metrics.max_abs_error_learnable == 1.0
 
 
 @pytest.mark.parametrize("first", [-1, 4])

@@ -156,9 +156,9 @@ def test_bench_over_the_emulator_and_simulate_agree(tmp_path: Path) -> None:
     assert bench_sse[0] == result.metrics[0].sse == pytest.approx(N)  # trial 1: u = 0 from rest, e = 1 throughout
     np.testing.assert_allclose(bench_sse, [m.sse for m in result.metrics], rtol=1e-5)
     assert bench_sse[-1] < bench_sse[1] < 0.1 * bench_sse[0]  # learning (e(Ts) = 1 stays: it cannot be moved)
-    # sample by sample: what the law saw and what it commanded (one sample off would be ~0.1 apart)
+    # sample by sample: the output at t = (i + 1) Ts and the command (one sample off would be ~0.1 apart)
     samples = read_log(out).samples
-    for field, simulated in (("output", result.feedback), ("control", result.controls)):
+    for field, simulated in (("output", result.outputs), ("control", result.controls)):
         logged = np.array([row[field] for row in samples]).reshape(simulated.shape)
         np.testing.assert_allclose(logged, simulated, rtol=0, atol=1e-4)  # the law amplifies 1e-6
 

@@ -115,3 +115,107 @@ def test_report_rejects_non_mcap_and_missing_logs(tmp_path: Path, capsys: pytest
     assert "bad.mcap: not an MCAP file" in err and err.count("\n") == 1
     assert main(["report", str(tmp_path / "none.mcap"), "--out", str(tmp_path / "r")]) == 2
     assert "no such file" in capsys.readouterr().err
+
+
+# --- labels, scales, notes, the comparison figure and the demo's verdict -----------------------------------------
+
+CONFIG_RPM = (
+    "drive: {mode: csv, velocity_unit: rpm}\nplant: {disturbance: {kind: step, amplitude: 1.0, start_trial: 3}}\n"
+)
+
+
+def _stepped_log(path: Path, law: str, trials: int = 4, *, rate: float = 0.5) -> None:
+    """A log of a reference that steps to 400 at the first sample: sample 0's error is 400 in every trial (the
+    unlearnable one), the rest decays as ``rate ** trial``; trial 1 runs u = 0 (error = reference)."""
+    design = {**DESIGN, "law": law, "input_delay": 1}
+    with McapLogWriter(path, config_yaml=CONFIG_RPM, design=design) as writer:
+        for trial in range(1, trials + 1):
+            errors = []
+            for i in range(N):
+                reference = 400.0
+                error = reference if trial == 1 or i == 0 else 3.0 * rate**trial * (-1) ** i
+                control = 0.0 if trial == 1 else 400.0 + (900.0 if i == 1 else 0.0)
+                writer.log_sample(trial, (i + 1) * 0.01, reference, reference - error, control, error, error, sample=i)
+                errors.append(error)
+            e = np.array(errors)
+            writer.log_trial({"trial": trial, "sse": float(e @ e), "rmse": float(np.sqrt(e @ e / N)),
+                              "max_abs_error": float(np.abs(e).max()),
+                              "rmse_learnable": float(np.sqrt(e[1:] @ e[1:] / (N - 1))),
+                              "max_abs_error_learnable": float(np.abs(e[1:]).max())})
+            writer.end_trial()
+
+
+def test_labels_come_from_the_logged_design_and_config(tmp_path: Path) -> None:
+    from foilc_hil.io.mcap_log import read_log
+    from foilc_hil.logtools.report import log_context
+
+    log = tmp_path / "f.mcap"
+    _stepped_log(log, "foilc")
+    context = log_context(read_log(log))
+    assert (context.law, context.output_unit, context.input_unit) == ("FOILC", "rpm", "rpm")
+    assert context.input_delay == 1 and context.disturbance_trial == 3
+
+
+def test_neither_trial_1_nor_the_unlearnable_sample_sets_the_zoomed_scale() -> None:
+    from foilc_hil.logtools.report import _zoomed_limits
+
+    t = np.arange(5) * 0.1
+    signals = {
+        1: {"t": t, "error": np.full((5, 1), 400.0)},  # u = 0: the whole reference
+        2: {"t": t, "error": np.array([[400.0], [2.0], [-1.0], [0.5], [0.0]])},
+        3: {"t": t, "error": np.array([[400.0], [1.0], [-2.0], [0.25], [0.0]])},
+    }
+    signals_u = {trial: {"t": d["t"], "control": d["error"]} for trial, d in signals.items()}
+    low, high = _zoomed_limits(signals_u, "control", 1) or (0.0, 0.0)
+    assert -2.0 > low > -3.0 and 2.0 < high < 3.0  # the range of trials 2..3 after sample 0, plus 8 % padding
+
+
+def test_summary_has_learnable_metrics_certificate_tables_and_the_step_note(tmp_path: Path) -> None:
+    log = tmp_path / "f.mcap"
+    _stepped_log(log, "foilc")
+    out = tmp_path / "r"
+    assert main(["report", str(log), "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["trials"][1]["max_abs_error"] == 400.0
+    assert summary["trials"][1]["max_abs_error_learnable"] == pytest.approx(3.0 * 0.25)
+    assert len(summary["notes"]) == 2 and "starts with a step" in summary["notes"][0]
+    assert "from 400 to 1300 rpm" in summary["notes"][1]  # the learned input's early swing, measured
+    markdown = (out / "summary.md").read_text()
+    assert "| certificate | value |" in markdown and "| spectral_radius | 0.61 |" in markdown
+    assert "## Notes" in markdown and "learnable max abs error" in markdown
+
+
+def test_no_step_note_when_the_reference_starts_where_the_axis_is(tmp_path: Path) -> None:
+    from foilc_hil.io.mcap_log import read_log
+    from foilc_hil.logtools.report import summarize
+
+    log = tmp_path / "run.mcap"
+    _write(log, trials=3, timing=False)  # sin reference from 0: the first error is like every other one
+    assert summarize(read_log(log))["notes"] == []
+
+
+def test_the_comparison_figure_draws_both_laws(tmp_path: Path) -> None:
+    from foilc_hil.logtools.report import write_comparison
+
+    logs = {}
+    for law, rate in (("foilc", 0.3), ("ioilc", 0.6)):
+        logs[law] = tmp_path / f"{law}.mcap"
+        _stepped_log(logs[law], law, rate=rate)
+    path = write_comparison(logs, tmp_path / "comparison.png")
+    assert path.read_bytes()[:8] == PNG_MAGIC
+
+
+def test_the_demo_verdict_names_the_law_that_settles_first() -> None:
+    from foilc_hil.commands.demo import converged_by, verdict
+
+    def run(rmse: list[float]) -> dict[str, object]:
+        return {"trials": [{"trial": k, "rmse_learnable": value} for k, value in enumerate(rmse, start=1)]}
+
+    fast, slow = [100.0, 5.0, 4.8, 4.7, 9.0], [100.0, 30.0, 10.0, 4.9, 9.0]
+    assert converged_by(run(fast)["trials"], before=5) == 2  # type: ignore[arg-type]
+    assert converged_by(run(slow)["trials"], before=5) == 4  # type: ignore[arg-type]
+    line = verdict({"foilc": run(fast), "ioilc": run(slow)}, disturbance_trial=5)
+    assert line.startswith("verdict: ") and "FOILC settles first" in line and "docs/paper-reproduction.md" in line
+    together = verdict({"foilc": run([100.0, 6.0, 5.0]), "ioilc": run([100.0, 20.0, 5.0])})
+    assert "FOILC learns more in its first learning trial" in together
+    assert "both learn equally fast" in verdict({"foilc": run([100.0, 5.0]), "ioilc": run([100.0, 5.1])})

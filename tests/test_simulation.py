@@ -131,7 +131,9 @@ def test_mcap_log_and_plots(tmp_path: Path) -> None:
     assert len(log.samples) == 2 * N
     second = [s for s in log.samples if s["trial"] == 2]
     assert [s["control"] for s in second] == result.controls[1, :, 0].tolist()  # bit-exact floats
-    assert [s["output"] for s in second] == result.feedback[1, :, 0].tolist()
+    # layout 2: a row's output is y((i + 1) Ts); the law's input at sample 0, y(0), is the trial's initial_output
+    assert [s["output"] for s in second] == result.outputs[1, :, 0].tolist()
+    assert log.trials[1]["initial_output"] == result.feedback[1, 0, 0] == 0.2
     assert log.trials[1]["final_output"] == result.outputs[1, -1, 0]
     assert log.trials[1]["sse"] == result.metrics[1].sse
     assert log.design is not None and log.design["P"] == [[-0.1, 5.0]]

@@ -68,7 +68,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     info = actions.add_parser("info", help="identity, modes, 402 state, errors and PDO mapping of a drive")
     _common(info)
-    info.add_argument("--dbc", metavar="FILE", help="also write the configured PDO mapping as a DBC (canmatrix)")
+    info.add_argument("--dbc", metavar="FILE",
+                      help="also write the DBC of the PDO mapping run installs (scaled signals, units, "
+                      "402 value tables, node names; any canmatrix format by suffix)")
 
     for name, text in (
         ("enable", "walk the 402 state machine to OPERATION ENABLED"),
@@ -183,7 +185,8 @@ def _scan(args: argparse.Namespace) -> CommandResult:
 
 
 def _info(args: argparse.Namespace) -> CommandResult:
-    from foilc_hil.commission.info import export_dbc, read_info, render_info
+    from foilc_hil.commission.dbc import write_dbc
+    from foilc_hil.commission.info import read_info, render_info
 
     config, emulator_config, drive_cfg = _load(args)
     if args.dbc and Path(args.dbc).suffix.lower() not in (".dbc", ".dbf", ".kcd", ".arxml", ".sym", ".json",
@@ -193,8 +196,9 @@ def _info(args: argparse.Namespace) -> CommandResult:
         drive = _open_drive(target, drive_cfg, config.sample_time)
         try:
             document = read_info(drive).to_json()
-            if args.dbc:
-                document["dbc"] = export_dbc(drive, args.dbc)
+            if args.dbc:  # the mapping run will install on this drive (its preflight), not the one it has now
+                plan = drive.preflight(drive_cfg.operation_mode, config.sample_time)
+                document["dbc"] = write_dbc(plan, drive_cfg, args.dbc).to_json()
         finally:
             drive.close()
     return CommandResult(document, render_info(document))
@@ -206,11 +210,14 @@ def _power(args: argparse.Namespace) -> CommandResult:
     _positive(args.state_timeout, "--state-timeout")
     config, emulator_config, drive_cfg = _load(args)
     timeout = args.state_timeout if args.state_timeout is not None else drive_cfg.state_timeout
-    walk = {"enable": power.enable, "disable": power.disable, "fault-reset": power.fault_reset}[args.action]
     with _target(args, config, emulator_config, drive_cfg.node_id) as target:
         drive = _open_drive(target, drive_cfg, config.sample_time)
         try:
-            report = walk(drive, state_timeout=timeout)
+            if args.action == "enable":  # run's own checks first: enable and run agree on what a drive must have
+                report = power.enable(drive, state_timeout=timeout, mode=drive_cfg.operation_mode)
+            else:
+                walk = power.disable if args.action == "disable" else power.fault_reset
+                report = walk(drive, state_timeout=timeout)
         finally:
             drive.close()
     return CommandResult(report.to_json(), report.render())

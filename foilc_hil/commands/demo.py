@@ -8,6 +8,9 @@ the offline simulator. Each run writes an MCAP log and a report (PNG plots + sum
 :mod:`foilc_hil.logtools.report`) and the command prints a side-by-side table at the end. The designs of both
 laws are computed first, in parallel.
 
+After the runs it draws ``comparison.png`` (:func:`foilc_hil.logtools.report.write_comparison`: the laws side by
+side) and ends with a one-line verdict (:func:`verdict`) pointing to ``docs/paper-reproduction.md``.
+
 Sample time: ``Ts = 10 ms`` (600 samples per 6 s trial; 2 x 30 x (601 trial + ~80 settle) ~= 41k cycles). With the
 compiled physics (:mod:`plant_emulator.physics.kernels`) the embedded CAN path runs the PMSM at about 3000 lockstep
 cycles/s on the shared two-core reference machine (it ran 550-700 before), so the demo takes about 45-50 s there
@@ -37,6 +40,10 @@ HELP = "FOILC and IOILC side by side on the embedded emulator"
 DEMO_LAWS = (LawKind.FOILC, LawKind.IOILC)
 #: trials the demo table reports individually (1-based; the last trial is always added)
 REPORTED_TRIALS = (1, 2, 3, 4, 5, 6, 10)
+#: the verdict's "settled" mark: a learnable RMSE within this share above the best before the disturbance
+SETTLED_MARGIN = 0.1
+#: the verdict names the law that learned more in trial 2 when its learnable RMSE is below this share of the other's
+FIRST_TRIAL_EDGE = 0.8
 
 
 def default_config_path() -> Path:
@@ -95,15 +102,24 @@ def execute(args: argparse.Namespace) -> CommandResult:
         if not args.no_report:
             document["report"] = _write_report(log_path, out_dir / f"report-{law}")
         runs[law] = document
+    if not args.no_report:  # the laws side by side (the paper's Figs. 2, 5, 6 compare them)
+        from foilc_hil.logtools.report import write_comparison
+
+        comparison = write_comparison({law: out_dir / f"demo-{law}.mcap" for law in DEMO_LAWS},
+                                      out_dir / "comparison.png")
     total = time.perf_counter() - started
+    disturbance = config.plant.disturbance
+    line = verdict(runs, disturbance.start_trial if disturbance.kind != "none" else None, config.drive.velocity_unit)
     summary = {
         "laws": runs,
         "elapsed_s": total,
         "design_s": design_seconds,
         "out": str(out_dir),
         "config": str(config_path),
+        "verdict": line,
+        "comparison": None if args.no_report else str(comparison),
     }
-    text = render_table(runs, total, design_seconds)
+    text = render_table(runs, total, design_seconds) + "\n" + line
     if failures:
         return CommandResult(summary, text, exit_code=ExitCode.RUNTIME_FAILURE, message="; ".join(failures))
     return CommandResult(summary, text)
@@ -136,6 +152,40 @@ def _write_report(log_path: Path, report_dir: Path) -> str:
 
     report.write_report(log_path, report_dir)
     return str(report_dir)
+
+
+def converged_by(trials: list[dict[str, Any]], before: int | None = None) -> int | None:
+    """The first trial whose learnable RMSE is within :data:`SETTLED_MARGIN` of the best the law reaches before
+    trial ``before`` (the disturbance; ``None``: over all trials), or ``None`` without trials."""
+    window = [t for t in trials if before is None or t["trial"] < before] or trials
+    if not window:
+        return None
+    best = min(t["rmse_learnable"] for t in window)
+    return next(t["trial"] for t in window if t["rmse_learnable"] <= (1 + SETTLED_MARGIN) * best)
+
+
+def verdict(runs: dict[str, dict[str, Any]], disturbance_trial: int | None = None, unit: str = "rpm") -> str:
+    """One line: by which trial each law's learnable RMSE settled (within :data:`SETTLED_MARGIN` of its best before
+    the disturbance), which law got there first or, when they settle together, which learned more in its first
+    learning trial; the paper's claim (FOILC by the 3rd trial, IOILC after the 4th) is checked in
+    docs/paper-reproduction.md."""
+    settled = {law: converged_by(run["trials"], disturbance_trial) for law, run in runs.items()}
+    parts = [f"{law.upper()} by trial {k} ({runs[law]['trials'][k - 1]['rmse_learnable']:.3g} {unit})"
+             for law, k in settled.items() if k is not None]
+    judged = "both learn equally fast"
+    if len({k for k in settled.values() if k is not None}) > 1:
+        first = min((law for law, k in settled.items() if k is not None), key=lambda law: settled[law] or 0)
+        judged = f"{first.upper()} settles first"
+    elif all(len(run["trials"]) >= 2 for run in runs.values()) and len(runs) == 2:
+        (law_a, run_a), (law_b, run_b) = runs.items()
+        a, b = run_a["trials"][1]["rmse_learnable"], run_b["trials"][1]["rmse_learnable"]
+        if min(a, b) < FIRST_TRIAL_EDGE * max(a, b):
+            faster, slower = (law_a, law_b) if a < b else (law_b, law_a)
+            judged = (f"{faster.upper()} learns more in its first learning trial (trial 2: {min(a, b):.3g} vs "
+                      f"{max(a, b):.3g} {unit} for {slower.upper()}), then they settle together")
+    return (f"verdict: learnable RMSE settled (within {SETTLED_MARGIN:.0%} of its best before the disturbance): "
+            f"{', '.join(parts)}: {judged}. The paper's claims, checked: docs/paper-reproduction.md; the figure: "
+            "comparison.png.")
 
 
 def render_table(runs: dict[str, dict[str, Any]], total_seconds: float, design_seconds: float = 0.0) -> str:

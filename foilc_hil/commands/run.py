@@ -50,6 +50,24 @@ def resolve_bus(config: Any, bus_spec: str | None, emulator: str | None) -> Any:
     return config.bus
 
 
+def check_bus(bus: Any) -> None:
+    """Find a bad bus before the (possibly minutes-long) design: an interface python-can does not know is an
+    :class:`~foilc_hil.errors.InputError` (exit 2); a bus that does not open (e.g. SocketCAN without the kernel
+    module or the interface) is the :class:`~foilc_hil.errors.DriveError` of :func:`drivers.bus.open_bus`, with its
+    ``ip link`` hint (exit 1). The bus is opened and closed again at once; nothing is sent."""
+    import can
+
+    from drivers.bus import open_bus
+    from foilc_hil.errors import InputError
+
+    if bus.interface == "embedded":
+        return
+    if bus.interface not in can.interfaces.VALID_INTERFACES:
+        raise InputError(f"--bus: unknown interface {bus.interface!r}; python-can knows "
+                         f"{', '.join(sorted(can.interfaces.VALID_INTERFACES))}")
+    open_bus(bus).shutdown()
+
+
 def execute(args: argparse.Namespace) -> CommandResult:
     from foilc_hil.config import load_config
     from foilc_hil.errors import InputError
@@ -59,13 +77,15 @@ def execute(args: argparse.Namespace) -> CommandResult:
     if args.trials is not None and args.trials < 1:
         raise InputError(f"--trials: must be >= 1, got {args.trials}")
     config = load_config(args.config)
+    bus = resolve_bus(config, args.bus, args.emulator)
+    check_bus(bus)  # before the design, which may take minutes
     request = RunRequest(
         config=config,
         out=args.out,
         law=args.law,
         trials=args.trials,
         mode=TimingMode(args.mode) if args.mode is not None else None,
-        bus=resolve_bus(config, args.bus, args.emulator),
+        bus=bus,
         quiet=bool(args.quiet or args.json),
     )
     report = run_bench(request)

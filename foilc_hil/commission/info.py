@@ -6,27 +6,23 @@ supported drive modes (every CiA 402-2 bit decoded), 0x6061 the mode it is in, 0
 PDO mapping as configured now: for RPDO/TPDO 1..4 the COB-ID (valid or not), the transmission type and the mapped
 objects with their EDS names.
 
-:func:`export_dbc` writes that mapping as a DBC (or any format canmatrix knows, by the file's suffix) through
-canopen: ``node.tpdo.read(); node.rpdo.read(); node.pdo.export(path)`` (``canopen.pdo.base.PdoBase.export`` builds
-a ``canmatrix.CanMatrix`` with one frame per PDO and one signal per mapped object). PDOs that are not valid (COB-ID
-bit 31) are left out of the file: they are not on the bus.
+``info --dbc`` writes the mapping ``run`` will install (not the one read here), see
+:mod:`foilc_hil.commission.dbc`.
 """
 
 from __future__ import annotations
 
 import time
-import warnings
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
-from canopen.objectdictionary import INTEGER_TYPES, SIGNED_TYPES, ODVariable
+from canopen.objectdictionary import ODVariable
 
 from drivers.cia301 import CobIdEntry, ErrorRegister, NmtState, SdoAbortCode, emcy_text
 from drivers.cia402 import IdentitySub, Obj, Statusword, decode_state
 from drivers.cia402_master import Cia402Drive
 from drivers.pdo import MappingEntry
-from foilc_hil.errors import InputError, SdoError
+from foilc_hil.errors import SdoError
 
 __all__ = [
     "MODE_NAMES",
@@ -34,7 +30,6 @@ __all__ = [
     "DriveInfo",
     "MappedObjectReport",
     "PdoReport",
-    "export_dbc",
     "read_info",
 ]
 
@@ -181,6 +176,8 @@ def read_pdos(drive: Cia402Drive) -> tuple[PdoReport, ...]:
     ):
         for number in range(1, PDO_COUNT + 1):
             com, mapping = com_base + number - 1, map_base + number - 1
+            if com not in drive.od or mapping not in drive.od:
+                continue  # the drive's EDS has fewer PDOs
             raw_cob = _optional(drive, com, 1)
             if raw_cob is None:
                 continue  # the drive has fewer PDOs
@@ -244,57 +241,6 @@ def read_info(drive: Cia402Drive) -> DriveInfo:
     )
 
 
-def export_dbc(drive: Cia402Drive, path: str | Path) -> dict[str, Any]:
-    """Write the drive's configured PDO mapping through canopen + canmatrix; return what was written.
-
-    Raises
-    ------
-    InputError
-        When canmatrix cannot write the file (unknown suffix, unwritable path).
-    """
-    node = drive.node
-    node.tpdo.read()
-    node.rpdo.read()
-    maps = [pdo_map for pdos in (node.tpdo.map, node.rpdo.map) if pdos is not None for pdo_map in pdos.values()]
-    for pdo_map in maps:
-        if not pdo_map.enabled or not pdo_map.map:
-            pdo_map.cob_id = None  # canopen's export skips maps without a COB-ID: keep only PDOs on the bus
-            continue
-        for variable in pdo_map.map:
-            _give_type_limits(variable.od)
-    target = Path(path)
-    try:
-        with warnings.catch_warnings():
-            # canopen imports canmatrix.canmatrix, which canmatrix deprecates; not ours to fix
-            warnings.simplefilter("ignore", DeprecationWarning)
-            db = node.pdo.export(str(target))
-    except NotImplementedError as exc:
-        raise InputError(f"--dbc: {exc}") from exc
-    except (OSError, KeyError, ValueError) as exc:
-        raise InputError(f"--dbc: cannot write {target}: {exc}") from exc
-    if not target.is_file():
-        raise InputError(f"--dbc: canmatrix wrote nothing to {target} (is the suffix a format it knows?)")
-    frames = [
-        {"name": frame.name, "arbitration_id": frame.arbitration_id.id, "signals": [s.name for s in frame.signals]}
-        for frame in db.frames
-    ]
-    return {"file": str(target), "frames": frames}
-
-
-def _give_type_limits(variable: ODVariable) -> None:
-    """canmatrix's DBC writer compares every signal's min/max; an EDS object without LowLimit/HighLimit gets the
-    range of its data type (what the object can hold anyway)."""
-    if variable.data_type not in INTEGER_TYPES or (variable.min is not None and variable.max is not None):
-        return
-    bits = len(variable)
-    signed = variable.data_type in SIGNED_TYPES
-    low, high = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if signed else (0, (1 << bits) - 1)
-    if variable.min is None:
-        variable.min = low
-    if variable.max is None:
-        variable.max = high
-
-
 def render_info(document: dict[str, Any]) -> str:
     """The human-readable rendering of :func:`read_info`'s document."""
     identity = document["identity"]
@@ -324,6 +270,7 @@ def render_info(document: dict[str, Any]) -> str:
             f"transmission type {pdo['transmission_type']}: {mapped or '(nothing mapped)'}"
         )
     if "dbc" in document:
-        lines.append(f"DBC written to {document['dbc']['file']} ({len(document['dbc']['frames'])} frames)")
+        lines.append(f"DBC of the mapping run installs written to {document['dbc']['file']} "
+                     f"({len(document['dbc']['frames'])} frames)")
     return "\n".join(lines)
 

@@ -27,7 +27,7 @@ from typing import Any
 import can
 
 from drivers.cia301 import EmcyCode, NmtCommand, NmtState, emcy_text
-from drivers.cia402 import ENABLE_PATH, Command402, Obj, State402, decode_state
+from drivers.cia402 import ENABLE_PATH, Command402, Obj, OperationMode, State402, decode_state
 from drivers.cia402_master import Cia402Drive
 from foilc_hil.errors import DriveError, DriveFaultError, DriveTimeoutError, ProtocolError, StateTransitionError
 
@@ -134,9 +134,20 @@ class _Walker:
             time.sleep(POLL_PERIOD)
 
 
-def enable(drive: Cia402Drive, *, state_timeout: float) -> PowerReport:
-    """Walk to OPERATION ENABLED; DriveFaultError for a drive in FAULT, StateTransitionError when stuck."""
+def enable(drive: Cia402Drive, *, state_timeout: float, mode: OperationMode | None = None) -> PowerReport:
+    """Walk to OPERATION ENABLED; DriveFaultError for a drive in FAULT, StateTransitionError when stuck.
+
+    With ``mode``, first the checks ``run`` makes before configuring the drive for it
+    (:meth:`~drivers.cia402_master.Cia402Drive.preflight`): a drive ``run`` would refuse is refused here, before
+    any motion, with the same error; the objects ``run`` would leave out are listed in the notes.
+    """
     report = PowerReport("enable", drive.node_id)
+    if mode is not None:
+        plan = drive.preflight(mode, drive.sample_time)
+        mapped = "; ".join(f"{layout.name}: " + ", ".join(f"0x{v.index:04X}" for v in layout.variables)
+                           for layout in (*plan.rpdos, *plan.tpdos))
+        report.notes.append(f"run can configure {mode.name}: {mapped}")
+        report.notes.extend(plan.notes)
     walker = _Walker(drive, report, state_timeout)
     for _ in range(2 * len(State402)):  # at most four transitions on the way; bounded against a looping drive
         state = walker.state

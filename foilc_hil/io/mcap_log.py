@@ -285,6 +285,9 @@ class McapLogWriter(_ClosingListener):
             "data": binascii.b2a_base64(msg.data, newline=False).decode("ascii"),
             "dir": direction,
         }
+        # the rarer fields only when set: a classic data frame keeps the record it always had (and its cost)
+        if msg.is_remote_frame or msg.is_error_frame or msg.is_fd or msg.channel is not None:
+            document.update(_frame_flags(msg))
         # the frame document holds only ints, bools, strings and one float: orjson directly, no fallback needed
         self._append(self._channels[TOPIC_CAN], orjson.dumps(document), now, round(timestamp * 1e9))
 
@@ -478,6 +481,11 @@ class QueuedLogWriter(_ClosingListener):
         """Write the ``foilc_hil.design`` metadata record (waits for the queue first, to keep the order)."""
         self.sync()
         self.writer.log_design(design)
+
+    def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
+        """Write another metadata record (waits for the queue first, to keep the order)."""
+        self.sync()
+        self.writer.add_metadata(name, data)
 
     def sync(self, timeout: float | None = None) -> bool:
         """Block until everything enqueued so far is written; ``False`` if ``timeout`` expired first."""
@@ -787,14 +795,40 @@ def read_log(path: str | os.PathLike[str]) -> LogContents:
         return reader.read()
 
 
+def _frame_flags(msg: can.Message) -> dict[str, Any]:
+    """The optional ``/can`` fields of a frame that is not a classic data frame (schema: ``CAN_FRAME_SCHEMA``)."""
+    flags: dict[str, Any] = {
+        name: True
+        for name, value in (
+            ("remote", msg.is_remote_frame),
+            ("error", msg.is_error_frame),
+            ("fd", msg.is_fd),
+            ("brs", msg.bitrate_switch),
+            ("esi", msg.error_state_indicator),
+        )
+        if value
+    }
+    if msg.channel is not None:
+        flags["channel"] = msg.channel if isinstance(msg.channel, (str, int)) else str(msg.channel)
+    return flags
+
+
 def frame_to_message(frame: Mapping[str, Any]) -> can.Message:
-    """The python-can message of one ``/can`` record (timestamp, id, payload, direction as ``is_rx``)."""
+    """The python-can message of one ``/can`` record: timestamp, id, payload, direction as ``is_rx``, and the
+    remote, error, FD, BRS and ESI flags and channel where logged (an error frame stays an error frame, which
+    ``can.player`` and ``replay`` never transmit)."""
     try:
         data = base64.b64decode(frame["data"], validate=True)
         return can.Message(
             timestamp=float(frame["timestamp"]),
             arbitration_id=int(frame["id"]),
             is_extended_id=bool(frame["extended"]),
+            is_remote_frame=bool(frame.get("remote", False)),
+            is_error_frame=bool(frame.get("error", False)),
+            is_fd=bool(frame.get("fd", False)),
+            bitrate_switch=bool(frame.get("brs", False)),
+            error_state_indicator=bool(frame.get("esi", False)),
+            channel=frame.get("channel"),
             dlc=int(frame["dlc"]),
             data=data,
             is_rx=frame["dir"] != "tx",

@@ -41,13 +41,13 @@ class SampleRecord(NamedTuple):
     trial
         The trial (from 1).
     t
-        ``i Ts``: the instant of ``output``, the feedback the law saw when it computed ``control``.
-    reference, error, E
-        The trial arrays at index ``i`` (values at ``(i + 1) Ts``); ``E`` may be ``None``.
-    output
-        The feedback the law was given at sample ``i`` (exactly the float64 it saw).
+        The instant every signal of the record refers to (the bench writes ``(i + 1) Ts``: layout 2 of
+        :data:`foilc_hil.io.schemas.SAMPLE_LAYOUT`).
+    reference, output, error, E
+        The reference, the measured output, ``reference - output`` and the learning signal at ``t``; ``E`` may be
+        ``None``.
     control
-        The law's command ``u(i)``.
+        The law's command ``u(i)``, applied from ``t``.
     sample
         The index ``i`` within the trial; ``None`` writes no ``sample`` field (logs of other tools).
     """

@@ -23,6 +23,8 @@ __all__ = [
     "MESSAGE_ENCODING",
     "METADATA_CONFIG",
     "METADATA_DESIGN",
+    "METADATA_LAYOUT",
+    "SAMPLE_LAYOUT",
     "SCHEMA_ENCODING",
     "TIMING_SCHEMA",
     "TOPICS",
@@ -46,6 +48,14 @@ METADATA_CONFIG: Final = "foilc_hil.config"
 #: metadata record holding the design (gains, certificates); each value is a JSON text (MCAP metadata is str -> str)
 METADATA_DESIGN: Final = "foilc_hil.design"
 
+#: metadata record holding ``{"ilc_sample": "<version>"}``: how ``/ilc/sample`` rows align (absent: version 1)
+METADATA_LAYOUT: Final = "foilc_hil.layout"
+#: the ``/ilc/sample`` layout the bench writes. 1 (logs without ``foilc_hil.layout``): row ``i`` has ``t = i Ts``,
+#: ``output = y(i Ts)`` but ``reference``, ``error``, ``E`` at ``(i + 1) Ts``. 2: every field of row ``i`` is at
+#: ``t = (i + 1) Ts`` -- ``output = y(t)``, ``error = reference - output`` exactly -- and ``control`` is the command
+#: applied from ``t`` (computed from ``y(i Ts)``: the previous row's output, or ``/ilc/trial`` ``initial_output``).
+SAMPLE_LAYOUT: Final = 2
+
 #: values of ``/can`` ``dir``: sent by the bench, received by the bench
 DIRECTIONS: Final = ("tx", "rx")
 
@@ -56,17 +66,33 @@ _SIGNAL: Final[dict[str, Any]] = {
     ],
 }
 
+def _flag(description: str) -> dict[str, Any]:
+    return {"type": "boolean", "default": False, "description": description}
+
+
 CAN_FRAME_SCHEMA: Final[dict[str, Any]] = {
     "title": "foilc_hil.CanFrame",
-    "description": "One classic CAN frame the bench sent (tx) or received (rx).",
+    "description": "One CAN frame the bench sent (tx) or received (rx); the flags are written only when set.",
     "type": "object",
     "properties": {
         "timestamp": {"type": "number", "description": "bus timestamp, seconds (python-can Message.timestamp)"},
         "id": {"type": "integer", "minimum": 0, "description": "arbitration id"},
         "extended": {"type": "boolean", "description": "29-bit identifier"},
-        "dlc": {"type": "integer", "minimum": 0, "maximum": 15},
+        "dlc": {
+            "type": "integer",
+            "minimum": 0,
+            "maximum": 64,
+            "description": "python-can Message.dlc: the DLC code of a classic frame (0..15), the data length of an "
+            "FD frame (up to 64)",
+        },
         "data": {"type": "string", "contentEncoding": "base64", "description": "payload bytes"},
         "dir": {"type": "string", "enum": list(DIRECTIONS)},
+        "remote": _flag("remote transmission request (RTR)"),
+        "error": _flag("an error frame: a bus event, never a frame to transmit"),
+        "fd": _flag("CAN FD frame"),
+        "brs": _flag("CAN FD bit rate switch"),
+        "esi": _flag("CAN FD error state indicator"),
+        "channel": {"type": ["string", "integer"], "description": "python-can Message.channel, where known"},
     },
     "required": ["timestamp", "id", "extended", "dlc", "data", "dir"],
 }
@@ -77,11 +103,11 @@ ILC_SAMPLE_SCHEMA: Final[dict[str, Any]] = {
     "type": "object",
     "properties": {
         "trial": {"type": "integer", "minimum": 1, "description": "trial index k, from 1"},
-        "t": {"type": "number", "description": "time within the trial, seconds"},
+        "t": {"type": "number", "description": "time within the trial, seconds: the instant of every signal"},
         "sample": {"type": "integer", "minimum": 0, "description": "sample index within the trial"},
         "reference": {**_SIGNAL, "description": "y_r(t)"},
-        "output": {**_SIGNAL, "description": "measured feedback y(t, k) the law saw"},
-        "control": {**_SIGNAL, "description": "command u(t, k) the law produced"},
+        "output": {**_SIGNAL, "description": "measured feedback y(t, k)"},
+        "control": {**_SIGNAL, "description": "command u(t, k) the law produced, applied from t"},
         "error": {**_SIGNAL, "description": "e = y_r - y"},
         "E": {
             "oneOf": [*_SIGNAL["oneOf"], {"type": "null"}],

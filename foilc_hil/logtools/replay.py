@@ -3,19 +3,27 @@
 Frames
 ------
 :func:`select_frames` picks the ``/can`` frames to re-emit (direction ``tx`` by default -- what the bench sent --,
-a time window relative to the log's first frame, optional arbitration ids); :func:`play_frames` sends them with
-their original relative timing scaled by ``rate``, each on an absolute deadline from one start instant (no drift
-accumulates, a late frame does not delay the following ones' deadlines).
+a time window relative to the log's first frame, optional arbitration ids; never an error frame); :func:`play_frames`
+sends them with their original relative timing scaled by ``rate``, each on an absolute deadline from one start
+instant (no drift accumulates, a late frame does not delay the following ones' deadlines).
 
 Verification
 ------------
 :func:`verify_log` rebuilds the law the run used (``make_law`` from the ``foilc_hil.design`` and
 ``foilc_hil.config`` metadata), feeds it the logged feedback sample by sample, and checks every command against the
 logged ``control`` bit for bit (float64 bytes, so ``-0.0 != 0.0`` and NaN payloads count). Between trials it calls
-``end_trial`` with the trial's output array ``output[i] = y((i+1) Ts)``: the feedback of samples ``1 .. N-1`` plus
-the trial's ``final_output`` (``/ilc/trial``). A log without ``final_output`` gets the last entry from the logged
-error: a float ``y`` with ``fl(reference - y) == error`` bit for bit, found within a few ulps of
-``reference - error``; the law sees exactly the logged error either way (it learns from ``reference - output``).
+``end_trial`` with the trial's output array ``output[i] = y((i+1) Ts)``. Where those come from depends on the
+``/ilc/sample`` layout (:data:`foilc_hil.io.schemas.SAMPLE_LAYOUT`, metadata ``foilc_hil.layout``):
+
+- layout 2 (every field of row ``i`` at ``(i + 1) Ts``): the law's input at sample ``i`` is row ``i - 1``'s
+  output, at sample 0 the trial's ``initial_output`` (``/ilc/trial``); the output array is the rows' outputs.
+- layout 1 (logs written before layout 2; no ``foilc_hil.layout`` record): row ``i``'s output is the law's input
+  at sample ``i``; the output array is the feedback of samples ``1 .. N-1`` plus the trial's ``final_output``. A
+  log without ``final_output`` gets the last entry from the logged error: a float ``y`` with
+  ``fl(reference - y) == error`` bit for bit, found within a few ulps of ``reference - error``; the law sees
+  exactly the logged error either way (it learns from ``reference - output``).
+
+Either way every row must satisfy ``error == reference - output[i]`` bit for bit.
 """
 
 from __future__ import annotations
@@ -85,8 +93,8 @@ def select_frames(
     selected = []
     for frame in frames:
         offset = float(frame["timestamp"]) - t0
-        if frame["dir"] not in wanted_dirs or not start <= offset < end:
-            continue
+        if frame["dir"] not in wanted_dirs or not start <= offset < end or frame.get("error"):
+            continue  # an error frame is a bus event, never a frame to transmit
         if wanted_ids is not None and int(frame["id"]) not in wanted_ids:
             continue
         selected.append(frame)
@@ -315,6 +323,26 @@ def samples_per_trial(contents: LogContents) -> int:
     raise LogFormatError(f"{contents.path}: no /ilc/sample messages to verify")
 
 
+def sample_layout(contents: LogContents) -> int:
+    """The log's ``/ilc/sample`` layout: ``foilc_hil.layout`` metadata, 1 for logs written before it existed."""
+    from foilc_hil.io.schemas import METADATA_LAYOUT, SAMPLE_LAYOUT
+
+    value = contents.metadata.get(METADATA_LAYOUT, {}).get("ilc_sample", "1")
+    if value not in ("1", str(SAMPLE_LAYOUT)):
+        raise LogFormatError(f"{contents.path}: metadata {METADATA_LAYOUT} names /ilc/sample layout {value!r}; "
+                             f"this version reads 1 and {SAMPLE_LAYOUT}")
+    return int(value)
+
+
+def _law_inputs(rows: Sequence[Mapping[str, Any]], record: Mapping[str, Any] | None, layout: int) -> list[Any] | None:
+    """The feedback the law was given at each sample of a trial (raw logged values); ``None``: not in the log."""
+    if layout == 1:
+        return [row["output"] for row in rows]
+    if record is None or "initial_output" not in record:
+        return None  # layout 2 holds y(0) in /ilc/trial, which a trial cut short by the end of the log lacks
+    return [record["initial_output"], *(row["output"] for row in rows[:-1])]
+
+
 def verify_log(contents: LogContents, law: LawLike | None = None) -> Verification:
     """Re-run the learning law on the logged feedback; check every command bit for bit.
 
@@ -328,6 +356,7 @@ def verify_log(contents: LogContents, law: LawLike | None = None) -> Verificatio
     grouped = _group_samples(contents.samples)
     if not grouped:
         raise LogFormatError(f"{contents.path}: no /ilc/sample messages to verify")
+    layout = sample_layout(contents)
     n = samples_per_trial(contents)
     if law is None:
         law = law_from_log(contents, n)
@@ -340,13 +369,16 @@ def verify_log(contents: LogContents, law: LawLike | None = None) -> Verificatio
         position = 0
         if trial != expected_trial:
             return _stop(checked, trials_checked, trial, 0, None, None, None, f"trial {expected_trial} is missing")
+        inputs = _law_inputs(rows, trial_records.get(trial), layout)
+        if inputs is None:
+            break  # the trial in progress when the log ended, without its y(0): nothing to check after it
         try:
             law.begin_trial()
             for i, row in enumerate(rows):
                 position = i
                 if int(row.get("sample", i)) != i:
                     return _stop(checked, trials_checked, trial, i, row.get("t"), None, None, "sample missing")
-                y = _as_vector(row["output"])
+                y = _as_vector(inputs[i])
                 logged = _as_vector(row["control"])
                 if y is None or logged is None:
                     return _stop(checked, trials_checked, trial, i, row.get("t"), row["control"], None, "not numeric")
@@ -358,7 +390,7 @@ def verify_log(contents: LogContents, law: LawLike | None = None) -> Verificatio
                 checked += 1
             if trial not in trial_records or len(rows) != n:
                 break  # the trial in progress when the log ended: nothing after it
-            reference, output, problem = _trial_arrays(rows, trial_records[trial])
+            reference, output, problem = _trial_arrays(rows, trial_records[trial], layout)
             if problem:
                 return _stop(checked, trials_checked, trial, n - 1, rows[-1].get("t"), None, None, problem)
             law.end_trial(reference, output)
@@ -382,9 +414,29 @@ def _stop(
     return Verification(False, checked, trials_checked, Divergence(trial, sample, t, logged, recomputed, reason))
 
 
-def _trial_arrays(rows: Sequence[Mapping[str, Any]], record: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray, str]:
-    """``end_trial``'s ``(reference, output)``: feedback of samples 1..N-1 plus ``y(N Ts)``; or why not."""
+def _trial_arrays(
+    rows: Sequence[Mapping[str, Any]], record: Mapping[str, Any], layout: int
+) -> tuple[np.ndarray, np.ndarray, str]:
+    """``end_trial``'s ``(reference, output)`` (module docstring: per layout); or why not."""
     reference = np.array([_as_vector(row["reference"]) for row in rows], dtype=np.float64)
+    if layout == 1:
+        output, problem = _layout1_output(rows, record, reference)
+        if problem:
+            return reference, reference, problem
+    else:
+        output = np.array([_as_vector(row["output"]) for row in rows], dtype=np.float64)
+    # The log must agree with itself: the error it records is reference - output for every sample.
+    for i, row in enumerate(rows):
+        logged_error = _as_vector(row["error"])
+        if logged_error is not None and not _bits_equal(reference[i] - output[i], logged_error):
+            return reference, output, f"logged error of sample {i} is not reference - output"
+    return reference, output, ""
+
+
+def _layout1_output(
+    rows: Sequence[Mapping[str, Any]], record: Mapping[str, Any], reference: np.ndarray
+) -> tuple[np.ndarray, str]:
+    """Layout 1: the feedback of samples 1..N-1 plus ``y(N Ts)`` (``final_output``, or found from the error)."""
     seen = [_as_vector(row["output"]) for row in rows]
     final = record.get("final_output")
     if final is not None:
@@ -392,15 +444,9 @@ def _trial_arrays(rows: Sequence[Mapping[str, Any]], record: Mapping[str, Any]) 
     else:
         error = _as_vector(rows[-1]["error"])
         if error is None:
-            return reference, reference, "no final_output and no numeric error to recover y(N Ts)"
+            return reference, "no final_output and no numeric error to recover y(N Ts)"
         found = [_output_for_error(float(r), float(e)) for r, e in zip(reference[-1], error, strict=True)]
         if any(y is None for y in found):
-            return reference, reference, "no final_output, and no float output reproduces the logged error"
+            return reference, "no final_output, and no float output reproduces the logged error"
         last = np.array(found, dtype=np.float64)
-    output = np.array([*seen[1:], last], dtype=np.float64)
-    # The log must agree with itself: the error it records is reference - output for every sample.
-    for i, row in enumerate(rows):
-        logged_error = _as_vector(row["error"])
-        if logged_error is not None and not _bits_equal(reference[i] - output[i], logged_error):
-            return reference, output, f"logged error of sample {i} is not reference - output"
-    return reference, output, ""
+    return np.array([*seen[1:], last], dtype=np.float64), ""

@@ -1,9 +1,21 @@
-"""``foilc-hil report``: plots (PNG) and a summary (JSON and Markdown) of one log.
+"""``foilc-hil report``: plots (PNG) and a summary (JSON and Markdown) of one log; the demo's comparison figure.
 
 Plots (matplotlib, Agg, no pyplot state): ``outputs.png`` (output by trial with the reference), ``control.png``,
-``error.png``, ``sse.png`` (SSE against trial, log scale) and, when the log has ``/timing``, ``timing.png``
-(histograms of SYNC lateness and cycle period). The output drawn is ``reference - error`` -- the output at the
-reference's instant, whichever sample convention the writer used for ``output`` (the feedback the law saw).
+``error.png``, ``sse.png`` (SSE and learnable RMSE against trial, log scale) and, when the log has ``/timing``,
+``timing.png`` (histograms of SYNC lateness and cycle period). The output drawn is ``reference - error`` -- the
+output at the reference's instant, whichever ``/ilc/sample`` layout the log has. Titles name the law (from the
+logged design), axes carry the units of the logged config (``drive.velocity_unit``; ``drive.torque_unit`` for a
+CST command). At most :data:`MAX_TRIALS_DRAWN` trials are drawn, coloured along a sequential colormap with a
+colorbar (no long legend). Trial 1 runs ``u = 0`` and the first ``input_delay`` samples of every trial are fixed by
+the initial condition: neither sets the scale of the control and error plots (they are drawn, clipped; the title
+says so), so the learning transient and the converged error stay visible.
+
+:func:`write_comparison` draws several logs side by side (``comparison.png`` of ``foilc-hil demo``): outputs,
+learned input and error by trial per law on shared scales, and the learnable RMSE of every law against trial with
+the disturbance's first trial marked.
+
+``summary.md`` adds notes for the reader, e.g. why the learned input oscillates at the start of a trial whose
+reference starts with a step (see :func:`_notes`).
 
 A truncated log is reported as far as it goes; the summary says it is truncated and where.
 """
@@ -19,17 +31,22 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from foilc_hil.errors import InputError
+from foilc_hil.errors import FoilcHilError, InputError
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
     from foilc_hil.io.mcap_log import LogContents
 
-__all__ = ["MAX_TRIALS_DRAWN", "ReportFiles", "summarize", "write_report"]
+__all__ = ["MAX_TRIALS_DRAWN", "LogContext", "ReportFiles", "log_context", "summarize", "write_comparison",
+           "write_report"]
 
 #: at most this many trials are drawn per plot (evenly spread, first and last always included)
-MAX_TRIALS_DRAWN = 12
+MAX_TRIALS_DRAWN = 8
+#: the reference steps at the trial's start when the last trial's first (unlearnable) error exceeds this share of
+#: the reference's peak and this multiple of the RMS of its learnable errors
+STEP_SHARE = 0.1
+STEP_OVER_TYPICAL = 10.0
 _PERCENTILES = (50, 90, 99)
 
 
@@ -42,6 +59,54 @@ class ReportFiles:
     summary_json: Path
     summary_markdown: Path
     summary: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class LogContext:
+    """What a log says about how to label its plots: the law, the units, the unlearnable samples, the disturbance."""
+
+    law: str  # e.g. "FOILC"; "law?" when the log has no design
+    output_unit: str  # "" when the log has no config
+    input_unit: str
+    input_delay: int  # leading samples of every trial no input can move
+    disturbance_trial: int | None  # first trial with the plant's disturbance; None: none configured
+
+
+def log_context(contents: LogContents) -> LogContext:
+    """The :class:`LogContext` of a log, from its ``foilc_hil.design`` and ``foilc_hil.config`` metadata."""
+    design = contents.design or {}
+    law = str(design.get("law", "law?")).upper()
+    input_delay = int(design.get("input_delay", 0) or 0)
+    output_unit = input_unit = ""
+    disturbance: int | None = None
+    config = _logged_config(contents)
+    if config is not None:
+        drive = config.drive
+        output_unit = drive.velocity_unit
+        input_unit = drive.torque_unit if drive.mode == "cst" else drive.velocity_unit
+        if config.plant.disturbance.kind != "none":
+            disturbance = config.plant.disturbance.start_trial
+    return LogContext(law, output_unit, input_unit, input_delay, disturbance)
+
+
+def _logged_config(contents: LogContents) -> Any:
+    """The log's config as a typed ``Config``, or ``None`` when it has none or it does not validate (labels only)."""
+    import yaml
+
+    from foilc_hil.config import Config
+    from foilc_hil.schema import load_yaml_text, validate
+
+    if contents.config_yaml is None:
+        return None
+    try:
+        document = load_yaml_text(contents.config_yaml) or {}
+        return validate(Config, document, source=contents.path) if isinstance(document, dict) else None
+    except (FoilcHilError, ValueError, yaml.YAMLError):  # a label is not worth failing a report for
+        return None
+
+
+def _label(name: str, unit: str) -> str:
+    return f"{name} ({unit})" if unit else name
 
 
 # --- data ---------------------------------------------------------------------------------------------------------
@@ -111,10 +176,8 @@ def summarize(contents: LogContents) -> dict[str, Any]:
     frames_by_dir = {"tx": 0, "rx": 0}
     for frame in contents.frames:
         frames_by_dir[str(frame.get("dir"))] = frames_by_dir.get(str(frame.get("dir")), 0) + 1
-    trials = [
-        {key: value for key, value in record.items() if key in ("trial", "sse", "rmse", "max_abs_error")}
-        for record in contents.trials
-    ]
+    kept = ("trial", "sse", "rmse", "max_abs_error", "rmse_learnable", "max_abs_error_learnable")
+    trials = [{key: value for key, value in record.items() if key in kept} for record in contents.trials]
     return {
         "log": contents.path,
         "truncated": contents.truncated,
@@ -128,6 +191,7 @@ def summarize(contents: LogContents) -> dict[str, Any]:
         "design": design_summary,
         "timing": _timing_summary(contents.timing),
         "has_config": contents.config_yaml is not None,
+        "notes": _notes(signals, log_context(contents)),
     }
 
 
@@ -141,58 +205,182 @@ def _trials_to_draw(trials: Sequence[int]) -> list[int]:
     return [trials[i] for i in picks]
 
 
-def _new_figure(rows: int = 1) -> Figure:
+def _new_figure(rows: int = 1, columns: int = 1) -> Figure:
     from matplotlib.figure import Figure
 
-    return Figure(figsize=(9.0, 3.2 * rows + 0.8), layout="constrained")
+    return Figure(figsize=(6.5 * columns + 2.5, 3.2 * rows + 0.8), layout="constrained")
 
 
-def _plot_by_trial(
-    signals: dict[int, dict[str, np.ndarray]],
-    name: str,
-    ylabel: str,
-    path: Path,
-    title: str,
-    with_reference: bool = False,
-) -> Path:
-    from matplotlib import colormaps
+def _zoomed_limits(
+    signals: Mapping[int, Mapping[str, np.ndarray]], name: str, skip: int, channel: int = 0
+) -> tuple[float, float] | None:
+    """y limits that trial 1 (``u = 0``) and the first ``skip`` (unlearnable) samples do not set; ``None`` when
+    nothing else is left to scale by. The error's limits also leave out the 0.5 % most extreme values (the
+    learning transient's first samples), so the converged error is not squashed to a line."""
+    trials = sorted(signals)
+    later = trials[1:] if len(trials) > 1 else trials
+    chunks = [signals[trial][name][skip:, channel] for trial in later if signals[trial][name].shape[1] > channel]
+    values = np.concatenate(chunks) if chunks else np.array([])
+    values = values[np.isfinite(values)]
+    if values.size == 0:
+        return None
+    if name == "error":
+        low, high = (float(v) for v in np.percentile(values, [0.5, 99.5]))
+    else:
+        low, high = float(values.min()), float(values.max())
+    pad = 0.08 * (high - low) or 0.08 * max(abs(high), 1e-12)
+    return low - pad, high + pad
 
+
+def _draw_trials(ax: Any, signals: Mapping[int, Mapping[str, np.ndarray]], name: str, trials: Sequence[int],
+                 channel: int = 0) -> Any:
+    """The trials along the viridis ramp (early dark, late yellow); returns the colour mapping for a colorbar."""
+    from matplotlib import cm, colormaps
+    from matplotlib.colors import Normalize
+
+    norm = Normalize(vmin=min(trials), vmax=max(max(trials), min(trials) + 1))
+    cmap = colormaps["viridis"]
+    for trial in trials:
+        data = signals[trial]
+        if channel < data[name].shape[1]:
+            ax.plot(data["t"], data[name][:, channel], color=cmap(norm(trial)), linewidth=1.0)
+    return cm.ScalarMappable(norm=norm, cmap=cmap)
+
+
+def _plot_by_trial(signals: dict[int, dict[str, np.ndarray]], name: str, ylabel: str, path: Path, title: str,
+                   *, with_reference: bool = False, zoom_skip: int | None = None) -> Path:
+    """One signal by trial; ``zoom_skip``: scale without trial 1 and the first ``zoom_skip`` samples."""
     trials = _trials_to_draw(sorted(signals))
     width = max(signals[trial][name].shape[1] for trial in trials)
     figure = _new_figure(width)
     axes = figure.subplots(width, 1, squeeze=False)[:, 0]
-    colors = colormaps["viridis"](np.linspace(0.0, 0.9, len(trials)))
+    mappable = None
     for channel, ax in enumerate(axes):
-        for color, trial in zip(colors, trials, strict=True):
-            data = signals[trial]
-            if channel < data[name].shape[1]:
-                ax.plot(data["t"], data[name][:, channel], color=color, linewidth=1.0, label=f"trial {trial}")
+        mappable = _draw_trials(ax, signals, name, trials, channel)
         if with_reference:
             last = signals[trials[-1]]
             ax.plot(last["t"], last["reference"][:, channel], "k--", linewidth=1.2, label="reference")
+            ax.legend(fontsize="small", loc="best")
+        limits = _zoomed_limits(signals, name, zoom_skip, channel) if zoom_skip is not None else None
+        if limits is not None:
+            ax.set_ylim(*limits)
         ax.set_ylabel(ylabel if width == 1 else f"{ylabel} [{channel}]")
         ax.grid(True, alpha=0.3)
     axes[-1].set_xlabel("t (s)")
-    axes[0].set_title(title)
-    axes[0].legend(fontsize="small", ncol=2, loc="best")
+    zoomed = zoom_skip is not None and len(signals) > 1
+    axes[0].set_title(title + (" (scale without trial 1 and the unlearnable first samples)" if zoomed else ""))
+    _trial_colorbar(figure, mappable, list(axes))
     figure.savefig(path, dpi=110)
     return path
 
 
-def _plot_sse(trials: Sequence[Mapping[str, Any]], path: Path, truncated: bool) -> Path:
+def _integer_ticks(ax: Any) -> None:
+    from matplotlib.ticker import MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+
+
+def _trial_colorbar(figure: Figure, mappable: Any, axes: list[Any]) -> None:
+    from matplotlib.ticker import MaxNLocator
+
+    bar = figure.colorbar(mappable, ax=axes, label="trial", shrink=0.8)
+    bar.locator = MaxNLocator(integer=True)
+    bar.update_ticks()
+
+
+def _plot_sse(trials: Sequence[Mapping[str, Any]], path: Path, truncated: bool, context: LogContext) -> Path:
     figure = _new_figure()
     ax = figure.subplots()
-    k = [int(record["trial"]) for record in trials]
-    sse = [float(record["sse"]) for record in trials]
-    positive = [(trial, value) for trial, value in zip(k, sse, strict=True) if value > 0 and math.isfinite(value)]
-    if positive:
-        ax.semilogy([p[0] for p in positive], [p[1] for p in positive], "o-")
+    for key, label, style in (("sse", "SSE", "o-"), ("rmse_learnable", "learnable RMSE", "s--")):
+        points = [(int(r["trial"]), float(r[key])) for r in trials if key in r and math.isfinite(float(r[key]))
+                  and float(r[key]) > 0]
+        if points:
+            ax.semilogy([p[0] for p in points], [p[1] for p in points], style, label=label)
+    if context.disturbance_trial is not None:
+        ax.axvline(context.disturbance_trial - 0.5, color="0.4", linestyle=":", label="disturbance from here")
+    _integer_ticks(ax)
     ax.set_xlabel("trial")
-    ax.set_ylabel("SSE")
-    ax.set_title("sum of squared errors by trial" + (" (log truncated)" if truncated else ""))
+    ax.set_ylabel(_label("SSE, RMSE", context.output_unit + "^2, " + context.output_unit if context.output_unit
+                         else ""))
+    ax.set_title(f"{context.law}: error by trial" + (" (log truncated)" if truncated else ""))
     ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize="small")
     figure.savefig(path, dpi=110)
     return path
+
+
+def _union(limits: Sequence[tuple[float, float] | None]) -> tuple[float, float] | None:
+    found = [limit for limit in limits if limit is not None]
+    return (min(low for low, _ in found), max(high for _, high in found)) if found else None
+
+
+def write_comparison(logs: Mapping[str, str | Path], path: str | Path) -> Path:
+    """Laws side by side (``comparison.png``): one column per log -- output by trial with the reference, learned
+    input, tracking error (shared scales per row, trial 1 and the unlearnable first samples left out of them) --
+    and one panel of every law's learnable RMSE against trial, the disturbance's first trial marked."""
+    from foilc_hil.io.mcap_log import read_log
+
+    runs = {name: read_log(log) for name, log in logs.items()}
+    signals = {name: trial_signals(contents.samples) for name, contents in runs.items()}
+    contexts = {name: log_context(contents) for name, contents in runs.items()}
+    names = [name for name in runs if signals[name]]
+    if not names:
+        raise InputError("comparison: no /ilc/sample messages in " + ", ".join(map(str, logs.values())))
+    figure = _new_figure(4, len(names))
+    mosaic: list[Any] = [[f"{row}:{name}" for name in names] for row in ("y", "u", "e")] + [["rmse"] * len(names)]
+    axes = figure.subplot_mosaic(mosaic)
+    limits = {
+        row: _union([_zoomed_limits(signals[name], row_signal, contexts[name].input_delay) for name in names])
+        for row, row_signal in (("u", "control"), ("e", "error"))
+    }
+    mappable = None
+    for name in names:
+        data, context = signals[name], contexts[name]
+        trials = _trials_to_draw(sorted(data))
+        tracked = {trial: {**d, "tracked": d["reference"] - d["error"]} for trial, d in data.items()}
+        for row, signal, label in (("y", "tracked", "output y"), ("u", "control", "learned input u"),
+                                   ("e", "error", "error e")):
+            ax = axes[f"{row}:{name}"]
+            mappable = _draw_trials(ax, tracked, signal, trials)
+            unit = context.input_unit if row == "u" else context.output_unit
+            ax.set_ylabel(_label(label, unit))
+            ax.grid(True, alpha=0.3)
+            if row in limits and limits[row] is not None:
+                ax.set_ylim(*limits[row])  # type: ignore[misc]
+        last = data[trials[-1]]
+        axes[f"y:{name}"].plot(last["t"], last["reference"][:, 0], "k--", linewidth=1.2, label="reference")
+        axes[f"y:{name}"].legend(fontsize="small", loc="lower right")
+        axes[f"y:{name}"].set_title(f"{context.law}: output, learned input and error by trial")
+        axes[f"e:{name}"].set_xlabel("t (s)")
+    _trial_colorbar(figure, mappable, [axes[f"{row}:{name}"] for row in "yue" for name in names])
+    for name in names:
+        if _notes(signals[name], contexts[name]):  # the reference starts with a step: say what the swing is
+            axes[f"u:{name}"].annotate(
+                "early swing: the learned inverse of the start step\n(not a divergence; see the report's notes)",
+                xy=(0.02, 0.95), xycoords="axes fraction", va="top", fontsize="small",
+                bbox={"boxstyle": "round", "facecolor": "white", "alpha": 0.8})
+    _rmse_panel(axes["rmse"], runs, contexts)
+    target = Path(path)
+    figure.savefig(target, dpi=100)
+    return target
+
+
+def _rmse_panel(ax: Any, runs: Mapping[str, LogContents], contexts: Mapping[str, LogContext]) -> None:
+    for name, contents in runs.items():
+        points = [(int(r["trial"]), float(r.get("rmse_learnable", r["rmse"]))) for r in contents.trials]
+        points = [(k, value) for k, value in points if value > 0 and math.isfinite(value)]
+        if points:
+            ax.semilogy([k for k, _ in points], [v for _, v in points], "o-", label=contexts[name].law)
+    starts = {context.disturbance_trial for context in contexts.values() if context.disturbance_trial is not None}
+    for start in sorted(starts):
+        ax.axvline(start - 0.5, color="0.4", linestyle=":", label=f"disturbance from trial {start}")
+    unit = next((context.output_unit for context in contexts.values() if context.output_unit), "")
+    _integer_ticks(ax)
+    ax.set_xlabel("trial")
+    ax.set_ylabel(_label("learnable RMSE", unit))
+    ax.set_title("learnable RMSE by trial (first samples, fixed by the initial condition, left out)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize="small")
 
 
 def _plot_timing(timing: Sequence[Mapping[str, Any]], path: Path) -> Path:
@@ -213,13 +401,68 @@ def _plot_timing(timing: Sequence[Mapping[str, Any]], path: Path) -> Path:
     return path
 
 
-# --- markdown -----------------------------------------------------------------------------------------------------
+# --- notes and markdown -------------------------------------------------------------------------------------------
+
+
+def _notes(signals: Mapping[int, Mapping[str, np.ndarray]], context: LogContext) -> list[str]:
+    """Explanations a control engineer needs to read the plots; today: a reference that starts with a step."""
+    if not signals:
+        return []
+    last = signals[max(signals)]
+    reference, error, control = last["reference"][:, 0], last["error"][:, 0], last["control"][:, 0]
+    peak = float(np.nanmax(np.abs(reference))) if reference.size else 0.0
+    skip = max(context.input_delay, 1)
+    rest = error[skip:]
+    typical = float(np.sqrt(np.nanmean(rest * rest))) if rest.size else 0.0
+    first = abs(float(error[0]))
+    if not (peak > 0 and first > STEP_SHARE * peak and first > STEP_OVER_TYPICAL * typical):
+        return []
+    early = control[: max(3, len(control) // 20)]
+    unit = f" {context.output_unit}" if context.output_unit else ""
+    t_early = float(last["t"][len(early) - 1])
+    return [
+        f"The reference starts with a step: the output is {float(reference[0] - error[0]):.4g}{unit} (at rest) "
+        f"where the reference is {float(reference[0]):.4g}{unit}. The first {skip} sample(s) of every trial are "
+        "fixed by the initial condition (no input reaches them through the loop's delay), so `max_abs_error` "
+        "stays at that step in every trial; `max_abs_error_learnable` and `rmse_learnable` leave them out.",
+        f"The learned input swings from {float(np.nanmin(early)):.4g} to {float(np.nanmax(early)):.4g}"
+        f"{' ' + context.input_unit if context.input_unit else ''} in the first {t_early:.3g} s: to follow the step "
+        "as soon as it can, the law learns a large first command (up to the drive's limit) and a damped ringing "
+        "correction after it -- the inverse of the axis's dynamics at a jump it cannot make, not a divergence. A "
+        "reference that starts at the axis's initial value (e.g. a short `piecewise` ramp) or a Q-filter "
+        "(`law.q_filter.cutoff`) removes it.",
+    ]
 
 
 def _fmt(value: Any) -> str:
     if isinstance(value, float):
         return f"{value:.6g}"
     return str(value)
+
+
+def _certificate_tables(certificates: Mapping[str, Any]) -> list[str]:
+    """Scalars as one key/value table, the per-plant certificates as a table of their own."""
+    scalars = [(key, value) for key, value in certificates.items() if not isinstance(value, (dict, list))]
+    for key, value in certificates.items():
+        if isinstance(value, dict):
+            scalars += [(f"{key}.{sub}", item) for sub, item in value.items() if not isinstance(item, (dict, list))]
+    lines = ["| certificate | value |", "|---|---:|"] + [f"| {key} | {_fmt(value)} |" for key, value in scalars]
+    plants = [row for row in certificates.get("plants", []) if isinstance(row, dict)]
+    if plants:
+        columns = list(dict.fromkeys(key for row in plants for key in row))
+        lines += ["", "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+        lines += ["| " + " | ".join(_fmt(row.get(column, "")) for column in columns) + " |" for row in plants]
+    return lines
+
+
+def _trial_table(trials: Sequence[Mapping[str, Any]]) -> list[str]:
+    lines = ["## Trials", "", "| trial | SSE | RMSE | max abs error | learnable RMSE | learnable max abs error |",
+             "|---:|---:|---:|---:|---:|---:|"]
+    for t in trials:
+        cells = [t.get(key, "") for key in ("trial", "sse", "rmse", "max_abs_error", "rmse_learnable",
+                                             "max_abs_error_learnable")]
+        lines.append("| " + " | ".join(_fmt(cell) for cell in cells) + " |")
+    return [*lines, "", "(learnable: over the samples an input of the trial can move; see the notes.)", ""]
 
 
 def _markdown(summary: dict[str, Any], plots: Sequence[Path]) -> str:
@@ -235,20 +478,14 @@ def _markdown(summary: dict[str, Any], plots: Sequence[Path]) -> str:
         lines.append(f"- incomplete trials (no metrics): {', '.join(map(str, summary['incomplete_trials']))}")
     lines.append("")
     if summary["trials"]:
-        lines += ["## Trials", "", "| trial | SSE | RMSE | max abs error |", "|---:|---:|---:|---:|"]
-        lines += [
-            f"| {t['trial']} | {_fmt(t['sse'])} | {_fmt(t['rmse'])} | {_fmt(t['max_abs_error'])} |"
-            for t in summary["trials"]
-        ]
-        lines.append("")
+        lines += _trial_table(summary["trials"])
     design = summary["design"]
     if design:
-        lines += ["## Design", ""]
-        lines += [f"- {key}: {_fmt(value)}" for key, value in design.items() if key != "certificates"]
+        lines += ["## Design", "", "| parameter | value |", "|---|---:|"]
+        lines += [f"| {key} | {_fmt(value)} |" for key, value in design.items() if key != "certificates"]
         certificates = design.get("certificates") or {}
         if certificates:
-            lines += ["", "Certificates:", ""]
-            lines += [f"- {key}: {_fmt(value)}" for key, value in certificates.items()]
+            lines += ["", "### Certificates", "", *_certificate_tables(certificates)]
         lines.append("")
     timing = summary["timing"]
     if timing:
@@ -262,6 +499,8 @@ def _markdown(summary: dict[str, Any], plots: Sequence[Path]) -> str:
                     f"{_fmt(stats['max'])} |"
                 )
         lines.append("")
+    if summary.get("notes"):
+        lines += ["## Notes", "", *[f"- {note}" for note in summary["notes"]], ""]
     if plots:
         lines += ["## Plots", ""] + [f"![{path.stem}]({path.name})" for path in plots] + [""]
     return "\n".join(lines)
@@ -290,16 +529,19 @@ def write_report(log: str | Path, out_dir: str | Path) -> ReportFiles:
         raise InputError(f"--out: {directory}: cannot create: {exc.strerror or exc}") from None
     summary = summarize(contents)
     signals = trial_signals(contents.samples)
+    context = log_context(contents)
+    y, u = _label("y", context.output_unit), _label("u", context.input_unit)
     plots: list[Path] = []
     if signals:
         tracked = {trial: {**data, "tracked": data["reference"] - data["error"]} for trial, data in signals.items()}
-        plots.append(
-            _plot_by_trial(tracked, "tracked", "y", directory / "outputs.png", "output by trial", with_reference=True)
-        )
-        plots.append(_plot_by_trial(signals, "control", "u", directory / "control.png", "control by trial"))
-        plots.append(_plot_by_trial(signals, "error", "e", directory / "error.png", "tracking error by trial"))
+        plots.append(_plot_by_trial(tracked, "tracked", y, directory / "outputs.png",
+                                    f"{context.law}: output by trial", with_reference=True))
+        plots.append(_plot_by_trial(signals, "control", u, directory / "control.png",
+                                    f"{context.law}: learned input by trial", zoom_skip=context.input_delay))
+        plots.append(_plot_by_trial(signals, "error", _label("e", context.output_unit), directory / "error.png",
+                                    f"{context.law}: tracking error by trial", zoom_skip=context.input_delay))
     if contents.trials:
-        plots.append(_plot_sse(contents.trials, directory / "sse.png", contents.truncated))
+        plots.append(_plot_sse(contents.trials, directory / "sse.png", contents.truncated, context))
     if contents.timing:
         plots.append(_plot_timing(contents.timing, directory / "timing.png"))
     summary["plots"] = [path.name for path in plots]

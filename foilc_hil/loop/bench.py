@@ -44,17 +44,20 @@ feedforward (:class:`~foilc_hil.loop.safety.DivergenceGuard`, the same rule offl
 SIGINT/SIGTERM stop the loop at the next cycle. Every abort quick-stops the drive first; on every exit path the caller's
 ``finally`` disables the drive (``safe_stop``) and closes the log.
 
-What ``/ilc/sample`` holds (the contract with ``replay --verify``): row ``i`` of trial ``k`` has
-``output = y_i`` -- exactly the float64 the law was given at sample ``i``, the held one for a lost feedback -- and
-``control = u_i``, the law's command before the bench's limiter (what the law computed, so ``replay --verify``
-can reproduce it bit for bit;
-the clamped, quantised value actually sent is kept in :attr:`TrialRecord.applied`, and ``/ilc/trial`` counts the
-clamped commands in ``clamped``). The law is built with the limiter's limits (``make_law(..., limits=...)``) and
-clamps internally, so it learns from the input that was applied (saturation-aware learning, see
-:mod:`foilc_hil.laws.learning`); the limiter stays as the safety layer and is normally a no-op. ``/ilc/trial`` records
-those limits as ``command_limits: [lower, upper]`` so that ``replay --verify`` rebuilds the same law.
-``reference``, ``error`` and ``E`` are row ``i`` of the trial
-arrays (``error[i] = reference[i] - y_{i+1}``), so the SSE of a trial is the sum of the squared ``error`` fields.
+What ``/ilc/sample`` holds (the contract with ``replay --verify``; layout 2, metadata ``foilc_hil.layout``): row
+``i`` of trial ``k`` describes ONE instant, ``t = (i + 1) Ts``: ``output = y_{i+1}`` (exactly the float64 the
+law was given at sample ``i + 1``, the held one for a lost feedback), ``reference``, ``error`` and ``E`` are row
+``i`` of the trial arrays, so ``error == reference - output`` bit for bit, and ``control = u_i``, the command the
+drive applies from ``t`` (computed at ``i Ts`` from ``y_i``, the previous row's output; for row 0 the trial's
+``initial_output`` in ``/ilc/trial``). ``control`` is the law's command before the bench's limiter (what the law
+computed, so ``replay --verify`` can reproduce it bit for bit; the clamped, quantised value actually sent is kept
+in :attr:`TrialRecord.applied`, and ``/ilc/trial`` counts the clamped commands in ``clamped``). The law is built
+with the limiter's limits (``make_law(..., limits=...)``) and clamps internally, so it learns from the input that
+was applied (saturation-aware learning, see :mod:`foilc_hil.laws.learning`); the limiter stays as the safety layer
+and is normally a no-op. ``/ilc/trial`` records those limits as ``command_limits: [lower, upper]`` so that
+``replay --verify`` rebuilds the same law. The SSE of a trial is the sum of the squared ``error`` fields. Logs
+written before layout 2 (no ``foilc_hil.layout``) had ``t = i Ts`` and ``output = y_i`` with the rest at
+``(i + 1) Ts``; ``replay --verify`` reads both.
 """
 
 from __future__ import annotations
@@ -203,15 +206,16 @@ class TrialRecord:
     faults: FaultCounts = field(default_factory=FaultCounts)  # lost feedbacks, bad frames in the trial
 
     def sample_records(self) -> Iterator[SampleRecord]:
-        """The ``/ilc/sample`` messages of this trial (module docstring: what each field is)."""
+        """The ``/ilc/sample`` messages of this trial, layout :data:`~foilc_hil.io.schemas.SAMPLE_LAYOUT` (module
+        docstring): row ``i`` describes the instant ``(i + 1) Ts``."""
         E = self.E
         for i in range(self.control.shape[0]):
             yield SampleRecord(
                 trial=self.trial,
-                t=i * self.sample_time,  # the instant of the feedback the law saw
+                t=(i + 1) * self.sample_time,  # the instant of output, reference, error and E
                 reference=float(self.reference[i]),
-                output=float(self.seen[i]),
-                control=float(self.control[i]),
+                output=float(self.output[i]),  # y((i + 1) Ts): error[i] = reference[i] - output[i] exactly
+                control=float(self.control[i]),  # u_i: sent after SYNC i, applied by the drive from SYNC i + 1
                 error=float(self.error[i]),
                 E=float(E[i]),
                 sample=i,
@@ -752,22 +756,26 @@ class McapSink:
     """
 
     def __init__(self, writer: McapLogWriter | QueuedLogWriter, command_limits: tuple[float, float] | None) -> None:
+        from foilc_hil.io.schemas import METADATA_LAYOUT, SAMPLE_LAYOUT
+
         self.writer = writer
         self.command_limits = None if command_limits is None else [float(limit) for limit in command_limits]
+        writer.add_metadata(METADATA_LAYOUT, {"ilc_sample": str(SAMPLE_LAYOUT)})  # replay --verify reads rows by it
 
     def trial_finished(self, record: TrialRecord) -> None:
         write_sample = self.writer.write_sample
         for sample in record.sample_records():
             write_sample(sample)
-        # final_output = y(N Ts): with the rows' outputs it rebuilds the trial's output array (replay --verify)
-        final_output = float(record.seen[-1])
+        # initial_output = y(0): the law's input at sample 0, which no row holds (replay --verify);
+        # final_output = y(N Ts), also the last row's output (kept: the interface names it)
+        ends = {"initial_output": float(record.seen[0]), "final_output": float(record.seen[-1])}
         if self.command_limits is None:
-            self.writer.log_trial(record.metrics, final_output=final_output)
+            self.writer.log_trial(record.metrics, **ends)
         else:  # command_limits: the limits the law clamped to (replay --verify rebuilds the law with them)
             self.writer.log_trial(
                 record.metrics,
                 clamped=record.clamped,
-                final_output=final_output,
+                **ends,
                 command_limits=self.command_limits,
                 **record.faults.to_json(),
             )
@@ -789,9 +797,6 @@ class McapSink:
                 record.skipped_deadlines > 0,
                 lost_feedback=record.missing_feedback,
             )
-
-
-_MODES = {"csv": "CYCLIC_SYNC_VELOCITY", "cst": "CYCLIC_SYNC_TORQUE", "pv": "PROFILE_VELOCITY"}
 
 
 @dataclass(frozen=True)
@@ -887,10 +892,8 @@ def _open_drive(
 
 def _enable(drive: Any, config: Any) -> None:
     """Connect, configure the drive's mode and cycle and walk it to OPERATION ENABLED."""
-    from drivers.cia402 import OperationMode
-
     drive.connect()
-    drive.configure(OperationMode[_MODES[config.drive.mode]], config.sample_time)
+    drive.configure(config.drive.operation_mode, config.sample_time)
     drive.enable()
 
 
@@ -906,26 +909,31 @@ def run_bench(request: RunRequest) -> RunReport:
     config = request.config
     plan = _plan_run(request)
     stops: list[StopReport] = []
-    with _truth_about_the_stop(stops, config.drive.node_id), contextlib.ExitStack() as stack:
-        sink = _open_log(stack, request, plan)
-        bus_cfg, before_trial = _start_emulator(stack, config, plan.bus)
-        drive = _open_drive(stack, config, bus_cfg, sink, stops)
-        progress = make_progress(plan.title, quiet=request.quiet)
-        stack.callback(progress.close)
-        stop = stack.enter_context(StopRequest())
-        _enable(drive, config)
-        loop = TrialLoop(
-            drive,
-            plan.law,
-            plan.reference,
-            plan.limiter,
-            plan.settings,
-            log=sink,
-            progress=progress,
-            stop=stop,
-            before_trial=before_trial,
-        )
-        outcome = loop.run(plan.trials)
+    loops: list[TrialLoop] = []
+    try:
+        with _truth_about_the_stop(stops, config.drive.node_id), contextlib.ExitStack() as stack:
+            sink = _open_log(stack, request, plan)
+            bus_cfg, before_trial = _start_emulator(stack, config, plan.bus)
+            drive = _open_drive(stack, config, bus_cfg, sink, stops)
+            progress = make_progress(plan.title, quiet=request.quiet)
+            stack.callback(progress.close)
+            stop = stack.enter_context(StopRequest())
+            _enable(drive, config)
+            loop = TrialLoop(drive, plan.law, plan.reference, plan.limiter, plan.settings, log=sink,
+                             progress=progress, stop=stop, before_trial=before_trial)
+            loops.append(loop)
+            outcome = loop.run(plan.trials)
+    except FoilcHilError as exc:
+        # what the run had done: the CLI's --json error document carries it (trials, the stop, the log)
+        done = loops[0].outcome if loops else BenchOutcome()
+        exc.partial = {
+            "law": plan.law_kind,
+            "trials": [metrics.to_json() for metrics in done.trials],
+            "stopped": str(exc).splitlines()[0] if str(exc) else type(exc).__name__,
+            "log": str(request.out) if request.out is not None else "",
+            "drive_stop": stops[-1].to_json() if stops else None,
+        }
+        raise
     design = plan.design
     return RunReport(
         law=plan.law_kind,
