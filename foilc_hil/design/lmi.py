@@ -141,6 +141,7 @@ class LmiSolution:
     solver: str
     status: str
     checks: LmiChecks
+    seconds: float = 0.0  # wall-clock time of the solve and its checks (informational)
 
 
 def lmi_matrix(
@@ -337,6 +338,7 @@ def solve_lmi(
     foilc_hil.errors.LmiInfeasibleError
         When no solver yields a solution that passes every check; the message names the failing condition.
     """
+    started = time.perf_counter()
     _check_rates(tau, theta, margin)
     if solver not in _SOLVERS:
         raise ConfigError(f"must be one of {', '.join(_SOLVERS)}, got {solver!r}", key="synthesis.solver")
@@ -372,6 +374,7 @@ def solve_lmi(
             solver=name,
             status=status,
             checks=record,
+            seconds=time.perf_counter() - started,
         )
     raise LmiInfeasibleError(f"LMI (31) infeasible for tau={tau:g}, theta={theta:g} ({'; '.join(failures)})")
 
