@@ -329,6 +329,27 @@ def _finalist(
     return _Finalist(candidate, P, structure, norm, varying, noise, value)
 
 
+def _choose(
+    search: CodesignSearch,
+    uncertainty: Uncertainty,
+    settings: CodesignConfig,
+    initial_guess: tuple[float, float] | None,
+) -> tuple[_Finalist, _Finalist, int]:
+    """Grid, Nelder–Mead, then the exact certificates of the finalists: the best one, IOILC's design (always a
+    finalist) and how many finalists were certified."""
+    law = search.law
+    ranked = search.grid()
+    starts = [ranked[0], next((c for c in ranked if c.kappa == 0.0), ranked[0])]
+    if initial_guess is not None and initial_guess[0] > 0:
+        kappa = initial_guess[0] * law.sample_time ** -initial_guess[1]
+        starts.append(Candidate(kappa, initial_guess[1], 1.0 + kappa))  # the paper's point: s = 1, beta = 1
+    polished = sorted((search.polish(start) for start in starts), key=lambda c: c.value)
+    ioilc = Candidate(0.0, UNUSED_ORDER, 1.0)  # IOILC's own design: kp = 0, the LMI gain as is
+    pool = [*polished[:FINALISTS], *starts[2:], ioilc]
+    finalists = [_finalist(search, uncertainty, c, settings) for c in pool]
+    return min(finalists, key=lambda f: f.objective), finalists[-1], len(pool)
+
+
 def codesign(
     model: DiscreteModel,
     uncertainty: Uncertainty,
@@ -359,17 +380,7 @@ def codesign(
         raise ConfigError("codesign needs law.fractional_memory: controllable", key="synthesis.design")
     started = time.perf_counter()
     search = CodesignSearch(model, uncertainty, solution.P, law, settings.noise_weight)
-    ranked = search.grid()
-    starts = [ranked[0], next((c for c in ranked if c.kappa == 0.0), ranked[0])]
-    if initial_guess is not None and initial_guess[0] > 0:
-        kappa = initial_guess[0] * law.sample_time ** -initial_guess[1]
-        starts.append(Candidate(kappa, initial_guess[1], 1.0 + kappa))  # the paper's point: s = 1, beta = 1
-    polished = sorted((search.polish(start) for start in starts), key=lambda c: c.value)
-    ioilc = Candidate(0.0, UNUSED_ORDER, 1.0)  # IOILC's own design: kp = 0, the LMI gain as is
-    pool = [*polished[:FINALISTS], *starts[2:], ioilc]
-    finalists = [_finalist(search, uncertainty, c, settings) for c in pool]
-    best = min(finalists, key=lambda f: f.objective)
-    baseline = finalists[-1]
+    best, baseline, finalists = _choose(search, uncertainty, settings, initial_guess)
     outcome = certify(
         model,
         uncertainty,
@@ -392,7 +403,7 @@ def codesign(
         time_varying_horizon=settings.time_varying_horizon,
         ioilc_objective=baseline.objective,
         ioilc_norm_2=baseline.norm_2,
-        candidates=search.evaluations + len(pool),
+        candidates=search.evaluations + finalists,
         initial_guess=initial_guess,
     )
     scale = chosen.scale * outcome.gain_scale
