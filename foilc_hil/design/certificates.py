@@ -837,18 +837,23 @@ def map_certificate(loop: LoopPlant, law: LawStructure) -> PlantCertificate:
 def matrix_certificate(matrix: np.ndarray, kind: str) -> PlantCertificate:
     """Spectral radius and induced 2-norm of a trial-to-trial map given as a dense matrix.
 
-    For laws whose map has no Toeplitz structure (norm-optimal ILC); the same norm code as the other maps
-    (dense SVD for small trials, ARPACK ``svds`` beyond). The spectral radius is exact (dense) up to
-    :data:`DENSE_LIMIT` rows; beyond, when the 2-norm is below one it bounds the radius (``rho <= ||T||``, so the
-    verdict needs no eigenvalues) and the method says so, else ARPACK ``eigs``.
+    For laws whose map has no Toeplitz structure (norm-optimal ILC). Up to :data:`DENSE_LIMIT` rows: a dense SVD
+    and eigenvalues (exact). Beyond: ``||T||_2 = sqrt(lambda_max(T^T T))`` from the largest eigenvalue of the Gram
+    matrix (LAPACK ``eigh`` on that one eigenvalue: exact to rounding, and unlike ARPACK unaffected by the
+    clustered top singular values these maps have); when it is below one it bounds the spectral radius
+    (``rho <= ||T||``, so the verdict needs no eigenvalues) and the method says so, else ARPACK ``eigs``.
     """
+    from scipy.linalg import eigh
+
     T = np.asarray(matrix, dtype=float)
     if not np.all(np.isfinite(T)):
         return PlantCertificate("", kind, math.inf, math.inf, "overflow")
     size = T.shape[0]
-    norm, method = _operator_norm(size, lambda x: T @ x, lambda y: T.T @ y, lambda: T)
     if size <= DENSE_LIMIT:
-        return PlantCertificate("", kind, _radius(T), norm, method, "dense")
+        return PlantCertificate("", kind, _radius(T), float(np.linalg.norm(T, 2)), "dense", "dense")
+    top = eigh(T.T @ T, eigvals_only=True, subset_by_index=[size - 1, size - 1])
+    norm = math.sqrt(max(float(top[0]), 0.0))
+    method = "dense (largest eigenvalue of T^T T)"
     if norm < 1.0:
         return PlantCertificate("", kind, norm, norm, method, "upper bound: the induced 2-norm")
     radius, radius_method = _input_map_radius(_MatrixOperator(T), lambda: T)

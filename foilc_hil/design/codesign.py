@@ -36,7 +36,8 @@ Noise gain (single input and output)
 White measurement noise ``n`` (unit variance) enters the law twice: the state term ``p1`` sees ``pinv(C) n`` in
 the reconstructed state, the learning term sees ``-n`` in the measured error. In the long-trial limit every
 frequency ``w`` is a scalar recursion over trials, ``du_k = T du_{k-1} + a n_k + b n_{k-1}`` with
-``R = 1/(1 - p1 Gz)``, ``a = R p1 c``, ``b = -R (p1 c + s p2 z^d F)``, ``T = 1 - R s p2 z^d F Gy``; its stationary
+``R = 1/(1 - p1 Gz)``, ``a = R p1 c``, ``b = -R (p1 c + s p2 z^(d+1) F)`` (the error sample ``e[i]`` is measured
+at ``(i+1) Ts``, one sample after the state the law reconstructs at ``i``), ``T = 1 - R s p2 z^d F Gy``; its stationary
 variance is ``|a|^2 + |T a + b|^2 / (1 - |T|^2)`` and the error's is ``|Gy|^2`` times that. The noise gain is its
 average over frequency: the stationary per-sample error variance per unit noise variance. A fast law (``T``
 near 0) passes the noise of the last trial through (gain about 1); a slow one averages it over trials.
@@ -75,7 +76,7 @@ BETA_GRID = (0.0, 0.5, 1.0)
 #: Bounds of the continuous search.
 KAPPA_MIN, KAPPA_MAX, ORDER_MIN, ORDER_MAX, GAIN_MIN, GAIN_MAX = 1e-6, 1e3, 0.02, 1.98, 1e-3, 4.0
 #: Finalists certified exactly (besides the initial guess and IOILC's design), and Nelder–Mead starts.
-FINALISTS = 3
+FINALISTS = 2
 POLISH_EVALUATIONS = 120
 #: Dwell of the piecewise-constant time-varying draws: switch with this probability per sample.
 SWITCH_PROBABILITY = 0.05
@@ -118,7 +119,7 @@ class CodesignSearch:
         self.model, self.law, self.noise_weight = model, law, noise_weight
         self.p1, self.p2 = P[:, :n], P[:, n:]
         self.length = law.n_samples - law.lead
-        self.n_fft = next_fast_len(max(4096, 2 * self.length))
+        self.n_fft = next_fast_len(max(1024, 2 * self.length))
         self.z = np.exp(2j * np.pi * np.arange(self.n_fft) / self.n_fft)
         self.plants = [(model.A, model.B)]
         self.plants += [(model.A + dA, model.B + dB) for dA, dB in uncertainty_vertices(uncertainty)]
@@ -185,7 +186,8 @@ class CodesignSearch:
             T = 1.0 - R * learning * Gy
             if not float(np.max(np.abs(T))) < 1.0:
                 return math.inf
-            a, b = R * noise_state, -R * (noise_state + learning)
+            # e[i] is measured at (i+1) Ts, one sample after the state reconstructed at i: its noise is advanced
+            a, b = R * noise_state, -R * (noise_state + learning * self.z)
             variance = np.abs(a) ** 2 + np.abs(T * a + b) ** 2 / (1.0 - np.abs(T) ** 2)
             return float(np.mean(np.abs(Gy) ** 2 * variance))
 
@@ -345,7 +347,9 @@ def _choose(
         starts.append(Candidate(kappa, initial_guess[1], 1.0 + kappa))  # the paper's point: s = 1, beta = 1
     polished = sorted((search.polish(start) for start in starts), key=lambda c: c.value)
     ioilc = Candidate(0.0, UNUSED_ORDER, 1.0)  # IOILC's own design: kp = 0, the LMI gain as is
-    pool = [*polished[:FINALISTS], *starts[2:], ioilc]
+    # distinct points only (polishing from different starts may end at the same one); IOILC's design last
+    unique = {(c.kappa, c.r, c.g, c.beta): c for c in [*polished[:FINALISTS], *starts[2:]]}
+    pool = [c for key, c in unique.items() if key != (ioilc.kappa, ioilc.r, ioilc.g, ioilc.beta)] + [ioilc]
     finalists = [_finalist(search, uncertainty, c, settings) for c in pool]
     return min(finalists, key=lambda f: f.objective), finalists[-1], len(pool)
 
