@@ -152,7 +152,7 @@ class NoilcConfig(Section):
     """
 
     q: float = Field(default=1.0, gt=0)
-    r_relative: float = Field(default=0.01, gt=0)
+    r_relative: float = Field(default=1e-4, gt=0)
 
 
 class LawConfig(Section):
