@@ -32,7 +32,7 @@ Memory (``history``)
   the correction for ``f(0)`` (and ``f'(0)``) -- the paper's literal operator over a whole trial.
 * ``history="zero"``: the GL sum of ``f`` itself, i.e. the signal is taken to be zero (with zero slope) before
   the first sample: a Riemann–Liouville operator with zero history (no Caputo correction of ``f(0)``). It is
-  the law's "controllable" memory (``law.fractional_memory: controllable``); it is called Caputo nowhere.
+  the law's "controllable" memory (``law.fractional_memory: controllable``), not a Caputo operator.
   The operator is then a pure lower-triangular Toeplitz matrix ``I + kp h^-r T`` with diagonal
   ``1 + kp h^-r`` (invertible). For a signal that really starts from rest (``f(0) = 0``, and ``f'(0) = 0`` for
   ``r > 1``), Grünwald–Letnikov, Riemann–Liouville and Caputo agree, so both modes give the same derivative.
