@@ -64,6 +64,10 @@ __all__ = [
 
 _T = TypeVar("_T")
 
+#: Below this margin relative to the LMI matrix's norm (about 1e6 x machine epsilon), LMI (31) is reported to hold
+#: only within rounding (:attr:`LmiChecks.within_rounding`).
+LMI_RELATIVE_MARGIN_MIN = 1e-10
+
 
 def _matrix(value: Any, name: str) -> np.ndarray:
     """``value`` as a finite 2-D float array (a copy, read-only); the error names ``design.<name>``."""
@@ -243,6 +247,14 @@ class LmiChecks:
     vertices_checked: int
     solver_failures: tuple[str, ...]
     P_lmi: np.ndarray
+    relative_margin: float = math.nan
+    Q_condition: float = math.nan
+
+    @property
+    def within_rounding(self) -> bool:
+        """Whether the LMI holds only by a margin comparable to rounding (:data:`LMI_RELATIVE_MARGIN_MIN`): its
+        feasibility and ``gamma`` are then solver noise, and the Lyapunov and vertex checks are what certify."""
+        return not self.relative_margin >= LMI_RELATIVE_MARGIN_MIN
 
     def to_json(self) -> dict[str, Any]:
         """``certificates["lmi"]``."""
@@ -259,6 +271,8 @@ class LmiChecks:
             "vertices_checked": self.vertices_checked,
             "solver_failures": list(self.solver_failures),
             "P_lmi": self.P_lmi,
+            "relative_margin": self.relative_margin,
+            "Q_condition": self.Q_condition,
         }
 
     @classmethod
@@ -284,6 +298,9 @@ class LmiChecks:
             vertices_checked=_typed(document, "vertices_checked", int, where),
             solver_failures=tuple(str(f) for f in _typed(document, "solver_failures", list, where)),
             P_lmi=_matrix(document.get("P_lmi"), "certificates.lmi.P_lmi"),
+            # additions: absent from documents written before them
+            relative_margin=_number(document, "relative_margin", where) if "relative_margin" in document else math.nan,
+            Q_condition=_number(document, "Q_condition", where) if "Q_condition" in document else math.nan,
             **numbers,
         )
 
