@@ -11,18 +11,21 @@ reference ``p2``); the tuner's ``kp``, ``r`` are an initial guess.
 
 Search space and objective
 --------------------------
-``P = (p1, s p2)`` with ``(p1, p2)`` the LMI's, the filter ``F = 1 + kappa (1 - z^-1)^r`` (Grünwald–Letnikov, zero
-history: ``law.fractional_memory: controllable``) with ``kappa = kp h^-r``, so ``kp = kappa h^r``. The search
-runs on ``(kappa, r, g)``, ``g = s (1 + kappa)`` the effective gain on the newest error sample (the filter's first
-weight is ``1 + kappa``). ``kappa = 0`` -- IOILC -- is in the space, and so is IOILC's own design (``s = 1``).
+``P = (beta p1, s p2)`` with ``(p1, p2)`` the LMI's, the filter ``F = 1 + kappa (1 - z^-1)^r`` (Grünwald–Letnikov,
+zero history: ``law.fractional_memory: controllable``) with ``kappa = kp h^-r``, so ``kp = kappa h^r``. The search
+runs on ``(kappa, r, g, beta)``, ``g = s (1 + kappa)`` the effective gain on the newest error sample (the filter's
+first weight is ``1 + kappa``), ``beta`` in ``[0, 1]`` (the LMI certified robust 2D stability of ``beta = 1``; the
+lifted-map certificate, not the LMI, certifies the chosen point). ``kappa = 0`` -- IOILC -- is in the space, and so
+is IOILC's own design (``beta = s = 1``).
 
     objective = max(worst-case induced 2-norm, sampled time-varying 2-norm) + noise_weight * noise gain
 
 1. **Search (surrogate)**: the worst over the frozen plants (nominal, uncertainty vertices) of
-   ``sup_w |1 - s H_L(w) F_L(w)|``, the symbol of the length-``L`` Toeplitz map: ``T`` is a finite section of the
-   Toeplitz operator with that symbol, so the sup bounds its norm (up to the frequency grid). A grid over
-   ``(kappa, r, g)``, then Nelder–Mead from the best points.
-2. **Finalists**: the best few points, the initial guess and IOILC's design are certified EXACTLY at the full
+   ``sup_w |1 - s H_L(w) F_L(w)|``, the symbol of the length-``L`` Toeplitz map (``H_L`` in closed form for the
+   closed loop ``A + B beta p1``): ``T`` is a finite section of the Toeplitz operator with that symbol, so the sup
+   bounds its norm (up to the frequency grid). A grid over ``(kappa, r, g, beta)``, then Nelder–Mead from the best
+   point, the best ``kappa = 0`` point and the tuner's point.
+2. **Finalists**: the best two polished points, the initial guess and IOILC's design are certified EXACTLY at the full
    trial (:func:`~foilc_hil.design.certificates.certify_as_given`: the same certificate as every design), and
    checked on ``time_varying_samples`` seeded draws of a time-varying ``Delta(t)`` (piecewise-constant extreme
    points) on a trial shortened to ``time_varying_horizon`` samples: a dense map, a sampled check, not a proof.
