@@ -118,6 +118,9 @@ __all__ = [
 
 #: Up to this many rows, norms and spectra are computed densely (exact, LAPACK).
 DENSE_LIMIT = 600
+#: Up to this many rows the input map's spectral radius is computed densely: these maps are far from normal, and
+#: ARPACK's ``eigs`` needs thousands of restarts on them (minutes at 700 rows on a loaded machine), LAPACK a second.
+RADIUS_DENSE_LIMIT = 1000
 #: ARPACK restarts allowed for one norm; beyond that the dense fallback (or no certificate).
 ARPACK_RESTARTS = 60
 #: Largest map a non-converged ARPACK norm falls back to a dense SVD for.
@@ -791,8 +794,9 @@ def _error_map_certificate(loop: LoopPlant, law: LawStructure) -> PlantCertifica
 
 
 def _input_map_radius(M: LiftedInputMap | _MatrixOperator, dense: Callable[[], np.ndarray]) -> tuple[float, str]:
-    """Spectral radius of the input map: dense for small trials, ARPACK ``eigs`` otherwise (``nan`` if it fails)."""
-    if M.size <= DENSE_LIMIT:
+    """Spectral radius of the input map: dense up to :data:`RADIUS_DENSE_LIMIT` rows, ARPACK ``eigs`` beyond
+    (``nan`` if it fails)."""
+    if M.size <= RADIUS_DENSE_LIMIT:
         return _radius(dense()), "dense"
     from scipy.sparse.linalg import ArpackNoConvergence, LinearOperator, eigs
 
