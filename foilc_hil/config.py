@@ -28,6 +28,22 @@ class LawKind(StrEnum):
     FOILC = "foilc"
     IOILC = "ioilc"
     P_TYPE = "p-type"
+    NOILC = "noilc"
+
+
+@enum.unique
+class DesignMethod(StrEnum):
+    """How FOILC's ``kp``, ``r`` and learning gain are chosen (``synthesis.design``).
+
+    ``PAPER``: the paper's method, kept and labelled -- the loop-shaping tuner picks ``kp``, ``r`` (or
+    ``tuning.kp``/``tuning.r``), LMI (31) picks ``P``, the certificate rescales ``p2`` if it must.
+    ``CODESIGN``: ``kp``, ``r`` and the scale of ``p2`` chosen together to minimise the worst-case certified
+    convergence factor of the law as it runs (:mod:`foilc_hil.design.codesign`); ``kp = 0`` is in the search
+    space, so the result is never certified worse than IOILC on the same plant.
+    """
+
+    PAPER = "paper"
+    CODESIGN = "codesign"
 
 
 @enum.unique
@@ -94,6 +110,18 @@ class TuningConfig(Section):
         return self
 
 
+class CodesignConfig(Section):
+    """``synthesis.codesign``: the search of :mod:`foilc_hil.design.codesign` (used when ``design: codesign``)."""
+
+    # objective = worst-case convergence factor + noise_weight * noise gain (stationary error variance per unit
+    # white measurement-noise variance; single-input single-output plants only)
+    noise_weight: float = Field(default=0.0, ge=0)
+    # time-varying Delta(t) draws checked on the finalists (a sampled check on a shortened trial, not a proof)
+    time_varying_samples: int = Field(default=4, ge=0, le=64)
+    time_varying_horizon: int = Field(default=200, ge=8, le=1000)
+    seed: int = Field(default=0, ge=0)
+
+
 class SynthesisConfig(Section):
     """LMI synthesis of the learning gain (Theorem 1)."""
 
@@ -105,6 +133,8 @@ class SynthesisConfig(Section):
     on_divergent_filter: DivergentFilterPolicy = DivergentFilterPolicy.RESCALE
     # Certify monotonic convergence (induced 2-norm of the lifted trial map < 1), not only asymptotic (radius < 1).
     require_monotonic: bool = True
+    design: DesignMethod = DesignMethod.PAPER  # FOILC only: the paper's method or the co-design
+    codesign: CodesignConfig = CodesignConfig()
 
 
 class QFilterConfig(Section):
@@ -114,13 +144,26 @@ class QFilterConfig(Section):
     order: int = Field(default=2, ge=1, le=8)
 
 
+class NoilcConfig(Section):
+    """``law.noilc``: the weights of norm-optimal ILC, ``min ||e_{k+1}||_Q^2 + ||u_{k+1} - u_k||_R^2``.
+
+    ``Q = q I``; ``R = r_relative ||G||_2^2 q I`` with ``G`` the lifted nominal plant, so ``r_relative`` is free of
+    the plant's units: the slowest-learning frequency ``w`` contracts by ``r / (r + |G(w)|^2 / ||G||^2)`` per trial.
+    """
+
+    q: float = Field(default=1.0, gt=0)
+    r_relative: float = Field(default=1e-4, gt=0)
+
+
 class LawConfig(Section):
     """The learning law that runs."""
 
     kind: LawKind = LawKind.FOILC
-    p_type_gain: float | None = None  # Arimoto gain; None: 1 / (C B) scaled for monotonic convergence
+    # Arimoto gain; None: the DC-deadbeat gain, shrunk only as far as a certified monotonic contraction needs
+    p_type_gain: float | None = None
     q_filter: QFilterConfig | None = None
     fractional_memory: FractionalMemory = FractionalMemory.CONTROLLABLE  # see FractionalMemory
+    noilc: NoilcConfig = NoilcConfig()
 
 
 class BadFramePolicy(StrEnum):

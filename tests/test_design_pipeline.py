@@ -1,4 +1,4 @@
-"""The one design pipeline: every law (foilc, ioilc, p-type) gets its design from
+"""The one design pipeline: every law (foilc, ioilc, p-type, noilc) gets its design from
 :func:`foilc_hil.design.pipeline.build_design`, certified as it runs, the same on every path (bench, simulate)."""
 
 from __future__ import annotations
@@ -92,17 +92,43 @@ def test_the_recorded_certificate_is_the_running_laws_input_map(kind: LawKind) -
     assert law.q_filter is not None and design.certificates is not None
     Q = law.q_filter.matrix(n)
     np.testing.assert_array_equal(Q, QFilter(150.0, 2, SAMPLE_TIME).matrix(n))
-    if kind is LawKind.FOILC:
-        from foilc_hil.design.certificates import law_filter_matrix
-
-        F = law_filter_matrix(design.kp, design.r, SAMPLE_TIME, n, lead=1)
+    if kind is LawKind.NOILC:
+        M = _noilc_input_map(design, Q, n)
     else:
-        F = np.eye(n)  # IOILC and P-type learn from e itself
-    M = dense_input_map(design.A, design.B, design.measured_output, design.p1, design.p2, F, Q, lead=1)
+        if kind is LawKind.FOILC:
+            from foilc_hil.design.certificates import law_filter_matrix
+
+            F = law_filter_matrix(design.kp, design.r, SAMPLE_TIME, n, lead=1)
+        else:
+            F = np.eye(n)  # IOILC and P-type learn from e itself
+        M = dense_input_map(design.A, design.B, design.measured_output, design.p1, design.p2, F, Q, lead=1)
     nominal = design.certificates.plants[0]
     assert nominal.plant == "nominal"
     assert nominal.spectral_radius == pytest.approx(max(abs(np.linalg.eigvals(M))), rel=1e-9)
     assert nominal.norm_2 == pytest.approx(np.linalg.norm(M, 2), rel=1e-9)
+
+
+def _impulse_responses(design: Design, n: int) -> np.ndarray:
+    """``y[i] = y((i+1) Ts)`` for a unit input at each ``u[j]``, by simulating the state (not the Markov blocks)."""
+    G = np.zeros((n, n))
+    for j in range(n):
+        z = np.zeros(design.n_states)
+        for i in range(n):
+            z = design.A @ z + design.B[:, 0] * (1.0 if i == j else 0.0)
+            G[i, j] = float(design.measured_output[0] @ z)
+    return G
+
+
+def _noilc_input_map(design: Design, Q: np.ndarray, n: int) -> np.ndarray:
+    """NOILC's input map with a Q-filter, ``M = Q - L_full G_y``, from the textbook formula on simulated responses."""
+    assert design.certificates is not None and design.certificates.noilc is not None
+    weights, d = design.certificates.noilc, design.input_delay
+    G_y = _impulse_responses(design, n)
+    G = G_y[d:, : n - d]  # the inputs that move the error, to the samples they move
+    L = np.linalg.inv(weights.q * G.T @ G + weights.r * np.eye(n - d)) @ (weights.q * G.T)
+    full = np.zeros((n, n))
+    full[: n - d, d:] = L
+    return Q - full @ G_y
 
 
 def test_the_q_filter_is_certified_not_ignored() -> None:
@@ -181,7 +207,19 @@ def test_run_law_works_without_tuning_and_the_log_verifies(
 
 # --- the design package's one-way order -----------------------------------------------------------------------
 
-DESIGN_ORDER = ("models", "fractional", "qfilter", "ptype", "record", "certificates", "lmi", "tuning", "pipeline")
+DESIGN_ORDER = (
+    "models",
+    "fractional",
+    "qfilter",
+    "ptype",
+    "record",
+    "certificates",
+    "noilc",
+    "lmi",
+    "codesign",
+    "tuning",
+    "pipeline",
+)
 
 
 def _design_imports(name: str) -> set[str]:
@@ -200,8 +238,8 @@ def _design_imports(name: str) -> set[str]:
 
 @pytest.mark.parametrize("name", DESIGN_ORDER)
 def test_design_modules_import_only_earlier_ones(name: str) -> None:
-    """models < fractional, qfilter, ptype < record < certificates < lmi < tuning < pipeline: no cycle (the
-    certificates <-> lmi one used to hide behind a function-local import)."""
+    """models < fractional, qfilter, ptype < record < certificates < noilc < lmi < codesign < tuning < pipeline: no
+    cycle (the certificates <-> lmi one used to hide behind a function-local import)."""
     earlier = set(DESIGN_ORDER[: DESIGN_ORDER.index(name)])
     assert _design_imports(name) <= earlier, f"{name} imports {_design_imports(name) - earlier}"
 
@@ -209,4 +247,4 @@ def test_design_modules_import_only_earlier_ones(name: str) -> None:
 def test_the_order_check_can_fail() -> None:
     assert "certificates" in _design_imports("lmi")
     assert "lmi" not in _design_imports("certificates")
-    assert not {"certificates"} <= set(DESIGN_ORDER[: DESIGN_ORDER.index("lmi") - 1])
+    assert not {"certificates"} <= set(DESIGN_ORDER[: DESIGN_ORDER.index("certificates")])

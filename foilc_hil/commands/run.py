@@ -1,7 +1,7 @@
 """``foilc-hil run``: learning trials over CAN against a CiA 402 drive (or the embedded emulator).
 
 ``foilc-hil run --config C [--bus SPEC | --emulator embedded] [--trials N] [--mode lockstep|realtime]
-[--law foilc|ioilc|p-type] --out F.mcap [--json] [--quiet]``
+[--law foilc|ioilc|p-type|noilc] --out F.mcap [--json] [--quiet]``
 
 JSON: ``{"law", "trials": [{"trial", "sse", "rmse", "max_abs_error"}, ...], "timing": {"period", "cycles",
 "missed_deadlines", "jitter_p99_us", ...}, "log", "design": {"kp", "r", "certificates", ...}, "stopped"}``.
@@ -33,7 +33,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--trials", type=int, metavar="N", help="number of trials (default: config 'trials')")
     parser.add_argument("--mode", choices=["lockstep", "realtime"], help="timing mode (default: config bench.mode)")
-    parser.add_argument("--law", choices=["foilc", "ioilc", "p-type"], help="learning law (default: config law.kind)")
+    parser.add_argument(
+        "--law", choices=["foilc", "ioilc", "p-type", "noilc"], help="learning law (default: config law.kind)"
+    )
     parser.add_argument("--out", required=True, metavar="F.mcap", help="MCAP log to write")
     parser.add_argument("--quiet", action="store_true", help="no progress view on stderr")
 

@@ -18,7 +18,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``simulate``."""
     parser.add_argument("--config", required=True, help="YAML configuration file")
     parser.add_argument(
-        "--law", choices=("foilc", "ioilc", "p-type"), default=None, help="learning law (default: law.kind)"
+        "--law", choices=("foilc", "ioilc", "p-type", "noilc"), default=None, help="learning law (default: law.kind)"
+    )
+    parser.add_argument(
+        "--design",
+        choices=("paper", "codesign"),
+        default=None,
+        help="FOILC: the paper's method (tuner + LMI) or the co-design (default: synthesis.design)",
     )
     parser.add_argument("--trials", type=int, default=None, help="number of trials (default: trials)")
     parser.add_argument(
@@ -38,7 +44,7 @@ def execute(args: argparse.Namespace) -> CommandResult:
     from foilc_hil.errors import ConfigError, ExitCode, InputError
     from foilc_hil.loop.simulation import plot_simulation, simulate
 
-    config = load_config(args.config, {"law.kind": args.law, "trials": args.trials})
+    config = load_config(args.config, {"law.kind": args.law, "trials": args.trials, "synthesis.design": args.design})
     if args.trials is not None and args.trials < 1:
         raise ConfigError(f"must be >= 1, got {args.trials}", key="--trials")
     if args.input_delay < 0:

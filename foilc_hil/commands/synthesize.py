@@ -1,4 +1,9 @@
-"""``foilc-hil synthesize``: the learning gain of Theorem 1 and the certificates of the law as it runs.
+"""``foilc-hil synthesize``: the learning gain of a law and the certificates of the law as it runs.
+
+FOILC and IOILC: Theorem 1's LMI (robust 2D stability within the trial) and, for FOILC with
+``--design codesign`` (``synthesis.design``), the co-design of ``kp``, ``r`` and the gain
+(:mod:`foilc_hil.design.codesign`; ``certificates.codesign`` says how it chose). P-type and NOILC: their gain or
+weights, no LMI (``Qb``, ``Qt``, ``gamma`` are ``null``).
 
 JSON (``--json``): ``{"A", "B", "C", "G1", "H1", "G2", "H2", "P", "Qb", "Qt", "gamma", "tau", "theta", "kp", "r",
 "sample_time", "certificates": {...}}`` plus ``law``, ``input_delay``, ``gain_scale``, ``p1``, ``p2`` and
@@ -12,12 +17,12 @@ import argparse
 from typing import TYPE_CHECKING
 
 from foilc_hil.commands import CommandResult
-from foilc_hil.config import LawKind
+from foilc_hil.config import DesignMethod, LawKind
 
 if TYPE_CHECKING:
     from foilc_hil.design.record import Design
 
-HELP = "solve the LMI of Theorem 1 for the learning gain P"
+HELP = "design the learning gain P (LMI of Theorem 1, co-design, or a baseline's gain) and certify it"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -27,9 +32,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--theta", type=float, default=None, help="convergence index along trials, 0 < theta < 1")
     parser.add_argument(
         "--law",
-        choices=(LawKind.FOILC.value, LawKind.IOILC.value),
+        choices=tuple(kind.value for kind in LawKind),
         default=LawKind.FOILC.value,
-        help="2D law to design (IOILC: kp = 0; default foilc)",
+        help="law to design (IOILC: kp = 0; p-type, noilc: baselines; default foilc)",
+    )
+    parser.add_argument(
+        "--design",
+        choices=tuple(method.value for method in DesignMethod),
+        default=None,
+        help="FOILC: the paper's method (tuner + LMI) or the co-design (default: synthesis.design)",
     )
     parser.add_argument(
         "--input-delay",
@@ -43,12 +54,35 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _text(design: Design) -> str:
     certificates = design.certificates
-    assert certificates is not None and certificates.lmi is not None  # a synthesised design has both
+    assert certificates is not None  # every built design is certified
     lines = [
         f"law {design.law}: kp = {design.kp:.6g}, r = {design.r:.6g}, Ts = {design.sample_time:g} s, "
         f"input delay {design.input_delay} cycle(s)",
-        f"gamma = {design.gamma:.6g} (tau = {design.tau:g}, theta = {design.theta:g}; "
-        f"solver {certificates.lmi.solver})",
+    ]
+    if certificates.lmi is not None:
+        lmi = certificates.lmi
+        margin = f"LMI margin {lmi.relative_margin:.3g} of its norm, cond(Q) {lmi.Q_condition:.3g}"
+        if lmi.within_rounding:  # never show a gamma the numpy re-check cannot tell from rounding
+            lines.append(
+                f"LMI (31) holds only within rounding ({margin}; solver {lmi.solver}): gamma not confirmed; the "
+                "Lyapunov and vertex checks and the lifted-map certificates below are what certify"
+            )
+        else:
+            lines.append(
+                f"gamma = {design.gamma:.6g} (tau = {design.tau:g}, theta = {design.theta:g}; solver {lmi.solver}; "
+                f"{margin}) -- robust 2D stability within the trial"
+            )
+    if certificates.noilc is not None:
+        weights = certificates.noilc
+        lines.append(f"norm-optimal weights: Q = {weights.q:.6g} I, R = {weights.r:.6g} I")
+    codesign = certificates.codesign
+    if codesign is not None:
+        lines.append(
+            f"co-design: objective {codesign.objective:.6g} (IOILC's design {codesign.ioilc_objective:.6g}); "
+            f"p1 x {codesign.state_gain:.4g}, p2 x {codesign.gain:.4g}; time-varying draws "
+            f"{codesign.time_varying_norm_2:.6g}; noise gain {_optional(codesign.noise_gain)}"
+        )
+    lines += [
         f"p1 = {design.p1.tolist()}",
         f"p2 = {design.p2.tolist()}" + (f"  (rescaled by {design.gain_scale:.6g})" if design.gain_scale != 1 else ""),
         f"lifted trial map ({certificates.n_samples} samples, {certificates.vertices} uncertainty vertices): "
@@ -64,6 +98,10 @@ def _text(design: Design) -> str:
     return "\n".join(lines)
 
 
+def _optional(value: float | None) -> str:
+    return "-" if value is None else f"{value:.6g}"
+
+
 def execute(args: argparse.Namespace) -> CommandResult:
     """Load the config and build the design with the one pipeline: tune ``kp``/``r`` if needed, solve LMI (31),
     certify the law as it runs (Q-filter, fractional memory, input delay), print the design."""
@@ -74,7 +112,8 @@ def execute(args: argparse.Namespace) -> CommandResult:
 
     if args.input_delay < 0:
         raise InputError(f"--input-delay: must be >= 0, got {args.input_delay}")
-    config = load_config(args.config, {"synthesis.tau": args.tau, "synthesis.theta": args.theta})
+    overrides = {"synthesis.tau": args.tau, "synthesis.theta": args.theta, "synthesis.design": args.design}
+    config = load_config(args.config, overrides)
     n_samples = trial_samples(config.reference, config.sample_time)
     design = build_design(config, args.law, n_samples, input_delay=args.input_delay)
     return CommandResult(document=design.to_json(), text=_text(design))

@@ -105,16 +105,22 @@ __all__ = [
     "certify",
     "certify_as_given",
     "certify_p_type",
+    "dense_block_toeplitz",
     "dense_error_map",
     "dense_input_map",
     "law_filter_matrix",
     "lifted_error_map",
     "lifted_input_map",
     "map_certificate",
+    "markov_blocks",
+    "matrix_certificate",
 ]
 
 #: Up to this many rows, norms and spectra are computed densely (exact, LAPACK).
 DENSE_LIMIT = 600
+#: Up to this many rows the input map's spectral radius is computed densely: these maps are far from normal, and
+#: ARPACK's ``eigs`` needs thousands of restarts on them (minutes at 700 rows on a loaded machine), LAPACK a second.
+RADIUS_DENSE_LIMIT = 1000
 #: ARPACK restarts allowed for one norm; beyond that the dense fallback (or no certificate).
 ARPACK_RESTARTS = 60
 #: Largest map a non-converged ARPACK norm falls back to a dense SVD for.
@@ -367,7 +373,7 @@ def _fractional_filter(kp: float, r: float, h: float, n: int) -> tuple[_ScalarFi
 # --- the error map T (no Q-filter) ----------------------------------------------------------------------------
 
 
-def _markov_blocks(A_cl: np.ndarray, B_in: np.ndarray, C_out: np.ndarray, start: int, count: int) -> np.ndarray:
+def markov_blocks(A_cl: np.ndarray, B_in: np.ndarray, C_out: np.ndarray, start: int, count: int) -> np.ndarray:
     """``C_out A_cl^(start + j) B_in`` for ``j = 0..count-1``, shape ``(count, p, m)``."""
     blocks = np.empty((count, C_out.shape[0], B_in.shape[1]))
     state = np.linalg.matrix_power(A_cl, start) @ B_in
@@ -416,7 +422,7 @@ class LiftedErrorMap:
         if self.dense_matrix is not None:
             return self.dense_matrix
         assert self.F is not None
-        return np.eye(self.size) - _dense_block_toeplitz(self.H.blocks) @ np.kron(
+        return np.eye(self.size) - dense_block_toeplitz(self.H.blocks) @ np.kron(
             self.F.dense(), np.eye(self.n_outputs)
         )
 
@@ -537,7 +543,7 @@ def lifted_error_map(loop: LoopPlant, law: LawStructure) -> LiftedErrorMap:
     kp, r, sample_time, n_samples, lead = law.kp, law.r, law.sample_time, law.n_samples, law.lead
     length = n_samples - lead
     A_cl = loop.A + loop.B @ loop.p1
-    blocks = _markov_blocks(A_cl, loop.B @ loop.p2, loop.C_measured, lead, length)
+    blocks = markov_blocks(A_cl, loop.B @ loop.p2, loop.C_measured, lead, length)
     H = _BlockToeplitz(blocks)
     finite = bool(np.all(np.isfinite(blocks)))  # an overflowing plant takes the dense path (caller reports it)
     if law.fractional_memory is FractionalMemory.CONTROLLABLE:
@@ -551,12 +557,12 @@ def lifted_error_map(loop: LoopPlant, law: LawStructure) -> LiftedErrorMap:
             return LiftedErrorMap(H, filt.sub(lead), None, n_out, length)
         F_dense = np.asarray(fpd.matrix(n_samples), dtype=float)[lead:, lead:]
     # Dense path: exact, O(N^2) memory.
-    H_dense = _dense_block_toeplitz(blocks)
+    H_dense = dense_block_toeplitz(blocks)
     T = np.eye(length * n_out) - H_dense @ np.kron(F_dense, np.eye(n_out))
     return LiftedErrorMap(H, None, T, n_out, length)
 
 
-def _dense_block_toeplitz(blocks: np.ndarray) -> np.ndarray:
+def dense_block_toeplitz(blocks: np.ndarray) -> np.ndarray:
     """Dense block lower-triangular Toeplitz matrix with ``blocks[i - j]`` at block ``(i, j)``."""
     length, rows, cols = blocks.shape
     lag = np.arange(length)[:, None] - np.arange(length)[None, :]
@@ -689,12 +695,12 @@ def _input_map(loop: LoopPlant, F: _ScalarFilter, Q: np.ndarray, lead: int) -> L
     ns, m = B.shape
     p = C_measured.shape[0]
     z_blocks = np.zeros((n, ns, m))
-    z_blocks[1:] = _markov_blocks(A, B, np.eye(ns), 0, n - 1)
-    y_blocks = _markov_blocks(A, B, C_measured, 0, n)
+    z_blocks[1:] = markov_blocks(A, B, np.eye(ns), 0, n - 1)
+    y_blocks = markov_blocks(A, B, C_measured, 0, n)
     A_cl = A + B @ p1
     r_blocks = np.zeros((n, m, m))
     r_blocks[0] = np.eye(m)
-    r_blocks[1:] = _markov_blocks(A_cl, B, p1, 0, n - 1)
+    r_blocks[1:] = markov_blocks(A_cl, B, p1, 0, n - 1)
     return LiftedInputMap(
         _BlockToeplitz(z_blocks), _BlockToeplitz(y_blocks), _BlockToeplitz(r_blocks), F, Q, p1, p2, lead, n, m, p
     )
@@ -787,9 +793,10 @@ def _error_map_certificate(loop: LoopPlant, law: LawStructure) -> PlantCertifica
     return PlantCertificate("", "error", radius, norm, method, norm_2_symbol=symbol)
 
 
-def _input_map_radius(M: LiftedInputMap, dense: Callable[[], np.ndarray]) -> tuple[float, str]:
-    """Spectral radius of the input map: dense for small trials, ARPACK ``eigs`` otherwise (``nan`` if it fails)."""
-    if M.size <= DENSE_LIMIT:
+def _input_map_radius(M: LiftedInputMap | _MatrixOperator, dense: Callable[[], np.ndarray]) -> tuple[float, str]:
+    """Spectral radius of the input map: dense up to :data:`RADIUS_DENSE_LIMIT` rows, ARPACK ``eigs`` beyond
+    (``nan`` if it fails)."""
+    if M.size <= RADIUS_DENSE_LIMIT:
         return _radius(dense()), "dense"
     from scipy.sparse.linalg import ArpackNoConvergence, LinearOperator, eigs
 
@@ -829,6 +836,46 @@ def map_certificate(loop: LoopPlant, law: LawStructure) -> PlantCertificate:
     if law.q_filter is None:
         return _error_map_certificate(loop, law)
     return _input_map_certificate(loop, law, law.q_filter)
+
+
+def matrix_certificate(matrix: np.ndarray, kind: str) -> PlantCertificate:
+    """Spectral radius and induced 2-norm of a trial-to-trial map given as a dense matrix.
+
+    For laws whose map has no Toeplitz structure (norm-optimal ILC). Up to :data:`DENSE_LIMIT` rows: a dense SVD
+    and eigenvalues (exact). Beyond: ``||T||_2 = sqrt(lambda_max(T^T T))`` from the largest eigenvalue of the Gram
+    matrix (LAPACK ``eigh`` on that one eigenvalue: exact to rounding, and unlike ARPACK unaffected by the
+    clustered top singular values these maps have); when it is below one it bounds the spectral radius
+    (``rho <= ||T||``, so the verdict needs no eigenvalues) and the method says so, else ARPACK ``eigs``.
+    """
+    from scipy.linalg import eigh
+
+    T = np.asarray(matrix, dtype=float)
+    if not np.all(np.isfinite(T)):
+        return PlantCertificate("", kind, math.inf, math.inf, "overflow")
+    size = T.shape[0]
+    if size <= DENSE_LIMIT:
+        return PlantCertificate("", kind, _radius(T), float(np.linalg.norm(T, 2)), "dense", "dense")
+    top = eigh(T.T @ T, eigvals_only=True, subset_by_index=[size - 1, size - 1])
+    norm = math.sqrt(max(float(top[0]), 0.0))
+    method = "dense (largest eigenvalue of T^T T)"
+    if norm < 1.0:
+        return PlantCertificate("", kind, norm, norm, method, "upper bound: the induced 2-norm")
+    radius, radius_method = _input_map_radius(_MatrixOperator(T), lambda: T)
+    return PlantCertificate("", kind, radius, norm, method, radius_method)
+
+
+@dataclass(frozen=True)
+class _MatrixOperator:
+    """A dense matrix behind the ``size``/``matvec`` interface of the ARPACK helpers."""
+
+    matrix: np.ndarray
+
+    @property
+    def size(self) -> int:
+        return int(self.matrix.shape[0])
+
+    def matvec(self, x: np.ndarray) -> np.ndarray:
+        return np.asarray(self.matrix @ x)
 
 
 @dataclass(frozen=True)

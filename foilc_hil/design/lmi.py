@@ -141,6 +141,7 @@ class LmiSolution:
     solver: str
     status: str
     checks: LmiChecks
+    seconds: float = 0.0  # wall-clock time of the solve and its checks (informational)
 
 
 def lmi_matrix(
@@ -241,6 +242,21 @@ def _spectral_radius(matrix: np.ndarray) -> float:
     return float(np.max(np.abs(np.linalg.eigvals(matrix)))) if matrix.size else 0.0
 
 
+def _spectral_checks(M: np.ndarray, Qb: np.ndarray, Qt: np.ndarray) -> dict[str, Any]:
+    """The eigenvalue checks of the solved LMI matrix and ``Q``, with the margin relative to ``M``'s norm."""
+    spectrum = np.linalg.eigvalsh((M + M.T) / 2)
+    lmi_max = float(np.max(spectrum))
+    Q_values = np.concatenate([np.linalg.eigvalsh(Qb), np.linalg.eigvalsh(Qt)])
+    return {
+        "lmi_max_eigenvalue": lmi_max,
+        "Qb_min_eigenvalue": float(np.min(np.linalg.eigvalsh(Qb))),
+        "Qt_min_eigenvalue": float(np.min(np.linalg.eigvalsh(Qt))),
+        # the margin relative to the matrix's own size: near machine epsilon means "holds within rounding"
+        "relative_margin": -lmi_max / float(np.max(np.abs(spectrum))),
+        "Q_condition": float(np.max(Q_values) / np.min(Q_values)) if np.min(Q_values) > 0 else math.inf,
+    }
+
+
 def verify_lmi_solution(
     model: DiscreteModel,
     uncertainty: Uncertainty,
@@ -274,10 +290,8 @@ def verify_lmi_solution(
     )
     if not np.allclose(M, M.T, rtol=0, atol=1e-12 * max(1.0, float(np.max(np.abs(M))))):
         raise LmiInfeasibleError("LMI (31): the assembled matrix is not symmetric (internal error)")
-    lmi_max = float(np.max(np.linalg.eigvalsh((M + M.T) / 2)))
-    qb_min = float(np.min(np.linalg.eigvalsh(Qb)))
-    qt_min = float(np.min(np.linalg.eigvalsh(Qt)))
-    checks: dict[str, Any] = {"lmi_max_eigenvalue": lmi_max, "Qb_min_eigenvalue": qb_min, "Qt_min_eigenvalue": qt_min}
+    checks = _spectral_checks(M, Qb, Qt)
+    lmi_max, qb_min, qt_min = checks["lmi_max_eigenvalue"], checks["Qb_min_eigenvalue"], checks["Qt_min_eigenvalue"]
     if not lmi_max < 0:
         raise LmiInfeasibleError(f"LMI (31): largest eigenvalue of the solved matrix is {lmi_max:.3g}, not < 0")
     if not (qb_min > 0 and qt_min > 0):
@@ -337,6 +351,7 @@ def solve_lmi(
     foilc_hil.errors.LmiInfeasibleError
         When no solver yields a solution that passes every check; the message names the failing condition.
     """
+    started = time.perf_counter()
     _check_rates(tau, theta, margin)
     if solver not in _SOLVERS:
         raise ConfigError(f"must be one of {', '.join(_SOLVERS)}, got {solver!r}", key="synthesis.solver")
@@ -372,6 +387,7 @@ def solve_lmi(
             solver=name,
             status=status,
             checks=record,
+            seconds=time.perf_counter() - started,
         )
     raise LmiInfeasibleError(f"LMI (31) infeasible for tau={tau:g}, theta={theta:g} ({'; '.join(failures)})")
 

@@ -2,20 +2,30 @@
 
 The bench (``run``), ``simulate``, ``synthesize``, the demo and ``replay`` all call :func:`build_design`, so the
 design a log records is the design of the law that ran: tuned when the law needs it (FOILC without
-``tuning.kp``/``tuning.r``; IOILC and P-type never need tuning), synthesised (FOILC, IOILC) or given its Arimoto
-gain (P-type), and certified exactly as it will run (Q-filter from ``law.q_filter``, fractional memory from
-``law.fractional_memory``, input delay).
+``tuning.kp``/``tuning.r``; IOILC, P-type and NOILC never need tuning; under ``synthesis.design: codesign`` the
+tuned pair is only the search's initial guess), synthesised (FOILC, IOILC; FOILC co-designed when configured),
+given its Arimoto gain (P-type) or its norm-optimal weights (NOILC), and certified exactly as it will run (Q-filter
+from ``law.q_filter``, fractional memory from ``law.fractional_memory``, input delay).
 
-Module order: last in :mod:`foilc_hil.design` (models < fractional, qfilter, ptype < record < certificates < lmi <
-tuning < pipeline).
+Module order: last in :mod:`foilc_hil.design` (models < fractional, qfilter, ptype < record < certificates < noilc
+< lmi < codesign < tuning < pipeline).
 """
 
 from __future__ import annotations
 
-from foilc_hil.config import Config, LawKind
+from foilc_hil.config import Config, DesignMethod, LawKind
 from foilc_hil.design.certificates import LawStructure, certify_p_type
-from foilc_hil.design.lmi import synthesize
-from foilc_hil.design.models import DiscreteModel, Uncertainty, augment_input_delay, discretize, uncertainty_from_config
+from foilc_hil.design.codesign import codesign
+from foilc_hil.design.lmi import solve_lmi, synthesize
+from foilc_hil.design.models import (
+    DiscreteModel,
+    Uncertainty,
+    augment_input_delay,
+    discretize,
+    uncertainty_from_config,
+    uncertainty_vertices,
+)
+from foilc_hil.design.noilc import certify_noilc
 from foilc_hil.design.ptype import p_type_gain
 from foilc_hil.design.qfilter import QFilter
 from foilc_hil.design.record import Design
@@ -52,6 +62,8 @@ def _fractional_parameters(config: Config, law: LawKind) -> tuple[float, float]:
     kp, r = config.tuning.kp, config.tuning.r
     if law is not LawKind.FOILC:
         return 0.0, UNUSED_ORDER if r is None else float(r)
+    if config.synthesis.design is DesignMethod.CODESIGN and kp is None and config.tuning.crossover is None:
+        return 0.0, UNUSED_ORDER  # no initial guess to tune: the co-design searches from its grid alone
     if kp is None or r is None:
         tuned = tune(config)
         kp, r = tuned.kp, tuned.r
@@ -76,6 +88,28 @@ def law_structure(config: Config, law: LawKind, n_samples: int, *, input_delay: 
     )
 
 
+def _codesign(config: Config, model: DiscreteModel, uncertainty: Uncertainty, structure: LawStructure) -> Design:
+    """``synthesis.design: codesign``: the LMI for ``p1`` (and the reference ``p2``), then the co-design search
+    from the tuner's (or the given) ``kp``, ``r`` as the initial guess."""
+    settings = config.synthesis
+    solution = solve_lmi(
+        model, uncertainty, tau=settings.tau, theta=settings.theta, solver=settings.solver, margin=settings.margin
+    )
+    guess = (structure.kp, structure.r) if structure.kp > 0 else None
+    return codesign(
+        model,
+        uncertainty,
+        solution,
+        structure,
+        settings.codesign,
+        rates=(settings.tau, settings.theta),
+        initial_guess=guess,
+        policy=settings.on_divergent_filter,
+        require_monotonic=settings.require_monotonic,
+        growth_horizon=config.trials,
+    )
+
+
 def build_design(config: Config, law: str, n_samples: int, *, input_delay: int) -> Design:
     """The design of ``law`` for ``config``'s plant, certified as the law will run.
 
@@ -84,7 +118,9 @@ def build_design(config: Config, law: str, n_samples: int, *, input_delay: int) 
     config
         The whole configuration.
     law
-        ``foilc``, ``ioilc`` or ``p-type`` (:class:`~foilc_hil.config.LawKind`).
+        ``foilc``, ``ioilc``, ``p-type`` or ``noilc`` (:class:`~foilc_hil.config.LawKind`). FOILC follows
+        ``synthesis.design``: ``paper`` (tuner, LMI, certificate) or ``codesign``
+        (:mod:`foilc_hil.design.codesign`).
     n_samples
         Samples per trial (the certificates are for this trial length; so is the Q-filter).
     input_delay
@@ -102,8 +138,17 @@ def build_design(config: Config, law: str, n_samples: int, *, input_delay: int) 
     model, uncertainty = design_model(config, input_delay=input_delay)
     structure = law_structure(config, kind, n_samples, input_delay=input_delay)
     settings = config.synthesis
+    if kind is LawKind.NOILC:
+        return certify_noilc(
+            model, uncertainty, config.law.noilc, structure, require_monotonic=settings.require_monotonic
+        )
+    if kind is LawKind.FOILC and settings.design is DesignMethod.CODESIGN:
+        return _codesign(config, model, uncertainty, structure)
     if kind is LawKind.P_TYPE:
-        gain = p_type_gain(config.law.p_type_gain, model.A, model.B, model.measured_output, model.input_delay)
+        vertices = list(uncertainty_vertices(uncertainty))
+        gain = p_type_gain(
+            config.law.p_type_gain, model.A, model.B, model.measured_output, model.input_delay, vertices=vertices
+        )
         return certify_p_type(model, uncertainty, gain, structure, require_monotonic=settings.require_monotonic)
     return synthesize(
         model,

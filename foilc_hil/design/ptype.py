@@ -10,6 +10,7 @@ Module order: after :mod:`foilc_hil.design.models`, before :mod:`foilc_hil.desig
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -20,6 +21,9 @@ __all__ = ["frequency_bound", "p_type_default_gain", "p_type_gain"]
 
 #: Points of the ``[0, pi]`` frequency grid the symbol bound is taken over.
 FREQUENCY_GRID = 2048
+#: The default gain's frequency bound must be below this at every plant (strictly below one, with room for the
+#: grid: the certificate of the lifted map, not this bound, is what certifies).
+MONOTONIC_BOUND = 1.0 - 1e-6
 
 
 def _first_markov(A: np.ndarray, B: np.ndarray, C: np.ndarray, input_delay: int) -> np.ndarray:
@@ -55,29 +59,10 @@ def frequency_bound(model: DiscreteModel, gamma: np.ndarray) -> float:
     return _symbol_bound(response, np.asarray(gamma, dtype=float))
 
 
-def p_type_default_gain(A: np.ndarray, B: np.ndarray, C: np.ndarray, input_delay: int = 0) -> np.ndarray:
-    """Default Arimoto gain ``Gamma = alpha * pinv(C A^d B)`` chosen for monotonic convergence.
-
-    The P-type error map is ``e_k = (I - G Gamma) e_{k-1}`` with ``G`` the lifted (lower-triangular block
-    Toeplitz) plant. Its induced 2-norm, for every trial length, is at most :func:`frequency_bound`. ``alpha``
-    minimises that bound; when the minimum is below 1 the law converges monotonically in the 2-norm on the
-    nominal model. The plain ``1 / (C B)`` (``alpha = 1``) would make the spectral radius zero but, on a slow
-    plant sampled fast, the 2-norm large: a classic transient blow-up before convergence.
-
-    ``A``, ``B`` are the (delay-augmented) model, ``C`` its MEASURED output map, ``input_delay`` its ``d``.
-
-    Raises
-    ------
-    foilc_hil.errors.ConfigError
-        If ``C A^d B`` is zero (the law cannot learn through this model).
-    """
+def _bound_minimiser(response: np.ndarray, base: np.ndarray) -> float:
+    """The ``alpha`` minimising the nominal symbol bound of ``I - G alpha base`` (the fallback default)."""
     from scipy.optimize import minimize_scalar
 
-    markov = _first_markov(A, B, C, input_delay)
-    if not np.any(markov):
-        raise ConfigError("C A^d B is zero: P-type learning needs a non-zero first Markov parameter", key="plant")
-    base = np.linalg.pinv(markov)
-    response = _shifted_response(A, B, C, input_delay)
     # The bound is convex in alpha (a supremum of norms of affine maps), equal to 1 at alpha = 0 and growing
     # without limit: bracket its minimum by doubling, then minimise on the bracket.
     upper = 1.0
@@ -91,17 +76,89 @@ def p_type_default_gain(A: np.ndarray, B: np.ndarray, C: np.ndarray, input_delay
         method="bounded",
         options={"xatol": 1e-6 * upper},
     )
-    return np.asarray(float(found.x) * base, dtype=float)
+    return float(found.x)
+
+
+def _dc_inverse(response: np.ndarray) -> np.ndarray | None:
+    """``pinv(G(1))`` when the DC gain is finite and of full rank, else ``None``."""
+    dc = response[0]
+    if not np.all(np.isfinite(dc)) or np.linalg.matrix_rank(dc) < min(dc.shape):
+        return None
+    return np.asarray(np.linalg.pinv(dc.real), dtype=float)  # G(1) is real: z = 1
+
+
+def p_type_default_gain(
+    A: np.ndarray,
+    B: np.ndarray,
+    C: np.ndarray,
+    input_delay: int = 0,
+    *,
+    vertices: Sequence[tuple[np.ndarray, np.ndarray]] = (),
+) -> np.ndarray:
+    """Default Arimoto gain: DC-deadbeat, shrunk only as far as a certified monotonic contraction needs.
+
+    The P-type error map is ``e_k = (I - G Gamma) e_{k-1}`` with ``G`` the lifted (lower-triangular block
+    Toeplitz) plant; its induced 2-norm, for every trial length, is at most :func:`frequency_bound`
+    ``sup_w ||I - G(e^jw) Gamma||``. On a slow plant sampled fast every gain leaves that bound close to 1 (the
+    high frequencies, where ``|G|`` is small, barely move), so the 2-norm alone is a poor criterion: the gain
+    minimising the nominal bound (``alpha pinv(C A^d B)``, the earlier default) buys a bound a hair lower by
+    slowing the low frequencies -- where a set-point's energy is -- to a crawl, and is not robust (a larger ``B``
+    pushes it above 1).
+
+    The default is therefore ``Gamma = alpha pinv(G(1))``: the DC-deadbeat gain (the low frequencies converge in
+    one trial), with ``alpha = 1`` when the frequency bound is below 1 at the nominal plant and at every
+    uncertainty vertex ``(dA, dB)`` of ``vertices`` (a certified monotonic contraction everywhere), else the
+    largest ``alpha`` in ``(0, 1)`` for which it is (bisection). Without such an ``alpha`` (or a finite,
+    full-rank DC gain: an integrating plant), the earlier default: the ``alpha pinv(C A^d B)`` that minimises the
+    nominal bound.
+
+    ``A``, ``B`` are the (delay-augmented) model, ``C`` its MEASURED output map, ``input_delay`` its ``d``.
+
+    Raises
+    ------
+    foilc_hil.errors.ConfigError
+        If ``C A^d B`` is zero (the law cannot learn through this model).
+    """
+    markov = _first_markov(A, B, C, input_delay)
+    if not np.any(markov):
+        raise ConfigError("C A^d B is zero: P-type learning needs a non-zero first Markov parameter", key="plant")
+    response = _shifted_response(A, B, C, input_delay)
+    with np.errstate(all="ignore"):
+        dc_inverse = _dc_inverse(response)
+    if dc_inverse is not None:
+        responses = [response] + [_shifted_response(A + dA, B + dB, C, input_delay) for dA, dB in vertices]
+
+        def worst(alpha: float) -> float:
+            return max(_symbol_bound(each, alpha * dc_inverse) for each in responses)
+
+        if worst(1.0) < MONOTONIC_BOUND:
+            return dc_inverse
+        low, high = 0.0, 1.0
+        for _ in range(40):  # the bound is convex in alpha and 1 at alpha = 0: bisect for the edge of "< 1"
+            middle = 0.5 * (low + high)
+            low, high = (middle, high) if worst(middle) < MONOTONIC_BOUND else (low, middle)
+        if low > 0.0:
+            return np.asarray(low * dc_inverse, dtype=float)
+    base = np.linalg.pinv(markov)
+    return np.asarray(_bound_minimiser(response, base) * base, dtype=float)
 
 
 def p_type_gain(
-    gain: float | np.ndarray | None, A: np.ndarray, B: np.ndarray, C: np.ndarray, input_delay: int = 0
+    gain: float | np.ndarray | None,
+    A: np.ndarray,
+    B: np.ndarray,
+    C: np.ndarray,
+    input_delay: int = 0,
+    *,
+    vertices: Sequence[tuple[np.ndarray, np.ndarray]] = (),
 ) -> np.ndarray:
     """``Gamma`` (``m x p``) for the model ``(A, B)`` with measured output ``C`` and ``input_delay`` augmented delay
     states: a scalar ``g`` gives ``g I``, a matrix is taken as is, ``None`` the default of
-    :func:`p_type_default_gain` (``law.p_type_gain``)."""
+    :func:`p_type_default_gain` (``law.p_type_gain``; ``vertices`` are the uncertainty vertices it certifies at)."""
     if gain is None:
-        return p_type_default_gain(np.asarray(A, dtype=float), np.asarray(B, dtype=float), C, input_delay)
+        return p_type_default_gain(
+            np.asarray(A, dtype=float), np.asarray(B, dtype=float), C, input_delay, vertices=vertices
+        )
     if np.ndim(gain) == 0:
         return float(gain) * np.eye(np.shape(B)[1], np.shape(C)[0])
     return np.asarray(gain, dtype=float)

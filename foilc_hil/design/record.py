@@ -51,9 +51,11 @@ __all__ = [
     "Bounds",
     "CertificateAction",
     "Certificates",
+    "CodesignRecord",
     "Design",
     "GrowthBound",
     "LmiChecks",
+    "NoilcWeights",
     "PTypeGain",
     "PlantCertificate",
     "Timing",
@@ -61,6 +63,10 @@ __all__ = [
 ]
 
 _T = TypeVar("_T")
+
+#: Below this margin relative to the LMI matrix's norm (about 1e6 x machine epsilon), LMI (31) is reported to hold
+#: only within rounding (:attr:`LmiChecks.within_rounding`).
+LMI_RELATIVE_MARGIN_MIN = 1e-10
 
 
 def _matrix(value: Any, name: str) -> np.ndarray:
@@ -136,6 +142,7 @@ class CertificateAction(StrEnum):
 
     NONE = "none"
     RESCALE = "rescale"
+    CODESIGN = "codesign"
 
 
 @dataclass(frozen=True)
@@ -240,6 +247,14 @@ class LmiChecks:
     vertices_checked: int
     solver_failures: tuple[str, ...]
     P_lmi: np.ndarray
+    relative_margin: float = math.nan
+    Q_condition: float = math.nan
+
+    @property
+    def within_rounding(self) -> bool:
+        """Whether the LMI holds only by a margin comparable to rounding (:data:`LMI_RELATIVE_MARGIN_MIN`): its
+        feasibility and ``gamma`` are then solver noise, and the Lyapunov and vertex checks are what certify."""
+        return not self.relative_margin >= LMI_RELATIVE_MARGIN_MIN
 
     def to_json(self) -> dict[str, Any]:
         """``certificates["lmi"]``."""
@@ -256,6 +271,8 @@ class LmiChecks:
             "vertices_checked": self.vertices_checked,
             "solver_failures": list(self.solver_failures),
             "P_lmi": self.P_lmi,
+            "relative_margin": self.relative_margin,
+            "Q_condition": self.Q_condition,
         }
 
     @classmethod
@@ -281,6 +298,9 @@ class LmiChecks:
             vertices_checked=_typed(document, "vertices_checked", int, where),
             solver_failures=tuple(str(f) for f in _typed(document, "solver_failures", list, where)),
             P_lmi=_matrix(document.get("P_lmi"), "certificates.lmi.P_lmi"),
+            # additions: absent from documents written before them
+            relative_margin=_number(document, "relative_margin", where) if "relative_margin" in document else math.nan,
+            Q_condition=_number(document, "Q_condition", where) if "Q_condition" in document else math.nan,
             **numbers,
         )
 
@@ -307,6 +327,112 @@ class PTypeGain:
     def to_json(self) -> dict[str, Any]:
         """``{"gain", "frequency_bound"}`` (the keys ``simulate --law p-type`` always reported)."""
         return {"gain": self.gain, "frequency_bound": self.frequency_bound}
+
+
+@dataclass(frozen=True)
+class NoilcWeights:
+    """What a norm-optimal ILC design adds to its certificates: its weights ``Q = q I``, ``R = r I`` (absolute;
+    ``r = r_relative ||G||_2^2 q``), from which the law rebuilds its lifted gain exactly."""
+
+    q: float
+    r: float
+    r_relative: float
+
+    def to_json(self) -> dict[str, Any]:
+        """``certificates["noilc"]``: ``{"q", "r", "r_relative"}``."""
+        return {"q": self.q, "r": self.r, "r_relative": self.r_relative}
+
+    @classmethod
+    def from_json(cls, value: Any) -> NoilcWeights:
+        """Read :meth:`to_json` output."""
+        where = "design.certificates.noilc"
+        document = _mapping(value, where)
+        return cls(*(_number(document, key, where) for key in ("q", "r", "r_relative")))
+
+
+_CODESIGN_NUMBERS = (
+    "objective",
+    "noise_weight",
+    "gain",
+    "state_gain",
+    "symbol_norm",
+    "ioilc_objective",
+    "ioilc_norm_2",
+)
+
+
+@dataclass(frozen=True)
+class CodesignRecord:
+    """How the co-design chose ``kp``, ``r`` and the scale of ``p2`` (:mod:`foilc_hil.design.codesign`).
+
+    Attributes
+    ----------
+    objective
+        The chosen point's objective: ``max(certified worst-case 2-norm, sampled time-varying 2-norm) +
+        noise_weight * noise_gain``.
+    noise_weight, noise_gain
+        The weight and the chosen point's noise gain (``None`` when not computed: several outputs).
+    gain, state_gain
+        The scales applied to the LMI's ``p2`` (before any certificate rescale) and ``p1``.
+    symbol_norm
+        The search's surrogate at the chosen point: worst over the frozen plants of the long-trial symbol norm.
+    time_varying_norm_2, time_varying_samples, time_varying_horizon
+        Worst induced 2-norm over seeded draws of a time-varying ``Delta(t)`` on a trial shortened to the horizon
+        (a sampled check, not a proof); ``nan`` without draws.
+    ioilc_objective, ioilc_norm_2
+        The same objective and certified 2-norm at ``kp = 0`` with the LMI gain: IOILC's design, always a
+        candidate, so ``objective <= ioilc_objective``.
+    candidates
+        Points evaluated by the search.
+    initial_guess
+        ``(kp, r)`` from ``tuning`` (the tuner or the given values) the search started from, if any.
+    """
+
+    objective: float
+    noise_weight: float
+    noise_gain: float | None
+    gain: float
+    state_gain: float
+    symbol_norm: float
+    time_varying_norm_2: float
+    time_varying_samples: int
+    time_varying_horizon: int
+    ioilc_objective: float
+    ioilc_norm_2: float
+    candidates: int
+    initial_guess: tuple[float, float] | None
+
+    def to_json(self) -> dict[str, Any]:
+        """``certificates["codesign"]``."""
+        document: dict[str, Any] = {key: getattr(self, key) for key in _CODESIGN_NUMBERS}
+        document.update(
+            {
+                "noise_gain": self.noise_gain,
+                "time_varying_norm_2": self.time_varying_norm_2,
+                "time_varying_samples": self.time_varying_samples,
+                "time_varying_horizon": self.time_varying_horizon,
+                "candidates": self.candidates,
+                "initial_guess": None if self.initial_guess is None else list(self.initial_guess),
+            }
+        )
+        return dict(jsonable(document))
+
+    @classmethod
+    def from_json(cls, value: Any) -> CodesignRecord:
+        """Read :meth:`to_json` output."""
+        where = "design.certificates.codesign"
+        document = _mapping(value, where)
+        numbers = {key: _number(document, key, where) for key in _CODESIGN_NUMBERS}
+        guess = document.get("initial_guess")
+        return cls(
+            noise_gain=_number(document, "noise_gain", where) if document.get("noise_gain") is not None else None,
+            time_varying_norm_2=_number(document, "time_varying_norm_2", where),
+            time_varying_samples=_typed(document, "time_varying_samples", int, where),
+            time_varying_horizon=_typed(document, "time_varying_horizon", int, where),
+            candidates=_typed(document, "candidates", int, where),
+            initial_guess=None if guess is None else (float(guess[0]), float(guess[1])),
+            **numbers,
+        )
 
 
 @dataclass(frozen=True)
@@ -340,6 +466,8 @@ class Certificates:
     lmi: LmiChecks | None = None
     seconds: Timing | None = None
     p_type: PTypeGain | None = None
+    noilc: NoilcWeights | None = None
+    codesign: CodesignRecord | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The ``certificates`` document: exactly the keys, in the order, of the documents earlier versions wrote
@@ -373,6 +501,9 @@ class Certificates:
                 document[key] = record.to_json()
         if self.p_type is not None:
             document.update(self.p_type.to_json())
+        for key, addition in (("noilc", self.noilc), ("codesign", self.codesign)):
+            if addition is not None:  # additions (docs/interface-additions.md): absent from earlier documents
+                document[key] = addition.to_json()
         return dict(jsonable(document))
 
     @classmethod
@@ -425,6 +556,8 @@ class Certificates:
                 if "gain" in document
                 else None
             ),
+            noilc=_optional(document, "noilc", NoilcWeights.from_json),
+            codesign=_optional(document, "codesign", CodesignRecord.from_json),
         )
 
 

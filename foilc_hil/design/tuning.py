@@ -1,5 +1,10 @@
 """Loop-shaping tuner for the fractional PD function ``1 + kp s^r`` (paper Section 4.1, done soundly).
 
+What it is: an INITIAL GUESS for ``kp``, ``r``, not a convergence proof. The learning law never closes the loop
+``L`` shaped here, so nothing links this specification to trial-to-trial convergence; that is certified by
+:mod:`foilc_hil.design.certificates`, and ``synthesis.design: codesign`` (:mod:`foilc_hil.design.codesign`) uses
+the answer only as the starting point of its search.
+
 The paper puts its specification on ``P(s) = 1 + kp s^r`` alone (eqs. (26)-(30)); that is not a loop
 specification and is unreachable (errata item 2). Here the specification is on the open loop
 
@@ -28,7 +33,13 @@ which is positive exactly when ``0 < theta < a``: the PD term adds between 0 and
   positive, rising from 0 (``a -> theta``) to ``+inf`` (``a -> pi``); the flatness residual
   ``(r / wc) sin(theta) sin(a - theta) / sin(a) + d arg G / dw`` is bracketed on the grid (sign changes, plus
   tangential roots found by bounded minimisation) and refined with ``brentq``. A root exists whenever the plant's
-  phase slope at ``wc`` is negative; several may exist. ``K = 1 / (|P| |G(j wc)|)``.
+  phase slope at ``wc`` is negative, and it is unique: in ``u = a - theta`` the residual's first term is
+  ``(r / wc) sin(theta) sin(u) / sin(u + theta)``, whose ``u``-derivative ``sin(theta)^2 / sin(u + theta)^2``
+  (times ``r / wc``) is positive, and ``r = 2 (u + theta) / pi`` also grows with ``u``, so the term is strictly
+  increasing from 0 and crosses the constant ``-d arg G / dw`` once (checked on 120 random specs). The
+  bracketing still searches for several roots, as a guard. ``K = 1 / (|P| |G(j wc)|)``. An answer with
+  ``r`` near 2 sits where the phase of ``(j w)^r`` is near 180 deg and the PD term is nearly a pure double
+  differentiator: :func:`tune` warns (``checks["warnings"]``) when ``r > FLAT_PHASE_ORDER_WARNING``.
 
 Choosing among solutions: the largest worst-case phase margin over all gain crossovers found in the sweep
 window, then the largest gain margin, then the smallest ``kp`` (the smallest instantaneous gain
@@ -102,6 +113,8 @@ _OUSTALOUP_ORDER = 7
 _OUSTALOUP_SPAN = 1000.0  # the approximation band is [wc / span, wc * span]
 _EDGE = np.concatenate([np.logspace(-12, -2.5, 120), np.linspace(10**-2.5, 1 - 10**-2.5, 4000)])
 #: fractions u in (0, 1) of the r interval, dense near both ends where the residuals blow up
+#: Above this order the tuner warns: ``(j w)^r`` then has a phase near 180 deg (a near double differentiator).
+FLAT_PHASE_ORDER_WARNING = 1.8
 _GRID_FRACTIONS = np.unique(np.concatenate([_EDGE, 1.0 - _EDGE]))
 
 
@@ -768,7 +781,7 @@ def _reachable_margins(pm_low: float) -> str:
 
 def _checks(loop: OpenLoop, sweep: SweepResult, achieved: Crossing) -> dict[str, Any]:
     return {
-        "warnings": _warnings(sweep, achieved, loop.gain_at(sweep.w_max)),
+        "warnings": _warnings(sweep, achieved, loop.gain_at(sweep.w_max)) + _order_warning(loop.r),
         "sweep": {
             "w_min": sweep.w_min,
             "w_max": sweep.w_max,
@@ -800,6 +813,17 @@ def _warnings(sweep: SweepResult, achieved: Crossing, loop_at_w_max: float) -> l
             "(r above the plant's relative degree)"
         )
     return warnings
+
+
+def _order_warning(r: float) -> list[str]:
+    """The flat-phase warning: an order near 2 makes ``1 + kp s^r`` a near double differentiator."""
+    if r <= FLAT_PHASE_ORDER_WARNING:
+        return []
+    return [
+        f"r = {r:.4g} is close to 2: the PD term is nearly a double differentiator (phase of (jw)^r near 180 deg), "
+        "so the answer is fragile and its discretised filter's first weight 1 + kp h^-r large; this is an initial "
+        "guess, not a convergence proof (synthesis.design: codesign chooses kp, r for the law as it runs)"
+    ]
 
 
 def evaluate_pair(loop: OpenLoop) -> TuningResult:

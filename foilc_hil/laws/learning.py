@@ -1,4 +1,4 @@
-"""Learning laws behind one sample-by-sample interface: FOILC (paper eq. 8, 19, 21), IOILC and P-type.
+"""Learning laws behind one sample-by-sample interface: FOILC (paper eq. 8, 19, 21), IOILC, P-type and NOILC.
 
 Timing conventions (see also :mod:`foilc_hil.references`)
 ---------------------------------------------------------
@@ -44,6 +44,10 @@ growing while the drive saturates). The bench's limiter stays as the safety laye
 P-type (Arimoto): ``u_k(t) = u_{k-1}(t) + Gamma e_{k-1}[t + d]``, the 2D law with ``p1 = 0`` and ``E = e``; its
 design (gain, model, certificates) comes from the same pipeline (:mod:`foilc_hil.design.pipeline`).
 
+NOILC (norm-optimal, Amann–Owens): ``u_k = u_{k-1} + L e_{k-1}`` with the lifted gain
+``L = (G^T Q G + R)^-1 G^T Q`` acting on the whole trial (:mod:`foilc_hil.design.noilc`); ``L e[d:]`` updates
+``u[:N-d]`` like every other law's learning term.
+
 First trial and restore
 -----------------------
 With no previous trial the law has no ``x_{k-1}`` and no ``E_{k-1}``: trial 1 runs the initial feedforward
@@ -71,6 +75,7 @@ import numpy as np
 
 from foilc_hil.config import FractionalMemory, LawConfig, LawKind
 from foilc_hil.design.fractional import FractionalPD, History
+from foilc_hil.design.noilc import noilc_gain
 from foilc_hil.design.ptype import p_type_gain
 from foilc_hil.design.qfilter import QFilter
 from foilc_hil.design.record import Design
@@ -81,6 +86,7 @@ __all__ = [
     "Foilc",
     "Ioilc",
     "LearningLaw",
+    "Noilc",
     "PType",
     "TrialUpdate",
     "make_law",
@@ -199,7 +205,7 @@ class LearningLaw(ABC):
         np.copyto(self._base, self._feedforward)
         if self._has_record and d < n:
             # base[t] += gain @ E_{k-1}[t + d] for t + d < N; later samples learn nothing (module docstring).
-            self._base[: n - d] += self._learned[d:] @ self._error_gain.T
+            self._base[: n - d] += self._learning_update(self._learned[d:])
         self._u.fill(0.0)
         self._y.fill(0.0)
         self._begin_state()
@@ -306,6 +312,11 @@ class LearningLaw(ABC):
     @abstractmethod
     def _learning_signal(self, error: np.ndarray) -> np.ndarray:
         """``E`` from ``e`` (both ``(N, p)``)."""
+
+    def _learning_update(self, learned: np.ndarray) -> np.ndarray:
+        """The learning update of ``u[0..N-d-1]`` from ``E[d..N-1]`` (``(N-d, p)`` -> ``(N-d, m)``): the gain per
+        sample; a lifted law (NOILC) acts on the whole trial."""
+        return np.asarray(learned @ self._error_gain.T)
 
     def _begin_state(self) -> None:  # noqa: B027 -- optional hook; laws without a state term keep nothing
         """Reset per-trial state buffers."""
@@ -515,6 +526,57 @@ class PType(LearningLaw):
         u_out[:] = self._base[t]
 
 
+class Noilc(LearningLaw):
+    """Norm-optimal ILC (Amann–Owens), lifted: ``u_k = u_{k-1} + L e_{k-1}`` (:mod:`foilc_hil.design.noilc`).
+
+    ``L`` is rebuilt from the design's model and the weights its certificates record (``certificates.noilc``),
+    for ``n_samples``, with the same numpy calls as the design: a logged design replays bit for bit.
+
+    Parameters
+    ----------
+    design
+        A ``noilc`` design (:func:`foilc_hil.design.noilc.certify_noilc`).
+    n_samples
+        ``N``, samples per trial.
+    q_filter, limits
+        As for every law (module notes).
+    """
+
+    kind = LawKind.NOILC
+
+    def __init__(
+        self,
+        design: Design,
+        n_samples: int,
+        *,
+        q_filter: QFilter | None = None,
+        limits: tuple[float, float] | None = None,
+    ) -> None:
+        if design.certificates is None or design.certificates.noilc is None:
+            raise InputError("design.certificates.noilc: a norm-optimal ILC design records its weights")
+        super().__init__(
+            n_samples=n_samples,
+            n_inputs=design.n_inputs,
+            n_outputs=design.n_outputs,
+            input_delay=design.input_delay,
+            error_gain=design.p2,
+            q_filter=q_filter,
+            limits=limits,
+        )
+        self.weights = design.certificates.noilc
+        self._gain = noilc_gain(design.model, self.weights, self.n_samples) if self.input_delay < n_samples else None
+
+    def _learning_signal(self, error: np.ndarray) -> np.ndarray:
+        return error.copy()
+
+    def _learning_update(self, learned: np.ndarray) -> np.ndarray:
+        assert self._gain is not None  # begin_trial only asks when d < N
+        return np.asarray((self._gain @ learned.ravel()).reshape(learned.shape[0], self.n_inputs))
+
+    def _command(self, t: int, y: np.ndarray, u_out: np.ndarray) -> None:
+        u_out[:] = self._base[t]
+
+
 # --- factory ----------------------------------------------------------------------------------------------------
 
 
@@ -525,7 +587,7 @@ def make_law(
     *,
     limits: tuple[float, float] | None = None,
 ) -> LearningLaw:
-    """Build the law ``design.law`` (``foilc``, ``ioilc``, ``p-type``) for ``n_samples`` samples per trial.
+    """Build the law ``design.law`` (``foilc``, ``ioilc``, ``p-type``, ``noilc``) for ``n_samples`` samples per trial.
 
     ``design`` gives the gain (``P``; ``p2 = Gamma`` for P-type), the model and the input delay;
     ``law_cfg.q_filter`` adds a Q-filter; ``law_cfg.fractional_memory`` picks the fractional operator's memory
@@ -536,6 +598,8 @@ def make_law(
     if law_cfg.q_filter is not None:
         q_filter = QFilter(law_cfg.q_filter.cutoff, law_cfg.q_filter.order, design.sample_time)
     memory = law_cfg.fractional_memory
+    if design.law is LawKind.NOILC:
+        return Noilc(design, n_samples, q_filter=q_filter, limits=limits)
     if design.law is LawKind.FOILC:
         return Foilc(design, n_samples, q_filter=q_filter, fractional_memory=memory, limits=limits)
     if design.law is LawKind.IOILC:
