@@ -109,6 +109,7 @@ def _fail(command: str, error: FoilcHilError, want_json: bool) -> int:
                                      "exit_code": int(error.exit_code)}
         if isinstance(error, ConfigError):
             detail.update(key=error.key, source=error.source)
+        detail.update(error.facts or {})
         sys.stdout.write(json.dumps({"error": detail}) + "\n")
         sys.stdout.flush()
     return int(error.exit_code)

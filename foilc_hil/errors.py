@@ -26,6 +26,9 @@ class FoilcHilError(Exception):
     """Root of every error the product raises on purpose."""
 
     exit_code: ExitCode = ExitCode.RUNTIME_FAILURE
+    #: JSON-ready facts an outer layer learnt on the way out (``run``: the confirmed stop, ``drive_stop``); the
+    #: ``--json`` error document carries them next to the message
+    facts: dict[str, object] | None = None
 
 
 # --- usage and input (exit 2) ---------------------------------------------------------------------------------
