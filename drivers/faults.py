@@ -506,11 +506,9 @@ class FaultyBus(can.BusABC):
 
     def _add_frame(self, message: can.Message, *, to_drive: bool) -> None:
         """Add a frame from a third party: out on the bus when it is for the other end, else received here."""
-        for_the_other_end = to_drive == (self._role is Role.MASTER)
-        if for_the_other_end:
-            self._held.append(_Held(message, True, self._clock(), False))
-        else:
-            self._ready.append(message)
+        # due now, so the next release puts it right after the frame being filtered (the SYNC that started it)
+        outgoing = to_drive == (self._role is Role.MASTER)
+        self._held.append(_Held(message, outgoing, self._clock(), False))
 
     # --- frames ---------------------------------------------------------------------------------------------------
 

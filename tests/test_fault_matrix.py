@@ -89,8 +89,8 @@ class Row:
 
     def outcome_text(self) -> str:
         if self.outcome is Outcome.RIDES_OUT:
-            counts = f"lost_feedback {self.lost}, bad_frames {self.bad}"
-            return f"exit 0, counted ({counts} in trial 2)"
+            counts = f"lost_feedback {self.lost}, bad_frames {self.bad} in trial 2"
+            return f"exit 0, counted ({counts})" if self.lost or self.bad else f"exit 0, nothing counted ({counts})"
         return f"exit 1, one line naming it (`{self.names}`)"
 
     def kept_text(self) -> str:
@@ -172,8 +172,8 @@ def bench_document(policy: dict[str, Any], drive: dict[str, Any] | None = None, 
             # (2 x 0.3 s) first
             "heartbeat_timeout_factor": 10.0,
             "heartbeat_consumer_ms": 500,
-            "sdo_timeout": 0.3,
-            "state_timeout": 0.5,  # bounds the last stop step's wait for a boot-up that a dead drive never sends
+            "sdo_timeout": 0.25,
+            "state_timeout": 0.3,  # bounds the last stop step's wait for a boot-up that a dead drive never sends
             **(drive or {}),
         },
         "bench": {
@@ -312,7 +312,7 @@ def markdown_table(rows: tuple[Any, ...]) -> str:
         "|---|---|---|---|---|---|",
     ]
     for row in rows:
-        lines.append(f"| {row.fault} | `{row.inject}` | {row.where} | {row.outcome_text()} | {row.after} | "
+        lines.append(f"| {row.fault} | {row.how} | {row.where} | {row.outcome_text()} | {row.after} | "
                      f"{row.kept_text()} |")
     return "\n".join(lines)
 
