@@ -129,8 +129,6 @@ _DEFAULT_FRAMES = {
 _NMT_COMMANDS = {InjectKind.NMT_STOP: NmtCommand.STOP, InjectKind.NMT_PRE_OPERATIONAL: NmtCommand.ENTER_PRE_OPERATIONAL}
 #: kinds whose frame class is fixed by the kind itself
 _FIXED_FRAMES = frozenset(_DEFAULT_FRAMES)
-#: a held (reordered) frame waits at most this long for the next frame before it is released on its own
-REORDER_HOLD = 0.002
 #: the foreign node's EMCY code: a generic error, which the drive's master must not take as its drive's
 FOREIGN_EMCY_CODE = EmcyCode.GENERIC
 
@@ -156,7 +154,8 @@ class Injection(Section):
         Which frames ``delay``, ``reorder``, ``duplicate`` and ``wrong-dlc`` hit (default ``tpdo``); fixed for the
         drop kinds and ``silence``.
     delay
-        Seconds a ``delay`` holds a frame back.
+        Seconds a ``delay`` holds a frame back; the longest a ``reorder`` holds one for the next frame in its
+        direction (released on its own after it, so a frame with no successor is late, not lost).
     node
         ``foreign-node``: the foreign node's id (it must differ from the drive's).
     factor
@@ -243,7 +242,7 @@ class InjectionReport:
 
     injection: Injection
     started_at_sync: int | None  # the bus's SYNC count when it started; None: never reached
-    frames: int  # frames dropped, held, duplicated, shortened or added
+    frames: int  # frames dropped, held, duplicated, shortened or added; 1 for a one-shot action (NMT, emulator)
 
     def to_json(self) -> dict[str, object]:
         return {
@@ -465,10 +464,8 @@ class FaultyBus(can.BusABC):
             return [message for message in passed for _ in range(2)]
         if kind is InjectKind.WRONG_DLC:
             return [_one_byte_short(message) for message in passed]
-        hold_for = window.injection.delay
-        until_next = kind is InjectKind.REORDER
-        due = self._clock() + (REORDER_HOLD if until_next else hold_for)
-        self._held.extend(_Held(message, outgoing, due, until_next) for message in passed)
+        due = self._clock() + window.injection.delay
+        self._held.extend(_Held(message, outgoing, due, kind is InjectKind.REORDER) for message in passed)
         return []
 
     def _release_reordered(self, *, outgoing: bool, into: list[can.Message]) -> None:
