@@ -35,8 +35,9 @@ import yaml
 
 from drivers.cia402 import State402
 from drivers.drive import DISABLED_STATES
-from drivers.faults import InjectKind, parse_injection
+from drivers.faults import Injection, InjectKind, parse_injection
 from foilc_hil.cli import main
+from tests.test_bench_e2e import read_mcap
 from tests.test_bench_faults import read_log
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -258,6 +259,9 @@ def test_fault_matrix_row(
         assert injected["kind"] == row.kind and injected["started_at_sync"] is not None and injected["frames"] > 0
         trials = check_log(tmp_path / "run.mcap", row.trials, row.trials)
         assert [(t["lost_feedback"], t["bad_frames"]) for t in trials] == [(0, 0), (row.lost, row.bad)]
+        _, metadata = read_mcap(tmp_path / "run.mcap")  # what was injected is logged with the config
+        logged = yaml.safe_load(metadata["foilc_hil.config"]["yaml"])["inject"]
+        assert [Injection.model_validate(entry) for entry in logged] == [parse_injection(row.inject)]
     else:
         assert code == 1
         assert len(err) == 1 and err[0].startswith("foilc-hil run: ") and row.names in err[0], err

@@ -276,3 +276,11 @@ def test_drift_multiplies_the_plants_input() -> None:
     for u in (1.0, -2.0, 0.5):
         assert np.array_equal(drifted.step(np.array([u]), 0.01), reference.step(np.array([3.0 * u]), 0.01))
     assert drifted.time == reference.time
+
+
+def test_plant_emulator_refuses_a_trial_in_its_inject(capsys: pytest.CaptureFixture[str]) -> None:
+    from plant_emulator.cli import main
+
+    code = main(["--bus", "virtual:nobody", "--inject", "emulator-kill@2+5"])
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and "has no trials" in lines[0] and "KIND@cCYCLE" in lines[0], lines
