@@ -47,7 +47,7 @@ END = "<!-- fault-matrix: end -->"
 NODE = 1
 SAMPLES = 60  # 0.3 s trials at 5 ms
 TRIALS = 2
-#: the matrix's bench policy: one lost feedback tolerated, two in a row abort (each wait 3 x 0.1 s in lockstep)
+#: the matrix's bench policy: one lost feedback tolerated, two in a row abort (each wait 4 x 0.1 s in lockstep)
 LOST_FEEDBACK_TOLERATED = 1
 STOPPED_STATES = DISABLED_STATES | {State402.QUICK_STOP_ACTIVE}
 
@@ -132,8 +132,9 @@ MATRIX: tuple[Row, ...] = (
     Row("a foreign node's TPDO1, heartbeat and EMCY (10 cycles)", "foreign-node@2:node=5,count=10",
         Outcome.RIDES_OUT),
     Row("bus silence, one cycle", "silence@2+20", Outcome.RIDES_OUT, lost=1),
+    # the drive's heartbeat consumer (0.4 s here) must trip well within the run's stop attempts (about 2 s)
     Row("bus silence to the end", "silence@2+20:count=0", Outcome.ABORTS,
-        names="consecutive SYNCs without feedback", stop=Stop.NOT_CONFIRMED,
+        names="consecutive SYNCs without feedback", stop=Stop.NOT_CONFIRMED, drive={"heartbeat_consumer_ms": 400},
         after="the run cannot read it (said so); the drive's own heartbeat consumer disables it"),
     Row("NMT stop from a third party", "nmt-stop@2+20", Outcome.ABORTS, names="left NMT OPERATIONAL"),
     Row("NMT pre-operational from a third party", "nmt-pre-operational@2+20", Outcome.ABORTS,
@@ -144,10 +145,10 @@ MATRIX: tuple[Row, ...] = (
     Row("EMCY over-current", "emcy-over-current@2+20", Outcome.ABORTS, names="EMCY 0x2310",
         after="FAULT, read back"),
     Row("EMCY over-speed", "emcy-over-speed@2+20", Outcome.ABORTS, names="EMCY 0x8400", after="FAULT, read back"),
-    # a heartbeat is missed only by the wall clock (0.5 s here), and lockstep trials are fast: many trials, so the
+    # a heartbeat is missed only by the wall clock (0.8 s here), and lockstep trials are fast: many trials, so the
     # run still goes on when the master notices
     Row("the drive's heartbeat stops", "heartbeat-stop@2+20", Outcome.ABORTS, names="heartbeat of node 1 lost",
-        drive={"heartbeat_timeout_factor": 5.0}, trials=200, completed=None),
+        drive={"heartbeat_timeout_factor": 8.0}, trials=200, completed=None),
     Row("plant input gain x3 (beyond the design's uncertainty)", "drift@2:factor=3", Outcome.RIDES_OUT),
 )
 
@@ -169,10 +170,12 @@ def bench_document(policy: dict[str, Any], drive: dict[str, Any] | None = None, 
             "mode": "csv",
             "velocity_scale": 1000.0,
             "velocity_limit": 500.0,
-            # 1 s: a stalled test machine is not a lost heartbeat, and a silent bus trips the feedback watchdog
-            # (2 x 0.3 s) first
-            "heartbeat_timeout_factor": 10.0,
-            "heartbeat_consumer_ms": 500,
+            # 1.5 s: a stalled test machine is not a lost heartbeat, and a silent bus trips the feedback watchdog
+            # (2 x 0.4 s) first
+            "heartbeat_timeout_factor": 15.0,
+            # the drive's watch on the master: 1 s outlasts a one-cycle silence (0.4 s) on a stalled machine, and
+            # trips during a dead bus's stop attempts (about 2 s)
+            "heartbeat_consumer_ms": 1000,
             "sdo_timeout": 0.25,
             "state_timeout": 0.3,  # bounds the last stop step's wait for a boot-up that a dead drive never sends
             **(drive or {}),
@@ -180,7 +183,7 @@ def bench_document(policy: dict[str, Any], drive: dict[str, Any] | None = None, 
         "bench": {
             "settle_time": 0.02,
             "settle_tolerance": 0.05,
-            "watchdog_cycles": 3,
+            "watchdog_cycles": 4,
             "faults": {"lost_feedback": LOST_FEEDBACK_TOLERATED, **policy},
         },
     }

@@ -157,7 +157,7 @@ def orchestrate_row(workdir: Path, row: XRow, emulator: subprocess.Popen[bytes])
             hurt.join(timeout=10)
         if row.signal_name == "SIGSTOP":
             os.kill(emulator.pid, signal.SIGCONT)
-            time.sleep(0.8)  # its heartbeat consumer (0.5 s) and the frames queued while it was stopped
+            time.sleep(1.2)  # its heartbeat consumer (1 s) and the frames queued while it was stopped
     finally:
         if emulator.poll() is None:
             emulator.send_signal(signal.SIGINT)
