@@ -176,8 +176,9 @@ def bench_document(policy: dict[str, Any], drive: dict[str, Any] | None = None, 
             # the drive's watch on the master: 1 s outlasts a one-cycle silence (0.4 s) on a stalled machine, and
             # trips during a dead bus's stop attempts (about 2 s)
             "heartbeat_consumer_ms": 1000,
-            "sdo_timeout": 0.25,
-            "state_timeout": 0.3,  # bounds the last stop step's wait for a boot-up that a dead drive never sends
+            # the defaults for SDO (0.5 s) and the state transitions, bounded to 1 s: commissioning on a loaded
+            # machine needs the time, and a dead drive's last stop step waits this long for a boot-up
+            "state_timeout": 1.0,
             **(drive or {}),
         },
         "bench": {
