@@ -115,6 +115,7 @@ def _fail(command: str, error: FoilcHilError, want_json: bool) -> int:
         detail = _error_detail(type(error).__name__, message, error.exit_code)
         if isinstance(error, ConfigError):
             detail.update(key=error.key, source=error.source)
+        detail.update(error.facts or {})
         _write_json({**(error.partial or {}), "error": detail})  # with what the command had done, if anything
     return int(error.exit_code)
 

@@ -16,6 +16,7 @@ import yaml
 from pydantic import Field, model_validator
 
 from drivers.config import BusConfig, DriveConfig
+from drivers.faults import Injection
 from foilc_hil.schema import Section, apply_overrides, load_document, validate
 from plant_emulator.config import PlantConfig
 from plant_emulator.settings import EmulatorConfig
@@ -207,6 +208,8 @@ class Config(Section):
     drive: DriveConfig = DriveConfig()
     bench: BenchConfig = BenchConfig()
     emulator: EmulatorConfig = EmulatorConfig()
+    # faults to inject into a run (drivers.faults; docs/reliability.md); `run --inject` adds to the list
+    inject: tuple[Injection, ...] = ()
 
 
 def load_config(path: str | Path | None, overrides: Mapping[str, Any] | None = None) -> Config:

@@ -32,6 +32,9 @@ class FoilcHilError(Exception):
 
     exit_code: ExitCode = ExitCode.RUNTIME_FAILURE
     partial: dict[str, Any] | None = None
+    #: JSON-ready facts an outer layer learnt on the way out (``run``: the confirmed stop, ``drive_stop``); the
+    #: ``--json`` error document carries them next to the message
+    facts: dict[str, object] | None = None
 
 
 # --- usage and input (exit 2) ---------------------------------------------------------------------------------

@@ -1,12 +1,17 @@
 """``plant-emulator``: the virtual CiA 402 servo drive as a process on a CAN bus.
 
-``plant-emulator --config C --bus SPEC [--node-id N] [--mode lockstep|realtime]``
+``plant-emulator --config C --bus SPEC [--node-id N] [--mode lockstep|realtime] [--inject KIND@cCYCLE[:K=V,...]]...``
 
 It reads the bench's own config file but validates only the sections it uses -- ``plant``, ``emulator``,
 ``sample_time`` and ``drive`` (for ``node_id`` and the ``velocity_scale`` / ``torque_scale`` the master uses, so
 both ends convert units alike) -- and ignores the rest, which the bench validates (layer 2 must not import the
 whole-document model of layer 3). Without ``--config`` it drives a default PMSM axis. Bad input: exit 2 with one
-line on stderr. It runs until SIGINT or SIGTERM (exit 0) and says so on stderr when it is ready.
+line on stderr. It runs until SIGINT or SIGTERM (exit 0) and says so on stderr when it is ready; its last line
+says how many SYNCs it served and the drive's final CiA 402 and NMT states.
+
+``--inject`` (repeatable, :mod:`drivers.faults`) injects faults on the drive's side for cross-process runs: the
+emulator kinds (``emulator-kill``, ``emcy-over-current``, ...) and the bus kinds on its own bus (e.g. ``nmt-stop``
+from a third party, ``drop-tpdo``). A process has no trials, so ``WHEN`` is ``cCYCLE``: the SYNCs it received.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from typing import Any, NoReturn
 from pydantic import ConfigDict, Field
 
 from drivers.config import DriveConfig
+from drivers.faults import FaultyBus, Injection, Role, parse_injection
 from foilc_hil.errors import ConfigError, ExitCode, FoilcHilError, InputError
 from foilc_hil.schema import Section, apply_overrides, load_document, validate
 from plant_emulator.config import PlantConfig
@@ -56,7 +62,19 @@ def build_parser() -> argparse.ArgumentParser:
                         "udp_multicast:239.74.163.2")
     parser.add_argument("--node-id", type=int, help="CANopen node id (default: drive.node_id, else 1)")
     parser.add_argument("--mode", choices=("lockstep", "realtime"), help="timing (default: emulator.timing)")
+    parser.add_argument("--inject", action="append", default=[], metavar="KIND@cCYCLE[:K=V,...]",
+                        help="inject a fault at the CYCLE-th SYNC received (repeatable), e.g. emulator-kill@c400, "
+                        "nmt-stop@c300, drop-tpdo@c200:count=3")
     return parser
+
+
+def parse_injections(specs: Sequence[str]) -> list[Injection]:
+    """The ``--inject`` specs; a trial-based ``WHEN`` is refused (exit 2): a drive's process knows no trials."""
+    injections = [parse_injection(spec) for spec in specs]
+    for spec, injection in zip(specs, injections, strict=True):
+        if injection.trial is not None:
+            raise InputError(f"--inject {spec}: {PROG} has no trials; give the SYNC count as KIND@cCYCLE")
+    return injections
 
 
 def load_settings(path: str | None, overrides: dict[str, Any]) -> EmulatorDocument:
@@ -87,6 +105,7 @@ def _serve(args: argparse.Namespace) -> int:
 
     if args.node_id is not None and not 1 <= args.node_id <= 127:
         raise InputError(f"--node-id: {args.node_id} is outside 1..127")
+    injections = parse_injections(args.inject)
     settings = load_settings(args.config, {"drive.node_id": args.node_id, "emulator.timing": args.mode})
     bus_cfg = parse_bus_spec(args.bus)
     plant = build_plant(settings.plant, seed=settings.plant.seed + settings.emulator.seed)
@@ -104,8 +123,15 @@ def _serve(args: argparse.Namespace) -> int:
         stop.set()
 
     previous = {sig: signal.signal(sig, _on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    faulty: FaultyBus | None = None
     try:
-        drive.start(open_bus(bus_cfg))
+        bus = open_bus(bus_cfg)
+        if injections:
+            from plant_emulator.faults import emulator_actions
+
+            bus = faulty = FaultyBus(bus, injections, node_id=drive.node_id, role=Role.DRIVE,
+                                     actions=emulator_actions(drive))
+        drive.start(bus)
         print(
             f"{PROG}: ready: node {drive.node_id} on {bus_cfg.interface}:{bus_cfg.channel} "
             f"({settings.plant.model}, {drive.timing.value}, {settings.sample_time * 1e3:g} ms)",
@@ -118,7 +144,11 @@ def _serve(args: argparse.Namespace) -> int:
         drive.stop()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    print(f"{PROG}: stopped after {drive.sync_count} SYNC", file=sys.stderr, flush=True)
+    for report in faulty.reports() if faulty is not None else []:
+        started = "never started" if report.started_at_sync is None else f"started at SYNC {report.started_at_sync}"
+        print(f"{PROG}: injected {report.injection.describe()}: {started}, {report.frames} frame(s)", file=sys.stderr)
+    print(f"{PROG}: stopped after {drive.sync_count} SYNC; drive {drive.state.name}, NMT {drive.nmt_state.name}",
+          file=sys.stderr, flush=True)
     return int(ExitCode.OK)
 
 

@@ -1,12 +1,15 @@
 """``foilc-hil run``: learning trials over CAN against a CiA 402 drive (or the embedded emulator).
 
 ``foilc-hil run --config C [--bus SPEC | --emulator embedded] [--trials N] [--mode lockstep|realtime]
-[--law foilc|ioilc|p-type|noilc] --out F.mcap [--json] [--quiet]``
+[--law foilc|ioilc|p-type|noilc] [--inject KIND@WHEN[:KEY=VALUE,...]]... --out F.mcap [--json] [--quiet]``
 
 JSON: ``{"law", "trials": [{"trial", "sse", "rmse", "max_abs_error"}, ...], "timing": {"period", "cycles",
 "missed_deadlines", "jitter_p99_us", ...}, "log", "design": {"kp", "r", "certificates", ...}, "stopped"}``.
 Exit 0 when every trial ran; 1 for a drive fault, a bus timeout or learning that diverged and was stopped (the
 JSON document and the log are still written for a divergence stop); 2 for bad input; 130 for Ctrl-C / SIGTERM.
+
+``--inject`` (repeatable) adds faults to the config's ``inject:`` list (:mod:`drivers.faults`, docs/reliability.md),
+e.g. ``--inject drop-tpdo@2+10:count=3`` or ``--inject emulator-kill@3+25``.
 """
 
 from __future__ import annotations
@@ -35,6 +38,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mode", choices=["lockstep", "realtime"], help="timing mode (default: config bench.mode)")
     parser.add_argument(
         "--law", choices=["foilc", "ioilc", "p-type", "noilc"], help="learning law (default: config law.kind)"
+    )
+    parser.add_argument(
+        "--inject",
+        action="append",
+        default=[],
+        metavar="KIND@WHEN[:K=V,...]",
+        help="inject a fault (repeatable): WHEN is TRIAL, TRIAL+CYCLE or cCYCLE (SYNCs from the first), e.g. "
+        "drop-tpdo@2+10:count=3, delay@2:frames=tpdo,delay=0.01,count=0, emulator-kill@3+25 (docs/reliability.md)",
     )
     parser.add_argument("--out", required=True, metavar="F.mcap", help="MCAP log to write")
     parser.add_argument("--quiet", action="store_true", help="no progress view on stderr")
@@ -79,6 +90,11 @@ def execute(args: argparse.Namespace) -> CommandResult:
     if args.trials is not None and args.trials < 1:
         raise InputError(f"--trials: must be >= 1, got {args.trials}")
     config = load_config(args.config)
+    if args.inject:
+        from drivers.faults import parse_injection
+
+        injected = [parse_injection(spec) for spec in args.inject]
+        config = config.model_copy(update={"inject": (*config.inject, *injected)})  # logged with the config
     bus = resolve_bus(config, args.bus, args.emulator)
     check_bus(bus)  # before the design, which may take minutes
     request = RunRequest(

@@ -74,6 +74,7 @@ import numpy as np
 
 from drivers.cia402 import State402
 from drivers.drive import Feedback, StopReport
+from drivers.faults import FaultyBus, InjectionReport, require_actions
 from foilc_hil.errors import (
     DriveError,
     DriveFaultError,
@@ -687,6 +688,7 @@ class RunReport:
     bus: str
     cycles: int
     drive_stop: StopReport
+    injected: list[InjectionReport] = field(default_factory=list)  # what each ``inject:`` fault did
 
     def to_json(self) -> dict[str, Any]:
         timing = self.outcome.timing.to_json() if self.outcome.timing is not None else {}
@@ -704,6 +706,7 @@ class RunReport:
             "faults": {
                 **self.outcome.faults.to_json(),
                 "trials": [faults.to_json() for faults in self.outcome.trial_faults],
+                "injected": [report.to_json() for report in self.injected],
             },
         }
 
@@ -828,6 +831,7 @@ def _plan_run(request: RunRequest) -> _RunPlan:
         raise LogFormatError(f"{request.out}: cannot create: no such directory {Path(request.out).resolve().parent}")
     law_kind = request.law or config.law.kind
     bus = request.bus if request.bus is not None else config.bus
+    require_actions(config.inject, emulator=bus.interface == "embedded")  # before the (possibly slow) design
     reference = reference_profile(config.reference, config.sample_time)
     n_samples = int(reference.shape[0])
     design = request.design if request.design is not None else build_design(config, law_kind, n_samples)
@@ -859,27 +863,32 @@ def _open_log(stack: contextlib.ExitStack, request: RunRequest, plan: _RunPlan) 
     return McapSink(writer, (plan.limiter.lower, plan.limiter.upper))
 
 
-def _start_emulator(stack: contextlib.ExitStack, config: Any, bus: Any) -> tuple[Any, Callable[[int], None] | None]:
-    """``interface: embedded``: start the in-process emulator; returns the bus to open and the trial hook."""
+def _start_emulator(stack: contextlib.ExitStack, config: Any, bus: Any) -> tuple[Any, Any]:
+    """``interface: embedded``: start the in-process emulator; returns the bus to open and the emulator (or None)."""
     if bus.interface != "embedded":
         return bus, None
     from plant_emulator.embedded import EmbeddedEmulator
 
     emulator = EmbeddedEmulator.from_config(config)
     stack.enter_context(emulator)
-    return emulator.bus_config, emulator.begin_trial
+    return emulator.bus_config, emulator
 
 
 def _open_drive(
-    stack: contextlib.ExitStack, config: Any, bus_cfg: Any, sink: McapSink | None, stops: list[StopReport]
-) -> Any:
-    """Open the bus and the CiA 402 master (safe-stopped on exit)."""
+    stack: contextlib.ExitStack, config: Any, bus_cfg: Any, sink: McapSink | None, stops: list[StopReport],
+    emulator: Any,
+) -> tuple[Any, FaultyBus | None]:
+    """Open the bus (wrapped in the ``inject:`` faults, if any) and the CiA 402 master (safe-stopped on exit)."""
     from drivers.bus import open_bus
     from drivers.cia402_master import Cia402Drive
     from foilc_hil.config import BadFramePolicy
 
     bus = open_bus(bus_cfg)
     stack.callback(bus.shutdown)
+    faulty = _inject_faults(bus, config, emulator)
+    if faulty is not None:
+        stack.callback(faulty.shutdown)  # before the inner bus's: frames still held back go out first
+        bus = faulty
     drive = Cia402Drive.open(bus, config.drive, sample_time=config.sample_time)
     drive.fatal_bad_frames = config.bench.faults.bad_frame is BadFramePolicy.ABORT
     stack.callback(drive.close)
@@ -887,7 +896,30 @@ def _open_drive(
         drive.add_frame_listener(cast("Callable[[can.Message, str], None]", sink.writer.log_frame))
     # LIFO: safe_stop runs before the drive is closed and before the log is closed, so its frames are logged
     stack.callback(lambda: stops.append(drive.safe_stop()))
-    return drive
+    return drive, faulty
+
+
+def _inject_faults(bus: Any, config: Any, emulator: Any) -> FaultyBus | None:
+    """The ``inject:`` faults around the master's bus; the emulator kinds act on the embedded emulator."""
+    if not config.inject:
+        return None
+    from plant_emulator.faults import emulator_actions
+
+    actions = emulator_actions(emulator.drive) if emulator is not None else {}
+    return FaultyBus(bus, config.inject, node_id=config.drive.node_id, actions=actions)
+
+
+def _trial_hook(emulator: Any, faulty: FaultyBus | None) -> Callable[[int], None] | None:
+    """What starts a trial besides the loop: the embedded emulator's physics and the injected faults' clock."""
+    hooks = [hook for hook in (getattr(emulator, "begin_trial", None), getattr(faulty, "begin_trial", None)) if hook]
+    if not hooks:
+        return None
+
+    def begin_trial(trial: int) -> None:
+        for hook in hooks:
+            hook(trial)
+
+    return begin_trial
 
 
 def _enable(drive: Any, config: Any) -> None:
@@ -913,14 +945,14 @@ def run_bench(request: RunRequest) -> RunReport:
     try:
         with _truth_about_the_stop(stops, config.drive.node_id), contextlib.ExitStack() as stack:
             sink = _open_log(stack, request, plan)
-            bus_cfg, before_trial = _start_emulator(stack, config, plan.bus)
-            drive = _open_drive(stack, config, bus_cfg, sink, stops)
+            bus_cfg, emulator = _start_emulator(stack, config, plan.bus)
+            drive, faulty = _open_drive(stack, config, bus_cfg, sink, stops, emulator)
             progress = make_progress(plan.title, quiet=request.quiet)
             stack.callback(progress.close)
             stop = stack.enter_context(StopRequest())
             _enable(drive, config)
             loop = TrialLoop(drive, plan.law, plan.reference, plan.limiter, plan.settings, log=sink,
-                             progress=progress, stop=stop, before_trial=before_trial)
+                             progress=progress, stop=stop, before_trial=_trial_hook(emulator, faulty))
             loops.append(loop)
             outcome = loop.run(plan.trials)
     except FoilcHilError as exc:
@@ -949,6 +981,7 @@ def run_bench(request: RunRequest) -> RunReport:
         bus=f"{bus_cfg.interface}:{bus_cfg.channel}",
         cycles=loop.cycles,
         drive_stop=stops[-1],
+        injected=faulty.reports() if faulty is not None else [],
     )
 
 
@@ -959,6 +992,8 @@ def _truth_about_the_stop(stops: list[StopReport], node_id: int) -> Iterator[Non
     try:
         yield
     except FoilcHilError as exc:
+        if stops:
+            exc.facts = {**(exc.facts or {}), "drive_stop": stops[-1].to_json()}
         for report in stops:
             exc.add_note(report.describe(node_id))
             also = [fault for fault in report.faults if fault != str(exc)]  # the same error again says nothing new
@@ -966,8 +1001,12 @@ def _truth_about_the_stop(stops: list[StopReport], node_id: int) -> Iterator[Non
                 exc.add_note("the drive also reported: " + "; ".join(also))
         raise
     report = stops[-1]
+    error: DriveError | None = None
     if not report.confirmed:
-        raise DriveNotStoppedError(report.describe(node_id))
-    if report.faults or report.state is State402.FAULT:
+        error = DriveNotStoppedError(report.describe(node_id))
+    elif report.faults or report.state is State402.FAULT:
         reported = "; ".join(report.faults) or "a fault statusword"
-        raise DriveFaultError(f"the drive reported {reported} at the end of the run; {report.describe(node_id)}")
+        error = DriveFaultError(f"the drive reported {reported} at the end of the run; {report.describe(node_id)}")
+    if error is not None:
+        error.facts = {"drive_stop": report.to_json()}
+        raise error
