@@ -99,3 +99,71 @@ def test_exiting_a_session_never_entered_changes_nothing() -> None:
     interval = sys.getswitchinterval()
     RealtimeSession(RealtimeConfig(sched_fifo_priority=10, lock_memory=True)).__exit__(None, None, None)
     assert gc.isenabled() and sys.getswitchinterval() == interval
+
+
+# --- the emulator's SYNC-loss supervision: time it could not watch does not count --------------------------------
+
+
+class _Node:
+    alive = True
+    link = None
+
+    def __init__(self) -> None:
+        from drivers.cia301 import NmtState
+
+        self.nmt_state = NmtState.OPERATIONAL
+
+
+class _Pdos:
+    def send_event_driven(self, timer_only: bool = False) -> None:
+        pass
+
+
+class _ScriptedPolls:
+    """The supervisor's ``stop``: each wait moves the fake monotonic clock to the next scripted poll time."""
+
+    def __init__(self, clock: list[float], polls: list[float]) -> None:
+        self.clock = clock
+        self.polls = list(polls)
+
+    def wait(self, timeout: float) -> bool:
+        if not self.polls:
+            return True
+        self.clock[0] = self.polls.pop(0)
+        return False
+
+
+def _losses(monkeypatch: pytest.MonkeyPatch, polls: list[float]) -> list[tuple[float, object]]:
+    from plant_emulator import supervision
+    from plant_emulator.supervision import Supervisor
+
+    clock = [0.0]
+    monkeypatch.setattr(supervision.time, "monotonic", lambda: clock[0])
+    losses: list[tuple[float, object]] = []
+    supervisor = Supervisor(
+        _Node(),  # type: ignore[arg-type]
+        threading.RLock(),
+        _Pdos(),  # type: ignore[arg-type]
+        on_loss=lambda kind: losses.append((clock[0], kind)),
+        cycle_period=lambda: 0.001,
+        sync_loss_cycles=100,  # 0.1 s
+    )
+    supervisor.sync_received()  # at t = 0
+    supervisor.run(_ScriptedPolls(clock, polls))  # type: ignore[arg-type]
+    return losses
+
+
+def test_sync_loss_is_reported_one_timeout_after_the_last_sync(monkeypatch: pytest.MonkeyPatch) -> None:
+    from plant_emulator.application import FaultKind
+
+    polls = [0.002 * k for k in range(1, 80)]  # regular polls up to 0.158 s
+    assert _losses(monkeypatch, polls) == [(pytest.approx(0.102), FaultKind.SYNC_LOSS)]
+
+
+def test_a_stall_of_the_emulator_itself_restarts_the_sync_loss_timer(monkeypatch: pytest.MonkeyPatch) -> None:
+    from plant_emulator.application import FaultKind
+
+    # polled regularly to 10 ms, then this process is stalled for half a second (SYNCs may be waiting unread)
+    polls = [0.002 * k for k in range(1, 6)] + [0.5 + 0.002 * k for k in range(0, 80)]
+    # no loss for the stall; a real one (no SYNC ever again) one timeout after the watch resumed
+    assert _losses(monkeypatch, polls) == [(pytest.approx(0.602), FaultKind.SYNC_LOSS)]
