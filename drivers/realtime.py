@@ -161,6 +161,10 @@ class RealtimeSession:
     def __enter__(self) -> RealtimeSession:
         config, undo = self.config, self._undo
         problems: list[str] = []
+        fifo_names: list[str] = []
+        if config.sched_fifo_priority is not None:  # first: on a busy host the steps below then run at FIFO speed
+            fifo_names, fifo_problems = self._set_fifo(config.sched_fifo_priority)
+            problems += fifo_problems
         if config.gc is GcPolicy.FREEZE:
             gc.collect()  # what is garbage now is not frozen for the session
             gc.freeze()
@@ -173,10 +177,6 @@ class RealtimeSession:
             problems += self._set_affinity(config.cpus)
         if config.lock_memory:
             problems += self._lock_memory()
-        fifo_names: list[str] = []
-        if config.sched_fifo_priority is not None:
-            fifo_names, fifo_problems = self._set_fifo(config.sched_fifo_priority)
-            problems += fifo_problems
         slack = _set_timer_slack(_MIN_TIMER_SLACK_NS)
         if slack is None and not fifo_names:
             problems.append("timer slack: prctl(PR_SET_TIMERSLACK) is not available here")

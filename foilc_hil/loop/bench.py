@@ -31,7 +31,8 @@ the law and the drive, and the frame tap enqueues CAN frames for the log writer 
 ``/ilc/trial`` and ``/timing`` messages are built after the trial.
 
 Safety (:mod:`foilc_hil.loop.safety`): commands are clamped to the drive limits and the plant saturation. The
-wait for each SYNC's feedback is bounded (:attr:`LoopSettings.feedback_timeout`: one period in realtime,
+wait for each SYNC's feedback is bounded (:attr:`LoopSettings.feedback_timeout`: in realtime until
+:data:`COMMAND_MARGIN_FRACTION` of a period before the next deadline,
 ``bench.watchdog_cycles`` x :data:`LOCKSTEP_FEEDBACK_TIMEOUT` in lockstep) -- no further SYNC is sent while
 waiting, the drive holds its last command, and realtime feedback that arrives after half a period is counted late.
 A wait that expires is a *lost feedback* (``bench.faults``): counted, and the law is given the last good feedback
@@ -936,11 +937,16 @@ def _open_drive(
     return drive
 
 
-def _commission(drive: Any, config: Any) -> None:
-    """Connect and configure the drive's mode and cycle (it ends in NMT OPERATIONAL, not yet enabled)."""
+def _commission(drive: Any, config: Any, session: RealtimeSession | None) -> None:
+    """Connect, enter the realtime ``session`` (if any) and configure the drive's mode and cycle (it ends in NMT
+    OPERATIONAL, not yet enabled)."""
     from drivers.cia402 import OperationMode
 
     drive.connect()
+    if session is not None:
+        # after connect: its CAN receive thread exists to be raised; before the heartbeats are configured and SYNC
+        # is watched: entering takes a few tenths of a second (a full collection, mlockall)
+        session.__enter__()
     drive.configure(OperationMode[_MODES[config.drive.mode]], config.sample_time)
 
 
@@ -979,9 +985,7 @@ def run_bench(request: RunRequest) -> RunReport:
             stop=stop,
             before_trial=before_trial,
         )
-        _commission(drive, config)
-        if session is not None:  # after connect (its Notifier thread exists to be raised), before SYNC is watched
-            session.__enter__()
+        _commission(drive, config, session)
         drive.enable()  # walks the 402 state machine over SYNCs; the loop's first SYNC follows at once
         outcome = loop.run(plan.trials)
         if session is not None and outcome.timing is not None:
