@@ -59,7 +59,7 @@ NOTIFIER_THREAD_PREFIX = "Notifier for bus"
 #: helper threads run this many SCHED_FIFO priorities below the cyclic ones (never below 1)
 HELPER_PRIORITY_OFFSET = 10
 _MCL_CURRENT, _MCL_FUTURE = 1, 2  # <sys/mman.h>
-_PR_SET_TIMERSLACK = 29  # <linux/prctl.h>
+_PR_SET_TIMERSLACK, _PR_GET_TIMERSLACK = 29, 30  # <linux/prctl.h>
 _MIN_TIMER_SLACK_NS = 1  # 0 would mean "back to the thread's default slack"
 
 
@@ -138,6 +138,7 @@ class _Undo:
     fifo_tids: list[tuple[int, int, int]] = field(default_factory=list)  # (tid, old policy, old priority)
     cpus: set[int] | None = None
     memory_locked: bool = False
+    timer_slack_ns: int | None = None  # the calling thread's before
 
 
 class RealtimeSession:
@@ -177,7 +178,8 @@ class RealtimeSession:
             problems += self._set_affinity(config.cpus)
         if config.lock_memory:
             problems += self._lock_memory()
-        slack = _set_timer_slack(_MIN_TIMER_SLACK_NS)
+        undo.timer_slack_ns = _timer_slack()
+        slack = _set_timer_slack(_MIN_TIMER_SLACK_NS) if undo.timer_slack_ns is not None else None
         if slack is None and not fifo_names:
             problems.append("timer slack: prctl(PR_SET_TIMERSLACK) is not available here")
         self.report = RealtimeReport(
@@ -199,6 +201,8 @@ class RealtimeSession:
         for tid, policy, priority in undo.fifo_tids:
             with contextlib.suppress(OSError):  # the thread may have ended
                 os.sched_setscheduler(tid, policy, os.sched_param(priority))
+        if undo.timer_slack_ns is not None:
+            _set_timer_slack(undo.timer_slack_ns)
         if undo.memory_locked:
             _libc().munlockall()
         if undo.cpus is not None:
@@ -270,6 +274,15 @@ def collect_young() -> None:
 
 def _libc() -> Any:
     return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+
+
+def _timer_slack() -> int | None:
+    """The calling thread's timer slack, or None where prctl is unavailable."""
+    try:
+        slack = int(_libc().prctl(_PR_GET_TIMERSLACK, 0, 0, 0, 0))
+    except (OSError, AttributeError):
+        return None
+    return slack if slack > 0 else None
 
 
 def _set_timer_slack(nanoseconds: int) -> int | None:

@@ -36,6 +36,16 @@ def test_gc_and_switch_interval_are_set_for_the_session_and_restored() -> None:
     assert sys.getswitchinterval() == interval
 
 
+def test_the_timer_slack_is_one_nanosecond_in_the_session_and_restored() -> None:
+    before = realtime._timer_slack()
+    if before is None:
+        pytest.skip("prctl(PR_GET_TIMERSLACK) is not available here")
+    with RealtimeSession(RealtimeConfig()) as session:
+        assert realtime._timer_slack() == 1
+        assert session.report is not None and session.report.timer_slack_ns == 1
+    assert realtime._timer_slack() == before
+
+
 def test_a_refused_fifo_is_reported_and_normal_scheduling_kept(monkeypatch: pytest.MonkeyPatch) -> None:
     def refuse(pid: int, policy: int, param: os.sched_param) -> None:
         raise PermissionError(1, "Operation not permitted")
