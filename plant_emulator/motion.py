@@ -6,7 +6,12 @@ advances the plant from :mod:`plant_emulator.physics` by one cycle period, and w
 quick stop ramp ends when the axis is at rest.
 
 In lockstep mode the device calls :meth:`AxisPhysics.tick` at each SYNC; in realtime mode
-:meth:`AxisPhysics.run_realtime` calls it on the wall clock, one cycle period per tick, SYNC or not.
+:meth:`AxisPhysics.run_realtime` calls it on the wall clock, one cycle period per tick, SYNC or not: absolute
+deadlines (no drift), ``time.sleep`` between them under the host setup of ``emulator.realtime``
+(:mod:`drivers.realtime`: timer slack 1 ns, optionally SCHED_FIFO for this thread and the CAN receive thread, so a
+tick is not tens of microseconds late by design), a tick late by less than :data:`REALTIME_MAX_LAG` periods is
+caught up at once, a longer stall restarts the clock instead of bursting. The physics is reached only through
+:meth:`Plant.step` (one step per tick, whatever the plant's implementation).
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ import numpy as np
 from canopen import objectdictionary as cod
 
 from drivers.cia402 import Obj, OperationMode, QuickStopOption
+from drivers.realtime import RealtimeSession, collect_young
 from plant_emulator.application import Cia402Application, FaultKind
 from plant_emulator.axis import Axis, Units, toward
 from plant_emulator.node import EmulatedNode
@@ -32,6 +38,7 @@ __all__ = ["AxisPhysics", "default_units"]
 VELOCITY_RESOLUTION_INDEX = 0x2000  # manufacturer object of the shipped EDS: counts of 0x606C per rpm
 RAMP_SETTLE_TIME = 3.0  # s a finished quick-stop ramp waits at most for the axis to come to rest
 REALTIME_MAX_LAG = 10  # periods behind the wall clock after which the clock restarts instead of catching up
+GC_EVERY_TICKS = 1000  # realtime: collect the young generations this often (automatic gc is off, drivers.realtime)
 _SLOW_QUICK_STOP = (QuickStopOption.SLOW_DOWN_RAMP_THEN_DISABLE, QuickStopOption.SLOW_DOWN_RAMP_STAY)
 
 
@@ -186,16 +193,21 @@ class AxisPhysics:
 
     def run_realtime(self, stop: threading.Event, lock: threading.RLock, after_tick: Callable[[], None]) -> None:
         """Tick on the wall clock until ``stop`` is set (the drive's physics thread), ``after_tick`` each time."""
-        next_tick = time.perf_counter()
-        while not stop.is_set():
-            period = self.cycle_period
-            next_tick += period
-            delay = next_tick - time.perf_counter()
-            if delay > 0:
-                stop.wait(delay)
-            elif delay < -REALTIME_MAX_LAG * period:
-                next_tick = time.perf_counter()  # fell far behind (debugger, overload): do not burst
-            with lock:
-                if self.node.alive:
-                    self.tick(period)
-                    after_tick()
+        with RealtimeSession(self.settings.realtime):
+            next_tick = time.perf_counter()
+            ticks = 0
+            while not stop.is_set():
+                period = self.cycle_period
+                next_tick += period
+                delay = next_tick - time.perf_counter()
+                if delay > 0:
+                    time.sleep(delay)  # not stop.wait(): a sleep honours the 1 ns timer slack; stop is seen next tick
+                elif delay < -REALTIME_MAX_LAG * period:
+                    next_tick = time.perf_counter()  # fell far behind (debugger, overload): do not burst
+                with lock:
+                    if self.node.alive:
+                        self.tick(period)
+                        after_tick()
+                ticks += 1
+                if ticks % GC_EVERY_TICKS == 0:
+                    collect_young()

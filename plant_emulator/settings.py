@@ -6,6 +6,7 @@ from typing import Literal
 
 from pydantic import Field
 
+from drivers.realtime import RealtimeConfig
 from foilc_hil.schema import Section
 
 
@@ -20,7 +21,10 @@ class EmulatorConfig(Section):
     timing: Literal["lockstep", "realtime"] = "lockstep"
     seed: int = 0  # physics noise seed (the plant's own ``seed`` is added to it)
     eds: str | None = None  # object dictionary; None: the shipped configs/foilc_servo.eds
-    sync_loss_cycles: float = Field(default=10.0, gt=1)  # realtime: no SYNC for this many periods -> SYNC loss
+    # realtime: no SYNC for this many periods (0x1006) -> SYNC loss; 100 rides out a busy host's stalls
+    # (docs/reliability.md, "Realtime 1 kHz") and still faults within 0.1 s of a real loss at 1 kHz
+    sync_loss_cycles: float = Field(default=100.0, gt=1)
     torque_limit_fault_cycles: int = Field(default=200, ge=0)  # torque limited this long -> over-current; 0: never
     velocity_window: float = Field(default=10.0, ge=0)  # target reached window (drive velocity units), PV mode
     standstill_velocity: float = Field(default=1.0, ge=0)  # |v| below this ends a quick stop ramp (drive units)
+    realtime: RealtimeConfig = RealtimeConfig()  # host settings of the realtime clock (drivers.realtime)

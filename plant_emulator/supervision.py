@@ -1,8 +1,13 @@
 """Supervision of the virtual drive's communication: heartbeat consumer, SYNC loss, PDO event timers.
 
 A thread polls every :data:`MONITOR_PERIOD`: a watched node (0x1016) whose heartbeat is overdue, or (realtime
-only) no SYNC for ``emulator.sync_loss_cycles`` periods while OPERATIONAL, is reported once to ``on_loss``; then
-the TPDO event timers are served.
+only) no SYNC for ``emulator.sync_loss_cycles`` periods (0x1006) while OPERATIONAL, is reported once to ``on_loss``;
+then the TPDO event timers are served.
+
+SYNC loss counts only time the drive could watch: a poll that comes more than :data:`STALL_POLLS` polling periods
+after the previous one means this process was stalled (a busy host descheduled it), and SYNCs may be waiting
+unread in its receive queue; the SYNC-loss timer then restarts instead of reporting a loss the bench did not
+cause. A real loss (the master stopped sending SYNC) is still reported one timeout after the drive can watch again.
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ from plant_emulator.pdo_engine import PdoEngine
 __all__ = ["MONITOR_PERIOD", "Supervisor"]
 
 MONITOR_PERIOD = 0.002  # s, resolution of the heartbeat consumer / SYNC-loss / event-timer supervision
+STALL_POLLS = 5  # a poll this many periods late means the process was stalled: the SYNC-loss timer restarts
 
 
 @dataclass
@@ -116,11 +122,15 @@ class Supervisor:
 
     def run(self, stop: threading.Event) -> None:
         """Poll until ``stop`` is set (the drive's supervision thread)."""
+        last_poll = time.monotonic()
         while not stop.wait(MONITOR_PERIOD):
             if not self.node.alive:
                 continue
-            now = time.monotonic()
             with self._lock:
+                now = time.monotonic()
+                if now - last_poll > STALL_POLLS * MONITOR_PERIOD and self._last_sync is not None:
+                    self._last_sync = now  # it could not watch during the stall: the timeout starts again
+                last_poll = now
                 for watch in self._watches.values():
                     if watch.deadline is not None and now > watch.deadline:
                         watch.deadline = None  # wait for the next heartbeat before watching again

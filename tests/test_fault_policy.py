@@ -316,7 +316,9 @@ def test_timing_records_carry_the_lost_feedback_flag() -> None:
 
     writer = Writer()
     records = [
-        CycleTiming(cycle, 1, "trial", cycle, 0.01 * cycle, None, 0.0, None if lost else 50.0, 1.0, 0, False, lost)
+        CycleTiming(
+            cycle, 1, "trial", cycle, 0.01 * cycle, None, 0.0, None if lost else 50.0, 1.0, 0, False, lost, False
+        )
         for cycle, lost in enumerate([False, True, False])
     ]
     McapSink(writer, None).timing(iter(records))  # type: ignore[arg-type]

@@ -38,7 +38,7 @@ def test_on_time_cycles_release_at_absolute_deadlines() -> None:
         assert 0.0 <= lateness < 5e-6
         clock.now += 0.0003  # the cycle's work
     assert releases == pytest.approx([0.0, 0.001, 0.002, 0.003, 0.004])
-    assert scheduler.missed_deadlines == 0
+    assert scheduler.skipped_deadlines == 0
     # it slept up to the spin margin before each deadline after the first, then spun
     assert all(s == pytest.approx(0.001 - 0.0003 - 0.0002, abs=5e-6) for s in clock.sleeps[1:])
 
@@ -53,7 +53,7 @@ def test_late_within_the_slot_is_lateness_not_a_miss() -> None:
     assert deadline == pytest.approx(0.001)
     assert lateness == pytest.approx(0.0006)
     assert skipped == 0
-    assert scheduler.missed_deadlines == 0
+    assert scheduler.skipped_deadlines == 0
 
 
 def test_overrun_skips_passed_deadlines_and_counts_them() -> None:
@@ -66,7 +66,7 @@ def test_overrun_skips_passed_deadlines_and_counts_them() -> None:
     assert skipped == 3
     assert deadline == pytest.approx(0.004)  # the next deadline ahead, no catch-up burst
     assert lateness == pytest.approx(0.0)
-    assert scheduler.missed_deadlines == 3
+    assert scheduler.skipped_deadlines == 3
     deadline, _, skipped = scheduler.wait()
     assert deadline == pytest.approx(0.005)
     assert skipped == 0
@@ -83,21 +83,23 @@ def test_recorder_summary_matches_numpy() -> None:
     lateness = rng.uniform(0, 1e-4, size=300)
     recorder.begin_block(10, phase="trial", trial=1)  # grows past its capacity
     for i, late in enumerate(lateness):
-        recorder.record(i * 0.001 + late, i * 0.001, late, 2e-4, 1e-5, 0, i % 50 == 0, i == 7)
+        recorder.record(i * 0.001 + late, i * 0.001, late, 2e-4, 1e-5, i % 100 == 1, i % 50 == 0, i == 7, i % 75 == 2)
     block = recorder.finish_block()
-    summary = recorder.summary(missed_deadlines=4)
+    summary = recorder.summary()
     assert block.shape == (300, len(TimingRecorder.FIELDS))
     assert summary.cycles == 300
-    assert summary.missed_deadlines == 4
+    assert summary.missed_deadlines == 4  # cycles 2, 77, 152, 227
+    assert summary.skipped_deadlines == 3  # cycles 1, 101, 201
     assert summary.late_feedback == 6
     assert summary.missing_feedback == 1
     assert summary.jitter_p99_us == pytest.approx(np.percentile(lateness, 99) * 1e6)
     assert summary.jitter_max_us == pytest.approx(lateness.max() * 1e6)
     intervals = np.diff(np.arange(300) * 0.001 + lateness)
     assert summary.cycle_time_p50_us == pytest.approx(np.median(intervals) * 1e6)
-    records = list(recorder.records(block, first_cycle=100))
+    records = list(recorder.records(block, first_cycle=100, phase="trial", trial=1))
     assert records[7].missing_feedback is True
     assert records[7].cycle == 107
+    assert [r.cycle - 100 for r in records if r.missed] == [2, 77, 152, 227]
     assert records[0].lateness_us == pytest.approx(lateness[0] * 1e6)
 
 
@@ -138,11 +140,11 @@ def test_timing_memory_stays_bounded_over_a_long_run() -> None:
         for trial in range(blocks):
             recorder.begin_block(1000, phase="trial", trial=trial)
             for i in range(1000):
-                recorder.record(i * 1e-3, i * 1e-3, 1e-5 + i * 1e-9, 2e-4, 1e-5, 0, False, False)
+                recorder.record(i * 1e-3, i * 1e-3, 1e-5 + i * 1e-9, 2e-4, 1e-5, 0, False, False, False)
             recorder.finish_block()
 
     run_blocks(40)  # past the exact limit: every distribution has switched to its histogram
     after_warm_up = retained()
     run_blocks(40)
     assert retained() == after_warm_up
-    assert recorder.summary(0).cycles == 80_000
+    assert recorder.summary().cycles == 80_000

@@ -31,7 +31,8 @@ the law and the drive, and the frame tap enqueues CAN frames for the log writer 
 ``/ilc/trial`` and ``/timing`` messages are built after the trial.
 
 Safety (:mod:`foilc_hil.loop.safety`): commands are clamped to the drive limits and the plant saturation. The
-wait for each SYNC's feedback is bounded (:attr:`LoopSettings.feedback_timeout`: one period in realtime,
+wait for each SYNC's feedback is bounded (:attr:`LoopSettings.feedback_timeout`: in realtime until
+:data:`COMMAND_MARGIN_FRACTION` of a period before the next deadline,
 ``bench.watchdog_cycles`` x :data:`LOCKSTEP_FEEDBACK_TIMEOUT` in lockstep) -- no further SYNC is sent while
 waiting, the drive holds its last command, and realtime feedback that arrives after half a period is counted late.
 A wait that expires is a *lost feedback* (``bench.faults``): counted, and the law is given the last good feedback
@@ -62,12 +63,13 @@ written before layout 2 (no ``foilc_hil.layout``) had ``t = i Ts`` and ``output 
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import math
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Protocol, cast
 
 import numpy as np
@@ -75,6 +77,7 @@ import numpy as np
 from drivers.cia402 import State402
 from drivers.drive import Feedback, StopReport
 from drivers.faults import FaultyBus, InjectionReport, require_actions
+from drivers.realtime import RealtimeConfig, RealtimeSession, collect_young, demote_current_thread
 from foilc_hil.errors import (
     DriveError,
     DriveFaultError,
@@ -123,6 +126,10 @@ LOCKSTEP_FEEDBACK_TIMEOUT = 0.1
 #: realtime: feedback arriving later than this fraction of the period after its SYNC counts as late (the command
 #: then has less than half a period to reach the drive before the next SYNC)
 LATE_FEEDBACK_FRACTION = 0.5
+#: realtime: the wait for feedback ends this fraction of a period before the next deadline, leaving time for the
+#: timed wait's own wake-up and GIL hand-over (up to ``bench.realtime.switch_interval``), the law, the limiter and
+#: the RPDO send to put the command out before the next SYNC latches it
+COMMAND_MARGIN_FRACTION = 0.25
 
 
 # --- what the loop talks to (drivers.drive.Drive, foilc_hil.laws.learning, foilc_hil.io.mcap_log) ---------------
@@ -253,6 +260,8 @@ class LoopSettings:
     #: False when the drive itself starts every trial at rest (the simulated drive resets its plant in
     #: ``before_trial``): no settle phase between trials
     settle_between_trials: bool = True
+    #: ``bench.realtime``: the host setup of a realtime run (its ``spin_margin`` is the scheduler's)
+    realtime: RealtimeConfig = field(default_factory=RealtimeConfig)
 
     @property
     def settle_cycles(self) -> int:
@@ -261,7 +270,8 @@ class LoopSettings:
 
     @property
     def feedback_timeout(self) -> float:
-        """The bound of one SYNC's wait for feedback: the period in realtime, ``watchdog_cycles`` x the lockstep
+        """The bound of one SYNC's wait for feedback: at most the period in realtime (the wait ends
+        :data:`COMMAND_MARGIN_FRACTION` of a period before the next deadline), ``watchdog_cycles`` x the lockstep
         allowance in lockstep (no deadline there: only an expired bound makes a lost feedback)."""
         if self.mode is TimingMode.REALTIME:
             return self.period
@@ -304,10 +314,18 @@ class _TrialUpdateThread:
         return update
 
     def _work(self) -> None:
+        demote_current_thread()  # bulk work: below the cyclic threads (drivers.realtime)
         try:
+            self._loop._emit_timing()
             self._verdict = self._loop._finish_trial(self._raw)
+            collect_young()  # the cyclic garbage of the trial, while the gc is off for the run (drivers.realtime)
         except BaseException as exc:  # handed to the loop's thread by result()
             self._error = exc
+
+    @property
+    def done(self) -> bool:
+        """The update has finished (successfully or not)."""
+        return not self._thread.is_alive()
 
     def result(self) -> DivergenceVerdict:
         """Wait for the update; re-raise its error in the caller's thread."""
@@ -343,8 +361,8 @@ class TrialLoop:
         The stderr view.
     stop
         The SIGINT/SIGTERM flag, polled once per cycle.
-    clock
-        ``time.perf_counter`` (injected in tests).
+    clock, sleep
+        ``time.perf_counter`` and ``time.sleep`` (injected in tests: the realtime scheduler waits with them).
     before_trial
         Called with the trial number once the axis has settled, just before the trial's first SYNC. The embedded
         emulator and the simulated drive use it to start their plant's trial (initial condition, a disturbance that
@@ -364,6 +382,7 @@ class TrialLoop:
         stop: StopRequest | None = None,
         clock: Callable[[], float] = time.perf_counter,
         before_trial: Callable[[int], None] | None = None,
+        sleep: Callable[[float], None] = time.sleep,
     ) -> None:
         ref = np.asarray(reference, dtype=float)
         if ref.ndim != 1 or ref.size == 0:
@@ -383,8 +402,16 @@ class TrialLoop:
         self.guard = DivergenceGuard(settings.divergence_factor)
         self.timing = TimingRecorder(settings.mode, settings.period)
         realtime = settings.mode is TimingMode.REALTIME
-        self.scheduler = DeadlineScheduler(settings.period, clock=clock) if realtime else None
+        self.scheduler = (
+            DeadlineScheduler(settings.period, spin_margin=settings.realtime.spin_margin, clock=clock, sleep=sleep)
+            if realtime
+            else None
+        )
+        self._command_margin = COMMAND_MARGIN_FRACTION * settings.period
         self.outcome = BenchOutcome()
+        # finished realtime blocks (rows, first cycle, phase, trial) whose /timing records are not yet logged: a
+        # trial's 6000 records take milliseconds to build, so the update thread logs them, not the loop thread
+        self._timing_backlog: collections.deque[tuple[np.ndarray, int, str, int]] = collections.deque()
         self._cycle = 0  # cycles run so far, over the whole run
         self._output_buffer = np.zeros(1)
         self._feedforward_used = np.zeros(0)
@@ -422,7 +449,7 @@ class TrialLoop:
             for trial in range(1, trials + 1):
                 # the previous trial's update (law, metrics, log) runs in `update` while the axis settles, so
                 # SYNC keeps flowing on its period between trials
-                self._settle(trial)
+                self._settle(trial, update)
                 if update is not None:
                     verdict = update.result()
                     update = None
@@ -434,6 +461,8 @@ class TrialLoop:
                 raw = self._run_trial(trial, trials)
                 update = _TrialUpdateThread.start(self, raw)
             if update is not None:
+                if self.scheduler is not None:  # realtime: the drive watches SYNC until it is stopped
+                    self._settle(trials, update, phase="final")
                 verdict = update.result()
                 update = None
                 if verdict.diverged:
@@ -446,23 +475,28 @@ class TrialLoop:
                 # an abort during the settle phase: the trial before it did complete, so finish logging it
                 with contextlib.suppress(Exception):
                     update.result()
+            self._emit_timing()
             self.outcome.clamped_commands = self._clamped_count()
             self.outcome.faults = FaultCounts(self.watchdog.total, self.drive.bad_frames)
-            self.outcome.timing = self.timing.summary(
-                self.scheduler.missed_deadlines if self.scheduler is not None else 0
-            )
+            self.outcome.timing = self.timing.summary()
         return self.outcome
 
     # -- phases --------------------------------------------------------------------------------------------------
 
-    def _settle(self, trial: int) -> None:
-        """Zero command until the axis rests within tolerance for ``settle_time`` (bounded)."""
+    def _settle(self, trial: int, update: _TrialUpdateThread | None, phase: str = "settle") -> None:
+        """Zero command until the axis rests within tolerance for ``settle_time`` (bounded).
+
+        In realtime the phase also lasts until ``update`` (the previous trial's) is done: the drive supervises SYNC,
+        so the cyclic path must not pause while the loop thread would wait for it. ``phase="final"`` is the same
+        after the last trial (``trial`` is then the last trial's number).
+        """
         if not self.settings.settle_between_trials:
             return
         needed = self.settings.settle_cycles
         limit = self.settings.settle_timeout_cycles
         tolerance = self.settings.settle_tolerance
-        self.timing.begin_block(min(limit, 4 * needed + 16), phase="settle", trial=trial)
+        pending = update if self.scheduler is not None else None
+        self.timing.begin_block(min(limit, 4 * needed + 16), phase=phase, trial=trial)
         first_cycle = self._cycle
         at_rest = 0
         try:
@@ -471,13 +505,14 @@ class TrialLoop:
                 self.drive.set_target(0.0)
                 self._finish_cycle()
                 at_rest = at_rest + 1 if abs(y) <= tolerance else 0
-                if at_rest >= needed:
+                if at_rest >= needed and (pending is None or pending.done):
                     self.outcome.settle_cycles += self._cycle - first_cycle
                     return
         finally:
             self._flush_timing(first_cycle)
+        when = "after the last trial" if phase == "final" else f"before trial {trial}"
         raise DriveError(
-            f"the axis did not come to rest before trial {trial}: |velocity| stayed above "
+            f"the axis did not come to rest {when}: |velocity| stayed above "
             f"bench.settle_tolerance {tolerance:g} for {limit} cycles ({limit * self.settings.period:g} s)"
         )
 
@@ -578,8 +613,11 @@ class TrialLoop:
         sync_time = self._clock()
         self._sync_time = sync_time
         self._deadline, self._lateness, self._skipped = deadline, lateness, skipped
+        timeout = self.watchdog.timeout
+        if self.scheduler is not None:  # wait no later than the next deadline: a lost feedback costs no deadline
+            timeout = max(0.0, self.scheduler.next_deadline - self._command_margin - sync_time)
         try:
-            feedback = self.drive.wait_feedback(self.watchdog.timeout)
+            feedback = self.drive.wait_feedback(timeout)
         except FeedbackTimeoutError as exc:
             return self._lost_feedback(exc)
         self.watchdog.answered()
@@ -606,28 +644,39 @@ class TrialLoop:
         self._received = self._clock()
         if error is not None:
             self.timing.record(
-                self._sync_time, self._deadline, self._lateness, math.nan, math.nan, self._skipped, False, True
+                self._sync_time, self._deadline, self._lateness, math.nan, math.nan, self._skipped, False, True,
+                self._received > self._deadline + self.settings.period,
             )
             raise error from cause
         return self._held
 
     def _finish_cycle(self) -> None:
+        sent = self._clock()
         self.timing.record(
             self._sync_time,
             self._deadline,
             self._lateness,
             self._latency,
-            self._clock() - self._received,
+            sent - self._received,
             self._skipped,
             self._late,
             self._missing,
+            # missed: the command went out after the next slot's SYNC should have latched it (NaN deadline: never)
+            sent > self._deadline + self.settings.period,
         )
         self._cycle += 1
 
     def _flush_timing(self, first_cycle: int) -> None:
+        phase, trial = self.timing.phase, self.timing.trial
         block = self.timing.finish_block()
         if self.log is not None and self.scheduler is not None:
-            self.log.timing(self.timing.records(block, first_cycle=first_cycle))
+            self._timing_backlog.append((block, first_cycle, phase, trial))
+
+    def _emit_timing(self) -> None:
+        """Log the ``/timing`` records of the finished blocks, in cycle order (the update thread, or the end)."""
+        while self.log is not None and self._timing_backlog:
+            block, first_cycle, phase, trial = self._timing_backlog.popleft()
+            self.log.timing(TimingRecorder.records(block, first_cycle=first_cycle, phase=phase, trial=trial))
 
     def _clamped_count(self) -> int:
         return self.limiter.clamped_count if self.limiter is not None else 0
@@ -742,6 +791,7 @@ def loop_settings(config: Any, mode: TimingMode | None = None, *, settle_between
         settle_tolerance=bench.settle_tolerance,
         max_lost_feedback=bench.faults.lost_feedback,
         settle_between_trials=settle_between_trials,
+        realtime=bench.realtime,
     )
 
 
@@ -764,6 +814,7 @@ class McapSink:
         self.writer = writer
         self.command_limits = None if command_limits is None else [float(limit) for limit in command_limits]
         writer.add_metadata(METADATA_LAYOUT, {"ilc_sample": str(SAMPLE_LAYOUT)})  # replay --verify reads rows by it
+        self._previous_sync: float | None = None  # across blocks: a settle phase's first period_us is a real one
 
     def trial_finished(self, record: TrialRecord) -> None:
         write_sample = self.writer.write_sample
@@ -785,7 +836,7 @@ class McapSink:
         self.writer.end_trial()
 
     def timing(self, records: Iterator[CycleTiming]) -> None:
-        previous: float | None = None
+        previous = self._previous_sync
         for record in records:
             sync_time = record.sync_time
             period_us = (sync_time - previous) * 1e6 if previous is not None else 0.0
@@ -797,9 +848,10 @@ class McapSink:
                 record.lateness_us if record.lateness_us is not None else 0.0,
                 period_us,
                 record.feedback_latency_us,
-                record.skipped_deadlines > 0,
+                record.missed,
                 lost_feedback=record.missing_feedback,
             )
+        self._previous_sync = previous
 
 
 @dataclass(frozen=True)
@@ -922,11 +974,15 @@ def _trial_hook(emulator: Any, faulty: FaultyBus | None) -> Callable[[int], None
     return begin_trial
 
 
-def _enable(drive: Any, config: Any) -> None:
-    """Connect, configure the drive's mode and cycle and walk it to OPERATION ENABLED."""
+def _commission(drive: Any, config: Any, session: RealtimeSession | None) -> None:
+    """Connect, enter the realtime ``session`` (if any) and configure the drive's mode and cycle (it ends in NMT
+    OPERATIONAL, not yet enabled)."""
     drive.connect()
+    if session is not None:
+        # after connect: its CAN receive thread exists to be raised; before the heartbeats are configured and SYNC
+        # is watched: entering takes a few tenths of a second (a full collection, mlockall)
+        session.__enter__()
     drive.configure(config.drive.operation_mode, config.sample_time)
-    drive.enable()
 
 
 def run_bench(request: RunRequest) -> RunReport:
@@ -946,15 +1002,23 @@ def run_bench(request: RunRequest) -> RunReport:
         with _truth_about_the_stop(stops, config.drive.node_id), contextlib.ExitStack() as stack:
             sink = _open_log(stack, request, plan)
             bus_cfg, emulator = _start_emulator(stack, config, plan.bus)
+            # undone only after the confirmed stop below (LIFO): restoring the host (the garbage collector first of
+            # all) takes a tenth of a second, which must not pass between the loop's last SYNC and the stop
+            session = _realtime_session(stack, plan.settings)
             drive, faulty = _open_drive(stack, config, bus_cfg, sink, stops, emulator)
             progress = make_progress(plan.title, quiet=request.quiet)
             stack.callback(progress.close)
             stop = stack.enter_context(StopRequest())
-            _enable(drive, config)
+            # the loop and the host setup before the drive is enabled: from its first SYNC in OPERATIONAL the drive
+            # supervises SYNC, so nothing slow may run between the enable's last SYNC and the loop's first
             loop = TrialLoop(drive, plan.law, plan.reference, plan.limiter, plan.settings, log=sink,
                              progress=progress, stop=stop, before_trial=_trial_hook(emulator, faulty))
             loops.append(loop)
+            _commission(drive, config, session)
+            drive.enable()  # walks the 402 state machine over SYNCs; the loop's first SYNC follows at once
             outcome = loop.run(plan.trials)
+            if session is not None and outcome.timing is not None:
+                outcome.timing = replace(outcome.timing, realtime=session.report)
     except FoilcHilError as exc:
         # what the run had done: the CLI's --json error document carries it (trials, the stop, the log)
         done = loops[0].outcome if loops else BenchOutcome()
@@ -983,6 +1047,16 @@ def run_bench(request: RunRequest) -> RunReport:
         drive_stop=stops[-1],
         injected=faulty.reports() if faulty is not None else [],
     )
+
+
+def _realtime_session(stack: contextlib.ExitStack, settings: LoopSettings) -> RealtimeSession | None:
+    """Realtime runs: the host setup ``bench.realtime`` (drivers.realtime), its exit registered on ``stack`` now;
+    the caller enters it (exiting a session never entered changes nothing)."""
+    if settings.mode is not TimingMode.REALTIME:
+        return None
+    session = RealtimeSession(settings.realtime)
+    stack.push(session)
+    return session
 
 
 @contextlib.contextmanager

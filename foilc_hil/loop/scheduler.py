@@ -10,12 +10,21 @@ Two timing modes drive the SYNC of the CAN loop (see :mod:`foilc_hil.loop.bench`
     not accumulate. :class:`DeadlineScheduler` sleeps until shortly before each deadline (``time.sleep`` is
     coarse: its wake-up is late by the OS timer slack) and spins the last ``spin_margin`` seconds.
 
-Missed-deadline policy (documented, counted, never silently absorbed): when a cycle starts so late that one or
-more later deadlines have already passed, those deadlines are *skipped* -- no burst of catch-up SYNCs is sent --
-and the cycle waits for the next deadline still in the future. The drive holds the last command it received in
-the meantime (RPDO values persist until replaced). Every skipped deadline is counted in ``missed_deadlines`` and
-flagged in the cycle's ``/timing`` record. A cycle that starts late but before the following deadline is not
-missed; its lateness goes into the jitter statistics.
+Deadline accounting (documented, counted, never fatal by itself). Cycle ``k`` is released at deadline ``d_k``: it
+sends SYNC ``k``, waits for the feedback, and sends its command, which the drive latches at the next SYNC
+(``d_k + period``). Two different things can go wrong:
+
+*missed deadline*
+    The cycle's command went out after ``d_k + period``: the drive latched the previous command once more. Counted
+    once per cycle (``missed_deadlines``, the ``/timing`` record's ``missed``), so ``missed_deadlines <= cycles``.
+    The cycle still completes; the next SYNC is released as soon as possible (late, or on a later slot).
+*skipped deadline*
+    A deadline slot on which no SYNC was sent at all: the loop reached its wait more than a period after the slot's
+    deadline (a host stall). No burst of catch-up SYNCs is sent; the cycle is released on the next slot still in
+    the future, and every slot passed over is counted in ``skipped_deadlines`` (any number per stall: a 50 ms stall
+    at 1 kHz skips about 50). The drive holds the last command meanwhile (RPDO values persist until replaced).
+
+A cycle released late but before the following slot is neither: its lateness goes into the jitter statistics.
 
 :class:`TimingRecorder` keeps the per-cycle measurements in preallocated arrays (the hot path only writes into
 them) and turns them into ``/timing`` records and summary statistics off the hot path.
@@ -31,6 +40,7 @@ from typing import Any
 
 import numpy as np
 
+from drivers.realtime import RealtimeConfig, RealtimeReport
 from plant_emulator.device import TimingMode
 
 __all__ = [
@@ -40,8 +50,9 @@ __all__ = [
     "TimingSummary",
 ]
 
-#: default spin window before each deadline, seconds: covers the usual Linux timer slack (50 us) with margin
-DEFAULT_SPIN_MARGIN = 0.0008
+#: default spin window before each deadline, seconds (``bench.realtime.spin_margin``): covers the wake-up latency of
+#: a sleep with the timer slack set to 1 ns (drivers.realtime), measured at tens of microseconds on this machine
+DEFAULT_SPIN_MARGIN: float = RealtimeConfig.model_fields["spin_margin"].default
 
 
 class DeadlineScheduler:
@@ -75,13 +86,18 @@ class DeadlineScheduler:
         self._sleep = sleep
         self._t0 = 0.0
         self._next_index = 0
-        self.missed_deadlines = 0
+        self.skipped_deadlines = 0
 
     def start(self, t0: float | None = None) -> None:
         """Set the time origin: deadline ``k`` is ``t0 + k * period``; the first :meth:`wait` targets ``k = 0``."""
         self._t0 = self._clock() if t0 is None else float(t0)
         self._next_index = 0
-        self.missed_deadlines = 0
+        self.skipped_deadlines = 0
+
+    @property
+    def next_deadline(self) -> float:
+        """The deadline the next :meth:`wait` targets unless it is already past (the current cycle's end)."""
+        return self._t0 + self._next_index * self.period
 
     def deadline(self, index: int) -> float:
         """The absolute time of deadline ``index``."""
@@ -97,7 +113,7 @@ class DeadlineScheduler:
         lateness
             How late the release is, seconds (``clock() - deadline`` on return, >= 0 up to clock resolution).
         skipped
-            How many earlier deadlines passed without a cycle (counted into :attr:`missed_deadlines`).
+            How many earlier deadline slots passed without a SYNC (counted into :attr:`skipped_deadlines`).
         """
         index = self._next_index
         deadline = self._t0 + index * self.period
@@ -113,7 +129,7 @@ class DeadlineScheduler:
                 index += 1
                 skipped += 1
                 deadline += self.period
-            self.missed_deadlines += skipped
+            self.skipped_deadlines += skipped
         remaining = deadline - now
         if remaining > self.spin_margin:
             self._sleep(remaining - self.spin_margin)
@@ -131,13 +147,16 @@ class TimingSummary:
     Jitter is the release lateness of each cycle (actual SYNC time minus its deadline); in lockstep runs there are
     no deadlines and the jitter fields are ``None``. ``cycle_time`` is the interval between consecutive SYNCs;
     ``compute`` is the bench's own share of a cycle, from the feedback handed to the loop to the command sent
-    (law, clamp, RPDO encode and send, log enqueue).
+    (law, clamp, RPDO encode and send, log enqueue). ``missed_deadlines`` (<= ``cycles``) and
+    ``skipped_deadlines`` are defined in the module docstring; ``realtime`` is what the host setup applied
+    (:class:`drivers.realtime.RealtimeReport`; ``None`` in lockstep).
     """
 
     mode: TimingMode
     period: float
     cycles: int
     missed_deadlines: int
+    skipped_deadlines: int
     late_feedback: int
     missing_feedback: int
     jitter_p50_us: float | None
@@ -149,10 +168,12 @@ class TimingSummary:
     compute_p50_us: float | None
     compute_p99_us: float | None
     cycles_per_second: float | None
+    realtime: RealtimeReport | None = None
 
     def to_json(self) -> dict[str, Any]:
         document = {key: getattr(self, key) for key in self.__dataclass_fields__}
         document["mode"] = str(self.mode)  # the plain string value, as the JSON document has always had it
+        document["realtime"] = self.realtime.to_json() if self.realtime is not None else None
         return document
 
 
@@ -176,6 +197,7 @@ class CycleTiming:
     skipped_deadlines: int
     late_feedback: bool
     missing_feedback: bool
+    missed: bool
 
 
 class StreamingDistribution:
@@ -252,11 +274,13 @@ class TimingRecorder:
 
     Per cycle: the SYNC send time ``sync_time`` (perf_counter seconds), the deadline (NaN in lockstep), the
     release lateness, the feedback latency (SYNC to TPDO handed to the loop), the cycle's compute time (feedback
-    in to command sent), how many deadlines were skipped before it, and whether the feedback was late (arrived
-    after the next deadline) or missing.
+    in to command sent), how many deadline slots were skipped before it, whether the feedback was late (after half
+    a period) or missing, and whether the cycle missed its deadline (command after the next slot).
     """
 
-    FIELDS = ("sync_time", "deadline", "lateness", "feedback_latency", "compute_time", "skipped", "late", "missing")
+    FIELDS = (
+        "sync_time", "deadline", "lateness", "feedback_latency", "compute_time", "skipped", "late", "missing", "missed"
+    )
 
     def __init__(self, mode: TimingMode, period: float) -> None:
         self.mode = mode
@@ -268,18 +292,20 @@ class TimingRecorder:
         self._cycles = 0
         self._late_feedback = 0
         self._missing_feedback = 0
+        self._missed = 0
+        self._skipped = 0
         self._current: np.ndarray = np.empty((0, len(self.FIELDS)))
         self._count = 0
-        self._phase = ""
-        self._trial = 0
+        self.phase = ""  # the current block's phase and trial
+        self.trial = 0
         self._started_at = time.perf_counter()
 
     def begin_block(self, capacity: int, *, phase: str, trial: int) -> None:
         """Preallocate room for ``capacity`` cycles of the next phase (``"trial"`` or ``"settle"``)."""
         self._current = np.full((max(capacity, 0), len(self.FIELDS)), np.nan)
         self._count = 0
-        self._phase = phase
-        self._trial = trial
+        self.phase = phase
+        self.trial = trial
 
     def record(
         self,
@@ -291,6 +317,7 @@ class TimingRecorder:
         skipped: int,
         late: bool,
         missing: bool,
+        missed: bool,
     ) -> None:
         """Store one cycle (hot path: writes into the preallocated row; grows only past the capacity)."""
         if self._count >= self._current.shape[0]:
@@ -306,6 +333,7 @@ class TimingRecorder:
         row[5] = skipped
         row[6] = 1.0 if late else 0.0
         row[7] = 1.0 if missing else 0.0
+        row[8] = 1.0 if missed else 0.0
         self._count += 1
 
     def finish_block(self) -> np.ndarray:
@@ -317,17 +345,20 @@ class TimingRecorder:
         self._cycles += int(block.shape[0])
         self._late_feedback += int(np.sum(block[:, 6]))
         self._missing_feedback += int(np.sum(block[:, 7]))
+        self._missed += int(np.sum(block[:, 8]))
+        self._skipped += int(np.sum(block[:, 5]))
         self._current = np.empty((0, len(self.FIELDS)))
         self._count = 0
         return block
 
-    def records(self, block: np.ndarray, *, first_cycle: int) -> Iterator[CycleTiming]:
+    @staticmethod
+    def records(block: np.ndarray, *, first_cycle: int, phase: str, trial: int) -> Iterator[CycleTiming]:
         """The cycles of a finished block, one record each (the source of the ``/timing`` messages)."""
         for offset, row in enumerate(block):
             yield CycleTiming(
                 cycle=first_cycle + offset,
-                trial=self._trial,
-                phase=self._phase,
+                trial=trial,
+                phase=phase,
                 sample=offset,
                 sync_time=float(row[0]),
                 deadline=None if math.isnan(row[1]) else float(row[1]),
@@ -337,9 +368,10 @@ class TimingRecorder:
                 skipped_deadlines=int(row[5]),
                 late_feedback=bool(row[6]),
                 missing_feedback=bool(row[7]),
+                missed=bool(row[8]),
             )
 
-    def summary(self, missed_deadlines: int) -> TimingSummary:
+    def summary(self) -> TimingSummary:
         """Statistics over every finished block (see :class:`StreamingDistribution` for their precision)."""
         cycles = self._cycles
         elapsed = time.perf_counter() - self._started_at
@@ -348,7 +380,8 @@ class TimingRecorder:
             mode=self.mode,
             period=self.period,
             cycles=cycles,
-            missed_deadlines=int(missed_deadlines),
+            missed_deadlines=self._missed,
+            skipped_deadlines=self._skipped,
             late_feedback=self._late_feedback,
             missing_feedback=self._missing_feedback,
             jitter_p50_us=jitter[0],

@@ -1,0 +1,39 @@
+"""The realtime benchmark's SYNC statistics on synthetic receive times whose lateness is known by construction."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from benchmarks.realtime import LATENESS_WINDOW, answer_times, sync_statistics
+
+PERIOD = 0.001
+
+
+def test_lateness_and_empty_slots_under_clock_drift_and_a_phase_jump() -> None:
+    slots = np.arange(3000)
+    late = np.where(slots % 10 == 3, 300e-6, 0.0)  # every tenth SYNC 300 us late, the others on their slot
+    phase = np.where(slots < 1500, 0.0, 0.0002)  # the grid jumps by 0.2 ms at slot 1500 (a start-up phase ends)
+    times = 50.0 + slots * PERIOD * (1 + 3e-5) + late + phase  # the sender's clock runs 30 ppm fast
+    keep = ~np.isin(slots, [700, 701, 702])  # three slots without a SYNC
+    stats = sync_statistics(times[keep], PERIOD)
+    assert stats["syncs"] == 2997
+    assert stats["empty_slots"] == 3 and stats["intervals_over_1_5_periods"] == 1
+    lateness = stats["lateness_us"]
+    # the LATENESS_WINDOW SYNCs after the jump are judged against the earlier grid: 0.2 ms late, 0.5 ms if also
+    # late themselves; the top 1 % is otherwise the tenth of SYNCs 0.3 ms late. Drift within a window: 30 ppm x
+    # 1 ms x the window's width.
+    drift = 3e-5 * PERIOD * (2 * LATENESS_WINDOW + 1) * 1e6
+    assert lateness["max"] == pytest.approx(500.0, abs=drift + 1e-3)
+    assert lateness["p99"] == pytest.approx(300.0, abs=drift + 1e-3)
+    assert lateness["p50"] == pytest.approx(0.0, abs=drift + 1e-3)
+    assert np.percentile(np.abs(np.diff(times[keep]) - PERIOD), 50) * 1e6 == pytest.approx(
+        stats["interval_deviation_us"]["p50"]
+    )
+
+
+def test_answer_times_pair_each_sync_with_the_first_tpdo1_after_it() -> None:
+    frames = np.array(
+        [[0x80, 1.0], [0x181, 1.0002], [0x281, 1.0003], [0x181, 1.0004], [0x80, 1.001], [0x80, 1.002], [0x181, 1.0025]]
+    )
+    assert answer_times(frames) == pytest.approx([0.0002, 0.0005])

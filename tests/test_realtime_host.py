@@ -1,0 +1,179 @@
+"""The host setup of a realtime run (drivers.realtime): applied, reported, restored; a refusal is reported."""
+
+from __future__ import annotations
+
+import gc
+import os
+import sys
+import threading
+
+import pytest
+
+from drivers import realtime
+from drivers.realtime import HELPER_PRIORITY_OFFSET, GcPolicy, RealtimeConfig, RealtimeSession
+
+
+def _fifo_permitted() -> bool:
+    before = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+    except OSError:
+        return False
+    os.sched_setscheduler(0, before[0], before[1])
+    return True
+
+
+def test_gc_and_switch_interval_are_set_for_the_session_and_restored() -> None:
+    interval = sys.getswitchinterval()
+    assert gc.isenabled()
+    with RealtimeSession(RealtimeConfig(gc=GcPolicy.FREEZE, switch_interval=0.0003)) as session:
+        assert not gc.isenabled()
+        assert gc.get_freeze_count() > 0
+        assert sys.getswitchinterval() == pytest.approx(0.0003)
+        assert session.report is not None
+        assert session.report.gc == "frozen" and session.report.switch_interval == pytest.approx(0.0003)
+    assert gc.isenabled() and gc.get_freeze_count() == 0
+    assert sys.getswitchinterval() == interval
+
+
+def test_the_timer_slack_is_one_nanosecond_in_the_session_and_restored() -> None:
+    before = realtime._timer_slack()
+    if before is None:
+        pytest.skip("prctl(PR_GET_TIMERSLACK) is not available here")
+    with RealtimeSession(RealtimeConfig()) as session:
+        assert realtime._timer_slack() == 1
+        assert session.report is not None and session.report.timer_slack_ns == 1
+    assert realtime._timer_slack() == before
+
+
+def test_a_refused_fifo_is_reported_and_normal_scheduling_kept(monkeypatch: pytest.MonkeyPatch) -> None:
+    def refuse(pid: int, policy: int, param: os.sched_param) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(realtime.os, "sched_setscheduler", refuse)
+    with RealtimeSession(RealtimeConfig(sched_fifo_priority=50)) as session:
+        report = session.report
+        assert report is not None
+        assert report.scheduler == "SCHED_OTHER" and report.fifo_threads == ()
+        assert any("sched_fifo_priority 50" in line and "not permitted" in line for line in report.not_applied)
+        assert report.to_json()["not_applied"] == list(report.not_applied)
+
+
+@pytest.mark.skipif(not _fifo_permitted(), reason="this host does not permit SCHED_FIFO (the refusal is tested above)")
+def test_fifo_for_the_cyclic_threads_and_below_for_the_helpers_then_restored() -> None:
+    release = threading.Event()
+    seen: dict[str, tuple[int, int]] = {}
+
+    def helper() -> None:
+        release.wait(10)
+
+    def started_by_the_cyclic_thread() -> None:
+        realtime.demote_current_thread()
+        seen["child"] = os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
+
+    worker = threading.Thread(target=helper, name="helper")
+    worker.start()
+    try:
+        before = os.sched_getscheduler(0)
+        with RealtimeSession(RealtimeConfig(sched_fifo_priority=30), cyclic_threads=[]) as session:
+            assert os.sched_getscheduler(0) == os.SCHED_FIFO and os.sched_getparam(0).sched_priority == 30
+            assert worker.native_id is not None
+            assert os.sched_getscheduler(worker.native_id) == os.SCHED_FIFO
+            assert os.sched_getparam(worker.native_id).sched_priority == 30 - HELPER_PRIORITY_OFFSET
+            child = threading.Thread(target=started_by_the_cyclic_thread)  # inherits priority 30
+            child.start()
+            child.join()
+            assert session.report is not None and session.report.scheduler == "SCHED_FIFO 30"
+            assert session.report.fifo_threads == (threading.current_thread().name,)
+        assert seen["child"] == (os.SCHED_FIFO, 30 - HELPER_PRIORITY_OFFSET)
+        assert os.sched_getscheduler(0) == before
+        assert os.sched_getscheduler(worker.native_id) == before
+    finally:
+        release.set()
+        worker.join()
+
+
+def test_affinity_is_set_and_restored_and_a_bad_cpu_is_reported() -> None:
+    before = os.sched_getaffinity(0)
+    cpu = min(before)
+    with RealtimeSession(RealtimeConfig(cpus=[cpu])) as session:
+        assert os.sched_getaffinity(0) == {cpu}
+        assert session.report is not None and session.report.cpus == (cpu,)
+    assert os.sched_getaffinity(0) == before
+    with RealtimeSession(RealtimeConfig(cpus=[4096])) as session:
+        assert session.report is not None and any(line.startswith("cpus [4096]") for line in session.report.not_applied)
+        assert os.sched_getaffinity(0) == before
+
+
+def test_exiting_a_session_never_entered_changes_nothing() -> None:
+    interval = sys.getswitchinterval()
+    RealtimeSession(RealtimeConfig(sched_fifo_priority=10, lock_memory=True)).__exit__(None, None, None)
+    assert gc.isenabled() and sys.getswitchinterval() == interval
+
+
+# --- the emulator's SYNC-loss supervision: time it could not watch does not count --------------------------------
+
+
+class _Node:
+    alive = True
+    link = None
+
+    def __init__(self) -> None:
+        from drivers.cia301 import NmtState
+
+        self.nmt_state = NmtState.OPERATIONAL
+
+
+class _Pdos:
+    def send_event_driven(self, timer_only: bool = False) -> None:
+        pass
+
+
+class _ScriptedPolls:
+    """The supervisor's ``stop``: each wait moves the fake monotonic clock to the next scripted poll time."""
+
+    def __init__(self, clock: list[float], polls: list[float]) -> None:
+        self.clock = clock
+        self.polls = list(polls)
+
+    def wait(self, timeout: float) -> bool:
+        if not self.polls:
+            return True
+        self.clock[0] = self.polls.pop(0)
+        return False
+
+
+def _losses(monkeypatch: pytest.MonkeyPatch, polls: list[float]) -> list[tuple[float, object]]:
+    from plant_emulator import supervision
+    from plant_emulator.supervision import Supervisor
+
+    clock = [0.0]
+    monkeypatch.setattr(supervision.time, "monotonic", lambda: clock[0])
+    losses: list[tuple[float, object]] = []
+    supervisor = Supervisor(
+        _Node(),  # type: ignore[arg-type]
+        threading.RLock(),
+        _Pdos(),  # type: ignore[arg-type]
+        on_loss=lambda kind: losses.append((clock[0], kind)),
+        cycle_period=lambda: 0.001,
+        sync_loss_cycles=100,  # 0.1 s
+    )
+    supervisor.sync_received()  # at t = 0
+    supervisor.run(_ScriptedPolls(clock, polls))  # type: ignore[arg-type]
+    return losses
+
+
+def test_sync_loss_is_reported_one_timeout_after_the_last_sync(monkeypatch: pytest.MonkeyPatch) -> None:
+    from plant_emulator.application import FaultKind
+
+    polls = [0.002 * k for k in range(1, 80)]  # regular polls up to 0.158 s
+    assert _losses(monkeypatch, polls) == [(pytest.approx(0.102), FaultKind.SYNC_LOSS)]
+
+
+def test_a_stall_of_the_emulator_itself_restarts_the_sync_loss_timer(monkeypatch: pytest.MonkeyPatch) -> None:
+    from plant_emulator.application import FaultKind
+
+    # polled regularly to 10 ms, then this process is stalled for half a second (SYNCs may be waiting unread)
+    polls = [0.002 * k for k in range(1, 6)] + [0.5 + 0.002 * k for k in range(0, 80)]
+    # no loss for the stall; a real one (no SYNC ever again) one timeout after the watch resumed
+    assert _losses(monkeypatch, polls) == [(pytest.approx(0.602), FaultKind.SYNC_LOSS)]
