@@ -30,6 +30,7 @@ import pytest
 import yaml
 from mcap.reader import make_reader
 
+from drivers.bus import open_bus
 from drivers.cia301 import FunctionCode, NmtCommand, cob_id
 from drivers.cia402 import Command402, State402, decode_state
 from drivers.drive import DISABLED_STATES
@@ -112,7 +113,7 @@ def run_cli(config_path: Path, channel: str, out: Path, trials: int) -> int:
             "--config",
             str(config_path),
             "--bus",
-            f"virtual:{channel}",
+            f"inprocess:{channel}",
             "--trials",
             str(trials),
             "--out",
@@ -236,13 +237,16 @@ def test_third_party_nmt_mid_trial_ends_confirmed_disabled(
     config_path = bench_config(tmp_path, watchdog_cycles=3)
     document = yaml.safe_load(config_path.read_text(encoding="utf-8"))
     document["drive"]["abort_connection_option"] = abort_option
+    # lockstep time is the SYNC count, as on a real bus: the heartbeat must report the NMT change before the feedback
+    # watchdog trips (lost_feedback 3 + 1 SYNCs = 20 ms), so it beats every 10 ms here (the default is 100 ms)
+    document["drive"]["heartbeat_producer_ms"] = 10
     config_path.write_text(yaml.safe_dump(document), encoding="utf-8")
     config = load_config(config_path)
     emulator = EmbeddedEmulator.from_config(config)
     out = tmp_path / "nmt.mcap"
     with emulator:
         def third_party_nmt() -> None:
-            with can.Bus(interface="virtual", channel=emulator.channel) as bus:
+            with open_bus(emulator.bus_config) as bus:  # a third node on the emulator's channel
                 bus.send(can.Message(arbitration_id=0, data=[int(command), NODE], is_extended_id=False))
 
         watcher = when_mid_trial(emulator, out, 1, third_party_nmt)

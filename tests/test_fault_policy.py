@@ -18,6 +18,7 @@ import can
 import numpy as np
 import pytest
 
+from drivers.bus import open_bus
 from drivers.cia301 import FunctionCode, NmtCommand, cob_id
 from drivers.cia402 import State402
 from drivers.drive import DISABLED_STATES
@@ -107,7 +108,7 @@ def run(config_path: Path, channel: str, out: Path, trials: int, capsys: pytest.
     int, dict[str, Any] | None, list[str]
 ]:
     """``foilc-hil run --json`` against ``channel``: exit code, the JSON document (if any) and stderr's lines."""
-    code = main(["run", "--config", str(config_path), "--bus", f"virtual:{channel}", "--trials", str(trials),
+    code = main(["run", "--config", str(config_path), "--bus", f"inprocess:{channel}", "--trials", str(trials),
                  "--out", str(out), "--quiet", "--json"])
     captured = capsys.readouterr()
     document = json.loads(captured.out) if captured.out.strip() else None
@@ -197,11 +198,13 @@ def test_nmt_stop_mid_trial_raises_the_typed_error_in_process(
     emulator_factory: Callable[..., tuple[Any, Path]], tmp_path: Path
 ) -> None:
     emulator, config_path = emulator_factory()
-    config = load_config(config_path, {"bus.interface": "virtual", "bus.channel": emulator.channel})
+    # the heartbeat (10 ms) reports the NMT change before the feedback watchdog (4 SYNCs = 20 ms of lockstep time)
+    config = load_config(config_path, {"bus.interface": "inprocess", "bus.channel": emulator.channel,
+                                       "drive.heartbeat_producer_ms": 10})
     out = tmp_path / "nmt.mcap"
 
     def nmt_stop() -> None:
-        with can.Bus(interface="virtual", channel=emulator.channel) as bus:
+        with open_bus(emulator.bus_config) as bus:  # a third node on the emulator's channel
             bus.send(can.Message(arbitration_id=0, data=[int(NmtCommand.STOP), NODE], is_extended_id=False))
 
     watcher = when_mid_trial(emulator, out, 0, nmt_stop)
