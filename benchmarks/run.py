@@ -26,7 +26,7 @@ def collect(repeats: int = 3) -> dict[str, Any]:
     import tempfile
     from pathlib import Path
 
-    from benchmarks import bench_logging, bench_loop, bench_science
+    from benchmarks import bench_lockstep, bench_logging, bench_loop, bench_science
 
     bench_loop.can_lockstep(logged=False, trials=1)  # warm-up: imports, EDS parsing, first design
     no_log: list[dict[str, Any]] = []
@@ -47,6 +47,9 @@ def collect(repeats: int = 3) -> dict[str, Any]:
         },
         "science": bench_science.collect(),
         "loop_only": bench_loop.loop_only(),
+        # foilc-hil run on the embedded emulator (in-process transport and, for contrast, python-can virtual
+        # buses), first-order and PMSM plant, against a hand-written python-can lockstep loop, interleaved
+        "lockstep_vs_handwritten": bench_lockstep.collect(repeats),
         "can_lockstep_virtual": {
             "without_logging": without,
             "with_logging": with_log,

@@ -283,14 +283,16 @@ class InProcessBus(can.BusABC):
         with self._arrived:
             if not self._queue and (timeout is None or timeout > 0):
                 self._arrived.wait(timeout)
-            return (self._queue.popleft() if self._queue else None), False
+            return (self._queue.popleft() if self._queue else None), True  # filtered on delivery
 
     def _deliver(self, msg: can.Message) -> None:
-        """Called by the pump: to the notifier's listeners (filters applied), or onto the receive queue."""
+        """Called by the pump: frames that pass the bus's filters (python-can's ``_matches_filters``, applied here
+        as a controller's acceptance filter would) go to the notifier's listeners, or onto the receive queue."""
+        if not self._matches_filters(msg):
+            return
         notifier = self._notifier
         if notifier is not None:
-            if self._matches_filters(msg):
-                notifier.deliver(msg)
+            notifier.deliver(msg)
             return
         with self._arrived:
             self._queue.append(msg)

@@ -22,6 +22,7 @@ from hypothesis import event, example, given
 from hypothesis import strategies as st
 
 from drivers.bus import open_bus
+from drivers.inprocess import InProcessNotifier
 from drivers.cia301 import NMT_COB_ID, RPDO_BASES, SYNC_COB_ID, TPDO_BASES, FunctionCode, NmtCommand, cob_id
 from drivers.cia402 import Obj, OperationMode
 from drivers.cia402_master import Cia402Drive
@@ -80,6 +81,8 @@ def callback_errors() -> Iterator[CallbackErrors]:
 def notifier_alive(network: canopen.Network) -> bool:
     notifier = network.notifier
     assert notifier is not None
+    if isinstance(notifier, InProcessNotifier):  # no reader thread: alive while it delivers (a listener error ends it)
+        return not notifier.stopped and notifier.exception is None
     readers = [reader for reader in notifier._readers if isinstance(reader, threading.Thread)]
     return bool(readers) and all(reader.is_alive() for reader in readers)
 
