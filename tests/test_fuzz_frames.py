@@ -22,11 +22,11 @@ from hypothesis import event, example, given
 from hypothesis import strategies as st
 
 from drivers.bus import open_bus
-from drivers.inprocess import InProcessNotifier
 from drivers.cia301 import NMT_COB_ID, RPDO_BASES, SYNC_COB_ID, TPDO_BASES, FunctionCode, NmtCommand, cob_id
 from drivers.cia402 import Obj, OperationMode
 from drivers.cia402_master import Cia402Drive
 from drivers.config import DriveConfig
+from drivers.inprocess import InProcessNotifier
 from foilc_hil.errors import FoilcHilError
 from plant_emulator.config import PlantConfig
 from plant_emulator.embedded import EmbeddedEmulator

@@ -207,15 +207,16 @@ def test_connect_network_starts_no_thread_on_an_inprocess_bus(channel: str) -> N
     with InProcessBus(channel) as bus, InProcessBus(channel) as other:
         network = canopen.Network(bus)
         connect_network(network)
+        notifier = network.notifier
+        assert isinstance(notifier, InProcessNotifier)
         try:
-            assert isinstance(network.notifier, InProcessNotifier)
             assert set(threading.enumerate()) == before
             got: list[bytes] = []
             network.subscribe(0x181, lambda can_id, data, timestamp: got.append(bytes(data)))
             other.send(frame(0x181, 5))
             assert got == [b"\x05"]
         finally:
-            network.notifier.stop()
+            notifier.stop()
 
 
 # --- the lockstep clock and periodic tasks ------------------------------------------------------------------------

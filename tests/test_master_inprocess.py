@@ -88,11 +88,11 @@ def test_sync_advances_lockstep_time_by_one_period(bus: InProcessBus, emulator: 
 
 
 def test_an_unanswered_sync_is_known_at_once_without_a_deadline(
-    bus: InProcessBus, emulator: EmbeddedEmulator
+    bus: InProcessBus, emulator: EmbeddedEmulator, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     master = _enabled_master(bus)
     try:
-        emulator.drive.pdos.send_synchronous = lambda: None  # the drive skips its TPDO set from now on
+        monkeypatch.setattr(emulator.drive.pdos, "send_synchronous", lambda: None)  # no TPDO set from now on
         master.sync()
         clock = _clock(bus)
         before = clock.now()
@@ -151,7 +151,7 @@ def test_no_boot_up_is_a_wait_in_lockstep_time(bus: InProcessBus) -> None:
     master = Cia402Drive.open(bus, cfg, sample_time=PERIOD)
     try:
         start = _clock(bus).now()
-        with pytest.raises(DriveTimeoutError, match="no boot-up from node 4 within 5.0 s"):
+        with pytest.raises(DriveTimeoutError, match=r"no boot-up from node 4 within 5\.0 s"):
             master.connect()
         assert _clock(bus).now() - start == pytest.approx(5.0)  # the whole allowance passed, as simulated time
     finally:
