@@ -272,10 +272,8 @@ class Cia402Drive(Drive):
         # The tap goes first so a received frame is shown before canopen dispatches it: traces stay causal.
         self.network.listeners.insert(0, self._tap)  # type: ignore[arg-type]
         self.network.listeners.append(self._unknown)  # type: ignore[arg-type]
-        self._timebase = timebase_of(bus)
         self.node = canopen.RemoteNode(self.node_id, od)
-        # on a synchronous bus the answer is in the queue when the request's send returns, or never comes
-        self.node.sdo.RESPONSE_TIMEOUT = 0.0 if self._timebase.synchronous else cfg.sdo_timeout
+        self._init_waits(bus)
         self.network.add_node(self.node)
         self._master_nmt: NmtMaster = self.node.nmt
 
@@ -297,9 +295,6 @@ class Cia402Drive(Drive):
         # the final stop reports it even when another error (e.g. the drive's own EMCY) ended the run first
         self._nmt_departure: DriveNmtStateError | None = None
 
-        lockstep = self._timebase if isinstance(self._timebase, LockstepClock) else None
-        self.heartbeat = HeartbeatMonitor(self.node_id, lockstep=lockstep)
-        self._sync_at = -math.inf  # lockstep: the simulated time of the last SYNC
         self._producer: HeartbeatProducer | None = None
 
         # control-thread state
@@ -329,6 +324,15 @@ class Cia402Drive(Drive):
         self.network.subscribe(heartbeat_cob, self._on_heartbeat)
         self.network.unsubscribe(NMT_COB_ID, self._master_nmt.on_command)
         self.network.subscribe(NMT_COB_ID, self._on_nmt_command)
+
+    def _init_waits(self, bus: can.BusABC) -> None:
+        """Every wait of the master runs on the bus's timebase (module docstring, "Waiting")."""
+        self._timebase = timebase_of(bus)
+        # on a synchronous bus the answer is in the queue when the request's send returns, or never comes
+        self.node.sdo.RESPONSE_TIMEOUT = 0.0 if self._timebase.synchronous else self.cfg.sdo_timeout
+        lockstep = self._timebase if isinstance(self._timebase, LockstepClock) else None
+        self.heartbeat = HeartbeatMonitor(self.node_id, lockstep=lockstep)
+        self._sync_at = -math.inf  # lockstep: the simulated time of the last SYNC
 
     # --- construction -----------------------------------------------------------------------------------------
 
