@@ -207,21 +207,28 @@ class _Channel:
 
 
 def _received_copy(msg: can.Message, channel: str) -> can.Message:
-    """What receivers get: one copy per frame (the sender may reuse or change its message), stamped now."""
-    return can.Message(
-        timestamp=time.time(),
-        arbitration_id=msg.arbitration_id,
-        is_extended_id=msg.is_extended_id,
-        is_remote_frame=msg.is_remote_frame,
-        is_error_frame=msg.is_error_frame,
-        channel=channel,
-        dlc=msg.dlc,
-        data=bytes(msg.data),
-        is_fd=msg.is_fd,
-        is_rx=True,
-        bitrate_switch=msg.bitrate_switch,
-        error_state_indicator=msg.error_state_indicator,
-    )
+    """What receivers get: one copy per frame (the sender may reuse or change its message), stamped now.
+
+    Every slot of ``can.Message`` is set here without ``Message.__init__``, whose argument checks cost four times
+    the copy on the hot path (3 us against 0.7 us); ``tests/test_inprocess_bus.py`` fails if python-can adds a slot.
+    """
+    copy = _new_message(can.Message)
+    copy.timestamp = time.time()
+    copy.arbitration_id = msg.arbitration_id
+    copy.is_extended_id = msg.is_extended_id
+    copy.is_remote_frame = msg.is_remote_frame
+    copy.is_error_frame = msg.is_error_frame
+    copy.channel = channel
+    copy.dlc = msg.dlc
+    copy.data = bytearray(msg.data)
+    copy.is_fd = msg.is_fd
+    copy.is_rx = True
+    copy.bitrate_switch = msg.bitrate_switch
+    copy.error_state_indicator = msg.error_state_indicator
+    return copy
+
+
+_new_message = can.Message.__new__
 
 
 _channels: dict[str, _Channel] = {}

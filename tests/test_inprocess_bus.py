@@ -129,6 +129,19 @@ def test_receivers_get_a_copy_not_the_senders_message(channel: str) -> None:
         assert received is not None and bytes(received.data) == b"\x01\x02"
 
 
+def test_the_received_copy_sets_every_slot_of_a_message(channel: str) -> None:
+    sent = can.Message(arbitration_id=0x1ABCDE, is_extended_id=True, data=b"\x01\x02", is_fd=True,
+                       bitrate_switch=True, error_state_indicator=True, channel="sender")
+    with InProcessBus(channel) as master, InProcessBus(channel) as reader:
+        master.send(sent)
+        received = reader.recv(0)
+    assert received is not None
+    stamped = {"timestamp", "channel", "is_rx"}  # the receiver's own: when, where, which way
+    for name in set(can.Message.__slots__) - {"__weakref__"} - stamped:
+        assert getattr(received, name) == getattr(sent, name), name  # an unset slot raises AttributeError here
+    assert received.channel == channel and received.is_rx and received.timestamp > 0
+
+
 def test_a_listener_error_is_kept_and_ends_notification_like_pythoncans_thread(channel: str) -> None:
     class Broken(can.Listener):
         def on_message_received(self, msg: can.Message) -> None:
