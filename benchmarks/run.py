@@ -54,13 +54,14 @@ def collect(repeats: int = 3) -> dict[str, Any]:
     import tempfile
     from pathlib import Path
 
-    from benchmarks import bench_logging, bench_loop, bench_physics, bench_science, bench_simulate
+    from benchmarks import bench_lockstep, bench_logging, bench_loop, bench_physics, bench_science, bench_simulate
 
     started_load = os.getloadavg()[0]
     date = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M")
     physics = bench_physics.physics_comparisons(repeats=max(repeats, 5))
     simulated = bench_simulate.simulate_comparisons(repeats)
     lockstep, lockstep_row = _lockstep(repeats)
+    lockstep_peer, lockstep_rows = bench_lockstep.collect(repeats)
     with tempfile.TemporaryDirectory() as directory:
         logging_costs = bench_logging.per_call_costs(Path(directory))
         writers = bench_logging.writer_comparisons(Path(directory), repeats=repeats)
@@ -73,12 +74,15 @@ def collect(repeats: int = 3) -> dict[str, Any]:
             "cpus": os.cpu_count(),
             "load_average_1min": started_load,
         },
-        "comparisons": comparisons_json([*physics, *simulated, lockstep_row, *writers]),
+        "comparisons": comparisons_json([*physics, *simulated, lockstep_row, *lockstep_rows, *writers]),
         "physics": {"jit": bench_physics.jit_cost()},
         "logging_per_call": logging_costs,
         "science": bench_science.collect(),
         "loop_only": bench_loop.loop_only(),
         "can_lockstep_virtual": lockstep,
+        # foilc-hil run on the embedded emulator (in-process transport and, for contrast, python-can virtual
+        # buses), first-order and PMSM plant, against a hand-written python-can lockstep loop, interleaved
+        "lockstep_vs_handwritten": lockstep_peer,
         "load_average_end": os.getloadavg()[0],
     }
 

@@ -2,12 +2,15 @@
 
 ``open_bus`` is the only place the product calls ``can.Bus``; it turns python-can's open errors into one
 :class:`~foilc_hil.errors.DriveError` line that says what to do (for SocketCAN: create the interface). The
-``embedded`` interface (the in-process emulator) is resolved by ``plant_emulator.embedded``, not here.
+``embedded`` interface (the in-process emulator) is resolved by ``plant_emulator.embedded``, not here; the bus it
+gives the master (``inprocess``, :mod:`drivers.inprocess`) is built here without python-can's interface registry.
 
 :class:`FrameTap` lets a logger see every frame the bench sends and receives: it wraps ``bus.send`` (so frames sent
 by canopen, by python-can's thread-based periodic tasks and by the cyclic path are all seen) and is a
 ``can.Listener`` for the receive side. Listeners are called from the sending thread ("tx") and from the Notifier
-thread ("rx"), so they must be thread-safe (e.g. put the frame on a queue).
+thread ("rx"), so they must be thread-safe (e.g. put the frame on a queue). On a synchronous bus (``inprocess``,
+where the answers to a frame are delivered inside ``send``) the tap reports the frame before sending it, so a trace
+shows a SYNC before the TPDOs that answer it.
 """
 
 from __future__ import annotations
@@ -20,6 +23,8 @@ from typing import Any
 import can
 
 from drivers.config import BusConfig
+from drivers.inprocess import INTERFACE as INPROCESS_INTERFACE
+from drivers.inprocess import InProcessBus
 from foilc_hil.errors import DriveError, InputError
 
 __all__ = [
@@ -31,7 +36,7 @@ __all__ = [
     "parse_bus_spec",
 ]
 
-SIMULATED_INTERFACES = frozenset({"virtual", "udp_multicast", "embedded"})
+SIMULATED_INTERFACES = frozenset({"virtual", "udp_multicast", "embedded", INPROCESS_INTERFACE})
 """Interfaces that cannot move real hardware (``replay`` refuses the others without ``--allow-real-bus``)."""
 
 FrameListener = Callable[[can.Message, str], None]
@@ -60,7 +65,7 @@ def parse_bus_spec(spec: str, *, bitrate: int | None = None) -> BusConfig:
 
 
 def is_simulated_bus(interface: str) -> bool:
-    """True for interfaces that reach no hardware (``virtual``, ``udp_multicast``, ``embedded``)."""
+    """True for interfaces that reach no hardware (``virtual``, ``udp_multicast``, ``embedded``, ``inprocess``)."""
     return interface in SIMULATED_INTERFACES
 
 
@@ -83,6 +88,8 @@ def open_bus(cfg: BusConfig) -> can.BusABC:
     if cfg.receive_own_messages:
         kwargs["receive_own_messages"] = True
     where = f"{cfg.interface}:{cfg.channel}"
+    if cfg.interface == INPROCESS_INTERFACE:  # in this process: no registry needed (see drivers.inprocess)
+        return InProcessBus(cfg.channel, receive_own_messages=cfg.receive_own_messages)
     try:
         return can.Bus(**kwargs)
     except can.CanInterfaceNotImplementedError as exc:
@@ -140,7 +147,11 @@ class FrameTap(can.Listener):
             original_send(msg, timeout)
             self._emit(msg, "tx")
 
-        bus.send = tapped_send  # type: ignore[method-assign]
+        def tapped_send_first(msg: can.Message, timeout: float | None = None) -> None:
+            self._emit(msg, "tx")  # the answers arrive inside send: report the cause first
+            original_send(msg, timeout)
+
+        bus.send = tapped_send_first if isinstance(bus, InProcessBus) else tapped_send  # type: ignore[method-assign]
         self._bus = bus
 
     def detach(self) -> None:

@@ -22,6 +22,14 @@ sends it; ``sync`` sends a prebuilt SYNC (DLC 0: no counter, so no drive needs 0
 cycle counter; TPDOs are decoded on the Notifier thread and handed to ``wait_feedback`` through a condition
 variable.
 
+Waiting: every wait of the master (feedback, heartbeats, state changes, pacing) runs on the bus's timebase
+(:func:`drivers.inprocess.timebase_of`). On a lockstep in-process bus (the embedded emulator) frames are delivered
+inside ``send``, so nothing arrives by waiting: an unanswered SYNC is known when ``sync`` returns and
+``wait_feedback`` raises :class:`~foilc_hil.errors.FeedbackTimeoutError` at once, with no deadline; an SDO answer is
+there or never comes (no response timeout); and time is the channel's simulated time, one cycle period per SYNC
+(``sync`` advances it) plus the master's own pauses, so heartbeat supervision never reads a busy host as a lost
+drive. On any other bus they are wall-clock waits.
+
 Units: ``set_target`` takes plant units and sends ``round(value * scale)`` after clamping ``|value|`` to
 ``velocity_limit`` (CSV, PV; scale ``velocity_scale``) or ``torque_limit`` (CST; scale ``torque_scale``); feedback
 is divided by the same scales. The shipped EDS counts velocity in 0.001 rpm, so a plant in rpm needs
@@ -107,6 +115,7 @@ from drivers.config import DriveConfig
 from drivers.drive import DISABLED_STATES, DeviceInfo, Drive, Feedback, StopPath, StopReport
 from drivers.emcy import decode_emcy
 from drivers.heartbeat import HeartbeatMonitor, HeartbeatProducer
+from drivers.inprocess import LockstepClock, connect_network, timebase_of
 from drivers.od import load_od, mapped_variable
 from drivers.pdo import MappedVariable, PdoCodec, PdoDirection, PdoLayout
 from foilc_hil.errors import (
@@ -315,7 +324,7 @@ class Cia402Drive(Drive):
         self.network.listeners.insert(0, self._tap)  # type: ignore[arg-type]
         self.network.listeners.append(self._unknown)  # type: ignore[arg-type]
         self.node = canopen.RemoteNode(self.node_id, od)
-        self.node.sdo.RESPONSE_TIMEOUT = cfg.sdo_timeout
+        self._init_waits(bus)
         self.network.add_node(self.node)
         self._master_nmt: NmtMaster = self.node.nmt
 
@@ -337,7 +346,6 @@ class Cia402Drive(Drive):
         # the final stop reports it even when another error (e.g. the drive's own EMCY) ended the run first
         self._nmt_departure: DriveNmtStateError | None = None
 
-        self.heartbeat = HeartbeatMonitor(self.node_id)
         self._producer: HeartbeatProducer | None = None
 
         # control-thread state
@@ -367,6 +375,15 @@ class Cia402Drive(Drive):
         self.network.subscribe(heartbeat_cob, self._on_heartbeat)
         self.network.unsubscribe(NMT_COB_ID, self._master_nmt.on_command)
         self.network.subscribe(NMT_COB_ID, self._on_nmt_command)
+
+    def _init_waits(self, bus: can.BusABC) -> None:
+        """Every wait of the master runs on the bus's timebase (module docstring, "Waiting")."""
+        self._timebase = timebase_of(bus)
+        # on a synchronous bus the answer is in the queue when the request's send returns, or never comes
+        self.node.sdo.RESPONSE_TIMEOUT = 0.0 if self._timebase.synchronous else self.cfg.sdo_timeout
+        lockstep = self._timebase if isinstance(self._timebase, LockstepClock) else None
+        self.heartbeat = HeartbeatMonitor(self.node_id, lockstep=lockstep)
+        self._sync_at = -math.inf  # lockstep: the simulated time of the last SYNC
 
     # --- construction -----------------------------------------------------------------------------------------
 
@@ -407,12 +424,13 @@ class Cia402Drive(Drive):
             return
         self._tap.attach(self._bus)
         try:
-            self.network.connect()
+            connect_network(self.network)
         except ValueError as exc:  # python-can allows one active Notifier per bus
             self._tap.detach()
             raise DriveError(f"cannot listen on the bus: {exc}; the drive object must own the bus's Notifier "
                              "(use add_frame_listener to see frames)") from exc
-        self.heartbeat.start_watchdog(self._on_heartbeat_lost, poll=HEARTBEAT_WATCHDOG_POLL)
+        if not self._timebase.synchronous:  # synchronous: time passes only in this thread, which checks anyway
+            self.heartbeat.start_watchdog(self._on_heartbeat_lost, poll=HEARTBEAT_WATCHDOG_POLL)
 
     def _stop_listening(self) -> None:
         """Undo :meth:`listen` (safe when it never ran); the bus itself stays the caller's."""
@@ -578,10 +596,10 @@ class Cia402Drive(Drive):
             self.configure(mode, period)
         self._target_raw = 0
         self._command_state(int(Command402.DISABLE_VOLTAGE))  # bit 7 low first: the reset acts on the rising edge
-        deadline = time.monotonic() + self.cfg.state_timeout
+        deadline = self._timebase.now() + self.cfg.state_timeout
         state = self._command_state(int(Command402.FAULT_RESET))
         while state in (State402.FAULT, State402.FAULT_REACTION_ACTIVE):
-            if time.monotonic() > deadline:
+            if self._timebase.now() > deadline:
                 self._command_state(int(Command402.DISABLE_VOLTAGE))
                 raise StateTransitionError(
                     f"node {self.node_id} stuck in {state.name}: fault reset (controlword 0x80) for "
@@ -613,14 +631,25 @@ class Cia402Drive(Drive):
         return raw / scale
 
     def sync(self) -> int:
-        """Send SYNC; TPDOs received from now on answer the returned cycle."""
+        """Send SYNC; TPDOs received from now on answer the returned cycle.
+
+        On a synchronous bus one cycle period of simulated time passes since the previous SYNC first (the drive's
+        and the master's heartbeat timers fire on the way), and the answering TPDOs are in when this returns.
+        """
         self._require_open()
+        timebase = self._timebase
+        if timebase.synchronous:
+            timebase.sleep(self._sync_at + self._cycle_period - timebase.now())
+            self._sync_at = timebase.now()
         with self._cv:
             self._cycle += 1
             self._parts.clear()
-            with self.network.send_lock:
-                self._bus.send(self._sync_message)
-            return self._cycle
+            cycle = self._cycle
+        # sent outside self._cv: on a synchronous bus the answers are delivered inside send, possibly by another
+        # thread's pump, whose listeners take self._cv
+        with self.network.send_lock:
+            self._bus.send(self._sync_message)
+        return cycle
 
     def wait_feedback(self, timeout: float) -> Feedback:
         """Block until the TPDO set answering the last SYNC arrived (see :class:`~drivers.drive.Drive`)."""
@@ -856,6 +885,7 @@ class Cia402Drive(Drive):
     # --- cyclic helpers ---------------------------------------------------------------------------------------
 
     def _await_feedback(self, timeout: float, *, raise_on_fault: bool, raise_errors: bool = True) -> Feedback:
+        synchronous = self._timebase.synchronous
         deadline = time.monotonic() + timeout
         poll = 0.05
         with self._cv:
@@ -877,13 +907,12 @@ class Cia402Drive(Drive):
                         )
                     return feedback
                 remaining = deadline - time.monotonic()
-                if remaining <= 0:
+                if remaining <= 0 or synchronous:
                     notifier = self.network.notifier
                     if notifier is not None and notifier.exception is not None:
                         raise DriveError(f"the CAN receive thread stopped: {notifier.exception}")
-                    raise FeedbackTimeoutError(
-                        f"no TPDO set from node {self.node_id} answered SYNC {cycle} within {timeout:.3f} s"
-                    )
+                    waited = "on the synchronous bus" if synchronous else f"within {timeout:.3f} s"
+                    raise FeedbackTimeoutError(f"no TPDO set from node {self.node_id} answered SYNC {cycle} {waited}")
                 self._cv.wait(min(remaining, poll))
 
     def _exchange_timeout(self) -> float:
@@ -891,27 +920,25 @@ class Cia402Drive(Drive):
 
     def _step(self, controlword: int, *, ignore_errors: bool = False) -> Feedback:
         """One cycle with ``controlword``: RPDO, SYNC, feedback (paced at the cycle period)."""
-        start = time.monotonic()
+        start = self._timebase.now()
         self._controlword = controlword
         codec = self._require_codec()
         self._send(can.Message(arbitration_id=self._rpdo_cob(), data=codec.encode(controlword, self._target_raw),
                                is_extended_id=False))
         self.sync()
         feedback = self._await_feedback(self._exchange_timeout(), raise_on_fault=False, raise_errors=not ignore_errors)
-        rest = self._cycle_period - (time.monotonic() - start)
-        if rest > 0:
-            time.sleep(rest)
+        self._timebase.sleep(self._cycle_period - (self._timebase.now() - start))
         return feedback
 
     def _leave(self, state: State402, command: Command402 | None, *, goal: State402) -> State402:
         """Repeat ``command`` until the drive leaves ``state``; StateTransitionError naming it otherwise."""
         controlword = self._controlword if command is None else int(command)
-        deadline = time.monotonic() + self.cfg.state_timeout
+        deadline = self._timebase.now() + self.cfg.state_timeout
         while True:
             new_state = self._step(controlword).state
             if new_state is not state:
                 return new_state
-            if time.monotonic() > deadline:
+            if self._timebase.now() > deadline:
                 what = f"controlword 0x{controlword:02X} ({command.name})" if command else "waiting"
                 raise StateTransitionError(
                     f"node {self.node_id} stuck in {state.name}: {what} for {self.cfg.state_timeout} s did not "
@@ -925,12 +952,12 @@ class Cia402Drive(Drive):
         ``ignore_errors``: errors the drive reported earlier (already raised to the caller, or about to be in the
         stop report) do not interrupt the exchange; a stop must go on through them.
         """
-        deadline = time.monotonic() + timeout
+        deadline = self._timebase.now() + timeout
         while True:
             state = self._command_state(int(command), ignore_errors=ignore_errors)
             if state in goal:
                 return
-            if time.monotonic() > deadline:
+            if self._timebase.now() > deadline:
                 names = " or ".join(sorted(s.name for s in goal))
                 raise StateTransitionError(
                     f"node {self.node_id} stuck in {state.name}: controlword 0x{int(command):02X} "
@@ -944,7 +971,7 @@ class Cia402Drive(Drive):
             return feedback.state
         self._controlword = controlword
         self._write(Obj.CONTROLWORD, 0, _U16, controlword)
-        time.sleep(self._cycle_period)
+        self._timebase.sleep(self._cycle_period)
         statusword = self._read(Obj.STATUSWORD, 0, _U16)
         self._last_statusword = statusword
         try:
@@ -1139,17 +1166,17 @@ class Cia402Drive(Drive):
             self._expect(mapping, sub, _U32, variable.mapping_entry)
 
     def _wait_mode_display(self, mode: OperationMode) -> None:
-        deadline = time.monotonic() + self.cfg.state_timeout
+        deadline = self._timebase.now() + self.cfg.state_timeout
         while True:
             shown = self._read(Obj.MODES_OF_OPERATION_DISPLAY, 0, _I8)
             if shown == mode:
                 return
-            if time.monotonic() > deadline:
+            if self._timebase.now() > deadline:
                 raise DriveError(
                     f"node {self.node_id}: 0x6061 shows mode {shown}, not {int(mode)} ({mode.name}) "
                     f"{self.cfg.state_timeout} s after writing 0x6060"
                 )
-            time.sleep(0.01)
+            self._timebase.sleep(0.01)
 
     def _install_codecs(self, mode: OperationMode, rpdos: Iterable[PdoLayout], tpdos: Iterable[PdoLayout]) -> None:
         for cob in list(self._tpdo_codecs):

@@ -10,6 +10,11 @@ canopen records the last heartbeat (``NmtMaster.timestamp``) but never declares 
   heartbeat arrived for ``timeout`` seconds, and optionally runs a watchdog thread that reports the loss even when
   nobody is polling.
 
+On a lockstep in-process bus (:mod:`drivers.inprocess`) the monitor runs on the channel's
+:class:`~drivers.inprocess.LockstepClock`: silence is simulated time, and :meth:`HeartbeatMonitor.wait_for` lets
+simulated time pass (the drive's heartbeat timers fire) instead of sleeping, so a busy host never reads as a lost
+heartbeat. The master's producer there is a timer on the same clock (python-can's ``send_periodic`` of that bus).
+
 Thread safety: every method of :class:`HeartbeatMonitor` may be called from any thread (one lock guards its
 state); the watchdog's ``on_lost`` callback runs on the watchdog thread.
 """
@@ -23,6 +28,7 @@ from collections.abc import Callable
 import can
 
 from drivers.cia301 import FunctionCode, NmtState, cob_id, heartbeat_state
+from drivers.inprocess import LockstepClock
 from foilc_hil.errors import DriveError, HeartbeatLostError
 
 __all__ = ["HeartbeatMonitor", "HeartbeatProducer"]
@@ -77,11 +83,23 @@ class HeartbeatMonitor:
 
     Supervision starts at :meth:`arm` (the first deadline is ``timeout`` after arming, so a drive that was just
     configured gets a full window) and stops at :meth:`disarm`. Unarmed, :meth:`check` never raises.
+
+    Parameters
+    ----------
+    node_id
+        The supervised node.
+    clock
+        Seconds, monotonic (the wall clock by default).
+    lockstep
+        A lockstep channel's clock: replaces ``clock``, and :meth:`wait_for` advances it instead of sleeping.
     """
 
-    def __init__(self, node_id: int, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self, node_id: int, clock: Callable[[], float] = time.monotonic, *, lockstep: LockstepClock | None = None
+    ) -> None:
         self.node_id = node_id
-        self._clock = clock
+        self._lockstep = lockstep
+        self._clock = lockstep.now if lockstep is not None else clock
         self._lock = threading.Condition()
         self._last_time: float | None = None
         self._last_state: int | None = None
@@ -122,6 +140,8 @@ class HeartbeatMonitor:
 
     def wait_for(self, accept: Callable[[int], bool], since_beat: int, timeout: float) -> int | None:
         """Wait for a heartbeat numbered after ``since_beat`` whose state ``accept`` takes; return it or None."""
+        if self._lockstep is not None:
+            return self._wait_lockstep(self._lockstep, accept, since_beat, timeout)
         deadline = self._clock() + timeout
         with self._lock:
             seen = since_beat
@@ -134,6 +154,25 @@ class HeartbeatMonitor:
                 if remaining <= 0:
                     return None
                 self._lock.wait(remaining)
+
+    def _wait_lockstep(
+        self, clock: LockstepClock, accept: Callable[[int], bool], since_beat: int, timeout: float
+    ) -> int | None:
+        """:meth:`wait_for` on simulated time: advance the clock timer by timer (the heartbeats arrive meanwhile)."""
+        seen = since_beat
+        accepted: int | None = None
+
+        def ready() -> bool:
+            nonlocal seen, accepted
+            with self._lock:
+                if self._beats > seen:
+                    seen = self._beats
+                    if self._last_state is not None and accept(self._last_state):
+                        accepted = self._last_state
+            return accepted is not None
+
+        clock.wait_until(ready, timeout)
+        return accepted
 
     def arm(self, timeout: float) -> None:
         """Start supervising: lost when no heartbeat arrives for ``timeout`` seconds from now on."""

@@ -36,6 +36,11 @@ So a target sent before SYNC *n* first moves the axis during cycle *n*, and its 
 TPDO of SYNC *n+1*. In realtime mode step 1 runs on the wall clock in its own thread (one cycle period per
 tick, whether or not SYNC came); steps 2 and 3 run on SYNC.
 
+Threads: on a wall-clock bus (python-can ``virtual``, ``udp_multicast``, hardware) the drive receives in canopen's
+Notifier thread, polls its supervision in a thread and (realtime) ticks its physics in another. On a lockstep
+in-process bus (:mod:`drivers.inprocess`, the embedded emulator's) it has no thread at all: frames arrive in the
+sender's thread, and the heartbeat producer and the supervision poll are timers on the channel's simulated time.
+
 Units: 0x60FF / 0x606C are counts of the EDS's velocity unit (0.001 rpm in the shipped EDS, 0x2000 = counts per
 rpm); 0x6071 / 0x6077 are per mille of rated torque; 0x6064 is encoder increments (the PMSM's resolver counts).
 The plant works in its own units; ``velocity_scale`` (counts per plant velocity unit) and ``torque_scale`` (per
@@ -58,6 +63,7 @@ from canopen import objectdictionary as cod
 
 from drivers.cia301 import SYNC_COB_ID, CobIdEntry, FunctionCode, NmtCommand, NmtState, check_node_id
 from drivers.cia402 import Obj, State402
+from drivers.inprocess import LockstepClock, connect_network, timebase_of
 from drivers.od import DEFAULT_EDS
 from foilc_hil.errors import InputError
 from plant_emulator.application import APPLICATION_OBJECTS, Cia402Application, FaultKind
@@ -69,7 +75,7 @@ from plant_emulator.physics.base import Plant
 from plant_emulator.sdo_guard import SdoGuard
 from plant_emulator.settings import EmulatorConfig
 from plant_emulator.state_machine import PowerStateMachine
-from plant_emulator.supervision import Supervisor
+from plant_emulator.supervision import MONITOR_PERIOD, Supervisor
 
 __all__ = [
     "DEFAULT_EDS",
@@ -132,7 +138,8 @@ class VirtualDrive:
     Notes
     -----
     Call :meth:`start` with a bus; the drive takes the bus over (``stop`` shuts it down). All CAN callbacks run
-    in canopen's notifier thread; the realtime physics thread and the supervision thread share one lock.
+    in canopen's notifier thread (on a lockstep in-process bus: the sender's); the realtime physics thread and
+    the supervision thread (or timer) share one lock.
     """
 
     def __init__(
@@ -179,6 +186,7 @@ class VirtualDrive:
         self._sync_cob_id = SYNC_COB_ID
         self._running = False
         self._threads: list[threading.Thread] = []
+        self._poll_timer: Callable[[], None] | None = None  # cancels the supervision timer (lockstep bus)
         self._stop_event = threading.Event()
         self.sync_count = 0
         self.trace: Callable[[DriveSnapshot], None] | None = None  # called after every cycle, if set
@@ -191,9 +199,13 @@ class VirtualDrive:
         """Join ``bus`` (taken over: :meth:`stop` shuts it down), send the boot-up message, enter pre-operational."""
         if self._running:
             raise RuntimeError("the virtual drive is already running")
+        clock = timebase_of(bus)
+        if isinstance(clock, LockstepClock) and self.timing is TimingMode.REALTIME:
+            raise InputError("a realtime drive ticks on the wall clock: give it a wall-clock bus, not a lockstep one")
+        self.supervisor.clock = clock.now
         network = canopen.Network(bus)
         network.NOTIFIER_CYCLE = NOTIFIER_CYCLE
-        network.connect()
+        connect_network(network)
         self.node.link = network
         network[self.node_id] = self.node
         # Replace canopen's SDO and NMT subscriptions with gated ones (no SDO in stopped, NMT resets handled).
@@ -208,7 +220,10 @@ class VirtualDrive:
             self.pdos.rebuild()
             self.supervisor.rebuild_heartbeat_consumer()
             self._boot()
-        self._start_thread(lambda: self.supervisor.run(self._stop_event), "drive-supervision")
+        if isinstance(clock, LockstepClock):
+            self._poll_timer = clock.every(MONITOR_PERIOD, self.supervisor.poll).cancel
+        else:
+            self._start_thread(lambda: self.supervisor.run(self._stop_event), "drive-supervision")
         if self.timing is TimingMode.REALTIME:
             self._start_thread(lambda: self.physics.run_realtime(self._stop_event, self._lock, self._emit_trace),
                                "drive-physics")
@@ -219,6 +234,9 @@ class VirtualDrive:
             return
         self._running = False
         self._stop_event.set()
+        if self._poll_timer is not None:
+            self._poll_timer()
+            self._poll_timer = None
         for thread in self._threads:
             thread.join(timeout=THREAD_JOIN_TIMEOUT)
         self._threads.clear()

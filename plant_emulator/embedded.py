@@ -1,4 +1,8 @@
-"""The in-process emulator behind ``--emulator embedded``: a virtual drive on its own ``virtual`` CAN channel.
+"""The in-process emulator behind ``--emulator embedded``: a virtual drive on its own in-process CAN channel.
+
+In lockstep (the emulator's default timing) the channel is python-can interface ``inprocess``
+(:mod:`drivers.inprocess`): synchronous delivery in the sender's thread, simulated time, no thread on either end.
+A realtime emulator ticks its physics on the wall clock in a thread, so it gets a python-can ``virtual`` channel.
 
 >>> with EmbeddedEmulator.for_drive(plant, EmulatorConfig(), drive, sample_time=0.01) as emulator:  # doctest: +SKIP
 ...     bus = drivers.bus.open_bus(emulator.bus_config)   # the master's end of the same channel
@@ -9,11 +13,11 @@ from __future__ import annotations
 import uuid
 from typing import Protocol
 
-import can
-
+from drivers.bus import open_bus
 from drivers.config import BusConfig, DriveConfig
+from drivers.inprocess import INTERFACE as INPROCESS_INTERFACE
 from plant_emulator.config import PlantConfig
-from plant_emulator.device import VirtualDrive
+from plant_emulator.device import TimingMode, VirtualDrive
 from plant_emulator.physics import build_plant
 from plant_emulator.settings import EmulatorConfig
 
@@ -55,12 +59,13 @@ class EmbeddedEmulator:
         Plant units -> drive units; pass the bench's ``drive.velocity_scale`` / ``drive.torque_scale`` so both
         ends agree (None: the drive's defaults, see :class:`VirtualDrive`).
     channel
-        The ``virtual`` channel; default: a fresh unique name.
+        The channel name; default: a fresh unique name.
 
     Notes
     -----
-    The seed of the physics is ``plant.seed + settings.seed``. The drive runs in canopen's notifier thread of
-    its own bus (and, in realtime mode, a physics thread); :meth:`close` stops them and shuts its bus down.
+    The seed of the physics is ``plant.seed + settings.seed``. In lockstep the drive runs in the threads that
+    send to it (the master's); in realtime in canopen's notifier thread of its own ``virtual`` bus and a physics
+    thread. :meth:`close` stops the drive and shuts its bus down.
     Build it from the bench's whole config with :meth:`from_config`, or from its sections with :meth:`for_drive`.
     """
 
@@ -120,8 +125,9 @@ class EmbeddedEmulator:
 
     @property
     def bus_config(self) -> BusConfig:
-        """Where the master connects: ``BusConfig(interface="virtual", channel=<this emulator's channel>)``."""
-        return BusConfig(interface="virtual", channel=self.channel)
+        """Where the master connects: ``inprocess`` (lockstep) or ``virtual`` (realtime), on this emulator's channel."""
+        realtime = self.drive.timing is TimingMode.REALTIME
+        return BusConfig(interface="virtual" if realtime else INPROCESS_INTERFACE, channel=self.channel)
 
     def begin_trial(self, trial: int) -> None:
         """Start trial ``trial`` of the physics (see :meth:`VirtualDrive.begin_trial`)."""
@@ -130,7 +136,7 @@ class EmbeddedEmulator:
     def start(self) -> EmbeddedEmulator:
         """Open the drive's end of the channel and boot the drive (boot-up, pre-operational)."""
         if not self._started:
-            self.drive.start(can.Bus(interface="virtual", channel=self.channel))
+            self.drive.start(open_bus(self.bus_config))
             self._started = True
         return self
 

@@ -1,8 +1,11 @@
 """Supervision of the virtual drive's communication: heartbeat consumer, SYNC loss, PDO event timers.
 
-A thread polls every :data:`MONITOR_PERIOD`: a watched node (0x1016) whose heartbeat is overdue, or (realtime
-only) no SYNC for ``emulator.sync_loss_cycles`` periods (0x1006) while OPERATIONAL, is reported once to ``on_loss``;
-then the TPDO event timers are served.
+:meth:`Supervisor.poll` runs every :data:`MONITOR_PERIOD`: a watched node (0x1016) whose heartbeat is overdue, or
+(realtime only) no SYNC for ``emulator.sync_loss_cycles`` periods while OPERATIONAL, is reported once to
+``on_loss``; then the TPDO event timers are served. On a wall-clock bus a thread polls (:meth:`Supervisor.run`);
+on a lockstep in-process bus the poll is a timer on the channel's simulated time (see
+:class:`~plant_emulator.device.VirtualDrive`), so the drive needs no thread and a busy host is never a lost
+heartbeat.
 
 SYNC loss counts only time the drive could watch: a poll that comes more than :data:`STALL_POLLS` polling periods
 after the previous one means this process was stalled (a busy host descheduled it), and SYNCs may be waiting
@@ -57,6 +60,9 @@ class Supervisor:
         The drive's present cycle period (0x1006 may change it at any time).
     sync_loss_cycles
         Periods without SYNC that make a SYNC loss; None: no SYNC supervision (lockstep, where SYNC is the clock).
+    clock
+        Seconds, monotonic: the wall clock, or a lockstep channel's simulated time (:attr:`clock` may be replaced
+        until the drive starts).
     """
 
     def __init__(
@@ -68,6 +74,7 @@ class Supervisor:
         on_loss: Callable[[FaultKind], None],
         cycle_period: Callable[[], float],
         sync_loss_cycles: float | None,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.node = node
         self._lock = lock
@@ -75,8 +82,10 @@ class Supervisor:
         self._on_loss = on_loss
         self._cycle_period = cycle_period
         self._sync_loss_cycles = sync_loss_cycles
+        self.clock = clock
         self._watches: dict[int, _HeartbeatWatch] = {}
         self._last_sync: float | None = None
+        self._last_poll: float | None = None  # the previous poll: a long gap since it means a stalled process
         self._sync_lost = False
 
     # --- heartbeat consumer -----------------------------------------------------------------------------------
@@ -104,13 +113,13 @@ class Supervisor:
         """Network callback: a watched node's heartbeat re-arms its deadline."""
         watch = self._watches.get(can_id - FunctionCode.HEARTBEAT)
         if watch is not None and self.node.alive:
-            watch.deadline = time.monotonic() + watch.timeout
+            watch.deadline = self.clock() + watch.timeout
 
     # --- SYNC ---------------------------------------------------------------------------------------------------
 
     def sync_received(self) -> None:
         """A SYNC arrived: restart the SYNC-loss timer and clear the loss (a SYNC always ends it)."""
-        self._last_sync = time.monotonic()
+        self._last_sync = self.clock()
         self._sync_lost = False
 
     def forget_sync(self) -> None:
@@ -121,24 +130,28 @@ class Supervisor:
     # --- the polling thread -------------------------------------------------------------------------------------
 
     def run(self, stop: threading.Event) -> None:
-        """Poll until ``stop`` is set (the drive's supervision thread)."""
-        last_poll = time.monotonic()
+        """Poll every :data:`MONITOR_PERIOD` until ``stop`` is set (the drive's supervision thread)."""
         while not stop.wait(MONITOR_PERIOD):
-            if not self.node.alive:
-                continue
-            with self._lock:
-                now = time.monotonic()
-                if now - last_poll > STALL_POLLS * MONITOR_PERIOD and self._last_sync is not None:
-                    self._last_sync = now  # it could not watch during the stall: the timeout starts again
-                last_poll = now
-                for watch in self._watches.values():
-                    if watch.deadline is not None and now > watch.deadline:
-                        watch.deadline = None  # wait for the next heartbeat before watching again
-                        self._on_loss(FaultKind.HEARTBEAT_LOSS)
-                if self._sync_overdue(now):
-                    self._sync_lost = True
-                    self._on_loss(FaultKind.SYNC_LOSS)
-                self._pdos.send_event_driven(timer_only=True)
+            self.poll()
+
+    def poll(self) -> None:
+        """Report overdue heartbeats and SYNC (once per loss), then serve the TPDO event timers."""
+        if not self.node.alive:
+            return
+        with self._lock:
+            now = self.clock()  # after the lock: waiting for it is time the drive could not watch either
+            if (self._last_poll is not None and now - self._last_poll > STALL_POLLS * MONITOR_PERIOD
+                    and self._last_sync is not None):
+                self._last_sync = now  # it could not watch during the stall: the timeout starts again
+            self._last_poll = now
+            for watch in self._watches.values():
+                if watch.deadline is not None and now > watch.deadline:
+                    watch.deadline = None  # wait for the next heartbeat before watching again
+                    self._on_loss(FaultKind.HEARTBEAT_LOSS)
+            if self._sync_overdue(now):
+                self._sync_lost = True
+                self._on_loss(FaultKind.SYNC_LOSS)
+            self._pdos.send_event_driven(timer_only=True)
 
     def _sync_overdue(self, now: float) -> bool:
         return (

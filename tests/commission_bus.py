@@ -1,6 +1,6 @@
-"""Test helper: emulated drives on a unique ``virtual`` channel that ``foilc-hil commission --bus virtual:...`` joins
-in the same process (python-can's virtual channels are process-wide), so a test can run several CLI commands
-against the same drives and check what each left behind."""
+"""Test helper: emulated drives on a unique in-process channel that ``foilc-hil commission --bus inprocess:...``
+joins in the same process (in-process channels are process-wide, see drivers.inprocess), so a test can run several
+CLI commands against the same drives and check what each left behind."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ from plant_emulator.embedded import EmbeddedEmulator
 
 @dataclass
 class EmulatedBus:
-    """Drives by node id on ``virtual:<channel>``."""
+    """Drives by node id on ``inprocess:<channel>``."""
 
     channel: str
     drives: dict[int, VirtualDrive]
@@ -29,7 +29,7 @@ class EmulatedBus:
 
     @property
     def spec(self) -> str:
-        return f"virtual:{self.channel}"
+        return f"inprocess:{self.channel}"
 
 
 @contextmanager

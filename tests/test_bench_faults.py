@@ -19,9 +19,9 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +30,7 @@ import pytest
 import yaml
 from mcap.reader import make_reader
 
+from drivers.bus import open_bus
 from drivers.cia301 import FunctionCode, NmtCommand, cob_id
 from drivers.cia402 import Command402, State402, decode_state
 from drivers.drive import DISABLED_STATES
@@ -80,29 +81,46 @@ def emulator_on_channel(tmp_path: Path) -> Iterator[tuple[Any, str, Path]]:
         yield emulator, emulator.channel, config_path
 
 
-def when_mid_trial(emulator: Any, log: Path, completed: int, action: Callable[[], None]) -> threading.Thread:
-    """Run ``action`` a quarter into the trial after the first ``completed`` trials.
+@dataclass
+class MidTrial:
+    """Whether :func:`when_mid_trial`'s action ran."""
 
-    The watcher waits until ``completed`` trials are on disk (the writer flushes each trial), then until the
-    drive's target velocity is non-zero (the next trial is running: settling commands exactly zero), then a
-    quarter of a trial's cycles more. The target is read from the emulated drive's object dictionary through
-    canopen's ``LocalNode.sdo`` (its local data store, no bus traffic).
+    fired: bool = False
+
+
+def when_mid_trial(emulator: Any, completed: int, action: Callable[[], None]) -> MidTrial:
+    """Run ``action`` once, a quarter into the first trial that moves the axis after the first ``completed`` trials.
+
+    Counted on the emulated drive's own lockstep cycles (its ``trace`` hook, called at the end of each SYNC in the
+    bench's thread, on the synchronous in-process bus): a trial begins where the drive's target velocity turns
+    non-zero after the settle phase's exact zeros. Trial 1 commands the law's initial feedforward, exactly zero, so
+    trial ``k > 1`` begins at the ``(k - 1)``-th such turn; a quarter of a trial's cycles into trial
+    ``max(completed, 1) + 1`` the action runs, inside that cycle. A watcher thread polling the log raced the
+    lockstep loop, which no longer waits on another thread. The target is read from the drive's object dictionary
+    (its local data store, no bus traffic).
     """
+    trigger = MidTrial()
+    starts = 0
+    moving = False
+    left: int | None = None
 
-    def watch() -> None:
-        deadline = time.monotonic() + 120.0
-        while _completed_trials_on_disk(log) < completed and time.monotonic() < deadline:
-            time.sleep(0.005)
-        while emulator.drive.node.sdo[0x60FF].raw == 0 and time.monotonic() < deadline:
-            time.sleep(0.0005)
-        start = emulator.drive.sync_count
-        while emulator.drive.sync_count < start + SAMPLES // 4 and time.monotonic() < deadline:
-            time.sleep(0.0005)
-        action()
+    def on_cycle(_snapshot: Any) -> None:
+        nonlocal starts, moving, left
+        if trigger.fired:
+            return
+        target = emulator.drive.node.sdo[0x60FF].raw
+        starts += int(target != 0 and not moving)
+        moving = target != 0
+        if left is None and starts >= max(completed, 1):
+            left = SAMPLES // 4
+        if left is not None:
+            left -= 1
+            if left <= 0:
+                trigger.fired = True
+                action()
 
-    thread = threading.Thread(target=watch, daemon=True)
-    thread.start()
-    return thread
+    emulator.drive.trace = on_cycle
+    return trigger
 
 
 def run_cli(config_path: Path, channel: str, out: Path, trials: int, *extra: str) -> int:
@@ -112,7 +130,7 @@ def run_cli(config_path: Path, channel: str, out: Path, trials: int, *extra: str
             "--config",
             str(config_path),
             "--bus",
-            f"virtual:{channel}",
+            f"inprocess:{channel}",
             "--trials",
             str(trials),
             "--out",
@@ -128,9 +146,9 @@ def test_emulator_stops_responding_mid_trial(
 ) -> None:
     emulator, channel, config_path = emulator_on_channel
     out = tmp_path / "dead.mcap"
-    watcher = when_mid_trial(emulator, out, 2, emulator.drive.stop_responding)
+    watcher = when_mid_trial(emulator, 2, emulator.drive.stop_responding)
     code = run_cli(config_path, channel, out, trials=20)
-    watcher.join(timeout=5)
+    assert watcher.fired
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 1
     assert len(err) == 1 and err[0].startswith("foilc-hil run: ")
@@ -147,9 +165,9 @@ def test_drive_fault_mid_trial(
 ) -> None:
     emulator, channel, config_path = emulator_on_channel
     out = tmp_path / "fault.mcap"
-    watcher = when_mid_trial(emulator, out, 2, lambda: emulator.drive.inject_fault("over-current"))
+    watcher = when_mid_trial(emulator, 2, lambda: emulator.drive.inject_fault("over-current"))
     code = run_cli(config_path, channel, out, 20, "--json")
-    watcher.join(timeout=5)
+    assert watcher.fired
     captured = capsys.readouterr()
     err = captured.err.strip().splitlines()
     assert code == 1
@@ -244,18 +262,21 @@ def test_third_party_nmt_mid_trial_ends_confirmed_disabled(
     config_path = bench_config(tmp_path, watchdog_cycles=3)
     document = yaml.safe_load(config_path.read_text(encoding="utf-8"))
     document["drive"]["abort_connection_option"] = abort_option
+    # lockstep time is the SYNC count, as on a real bus: the heartbeat must report the NMT change before the feedback
+    # watchdog trips (lost_feedback 3 + 1 SYNCs = 20 ms), so it beats every 10 ms here (the default is 100 ms)
+    document["drive"]["heartbeat_producer_ms"] = 10
     config_path.write_text(yaml.safe_dump(document), encoding="utf-8")
     config = load_config(config_path)
     emulator = EmbeddedEmulator.from_config(config)
     out = tmp_path / "nmt.mcap"
     with emulator:
         def third_party_nmt() -> None:
-            with can.Bus(interface="virtual", channel=emulator.channel) as bus:
+            with open_bus(emulator.bus_config) as bus:  # a third node on the emulator's channel
                 bus.send(can.Message(arbitration_id=0, data=[int(command), NODE], is_extended_id=False))
 
-        watcher = when_mid_trial(emulator, out, 1, third_party_nmt)
+        watcher = when_mid_trial(emulator, 1, third_party_nmt)
         code = run_cli(config_path, emulator.channel, out, trials=20)
-        watcher.join(timeout=5)
+        assert watcher.fired
         state_after = emulator.drive.state
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 1

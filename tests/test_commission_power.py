@@ -11,8 +11,10 @@ import can
 import pytest
 import yaml
 
+from drivers.bus import open_bus
 from drivers.cia301 import NMT_COB_ID, EmcyCode, FunctionCode, NmtCommand, NmtState, cob_id
 from drivers.cia402 import Obj, State402
+from drivers.config import BusConfig
 from tests.commission_bus import emulated_bus, run_cli, run_json
 
 pytestmark = pytest.mark.timeout(120)
@@ -24,7 +26,7 @@ NODE = 7
 def sniffer(channel: str) -> Iterator[list[can.Message]]:
     """Every frame sent on ``channel`` while the block runs (read afterwards)."""
     frames: list[can.Message] = []
-    with can.Bus(interface="virtual", channel=channel) as bus:
+    with open_bus(BusConfig(interface="inprocess", channel=channel)) as bus:
         yield frames
         while (message := bus.recv(timeout=0.05)) is not None:
             frames.append(message)

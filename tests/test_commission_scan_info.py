@@ -10,8 +10,10 @@ import can
 import canmatrix.formats
 import pytest
 
+from drivers.bus import open_bus
 from drivers.cia301 import NMT_COB_ID, FunctionCode, NmtCommand, NmtState, cob_id
 from drivers.cia402 import Obj, State402
+from drivers.config import BusConfig
 from tests.commission_bus import emulated_bus, run_cli, run_json
 
 pytestmark = pytest.mark.timeout(120)
@@ -36,7 +38,7 @@ def test_scan_finds_silent_drives_by_sdo(capsys: pytest.CaptureFixture[str]) -> 
 def test_scan_reads_nmt_states_from_heartbeats(capsys: pytest.CaptureFixture[str]) -> None:
     with emulated_bus(NODES) as bus:
         # node 17 operational, 99 stopped (no SDO answers in stopped: only its heartbeat can reveal it)
-        with can.Bus(interface="virtual", channel=bus.channel) as sender:
+        with open_bus(BusConfig(interface="inprocess", channel=bus.channel)) as sender:
             for command, node in ((NmtCommand.START, 17), (NmtCommand.STOP, 99)):
                 sender.send(can.Message(arbitration_id=NMT_COB_ID, data=[int(command), node], is_extended_id=False))
         code, document, _ = run_json(capsys, "commission", "scan", "--bus", bus.spec, "--timeout", "1.3",

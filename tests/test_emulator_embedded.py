@@ -28,7 +28,7 @@ def test_each_embedded_emulator_has_its_own_channel() -> None:
     config = Config.model_validate({"plant": {"model": "pmsm"}, "drive": {"node_id": 7, "velocity_scale": 1000.0}})
     first = EmbeddedEmulator.from_config(config)
     second = EmbeddedEmulator.from_config(config)
-    assert first.bus_config.interface == "virtual"
+    assert first.bus_config.interface == "inprocess"  # lockstep: the synchronous in-process transport
     assert first.bus_config.channel != second.bus_config.channel
     assert first.device is first.drive and first.drive.node_id == 7
 

@@ -24,6 +24,7 @@ from drivers.cia402 import AbortConnectionOption, Obj, OperationMode, State402
 from drivers.cia402_master import Cia402Drive
 from drivers.config import DriveConfig
 from drivers.drive import StopPath
+from drivers.inprocess import LockstepClock, timebase_of
 from foilc_hil.errors import DriveError, EmergencyError, HeartbeatLostError
 from plant_emulator.config import PlantConfig, PmsmConfig
 from plant_emulator.device import FaultKind
@@ -325,9 +326,10 @@ def test_master_stop_is_confirmed_when_the_pdo_path_is_gone(command: NmtCommand)
             bus = open_bus(emulator.bus_config)
             try:
                 bus.send(can.Message(arbitration_id=0, data=[int(command), 2], is_extended_id=False))
-                deadline = time.monotonic() + 5.0
-                while master.heartbeat.last_state == NmtState.OPERATIONAL and time.monotonic() < deadline:
-                    time.sleep(0.01)
+                # the drive's next heartbeat (0x1017 = 50 ms of lockstep time) tells the master
+                clock = timebase_of(bus)
+                assert isinstance(clock, LockstepClock)
+                assert clock.wait_until(lambda: master.heartbeat.last_state != NmtState.OPERATIONAL, timeout=1.0)
             finally:
                 bus.shutdown()
             assert emulator.drive.state is State402.OPERATION_ENABLED  # 0x6007 = 0: still enabled, no PDO path

@@ -26,6 +26,7 @@ from drivers.cia301 import NMT_COB_ID, RPDO_BASES, SYNC_COB_ID, TPDO_BASES, Func
 from drivers.cia402 import Obj, OperationMode
 from drivers.cia402_master import Cia402Drive
 from drivers.config import DriveConfig
+from drivers.inprocess import InProcessNotifier
 from foilc_hil.errors import FoilcHilError
 from plant_emulator.config import PlantConfig
 from plant_emulator.embedded import EmbeddedEmulator
@@ -80,6 +81,8 @@ def callback_errors() -> Iterator[CallbackErrors]:
 def notifier_alive(network: canopen.Network) -> bool:
     notifier = network.notifier
     assert notifier is not None
+    if isinstance(notifier, InProcessNotifier):  # no reader thread: alive while it delivers (a listener error ends it)
+        return not notifier.stopped and notifier.exception is None
     readers = [reader for reader in notifier._readers if isinstance(reader, threading.Thread)]
     return bool(readers) and all(reader.is_alive() for reader in readers)
 

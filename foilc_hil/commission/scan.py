@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import struct
 import threading
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum, unique
@@ -40,6 +39,7 @@ from drivers.cia301 import (
     split_cob_id,
 )
 from drivers.cia402 import IdentitySub, Obj
+from drivers.inprocess import connect_network, timebase_of
 from foilc_hil.errors import DriveError
 
 __all__ = ["NodeReport", "ScanResult", "SdoCommand", "scan_bus"]
@@ -156,18 +156,19 @@ def scan_bus(
     discovery = _Discovery(nodes=tuple(nodes))
     network = canopen.Network(bus)
     network.listeners.append(discovery)  # type: ignore[arg-type]  # any can.Listener works in the Notifier
-    network.connect()
+    connect_network(network)
+    timebase = timebase_of(bus)  # on the embedded emulators' lockstep channel, listening lets lockstep time pass
     try:
         if nmt_reset:
             _send(bus, NMT_COB_ID, bytes([int(NmtCommand.RESET_COMMUNICATION), 0]))
-        time.sleep(listen)
+        timebase.sleep(listen)
         with discovery.lock:
             silent = [node for node in nodes if node not in discovery.found_by]
         request = struct.pack("<BHB4x", int(SdoCommand.INITIATE_UPLOAD_REQUEST), int(Obj.DEVICE_TYPE), 0)
         for node in silent:
             _send(bus, cob_id(FunctionCode.SDO_RX, node), request)
         if silent:
-            time.sleep(sdo_timeout)
+            timebase.sleep(sdo_timeout)
         with discovery.lock:
             found = {node: set(how) for node, how in discovery.found_by.items()}
             states = dict(discovery.heartbeat_state)

@@ -2,7 +2,7 @@
 
 ``--bus INTERFACE:CHANNEL`` opens that bus with :func:`drivers.bus.open_bus`. Without it (``--emulator embedded``,
 the default), :class:`CommissionTarget` starts one :class:`plant_emulator.embedded.EmbeddedEmulator` per emulated
-node id, all on one private ``virtual`` channel (unique per process), and opens the master's side of that channel,
+node id, all on one private in-process channel (unique per process), and opens the master's side of that channel,
 so every command works on a fresh machine. The emulated drives take their plant, physics seed and timing from the config
 (``plant:``, ``emulator:``; a config that names no plant gets the default PMSM axis) and the same unit scales as
 the master (``drive.velocity_scale`` / ``drive.torque_scale``), as ``foilc-hil run --emulator embedded`` does.
@@ -99,9 +99,9 @@ class CommissionTarget:
 
     @property
     def description(self) -> str:
-        """``interface:channel`` of the bus (``embedded:virtual-...`` for the emulator)."""
+        """``interface:channel`` of the bus (the emulators' in-process channel for the emulator)."""
         if self.embedded:
-            return f"embedded ({len(self.drives)} emulated drive(s) on virtual:{self._channel})"
+            return f"embedded ({len(self.drives)} emulated drive(s) on in-process channel {self._channel})"
         assert self.bus_config is not None
         return f"{self.bus_config.interface}:{self.bus_config.channel}"
 
@@ -109,8 +109,7 @@ class CommissionTarget:
         try:
             if self.embedded:
                 self._channel = f"foilc-commission-{uuid.uuid4()}"
-                self._start_emulators()
-                bus_cfg = BusConfig(interface="virtual", channel=self._channel)
+                bus_cfg = self._start_emulators()  # the emulators' channel
             else:
                 assert self.bus_config is not None
                 self._channel = self.bus_config.channel
@@ -132,7 +131,7 @@ class CommissionTarget:
         self._bus = None
         self._stack.close()
 
-    def _start_emulators(self) -> None:
+    def _start_emulators(self) -> BusConfig:
         from plant_emulator.embedded import EmbeddedEmulator
 
         source = self.emulator_config if self.emulator_config is not None else self.config
@@ -155,3 +154,4 @@ class CommissionTarget:
             )
             self._stack.enter_context(emulator)
             self.drives.append(emulator.drive)
+        return emulator.bus_config

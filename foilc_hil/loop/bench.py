@@ -33,7 +33,9 @@ the law and the drive, and the frame tap enqueues CAN frames for the log writer 
 Safety (:mod:`foilc_hil.loop.safety`): commands are clamped to the drive limits and the plant saturation. The
 wait for each SYNC's feedback is bounded (:attr:`LoopSettings.feedback_timeout`: in realtime until
 :data:`COMMAND_MARGIN_FRACTION` of a period before the next deadline,
-``bench.watchdog_cycles`` x :data:`LOCKSTEP_FEEDBACK_TIMEOUT` in lockstep) -- no further SYNC is sent while
+``bench.watchdog_cycles`` x :data:`LOCKSTEP_FEEDBACK_TIMEOUT` in lockstep, a liveness timeout for a drive in another
+process; on the embedded emulator's synchronous bus the drive's answer is in when ``sync`` returns, so
+``wait_feedback`` decides at once and no time bound applies at all) -- no further SYNC is sent while
 waiting, the drive holds its last command, and realtime feedback that arrives after half a period is counted late.
 A wait that expires is a *lost feedback* (``bench.faults``): counted, and the law is given the last good feedback
 again (hold); more than ``bench.faults.lost_feedback`` in a row abort with
@@ -121,7 +123,8 @@ __all__ = [
 SETTLE_TIMEOUT_FACTOR = 20.0
 #: ... but never sooner than this many seconds of cycles
 MIN_SETTLE_TIMEOUT = 5.0
-#: lockstep: how long to wait for one cycle's TPDO feedback before counting it missing (seconds)
+#: lockstep over a wall-clock bus (a drive in another process): how long to wait for one cycle's TPDO feedback before
+#: counting it missing (seconds); a liveness timeout, not a deadline. Unused on a synchronous bus (nothing to wait for)
 LOCKSTEP_FEEDBACK_TIMEOUT = 0.1
 #: realtime: feedback arriving later than this fraction of the period after its SYNC counts as late (the command
 #: then has less than half a period to reach the drive before the next SYNC)
