@@ -32,6 +32,7 @@ __all__ = [
     "FrameListener",
     "FrameTap",
     "is_simulated_bus",
+    "known_interfaces",
     "open_bus",
     "parse_bus_spec",
 ]
@@ -62,6 +63,11 @@ def parse_bus_spec(spec: str, *, bitrate: int | None = None) -> BusConfig:
         return BusConfig(interface=interface, channel=channel, bitrate=bitrate)
     except ValueError as exc:  # pydantic's ValidationError is a ValueError
         raise InputError(f"--bus: {spec!r}: {exc}") from exc
+
+
+def known_interfaces() -> frozenset[str]:
+    """Interfaces ``open_bus`` can open: python-can's registry and ``inprocess`` (built here without it)."""
+    return frozenset(can.interfaces.VALID_INTERFACES) | {INPROCESS_INTERFACE}
 
 
 def is_simulated_bus(interface: str) -> bool:

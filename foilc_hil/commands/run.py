@@ -68,16 +68,13 @@ def check_bus(bus: Any) -> None:
     :class:`~foilc_hil.errors.InputError` (exit 2); a bus that does not open (e.g. SocketCAN without the kernel
     module or the interface) is the :class:`~foilc_hil.errors.DriveError` of :func:`drivers.bus.open_bus`, with its
     ``ip link`` hint (exit 1). The bus is opened and closed again at once; nothing is sent."""
-    import can
-
-    from drivers.bus import open_bus
+    from drivers.bus import known_interfaces, open_bus
     from foilc_hil.errors import InputError
 
     if bus.interface == "embedded":
         return
-    if bus.interface not in can.interfaces.VALID_INTERFACES:
-        raise InputError(f"--bus: unknown interface {bus.interface!r}; python-can knows "
-                         f"{', '.join(sorted(can.interfaces.VALID_INTERFACES))}")
+    if bus.interface not in known_interfaces():
+        raise InputError(f"--bus: unknown interface {bus.interface!r}; known: {', '.join(sorted(known_interfaces()))}")
     open_bus(bus).shutdown()
 
 
