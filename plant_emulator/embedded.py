@@ -60,6 +60,11 @@ class EmbeddedEmulator:
         ends agree (None: the drive's defaults, see :class:`VirtualDrive`).
     channel
         The channel name; default: a fresh unique name.
+    threaded
+        Use a python-can ``virtual`` channel (Notifier threads, the wall clock) in lockstep too. A bus wrapper on
+        the master's side (:class:`drivers.faults.FaultyBus`, the bench's ``inject:``) needs it: it sees frames
+        through the wrapped bus's ``send`` and ``recv``, while the in-process channel hands them straight to the
+        receiving end's listeners.
 
     Notes
     -----
@@ -79,8 +84,10 @@ class EmbeddedEmulator:
         velocity_scale: float | None = None,
         torque_scale: float | None = None,
         channel: str | None = None,
+        threaded: bool = False,
     ) -> None:
         self.channel = channel if channel is not None else f"{CHANNEL_PREFIX}-{uuid.uuid4().hex}"
+        self.threaded = threaded
         self.drive = VirtualDrive(
             build_plant(plant, seed=plant.seed + settings.seed),
             node_id=node_id,
@@ -100,6 +107,7 @@ class EmbeddedEmulator:
         *,
         sample_time: float,
         channel: str | None = None,
+        threaded: bool = False,
     ) -> EmbeddedEmulator:
         """The emulator matching the bench's ``drive:`` section (node id, velocity and torque scales)."""
         return cls(
@@ -110,13 +118,15 @@ class EmbeddedEmulator:
             velocity_scale=drive.velocity_scale,
             torque_scale=drive.torque_scale,
             channel=channel,
+            threaded=threaded,
         )
 
     @classmethod
-    def from_config(cls, config: BenchDocument, *, channel: str | None = None) -> EmbeddedEmulator:
+    def from_config(cls, config: BenchDocument, *, channel: str | None = None,
+                    threaded: bool = False) -> EmbeddedEmulator:
         """The emulator for the bench's whole config: its ``plant``, ``emulator``, ``drive`` and ``sample_time``."""
         return cls.for_drive(config.plant, config.emulator, config.drive, sample_time=config.sample_time,
-                             channel=channel)
+                             channel=channel, threaded=threaded)
 
     @property
     def device(self) -> VirtualDrive:
@@ -125,9 +135,10 @@ class EmbeddedEmulator:
 
     @property
     def bus_config(self) -> BusConfig:
-        """Where the master connects: ``inprocess`` (lockstep) or ``virtual`` (realtime), on this emulator's channel."""
-        realtime = self.drive.timing is TimingMode.REALTIME
-        return BusConfig(interface="virtual" if realtime else INPROCESS_INTERFACE, channel=self.channel)
+        """Where the master connects: ``inprocess`` (lockstep) or ``virtual`` (realtime, or :attr:`threaded`), on this
+        emulator's channel."""
+        wall_clock = self.threaded or self.drive.timing is TimingMode.REALTIME
+        return BusConfig(interface="virtual" if wall_clock else INPROCESS_INTERFACE, channel=self.channel)
 
     def begin_trial(self, trial: int) -> None:
         """Start trial ``trial`` of the physics (see :meth:`VirtualDrive.begin_trial`)."""

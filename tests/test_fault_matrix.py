@@ -205,8 +205,8 @@ def emulators(monkeypatch: pytest.MonkeyPatch, one_design: dict[tuple[str, int],
     created: list[Any] = []
     original = EmbeddedEmulator.from_config.__func__  # type: ignore[attr-defined]
 
-    def recording(cls: type[EmbeddedEmulator], config: Any, *, channel: str | None = None) -> EmbeddedEmulator:
-        emulator = original(cls, config, channel=channel)
+    def recording(cls: type[EmbeddedEmulator], config: Any, **kwargs: Any) -> EmbeddedEmulator:
+        emulator = original(cls, config, **kwargs)
         created.append(emulator)
         return emulator
 

@@ -143,12 +143,10 @@ class _ScriptedPolls:
         return False
 
 
-def _losses(monkeypatch: pytest.MonkeyPatch, polls: list[float]) -> list[tuple[float, object]]:
-    from plant_emulator import supervision
+def _losses(polls: list[float]) -> list[tuple[float, object]]:
     from plant_emulator.supervision import Supervisor
 
     clock = [0.0]
-    monkeypatch.setattr(supervision.time, "monotonic", lambda: clock[0])
     losses: list[tuple[float, object]] = []
     supervisor = Supervisor(
         _Node(),  # type: ignore[arg-type]
@@ -157,23 +155,24 @@ def _losses(monkeypatch: pytest.MonkeyPatch, polls: list[float]) -> list[tuple[f
         on_loss=lambda kind: losses.append((clock[0], kind)),
         cycle_period=lambda: 0.001,
         sync_loss_cycles=100,  # 0.1 s
+        clock=lambda: clock[0],
     )
     supervisor.sync_received()  # at t = 0
     supervisor.run(_ScriptedPolls(clock, polls))  # type: ignore[arg-type]
     return losses
 
 
-def test_sync_loss_is_reported_one_timeout_after_the_last_sync(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_sync_loss_is_reported_one_timeout_after_the_last_sync() -> None:
     from plant_emulator.application import FaultKind
 
     polls = [0.002 * k for k in range(1, 80)]  # regular polls up to 0.158 s
-    assert _losses(monkeypatch, polls) == [(pytest.approx(0.102), FaultKind.SYNC_LOSS)]
+    assert _losses(polls) == [(pytest.approx(0.102), FaultKind.SYNC_LOSS)]
 
 
-def test_a_stall_of_the_emulator_itself_restarts_the_sync_loss_timer(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_stall_of_the_emulator_itself_restarts_the_sync_loss_timer() -> None:
     from plant_emulator.application import FaultKind
 
     # polled regularly to 10 ms, then this process is stalled for half a second (SYNCs may be waiting unread)
     polls = [0.002 * k for k in range(1, 6)] + [0.5 + 0.002 * k for k in range(0, 80)]
     # no loss for the stall; a real one (no SYNC ever again) one timeout after the watch resumed
-    assert _losses(monkeypatch, polls) == [(pytest.approx(0.602), FaultKind.SYNC_LOSS)]
+    assert _losses(polls) == [(pytest.approx(0.602), FaultKind.SYNC_LOSS)]

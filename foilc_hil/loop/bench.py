@@ -924,7 +924,8 @@ def _start_emulator(stack: contextlib.ExitStack, config: Any, bus: Any) -> tuple
         return bus, None
     from plant_emulator.embedded import EmbeddedEmulator
 
-    emulator = EmbeddedEmulator.from_config(config)
+    # injected faults act through a wrapper of the master's bus, which needs frames to pass its send and recv
+    emulator = EmbeddedEmulator.from_config(config, threaded=bool(config.inject))
     stack.enter_context(emulator)
     return emulator.bus_config, emulator
 
