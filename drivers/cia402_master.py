@@ -687,7 +687,7 @@ class Cia402Drive(Drive):
                 state = decode_state(statusword)
             except Exception as exc:  # safe_stop never raises: every exit path calls it
                 attempts.append(f"{path}: {exc}")
-                logger.warning("safe stop of node %d via %s failed: %s", self.node_id, path, exc)
+                logger.info("safe stop of node %d via %s failed: %s", self.node_id, path, exc)
                 continue
             if state in DISABLED_STATES:
                 report = StopReport(True, True, state, statusword, path, tuple(attempts), self._pending_faults())
@@ -695,7 +695,7 @@ class Cia402Drive(Drive):
                 return report
             attempts.append(f"{path}: drive still {state.name}")
         report = StopReport(True, False, state, statusword, None, tuple(attempts), self._pending_faults())
-        logger.error("%s", report.describe(self.node_id))
+        logger.info("%s", report.describe(self.node_id))  # the caller has the report; the CLI says it in its one line
         return report
 
     def close(self) -> None:

@@ -9,10 +9,13 @@ stack and ``foilc-hil run`` never imports cvxpy unless it must.
 from __future__ import annotations
 
 import argparse
+import enum
 import importlib
 import json
+import logging
 import sys
 from collections.abc import Sequence
+from enum import StrEnum
 from types import ModuleType
 from typing import NoReturn
 
@@ -49,6 +52,11 @@ def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
     """The parser; only the ``chosen`` subcommand's module is imported, to add its options."""
     parser = _Parser(prog="foilc-hil", description="Hardware-in-the-loop bench for 2D fractional-order ILC.")
     parser.add_argument("--version", action="version", version=f"foilc-hil {__version__}")
+    parser.add_argument(
+        "--log-level", choices=[level.value for level in LogLevel], default=LogLevel.WARNING.value,
+        help="diagnostics on stderr before the command's one-line result (default warning; canopen's and "
+        "python-can's own messages only at debug)",
+    )
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     for name, (_, help_text) in COMMANDS.items():
         command_parser = sub.add_parser(name, help=help_text, description=help_text)
@@ -63,7 +71,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``foilc-hil`` console script. Returns the process exit code."""
     args_list = list(sys.argv[1:] if argv is None else argv)
     try:
-        chosen = next((token for token in args_list if not token.startswith("-")), None)
+        chosen = next((token for token in args_list if token in COMMANDS), None)
         parser = build_parser(chosen if chosen in COMMANDS else None)
         args = parser.parse_args(args_list)
     except SystemExit as exc:  # --help, --version, usage errors
@@ -71,6 +79,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if code != ExitCode.OK and "--json" in args_list:  # the one-line message went to stderr; a document too
             _write_json({"error": _error_detail("UsageError", "invalid command line (see stderr)", code)})
         return code
+    _configure_logging(LogLevel(args.log_level))
     module = _load(args.command)
     want_json = bool(getattr(args, "json", False))
     try:
@@ -94,6 +103,28 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stderr.write(f"foilc-hil {args.command}: {result.message}\n")
     sys.stdout.flush()
     return int(result.exit_code)
+
+
+@enum.unique
+class LogLevel(StrEnum):
+    """``--log-level``: how much the product logs on stderr besides its one-line result."""
+
+    DEBUG = "debug"
+    INFO = "info"
+    WARNING = "warning"
+    ERROR = "error"
+
+
+def _configure_logging(level: LogLevel) -> None:
+    """Product diagnostics at ``level``; canopen's and python-can's only at ``debug``: below that they repeat what
+    the product's one line already says (e.g. canopen's "Transfer aborted" for each SDO the confirmed stop tried)."""
+    numeric = getattr(logging, level.name)
+    # basicConfig leaves a root logger that already has handlers alone (an application embedding main(), pytest)
+    logging.basicConfig(format="foilc-hil: %(name)s: %(message)s", level=numeric)
+    for product in ("foilc_hil", "drivers", "plant_emulator"):
+        logging.getLogger(product).setLevel(numeric)
+    for library in ("canopen", "can"):
+        logging.getLogger(library).setLevel(numeric if level is LogLevel.DEBUG else logging.CRITICAL)
 
 
 def _with_source(error: ConfigError, config_path: object) -> ConfigError:
