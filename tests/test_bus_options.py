@@ -8,6 +8,7 @@ by ``replay``) or on python-can's in-process ``virtual`` bus.
 from __future__ import annotations
 
 import json
+import re
 import uuid
 from pathlib import Path
 
@@ -128,3 +129,11 @@ def test_replay_onto_i_and_c(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     channel = f"replay-{uuid.uuid4()}"
     assert main(["replay", str(log), "-i", "virtual", "-c", channel, "--rate", "1000", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["frames_sent"] == 3
+
+
+def test_commission_scan_names_the_embedded_bus_without_its_internal_channel(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["commission", "scan", "--timeout", "0.3", "--json"]) == 0
+    bus = json.loads(capsys.readouterr().out)["bus"]
+    assert bus.startswith("embedded (1 emulated drive(s)")
+    assert re.search(r"[0-9a-f]{8}-[0-9a-f]{4}", bus) is None  # no per-process UUID a user cannot join
