@@ -16,9 +16,6 @@ from foilc_hil.commands import CommandResult
 
 HELP = "print the JSON Schema of the config file (for editors)"
 
-JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"  # the dialect pydantic generates
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     actions = parser.add_subparsers(dest="action", required=True, metavar="ACTION")
     schema = actions.add_parser("schema", help="print the JSON Schema of the config (pydantic's model_json_schema)")
@@ -29,6 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def execute(args: argparse.Namespace) -> CommandResult:
     from foilc_hil.config import Config
+    from foilc_hil.io.schemas import JSON_SCHEMA_DIALECT  # the dialect pydantic generates, as the log's schemas
 
     schema = {"$schema": JSON_SCHEMA_DIALECT, **Config.model_json_schema()}
     return CommandResult(schema, json.dumps(schema, indent=2))

@@ -15,6 +15,8 @@ from __future__ import annotations
 import json
 from typing import Any, Final
 
+import yaml
+
 from drivers.pdo import MappedVariable, PdoDirection, PdoLayout, TransmissionType
 
 __all__ = [
@@ -22,6 +24,7 @@ __all__ = [
     "DIRECTIONS",
     "ILC_SAMPLE_SCHEMA",
     "ILC_TRIAL_SCHEMA",
+    "JSON_SCHEMA_DIALECT",
     "MESSAGE_ENCODING",
     "METADATA_CONFIG",
     "METADATA_DESIGN",
@@ -41,6 +44,8 @@ __all__ = [
 ]
 
 SCHEMA_ENCODING: Final = "jsonschema"
+#: ``$schema`` of every schema: the dialect its keywords are read in (``contentEncoding``, ``oneOf``, type lists)
+JSON_SCHEMA_DIALECT: Final = "https://json-schema.org/draft/2020-12/schema"
 MESSAGE_ENCODING: Final = "json"
 
 TOPIC_CAN: Final = "/can"
@@ -109,6 +114,7 @@ def _flag(description: str) -> dict[str, Any]:
 
 
 CAN_FRAME_SCHEMA: Final[dict[str, Any]] = {
+    "$schema": JSON_SCHEMA_DIALECT,
     "title": "foilc_hil.CanFrame",
     "description": "One CAN frame the bench sent (tx) or received (rx); the flags are written only when set.",
     "type": "object",
@@ -136,6 +142,7 @@ CAN_FRAME_SCHEMA: Final[dict[str, Any]] = {
 }
 
 ILC_SAMPLE_SCHEMA: Final[dict[str, Any]] = {
+    "$schema": JSON_SCHEMA_DIALECT,
     "title": "foilc_hil.IlcSample",
     "description": "One sample of one trial: what the learning law saw (output) and what it commanded (control).",
     "type": "object",
@@ -156,6 +163,7 @@ ILC_SAMPLE_SCHEMA: Final[dict[str, Any]] = {
 }
 
 ILC_TRIAL_SCHEMA: Final[dict[str, Any]] = {
+    "$schema": JSON_SCHEMA_DIALECT,
     "title": "foilc_hil.IlcTrial",
     "description": "Tracking metrics of one completed trial (extra fields allowed).",
     "type": "object",
@@ -176,6 +184,7 @@ ILC_TRIAL_SCHEMA: Final[dict[str, Any]] = {
 }
 
 TIMING_SCHEMA: Final[dict[str, Any]] = {
+    "$schema": JSON_SCHEMA_DIALECT,
     "title": "foilc_hil.CycleTiming",
     "description": "Timing of one real-time bench cycle.",
     "type": "object",
@@ -205,6 +214,49 @@ TOPICS: Final[dict[str, tuple[str, dict[str, Any]]]] = {
     TOPIC_TRIAL: ("foilc_hil.IlcTrial", ILC_TRIAL_SCHEMA),
     TOPIC_TIMING: ("foilc_hil.CycleTiming", TIMING_SCHEMA),
 }
+
+
+#: units of the fields whose unit does not depend on the config (channel metadata ``units``)
+_FIXED_UNITS: Final[dict[str, dict[str, str]]] = {
+    TOPIC_CAN: {"timestamp": "s"},
+    TOPIC_SAMPLE: {"t": "s"},
+    TOPIC_TRIAL: {},
+    TOPIC_TIMING: {"lateness_us": "us", "period_us": "us", "feedback_latency_us": "us"},
+}
+
+
+def _signal_units(config_yaml: str | None) -> tuple[str, str] | None:
+    """(output unit, command unit) from the logged ``drive:`` section; ``None`` when the text does not load."""
+    from drivers.config import DriveConfig
+    from foilc_hil.errors import FoilcHilError
+    from foilc_hil.schema import load_yaml_text
+
+    if config_yaml is None:
+        return None
+    try:
+        document = load_yaml_text(config_yaml) or {}
+        drive = DriveConfig.model_validate(document.get("drive") or {})
+    except (FoilcHilError, ValueError, AttributeError, yaml.YAMLError):  # units are a courtesy: never fail a log
+        return None
+    # the bench logs in plant units: velocities in velocity_unit; the command is a torque in cst mode
+    return drive.velocity_unit, drive.torque_unit if drive.mode == "cst" else drive.velocity_unit
+
+
+def channel_metadata(config_yaml: str | None) -> dict[str, dict[str, str]]:
+    """Channel metadata per topic: ``{"units": <JSON object field -> unit>}``.
+
+    Time fields always carry their unit; ``/ilc/sample`` signals and ``/ilc/trial`` errors carry the plant units of
+    the logged ``drive:`` section (``velocity_unit``; ``control`` in ``torque_unit`` in ``cst`` mode) when
+    ``config_yaml`` loads. Metadata only: the schemas and messages are unchanged.
+    """
+    units = {topic: dict(fixed) for topic, fixed in _FIXED_UNITS.items()}
+    signal = _signal_units(config_yaml)
+    if signal is not None:
+        output, command = signal
+        units[TOPIC_SAMPLE].update({"reference": output, "output": output, "error": output, "E": output,
+                                    "control": command})
+        units[TOPIC_TRIAL].update({"sse": f"{output}^2", "rmse": output, "max_abs_error": output})
+    return {topic: {"units": json.dumps(fields, sort_keys=True)} for topic, fields in units.items()}
 
 
 def schema_bytes(schema: dict[str, Any]) -> bytes:
