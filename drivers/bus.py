@@ -1,5 +1,8 @@
 """The CAN bus: parsing ``--bus INTERFACE:CHANNEL``, opening it with python-can, and tapping every frame.
 
+:func:`resolve_bus` picks the bus of a command the way python-can's tools do (``-i/--interface``, ``-c/--channel``,
+``-b/--bitrate`` beside ``--bus``; python-can's environment and config file when the command line names none).
+
 ``open_bus`` is the only place the product calls ``can.Bus``; it turns python-can's open errors into one
 :class:`~foilc_hil.errors.DriveError` line that says what to do (for SocketCAN: create the interface). The
 ``embedded`` interface (the in-process emulator) is resolved by ``plant_emulator.embedded``, not here; the bus it
@@ -15,12 +18,15 @@ shows a SYNC before the TPDOs that answer it.
 
 from __future__ import annotations
 
+import configparser
 import errno
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import can
+from pydantic import ValidationError
 
 from drivers.config import BusConfig
 from drivers.inprocess import INTERFACE as INPROCESS_INTERFACE
@@ -29,12 +35,16 @@ from foilc_hil.errors import DriveError, InputError
 
 __all__ = [
     "SIMULATED_INTERFACES",
+    "BusOptions",
     "FrameListener",
     "FrameTap",
+    "command_line_bus",
     "is_simulated_bus",
     "known_interfaces",
     "open_bus",
     "parse_bus_spec",
+    "python_can_config",
+    "resolve_bus",
 ]
 
 SIMULATED_INTERFACES = frozenset({"virtual", "udp_multicast", "embedded", INPROCESS_INTERFACE})
@@ -63,6 +73,106 @@ def parse_bus_spec(spec: str, *, bitrate: int | None = None) -> BusConfig:
         return BusConfig(interface=interface, channel=channel, bitrate=bitrate)
     except ValueError as exc:  # pydantic's ValidationError is a ValueError
         raise InputError(f"--bus: {spec!r}: {exc}") from exc
+
+
+@dataclass(frozen=True)
+class BusOptions:
+    """The bus options of a command line: ``--bus SPEC``, ``-i/--interface``, ``-c/--channel``, ``-b/--bitrate``
+    and ``--emulator embedded`` (``None``: not given)."""
+
+    spec: str | None = None
+    interface: str | None = None
+    channel: str | None = None
+    bitrate: int | None = None
+    emulator: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.bitrate is not None and self.bitrate <= 0:
+            raise InputError(f"-b/--bitrate: must be > 0, got {self.bitrate}")
+
+
+def python_can_config() -> dict[str, str]:
+    """python-can's own bus defaults: ``interface``, ``channel``, ``bitrate`` from its environment (``CAN_INTERFACE``,
+    ``CAN_CHANNEL``, ``CAN_BITRATE``, ``CAN_CONFIG``) over its config file (``can.rc``: ``~/can.conf``, ``~/.canrc``,
+    ... section ``[default]``), the environment winning as in :func:`can.util.load_config`.
+
+    Read directly rather than through ``load_config``, which refuses a missing interface and does not know the
+    ``inprocess`` interface of this package.
+    """
+    try:
+        from_file = can.util.load_file_config()
+    except configparser.Error as exc:
+        raise InputError(f"can.rc: python-can's config file does not parse: {exc}".splitlines()[0]) from None
+    try:
+        from_environment = can.util.load_environment_config()
+    except ValueError as exc:  # CAN_CONFIG is not JSON
+        raise InputError(f"CAN_CONFIG: not a JSON object: {exc}") from None
+    merged = {**from_file, **from_environment}
+    return {key: str(merged[key]) for key in ("interface", "channel", "bitrate") if merged.get(key)}
+
+
+def _bus_config(interface: str, channel: str, bitrate: int | str | None) -> BusConfig:
+    """A :class:`BusConfig`; only a bitrate from python-can's config can be bad here (the options are checked)."""
+    try:
+        return BusConfig(interface=interface, channel=channel, bitrate=bitrate)
+    except ValidationError as exc:
+        raise InputError(f"CAN_BITRATE: {bitrate!r} (python-can's environment or can.rc): "
+                         f"{exc.errors()[0]['msg']}") from None
+
+
+def command_line_bus(options: BusOptions, bitrate: int | None = None) -> BusConfig | None:
+    """The bus the command line names, or ``None``: ``--bus SPEC``, or ``-i``/``-c`` with the part not given taken
+    from :func:`python_can_config`. ``-b`` (else ``bitrate``, the config's) sets the bitrate.
+
+    Raises :class:`InputError` for ``--bus`` together with ``-i``/``-c``, or ``-i``/``-c`` that stay incomplete.
+    """
+    rate = options.bitrate if options.bitrate is not None else bitrate
+    given = "-i/--interface" if options.interface is not None else "-c/--channel"
+    if options.spec is not None:
+        if options.interface is not None or options.channel is not None:
+            raise InputError(f"{given}: give either --bus INTERFACE:CHANNEL or -i/-c, not both")
+        spec = parse_bus_spec(options.spec)
+        return _bus_config(spec.interface, spec.channel, rate)
+    if options.interface is None and options.channel is None:
+        return None
+    defaults = python_can_config()
+    interface = options.interface or defaults.get("interface")
+    channel = options.channel or defaults.get("channel")
+    if not interface or not channel:
+        missing, variable = ("-i/--interface", "CAN_INTERFACE") if not interface else ("-c/--channel", "CAN_CHANNEL")
+        raise InputError(f"{missing}: needed with {given} (or from python-can's {variable} / can.rc)")
+    if interface == "embedded":
+        raise InputError("-i/--interface: 'embedded' is not a bus; use --emulator embedded")
+    return _bus_config(interface, channel, rate if rate is not None else defaults.get("bitrate"))
+
+
+def resolve_bus(options: BusOptions, configured: BusConfig) -> BusConfig:
+    """The bus of a command, in this order (first that applies):
+
+    1. ``--emulator embedded``: the in-process emulator (``interface: embedded``);
+    2. the command line (:func:`command_line_bus`);
+    3. the config file's ``bus:`` block when it names an ``interface``;
+    4. python-can's environment, then its config file (:func:`python_can_config`), when they name an interface;
+    5. ``configured`` as it is (by default the embedded emulator).
+
+    ``-b/--bitrate`` overrides the bitrate of whichever bus is chosen.
+    """
+    if options.emulator == "embedded":
+        if options.interface is not None or options.channel is not None:
+            raise InputError("--emulator: the embedded emulator has its own bus; drop -i/-c")
+        return BusConfig(interface="embedded", channel=configured.channel)
+    named = command_line_bus(options, configured.bitrate)
+    if named is not None:
+        return named
+    rate = options.bitrate if options.bitrate is not None else configured.bitrate
+    defaults = python_can_config()
+    if "interface" not in configured.model_fields_set and "interface" in defaults:
+        if "channel" not in defaults:
+            raise InputError(f"CAN_CHANNEL: python-can's config names interface {defaults['interface']!r} "
+                             "but no channel (set CAN_CHANNEL, or channel in can.rc)")
+        return _bus_config(defaults["interface"], defaults["channel"],
+                           rate if options.bitrate is not None else defaults.get("bitrate", rate))
+    return configured.model_copy(update={"bitrate": rate})
 
 
 def known_interfaces() -> frozenset[str]:

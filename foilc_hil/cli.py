@@ -31,7 +31,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("foilc_hil.commands.demo", "FOILC and IOILC side by side on the embedded emulator"),
     "replay": ("foilc_hil.commands.replay", "play a log back onto a bus, or verify it bit for bit"),
     "report": ("foilc_hil.commands.report", "plots and a summary of a log"),
-    "export": ("foilc_hil.commands.export", "write a log's CAN frames as ASC, BLF or CSV"),
+    "export": ("foilc_hil.commands.export", "write a log's CAN frames as ASC, BLF or CSV, or the DBC of its mapping"),
+    "config": ("foilc_hil.commands.config", "print the JSON Schema of the config file (for editors)"),
     "commission": ("foilc_hil.commands.commission", "scan, inspect, enable, parameterise and identify a drive"),
 }
 

@@ -18,7 +18,7 @@ from typing import Annotated, Any, TypeVar
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, BeforeValidator, ConfigDict, ValidationError, field_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, ValidationError, WithJsonSchema, field_validator
 
 from foilc_hil.errors import ConfigError
 
@@ -94,7 +94,13 @@ def _to_matrix(value: Any) -> Any:
     raise ValueError("must be a number or a matrix (list of rows)")
 
 
-Matrix = Annotated[list[list[float]], BeforeValidator(_to_matrix)]
+_NUMBER_ROW: dict[str, Any] = {"type": "array", "items": {"type": "number"}, "minItems": 1}
+#: what _to_matrix accepts, for `foilc-hil config schema` (pydantic would describe only the list of rows it returns)
+_MATRIX_JSON_SCHEMA: dict[str, Any] = {"anyOf": [
+    {"type": "number"}, _NUMBER_ROW, {"type": "array", "items": _NUMBER_ROW, "minItems": 1},
+]}
+
+Matrix = Annotated[list[list[float]], BeforeValidator(_to_matrix), WithJsonSchema(_MATRIX_JSON_SCHEMA)]
 """A real matrix given as a scalar, a single row or a list of rows (interface: matrices are lists of rows)."""
 
 

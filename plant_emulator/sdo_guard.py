@@ -5,8 +5,10 @@ The guard adds, through ``LocalNode``'s write callbacks (which run before the va
 ``SdoAbortedError``): the value range from the EDS limits, the supported modes of operation, the range of 0x605A,
 and the PDO mapping checks of CiA 301 (object exists, is mappable in that direction, has the size the entry says,
 and the whole mapping fits 64 bits). It also answers no SDO request in NMT *stopped* (canopen would); it ignores a
-frame that is not 8 bytes long, as CANopenNode's server does (every CiA 301 SDO request has DLC 8); and it aborts a
-segment that belongs to no open transfer.
+frame that is not 8 bytes long, as CANopenNode's server does (every CiA 301 SDO request has DLC 8); it aborts a
+segment that belongs to no open transfer; and it answers a block upload or block download request with abort
+0x05040001 (client/server command specifier not valid), which tells a client to fall back to segmented transfer
+-- canopen's server would answer a block upload with a segmented start the client cannot read.
 """
 
 from __future__ import annotations
@@ -18,7 +20,13 @@ from typing import Any
 import canopen
 from canopen import objectdictionary as cod
 from canopen.sdo import SdoAbortedError
-from canopen.sdo.constants import REQUEST_SEGMENT_DOWNLOAD, REQUEST_SEGMENT_UPLOAD, RESPONSE_ABORTED
+from canopen.sdo.constants import (
+    REQUEST_BLOCK_DOWNLOAD,
+    REQUEST_BLOCK_UPLOAD,
+    REQUEST_SEGMENT_DOWNLOAD,
+    REQUEST_SEGMENT_UPLOAD,
+    RESPONSE_ABORTED,
+)
 
 from drivers.cia301 import NmtState, SdoAbortCode
 from drivers.cia402 import Obj, OperationMode
@@ -32,6 +40,7 @@ PDO_MAX_BITS = 64
 SDO_FRAME_BYTES = 8  # CiA 301: every SDO request and response has DLC 8
 _CLIENT_COMMAND = 0xE0  # the client command specifier bits of an SDO request's first byte
 _ABORT = struct.Struct("<BHBL")  # command, index, subindex, abort code
+_MULTIPLEXER = struct.Struct("<HB")  # index, subindex at bytes 1..3 of an initiate request
 QUICK_STOP_OPTION_MAX = 8  # 0x605A: 0..8 are defined by CiA 402-2
 SUPPORTED_MODES = frozenset(int(m) for m in OperationMode)
 _RPDO_MAPPING_AREA = range(Obj.RPDO_MAPPING, Obj.RPDO_MAPPING + PDO_CHANNELS)
@@ -66,7 +75,13 @@ class SdoGuard:
         if len(data) != SDO_FRAME_BYTES:  # canopen would unpack past the end of a short frame and log an error
             return
         with self._lock:
-            segment = (data[0] & _CLIENT_COMMAND) in (REQUEST_SEGMENT_DOWNLOAD, REQUEST_SEGMENT_UPLOAD)
+            command = data[0] & _CLIENT_COMMAND
+            if command in (REQUEST_BLOCK_UPLOAD, REQUEST_BLOCK_DOWNLOAD):  # no block transfer: the client falls back
+                index, subindex = _MULTIPLEXER.unpack_from(data, 1)
+                self.node.sdo.send_response(_ABORT.pack(RESPONSE_ABORTED, index, subindex,
+                                                        SdoAbortCode.INVALID_COMMAND))
+                return
+            segment = command in (REQUEST_SEGMENT_DOWNLOAD, REQUEST_SEGMENT_UPLOAD)
             if segment and self.node.sdo._buffer is None:
                 # no transfer was ever opened: canopen would fail on its missing buffer, then on its missing index
                 self.node.sdo.send_response(_ABORT.pack(RESPONSE_ABORTED, 0, 0, SdoAbortCode.INVALID_COMMAND))

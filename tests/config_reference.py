@@ -28,6 +28,10 @@ Generated from the typed config models (`foilc_hil/config.py` and the sections i
 key is optional (the default applies); unknown keys are refused with a did-you-mean. Command-line options override
 the file. Durations are in seconds unless a key says otherwise (`_ms` keys are CANopen objects in milliseconds).
 
+For editors: `.venv/bin/foilc-hil config schema > foilc-hil.schema.json` writes the JSON Schema of the same models
+(draft 2020-12); with the YAML language server, a first line `# yaml-language-server: $schema=foilc-hil.schema.json`
+gives completion and checks. The schema cannot express the cross-field checks; `load_config` still reports those.
+
 ## The `piecewise` reference profile
 
 `reference.profile: piecewise` builds the trial's set-point from `reference.segments`, in order. Segment `j` covers

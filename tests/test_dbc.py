@@ -4,6 +4,9 @@ The run and the DBC use the same config; the DBC describes the mapping ``run`` i
 strict mode (no overlapping signals), decodes every TPDO the drive sent during the run, and the scaled velocity
 must be the ``/ilc/sample`` output the bench logged (in rpm, not in 0.001 rpm counts); every RPDO decodes to a
 402 command and a target within one count of the law's command.
+
+``export F.mcap --format dbc`` writes the same DBC from the log alone (the mapping the run installed is in its
+metadata): on a drive with one TPDO, with the EDS gone after the run, cantools still decodes the log with it.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from pathlib import Path
 from typing import Any, cast
 
 import cantools
+import pytest
 import yaml
 
 from drivers.cia301 import FunctionCode, cob_id
@@ -65,6 +69,11 @@ def test_cantools_decodes_a_run_log_to_the_logged_values(tmp_path: Path) -> None
     assert tpdo1.senders == [f"drive_{NODE}"]
     assert tpdo1.get_signal_by_name("velocity_actual_value").unit == "rpm"
 
+    _assert_decodes_to_the_logged_values(db, log)
+
+
+def _assert_decodes_to_the_logged_values(db: cantools.database.can.Database, log: Path) -> None:
+    """Every ``/ilc/sample`` output is a decoded TPDO velocity; every command a decoded RPDO target."""
     contents = read_log(log)
     decoded: list[dict[str, Any]] = [
         {"id": frame["id"], **cast(dict[str, Any], db.decode_message(frame["id"], base64.b64decode(frame["data"])))}
@@ -127,3 +136,49 @@ def test_info_writes_other_canmatrix_formats(tmp_path: Path) -> None:
     assert [frame["arbitration_id"] for frame in document["dbc"]["frames"]] == [
         cob_id(FunctionCode.RPDO1, NODE), cob_id(FunctionCode.TPDO1, NODE), cob_id(FunctionCode.TPDO2, NODE),
     ]
+
+
+def test_export_writes_the_dbc_of_the_mapping_the_run_installed(tmp_path: Path) -> None:
+    one_tpdo = mutated_eds(tmp_path, 0x1801, 0x1802, 0x1803, 0x1A01, 0x1A02, 0x1A03)
+    config = _config(tmp_path, eds=str(one_tpdo))
+    document = yaml.safe_load(config.read_text(encoding="utf-8"))
+    config.write_text(yaml.safe_dump({**document, "emulator": {"eds": str(one_tpdo)}}), encoding="utf-8")
+    log = tmp_path / "run.mcap"
+    _cli("run", "--config", str(config), "--emulator", "embedded", "--out", str(log))
+    one_tpdo.unlink()  # the DBC must come from the log's metadata, not from the drive's EDS
+    dbc = tmp_path / "from_log.dbc"
+    exported = _cli("export", str(log), "--format", "dbc", "--out", str(dbc))
+    assert exported["dbc"]["file"] == str(dbc)
+    db = cantools.database.load_file(str(dbc), strict=True)
+    assert isinstance(db, cantools.database.can.Database)
+    tpdos = [m for m in db.messages if m.senders == [f"drive_{NODE}"]]
+    assert [m.frame_id for m in tpdos] == [cob_id(FunctionCode.TPDO1, NODE)]  # not the shipped EDS's TPDO1 + TPDO2
+    assert "torque_actual_value" in [s.name for s in tpdos[0].signals]
+    _assert_decodes_to_the_logged_values(db, log)
+
+
+def test_export_dbc_of_a_log_without_the_mapping_record_uses_the_logged_drive_section(tmp_path: Path) -> None:
+    from foilc_hil.config import dump_config, load_config
+    from foilc_hil.io.mcap_log import McapLogWriter
+
+    log = tmp_path / "old.mcap"
+    McapLogWriter(log, config_yaml=dump_config(load_config(_config(tmp_path, velocity_unit="rad/s")))).close()
+    _cli("export", str(log), "--format", "dbc", "--out", str(tmp_path / "old.dbc"))
+    db = cantools.database.load_file(str(tmp_path / "old.dbc"))
+    assert isinstance(db, cantools.database.can.Database)
+    offline = _offline_dbc(tmp_path, velocity_unit="rad/s")
+    assert [(m.frame_id, [s.name for s in m.signals]) for m in db.messages] == [
+        (m.frame_id, [s.name for s in m.signals]) for m in offline.messages]
+    tpdo1 = db.get_message_by_frame_id(cob_id(FunctionCode.TPDO1, NODE))
+    assert tpdo1.get_signal_by_name("velocity_actual_value").unit == "rad/s"
+    assert tpdo1.get_signal_by_name("velocity_actual_value").scale == 1 / SCALE
+
+
+def test_export_dbc_of_a_log_without_a_config_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from foilc_hil.io.mcap_log import McapLogWriter
+
+    log = tmp_path / "bare.mcap"
+    McapLogWriter(log, config_yaml=None).close()
+    assert main(["export", str(log), "--format", "dbc", "--out", str(tmp_path / "x.dbc")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "foilc_hil.config" in err

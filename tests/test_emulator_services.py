@@ -11,7 +11,7 @@ import threading
 import pytest
 from canopen.sdo import SdoAbortedError
 
-from drivers.cia301 import RPDO_BASES, EmcyCode, ErrorRegister, NmtCommand, SdoAbortCode, cob_id
+from drivers.cia301 import RPDO_BASES, EmcyCode, ErrorRegister, FunctionCode, NmtCommand, SdoAbortCode, cob_id
 from drivers.cia402 import AbortConnectionOption, Command402, Controlword, Obj, State402
 from drivers.pdo import MappingEntry
 from plant_emulator.application import Cia402Application, FaultKind
@@ -145,3 +145,20 @@ def test_application_leaving_operational_applies_0x6007(
     assert application.machine.state is after
     assert application.emcy_log[-1][0] == EmcyCode.COMMUNICATION
     assert node.read(Obj.ERROR_CODE) == EmcyCode.COMMUNICATION  # latched even without a fault (0x6007 = 0)
+
+
+@pytest.mark.parametrize("request_byte", [
+    0xA4,  # block upload initiate (ccs 5, CRC supported, cs 0)
+    0xC6,  # block download initiate (ccs 6, CRC, size indicated, cs 0)
+])
+def test_sdo_block_requests_are_aborted_with_0x05040001(node: EmulatedNode, monkeypatch: pytest.MonkeyPatch,
+                                                       request_byte: int) -> None:
+    guard = SdoGuard(node, threading.RLock())
+    node.alive = True  # as a started drive (device.VirtualDrive.start)
+    responses: list[bytes] = []
+    monkeypatch.setattr(node.sdo, "send_response", lambda data: responses.append(bytes(data)))
+    # a raw request for 0x1018 sub 2 (bytes 1..3: index little-endian, subindex), block size 127
+    request = bytearray([request_byte, 0x18, 0x10, 0x02, 127, 0, 0, 0])
+    guard.on_request(cob_id(FunctionCode.SDO_RX, NODE_ID), request, 0.0)
+    # CiA 301 abort: command 0x80, the request's multiplexer, code 0x05040001 (all little-endian)
+    assert responses == [bytes([0x80, 0x18, 0x10, 0x02, 0x01, 0x00, 0x04, 0x05])]

@@ -339,3 +339,29 @@ def test_every_cut_offset_reads_without_error_and_keeps_completed_trials(tmp_pat
         assert got == expected[: len(got)], cut  # a prefix of what was written, never altered data
         finished = sum(1 for size in sizes if size <= cut)
         assert contents.completed_trials[:finished] == list(range(1, finished + 1)), cut
+
+
+def _channel_units(path: Path) -> dict[str, dict[str, str]]:
+    with path.open("rb") as stream:
+        summary = make_reader(stream).get_summary()
+    assert summary is not None
+    return {channel.topic: json.loads(channel.metadata["units"]) for channel in summary.channels.values()}
+
+
+def test_schemas_name_their_dialect_and_channels_carry_units(tmp_path: Path) -> None:
+    for _, schema in TOPICS.values():
+        assert schema["$schema"] == "https://json-schema.org/draft/2020-12/schema"
+    path = tmp_path / "cst.mcap"
+    drive = "drive:\n  mode: cst\n  velocity_unit: rad/s\n  torque_unit: Nm\n"
+    McapLogWriter(path, config_yaml=CONFIG_YAML + drive).close()
+    units = _channel_units(path)
+    assert units["/ilc/sample"] == {"t": "s", "reference": "rad/s", "output": "rad/s", "error": "rad/s",
+                                    "E": "rad/s", "control": "Nm"}
+    assert units["/ilc/trial"] == {"sse": "rad/s^2", "rmse": "rad/s", "max_abs_error": "rad/s"}
+    assert units["/timing"]["lateness_us"] == "us" and units["/can"] == {"timestamp": "s"}
+    # the defaults of the drive section when the config names none (rpm: drive.velocity_unit's default)
+    McapLogWriter(tmp_path / "default.mcap", config_yaml=CONFIG_YAML).close()
+    assert _channel_units(tmp_path / "default.mcap")["/ilc/sample"]["control"] == "rpm"
+    # a config that does not load gives the time units only, and the log is still written
+    McapLogWriter(tmp_path / "odd.mcap", config_yaml="drive: [1, 2]\n").close()
+    assert _channel_units(tmp_path / "odd.mcap")["/ilc/sample"] == {"t": "s"}

@@ -162,7 +162,8 @@ def test_output_for_error_reproduces_the_error_exactly() -> None:
         assert found is not None and reference - found == error
 
 
-def test_verify_with_the_real_foilc_law_rebuilt_from_metadata(tmp_path: Path) -> None:
+def test_verify_with_the_real_foilc_law_rebuilt_from_metadata(tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
     """make_law + Design.from_json + config from the log's metadata reproduce a FOILC run bit for bit."""
     from foilc_hil.config import Config, dump_config
     from foilc_hil.laws.learning import make_law
@@ -196,6 +197,10 @@ def test_verify_with_the_real_foilc_law_rebuilt_from_metadata(tmp_path: Path) ->
             writer.log_trial(update.metrics, final_output=float(seen[N]))
             writer.end_trial()
     assert main(["replay", str(path), "--verify", "--json"]) == 0
+    capsys.readouterr()
+    assert main(["replay", str(path), "--verify"]) == 0
+    # the text is the verdict alone: no "N frames selected, 0 sent" line, which read like a failed replay
+    assert capsys.readouterr().out.strip() == f"verified: {3 * N} commands in 3 trials are bit-identical to the log"
     contents = read_log(path)
     contents.samples[N + 4]["control"] = math.nextafter(contents.samples[N + 4]["control"], 0.0)
     result = verify_log(contents)

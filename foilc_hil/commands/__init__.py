@@ -13,10 +13,14 @@ Each module defines:
 
 from __future__ import annotations
 
+import argparse
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from foilc_hil.errors import ExitCode
+
+if TYPE_CHECKING:
+    from drivers.bus import BusOptions
 
 
 @dataclass(frozen=True)
@@ -40,3 +44,21 @@ class CommandResult:
     text: str = ""
     exit_code: ExitCode = ExitCode.OK
     message: str = ""
+
+
+def add_bus_options(parser: argparse.ArgumentParser) -> None:
+    """python-can's bus options beside ``--bus`` (as its ``can.logger``/``can.player`` spell them)."""
+    parser.add_argument("-i", "--interface", metavar="NAME",
+                        help="python-can interface, e.g. socketcan (with -c; instead of --bus; default: "
+                        "python-can's CAN_INTERFACE / can.rc)")
+    parser.add_argument("-c", "--channel", metavar="CHANNEL",
+                        help="python-can channel, e.g. can0 (default: python-can's CAN_CHANNEL / can.rc)")
+    parser.add_argument("-b", "--bitrate", type=int, metavar="BPS", help="bitrate in bit/s (overrides bus.bitrate)")
+
+
+def bus_options(args: argparse.Namespace) -> BusOptions:
+    """The bus options of ``args`` (:func:`add_bus_options` and ``--bus``/``--emulator``)."""
+    from drivers.bus import BusOptions
+
+    return BusOptions(spec=args.bus, interface=args.interface, channel=args.channel, bitrate=args.bitrate,
+                      emulator=getattr(args, "emulator", None))

@@ -28,7 +28,7 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from foilc_hil.commands import CommandResult
+from foilc_hil.commands import CommandResult, add_bus_options, bus_options
 from foilc_hil.errors import ExitCode, InputError
 
 if TYPE_CHECKING:
@@ -44,6 +44,7 @@ def _common(parser: argparse.ArgumentParser) -> None:
     where = parser.add_mutually_exclusive_group()
     where.add_argument("--bus", metavar="SPEC", help="INTERFACE:CHANNEL, e.g. socketcan:vcan0 (default: embedded)")
     where.add_argument("--emulator", choices=["embedded"], help="the in-process emulator (the default)")
+    add_bus_options(parser)
     parser.add_argument("--node-id", type=int, metavar="N", help="the drive's node id (default: drive.node_id)")
     parser.add_argument("--config", metavar="C", help="config YAML: drive settings, sample_time, emulated plant")
     parser.add_argument("--emulator-config", metavar="C",
@@ -135,12 +136,11 @@ def _load(args: argparse.Namespace) -> tuple[Config, Config | None, DriveConfig]
 
 def _target(args: argparse.Namespace, config: Config, emulator_config: Config | None,
             node_id: int) -> CommissionTarget:
-    from drivers.bus import parse_bus_spec
+    from drivers.bus import resolve_bus
     from foilc_hil.commission.target import CommissionTarget, parse_node_list
 
-    bus = parse_bus_spec(args.bus, bitrate=config.bus.bitrate) if args.bus else None
-    if bus is None and args.emulator is None and config.bus.interface != "embedded" and args.config:
-        bus = config.bus  # the config names a real bus and the command line does not override it
+    resolved = resolve_bus(bus_options(args), config.bus)  # precedence: drivers.bus.resolve_bus
+    bus = None if resolved.interface == "embedded" else resolved  # None: the target's embedded emulator
     nodes = parse_node_list(args.emulated_nodes, option="--emulated-nodes") if args.emulated_nodes else (node_id,)
     return CommissionTarget(config, bus, emulated_nodes=nodes, emulator_config=emulator_config)
 

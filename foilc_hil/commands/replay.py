@@ -1,9 +1,12 @@
-"""``foilc-hil replay F.mcap [--bus SPEC] [--rate X] [--verify] [--allow-real-bus] [--json]``.
+"""``foilc-hil replay F.mcap [--bus SPEC | -i INTERFACE -c CHANNEL] [-b BPS] [--rate X] [--verify]
+[--allow-real-bus] [--json]``.
 
 JSON: ``{"log", "frames_selected", "frames_sent", "duration", "verified", "first_divergence", "samples_checked",
 "trials_checked", "truncated", "damage"}``; ``verified`` is ``null`` without ``--verify``. A divergence exits 1
 (after printing the document); a non-MCAP or missing file, a bad option, or a real bus without
-``--allow-real-bus`` exits 2 before anything is sent.
+``--allow-real-bus`` exits 2 before anything is sent. Frames are replayed only onto a bus the command line names
+(``-i``/``-c`` complete each other from python-can's ``CAN_INTERFACE``/``CAN_CHANNEL``/``can.rc``, which alone never
+start a replay).
 """
 
 from __future__ import annotations
@@ -12,7 +15,7 @@ import argparse
 import sys
 from typing import Any
 
-from foilc_hil.commands import CommandResult
+from foilc_hil.commands import CommandResult, add_bus_options, bus_options
 from foilc_hil.errors import ExitCode, InputError
 
 HELP = "play a log back onto a bus, or verify it bit for bit"
@@ -28,6 +31,7 @@ def _id(text: str) -> int:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("log", metavar="F.mcap", help="the log to play back")
     parser.add_argument("--bus", metavar="SPEC", help="re-emit the logged frames here (INTERFACE:CHANNEL)")
+    add_bus_options(parser)
     parser.add_argument("--rate", type=float, default=1.0, metavar="X", help="playback speed factor (default 1)")
     parser.add_argument("--start", type=float, default=0.0, metavar="S", help="skip the first S seconds of the log")
     parser.add_argument("--duration", type=float, metavar="D", help="replay only D seconds from --start")
@@ -46,17 +50,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _check_bus(spec: str, allow_real_bus: bool) -> Any:
-    """Parse ``--bus`` and refuse hardware unless allowed -- before anything is opened."""
-    from drivers.bus import is_simulated_bus, parse_bus_spec
+def _check_bus(args: argparse.Namespace) -> Any:
+    """The bus the command line names (``None``: none) -- hardware refused unless allowed, before anything opens."""
+    from drivers.bus import command_line_bus, is_simulated_bus
 
-    cfg = parse_bus_spec(spec)
-    if not is_simulated_bus(cfg.interface) and not allow_real_bus:
+    cfg = command_line_bus(bus_options(args))
+    if cfg is not None and not is_simulated_bus(cfg.interface) and not args.allow_real_bus:
+        option = "--bus" if args.bus else "-i/--interface"
         raise InputError(
-            f"--bus: {spec} is a real bus and a replayed log moves real hardware; use virtual or udp_multicast, "
-            "or pass --allow-real-bus"
+            f"{option}: {cfg.interface}:{cfg.channel} is a real bus and a replayed log moves real hardware; use "
+            "virtual or udp_multicast, or pass --allow-real-bus"
         )
     return cfg
+
+
+def _frame_lines(args: argparse.Namespace, selected: int, sent: int, *, replayed: bool) -> list[str]:
+    """What happened to the frames; nothing under ``--verify`` without a bus (the frames are not its subject, and
+    "N selected, 0 sent" read like a failed replay)."""
+    if replayed:
+        return [f"{args.log}: replayed {sent} of {selected} selected frames"]
+    if args.verify:
+        return []
+    return [f"{args.log}: {selected} frames selected (no bus given: nothing replayed)"]
 
 
 def execute(args: argparse.Namespace) -> CommandResult:
@@ -65,7 +80,7 @@ def execute(args: argparse.Namespace) -> CommandResult:
 
     if not args.rate > 0:
         raise InputError(f"--rate: must be > 0, got {args.rate}")
-    bus_cfg = _check_bus(args.bus, args.allow_real_bus) if args.bus else None
+    bus_cfg = _check_bus(args)
     contents = read_log(args.log)
     if contents.truncated and not args.verify:
         sys.stderr.write(f"foilc-hil replay: {args.log}: {contents.damage}; using what was read before it\n")
@@ -102,8 +117,7 @@ def execute(args: argparse.Namespace) -> CommandResult:
         document["frames_sent"] = playback.frames_sent
         document["duration"] = playback.duration
         document["max_lateness"] = playback.max_lateness
-    lines = [f"{args.log}: {len(frames)} frames selected, {document['frames_sent']} sent" if bus_cfg is not None
-             else f"{args.log}: {len(frames)} frames selected (no --bus: nothing replayed onto a bus)"]
+    lines = _frame_lines(args, len(frames), document["frames_sent"], replayed=bus_cfg is not None)
     if contents.truncated:
         lines.append(f"truncated: {contents.damage}")
     if args.verify:

@@ -1,7 +1,8 @@
 """``foilc-hil run``: learning trials over CAN against a CiA 402 drive (or the embedded emulator).
 
-``foilc-hil run --config C [--bus SPEC | --emulator embedded] [--trials N] [--mode lockstep|realtime]
-[--law foilc|ioilc|p-type|noilc] [--inject KIND@WHEN[:KEY=VALUE,...]]... --out F.mcap [--json] [--quiet]``
+``foilc-hil run --config C [--bus SPEC | -i INTERFACE -c CHANNEL | --emulator embedded] [-b BPS] [--trials N]
+[--mode lockstep|realtime] [--law foilc|ioilc|p-type|noilc] [--inject KIND@WHEN[:KEY=VALUE,...]]...
+--out F.mcap [--json] [--quiet]``
 
 JSON: ``{"law", "trials": [{"trial", "sse", "rmse", "max_abs_error"}, ...], "timing": {"period", "cycles",
 "missed_deadlines", "jitter_p99_us", ...}, "log", "design": {"kp", "r", "certificates", ...}, "stopped"}``.
@@ -17,7 +18,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from foilc_hil.commands import CommandResult
+from foilc_hil.commands import CommandResult, add_bus_options, bus_options
 from foilc_hil.errors import ExitCode
 
 HELP = "run learning trials over CAN against a drive"
@@ -34,6 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=["embedded"],
         help="run the plant emulator in this process on a virtual bus (the default when no bus is given)",
     )
+    add_bus_options(parser)
     parser.add_argument("--trials", type=int, metavar="N", help="number of trials (default: config 'trials')")
     parser.add_argument("--mode", choices=["lockstep", "realtime"], help="timing mode (default: config bench.mode)")
     parser.add_argument(
@@ -49,18 +51,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--out", required=True, metavar="F.mcap", help="MCAP log to write")
     parser.add_argument("--quiet", action="store_true", help="no progress view on stderr")
-
-
-def resolve_bus(config: Any, bus_spec: str | None, emulator: str | None) -> Any:
-    """The bus: ``--bus`` wins, ``--emulator embedded`` forces the emulator, else the config's ``bus:`` block."""
-    from drivers.bus import parse_bus_spec
-    from drivers.config import BusConfig
-
-    if bus_spec is not None:
-        return parse_bus_spec(bus_spec, bitrate=config.bus.bitrate)
-    if emulator == "embedded":
-        return BusConfig(interface="embedded", channel=config.bus.channel)
-    return config.bus
 
 
 def check_bus(bus: Any) -> None:
@@ -92,7 +82,9 @@ def execute(args: argparse.Namespace) -> CommandResult:
 
         injected = [parse_injection(spec) for spec in args.inject]
         config = config.model_copy(update={"inject": (*config.inject, *injected)})  # logged with the config
-    bus = resolve_bus(config, args.bus, args.emulator)
+    from drivers.bus import resolve_bus
+
+    bus = resolve_bus(bus_options(args), config.bus)  # precedence: drivers.bus.resolve_bus
     check_bus(bus)  # before the design, which may take minutes
     request = RunRequest(
         config=config,

@@ -99,9 +99,10 @@ class CommissionTarget:
 
     @property
     def description(self) -> str:
-        """``interface:channel`` of the bus (the emulators' in-process channel for the emulator)."""
+        """``interface:channel`` of the bus; for the emulator, ``embedded`` and how many drives it emulates (its
+        channel's name is an internal, per-process unique one: nothing a user can join)."""
         if self.embedded:
-            return f"embedded ({len(self.drives)} emulated drive(s) on in-process channel {self._channel})"
+            return f"embedded ({len(self.drives)} emulated drive(s), in this process)"
         assert self.bus_config is not None
         return f"{self.bus_config.interface}:{self.bus_config.channel}"
 

@@ -110,14 +110,16 @@ class ChunkedMcapWriter:
         self._write_records(schema)
         return schema.id
 
-    def register_channel(self, topic: str, message_encoding: str, schema_id: int) -> int:
-        """Write a channel record; its id (from 1)."""
+    def register_channel(
+        self, topic: str, message_encoding: str, schema_id: int, metadata: dict[str, str] | None = None
+    ) -> int:
+        """Write a channel record (with its ``metadata``, str -> str); its id (from 1)."""
         channel = Channel(
             id=len(self._channels) + 1,
             topic=topic,
             message_encoding=message_encoding,
             schema_id=schema_id,
-            metadata={},
+            metadata=dict(metadata or {}),
         )
         self._channels.append(channel)
         self._message_counts[channel.id] = 0

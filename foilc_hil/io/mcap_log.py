@@ -59,6 +59,7 @@ from foilc_hil.io.schemas import (
     TOPIC_TIMING,
     TOPIC_TRIAL,
     TOPICS,
+    channel_metadata,
     schema_bytes,
 )
 
@@ -252,10 +253,11 @@ class McapLogWriter(_ClosingListener):
             raise LogFormatError(f"{self.path}: {exc}") from None
         self._writer.start(profile=_PROFILE, library=_LIBRARY)
         self._channels: dict[str, int] = {}
+        metadata = channel_metadata(config_yaml)  # units of the fields
         for topic, (name, schema) in TOPICS.items():
             schema_id = self._writer.register_schema(name=name, encoding=SCHEMA_ENCODING, data=schema_bytes(schema))
             self._channels[topic] = self._writer.register_channel(
-                topic=topic, message_encoding=MESSAGE_ENCODING, schema_id=schema_id
+                topic=topic, message_encoding=MESSAGE_ENCODING, schema_id=schema_id, metadata=metadata[topic]
             )
         if config_yaml is not None:
             self._writer.add_metadata(METADATA_CONFIG, {"yaml": config_yaml})

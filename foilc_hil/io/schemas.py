@@ -15,15 +15,21 @@ from __future__ import annotations
 import json
 from typing import Any, Final
 
+import yaml
+
+from drivers.pdo import MappedVariable, PdoDirection, PdoLayout, TransmissionType
+
 __all__ = [
     "CAN_FRAME_SCHEMA",
     "DIRECTIONS",
     "ILC_SAMPLE_SCHEMA",
     "ILC_TRIAL_SCHEMA",
+    "JSON_SCHEMA_DIALECT",
     "MESSAGE_ENCODING",
     "METADATA_CONFIG",
     "METADATA_DESIGN",
     "METADATA_LAYOUT",
+    "METADATA_PDO_MAPPING",
     "SAMPLE_LAYOUT",
     "SCHEMA_ENCODING",
     "TIMING_SCHEMA",
@@ -32,10 +38,14 @@ __all__ = [
     "TOPIC_SAMPLE",
     "TOPIC_TIMING",
     "TOPIC_TRIAL",
+    "decode_pdo_mapping",
+    "encode_pdo_mapping",
     "schema_bytes",
 ]
 
 SCHEMA_ENCODING: Final = "jsonschema"
+#: ``$schema`` of every schema: the dialect its keywords are read in (``contentEncoding``, ``oneOf``, type lists)
+JSON_SCHEMA_DIALECT: Final = "https://json-schema.org/draft/2020-12/schema"
 MESSAGE_ENCODING: Final = "json"
 
 TOPIC_CAN: Final = "/can"
@@ -56,6 +66,39 @@ METADATA_LAYOUT: Final = "foilc_hil.layout"
 #: applied from ``t`` (computed from ``y(i Ts)``: the previous row's output, or ``/ilc/trial`` ``initial_output``).
 SAMPLE_LAYOUT: Final = 2
 
+#: metadata record holding the PDO mapping ``run`` installed: ``{"rpdos": <JSON>, "tpdos": <JSON>}``, each a list
+#: of ``{"number", "cob_id", "transmission_type", "variables": [[index, subindex, bits, signed], ...]}``
+#: (:func:`encode_pdo_mapping`); ``export --format dbc`` reads it. Written after the drive is configured.
+METADATA_PDO_MAPPING: Final = "foilc_hil.pdo_mapping"
+
+
+def encode_pdo_mapping(rpdos: tuple[PdoLayout, ...], tpdos: tuple[PdoLayout, ...]) -> dict[str, str]:
+    """The ``foilc_hil.pdo_mapping`` metadata record of a mapping (MCAP metadata is str -> str)."""
+
+    def layouts(group: tuple[PdoLayout, ...]) -> str:
+        return json.dumps([
+            {"number": layout.number, "cob_id": layout.cob_id, "transmission_type": int(layout.transmission_type),
+             "variables": [[v.index, v.subindex, v.bits, v.signed] for v in layout.variables]}
+            for layout in group
+        ])
+
+    return {"rpdos": layouts(rpdos), "tpdos": layouts(tpdos)}
+
+
+def decode_pdo_mapping(record: dict[str, str]) -> tuple[tuple[PdoLayout, ...], tuple[PdoLayout, ...]]:
+    """Inverse of :func:`encode_pdo_mapping`; ``ValueError`` (or ``KeyError``/``TypeError``) when malformed."""
+
+    def layouts(direction: PdoDirection) -> tuple[PdoLayout, ...]:
+        return tuple(
+            PdoLayout(direction, int(item["number"]), int(item["cob_id"]),
+                      tuple(MappedVariable(int(index), int(sub), int(bits), bool(signed))
+                            for index, sub, bits, signed in item["variables"]),
+                      TransmissionType(int(item["transmission_type"])))
+            for item in json.loads(record[direction.name.lower() + "s"])
+        )
+
+    return layouts(PdoDirection.RPDO), layouts(PdoDirection.TPDO)
+
 #: values of ``/can`` ``dir``: sent by the bench, received by the bench
 DIRECTIONS: Final = ("tx", "rx")
 
@@ -71,6 +114,7 @@ def _flag(description: str) -> dict[str, Any]:
 
 
 CAN_FRAME_SCHEMA: Final[dict[str, Any]] = {
+    "$schema": JSON_SCHEMA_DIALECT,
     "title": "foilc_hil.CanFrame",
     "description": "One CAN frame the bench sent (tx) or received (rx); the flags are written only when set.",
     "type": "object",
@@ -98,6 +142,7 @@ CAN_FRAME_SCHEMA: Final[dict[str, Any]] = {
 }
 
 ILC_SAMPLE_SCHEMA: Final[dict[str, Any]] = {
+    "$schema": JSON_SCHEMA_DIALECT,
     "title": "foilc_hil.IlcSample",
     "description": "One sample of one trial: what the learning law saw (output) and what it commanded (control).",
     "type": "object",
@@ -118,6 +163,7 @@ ILC_SAMPLE_SCHEMA: Final[dict[str, Any]] = {
 }
 
 ILC_TRIAL_SCHEMA: Final[dict[str, Any]] = {
+    "$schema": JSON_SCHEMA_DIALECT,
     "title": "foilc_hil.IlcTrial",
     "description": "Tracking metrics of one completed trial (extra fields allowed).",
     "type": "object",
@@ -138,6 +184,7 @@ ILC_TRIAL_SCHEMA: Final[dict[str, Any]] = {
 }
 
 TIMING_SCHEMA: Final[dict[str, Any]] = {
+    "$schema": JSON_SCHEMA_DIALECT,
     "title": "foilc_hil.CycleTiming",
     "description": "Timing of one real-time bench cycle.",
     "type": "object",
@@ -167,6 +214,49 @@ TOPICS: Final[dict[str, tuple[str, dict[str, Any]]]] = {
     TOPIC_TRIAL: ("foilc_hil.IlcTrial", ILC_TRIAL_SCHEMA),
     TOPIC_TIMING: ("foilc_hil.CycleTiming", TIMING_SCHEMA),
 }
+
+
+#: units of the fields whose unit does not depend on the config (channel metadata ``units``)
+_FIXED_UNITS: Final[dict[str, dict[str, str]]] = {
+    TOPIC_CAN: {"timestamp": "s"},
+    TOPIC_SAMPLE: {"t": "s"},
+    TOPIC_TRIAL: {},
+    TOPIC_TIMING: {"lateness_us": "us", "period_us": "us", "feedback_latency_us": "us"},
+}
+
+
+def _signal_units(config_yaml: str | None) -> tuple[str, str] | None:
+    """(output unit, command unit) from the logged ``drive:`` section; ``None`` when the text does not load."""
+    from drivers.config import DriveConfig
+    from foilc_hil.errors import FoilcHilError
+    from foilc_hil.schema import load_yaml_text
+
+    if config_yaml is None:
+        return None
+    try:
+        document = load_yaml_text(config_yaml) or {}
+        drive = DriveConfig.model_validate(document.get("drive") or {})
+    except (FoilcHilError, ValueError, AttributeError, yaml.YAMLError):  # units are a courtesy: never fail a log
+        return None
+    # the bench logs in plant units: velocities in velocity_unit; the command is a torque in cst mode
+    return drive.velocity_unit, drive.torque_unit if drive.mode == "cst" else drive.velocity_unit
+
+
+def channel_metadata(config_yaml: str | None) -> dict[str, dict[str, str]]:
+    """Channel metadata per topic: ``{"units": <JSON object field -> unit>}``.
+
+    Time fields always carry their unit; ``/ilc/sample`` signals and ``/ilc/trial`` errors carry the plant units of
+    the logged ``drive:`` section (``velocity_unit``; ``control`` in ``torque_unit`` in ``cst`` mode) when
+    ``config_yaml`` loads. Metadata only: the schemas and messages are unchanged.
+    """
+    units = {topic: dict(fixed) for topic, fixed in _FIXED_UNITS.items()}
+    signal = _signal_units(config_yaml)
+    if signal is not None:
+        output, command = signal
+        units[TOPIC_SAMPLE].update({"reference": output, "output": output, "error": output, "E": output,
+                                    "control": command})
+        units[TOPIC_TRIAL].update({"sse": f"{output}^2", "rmse": output, "max_abs_error": output})
+    return {topic: {"units": json.dumps(fields, sort_keys=True)} for topic, fields in units.items()}
 
 
 def schema_bytes(schema: dict[str, Any]) -> bytes:

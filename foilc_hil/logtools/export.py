@@ -6,17 +6,29 @@ frames are ``is_rx=False``), written in log order. What each format keeps:
 - ASC: timestamps (microseconds, relative to the first frame; the start date in the header), direction (Rx/Tx).
 - BLF: timestamps (nanoseconds relative to the start; the start itself to the millisecond), direction.
 - CSV: timestamps (full float precision) -- python-can's CSV format has no direction column.
+
+``--format dbc`` (:func:`export_dbc`) writes instead the DBC of the PDO mapping the run installed (metadata
+``foilc_hil.pdo_mapping``; logs written before it: the mapping :func:`drivers.cia402_master.pdo_plan` gives for the
+logged ``drive:`` section and its EDS), with the writer of ``commission info --dbc``
+(:mod:`foilc_hil.commission.dbc`): cantools decodes the log's ``/can`` frames with it.
 """
 
 from __future__ import annotations
 
+import collections
 import enum
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from foilc_hil.errors import InputError
+from foilc_hil.errors import FoilcHilError, InputError, LogFormatError
 
-__all__ = ["ExportFormat", "ExportResult", "export_frames"]
+if TYPE_CHECKING:
+    from drivers.cia402_master import PdoPlan
+    from drivers.config import DriveConfig
+    from foilc_hil.commission.dbc import DbcExport
+
+__all__ = ["ExportFormat", "ExportResult", "export_dbc", "export_frames", "logged_mapping"]
 
 
 @enum.unique
@@ -26,6 +38,7 @@ class ExportFormat(enum.StrEnum):
     ASC = "asc"
     BLF = "blf"
     CSV = "csv"
+    DBC = "dbc"  # not frames: the DBC of the logged PDO mapping (export_dbc)
 
 
 @dataclass(frozen=True)
@@ -63,10 +76,9 @@ def export_frames(log: str | Path, out: str | Path, fmt: str, *, channel: int | 
         ExportFormat.BLF: can.BLFWriter,
         ExportFormat.CSV: can.CSVWriter,
     }
-    try:
-        file_format = ExportFormat(fmt)
-    except ValueError:
-        raise InputError(f"--format: must be one of {', '.join(ExportFormat)}, not {fmt!r}") from None
+    if fmt not in writers:  # dbc is export_dbc's
+        raise InputError(f"--format: must be one of {', '.join(writers)}, not {fmt!r}")
+    file_format = ExportFormat(fmt)
     out_path = Path(out)
     with McapLogReader(log) as reader:
         try:
@@ -83,3 +95,51 @@ def export_frames(log: str | Path, out: str | Path, fmt: str, *, channel: int | 
         finally:
             writer.stop()
         return ExportResult(out_path, file_format, count, reader.truncated, reader.damage)
+
+
+def logged_mapping(log: str | Path) -> tuple[PdoPlan, DriveConfig]:
+    """The PDO mapping a run installed and its ``drive:`` section, from the log's metadata.
+
+    ``foilc_hil.pdo_mapping`` when the log has it; else (logs written before it) :func:`pdo_plan` of the logged
+    ``drive:`` section on its EDS, which is what ``configure`` installs on a drive described by that EDS.
+
+    Raises
+    ------
+    foilc_hil.errors.LogFormatError
+        The log has no ``foilc_hil.config``, or a record does not load.
+    """
+    import yaml
+
+    from drivers.cia402_master import PdoPlan, pdo_plan
+    from drivers.config import DriveConfig
+    from drivers.od import load_od
+    from foilc_hil.io.mcap_log import McapLogReader
+    from foilc_hil.io.schemas import METADATA_CONFIG, METADATA_PDO_MAPPING, decode_pdo_mapping
+    from foilc_hil.schema import load_yaml_text, validate
+
+    with McapLogReader(log) as reader:
+        collections.deque(reader.iter_messages(()), maxlen=0)  # metadata is collected while the records pass
+        metadata = reader.metadata
+    try:
+        document = load_yaml_text(metadata[METADATA_CONFIG]["yaml"]) or {}
+        drive = validate(DriveConfig, document.get("drive", {}), source=f"{log} ({METADATA_CONFIG})")
+    except KeyError:
+        raise LogFormatError(f"{log}: no {METADATA_CONFIG} metadata; the DBC needs the run's drive section") from None
+    except (AttributeError, yaml.YAMLError, FoilcHilError) as exc:
+        raise LogFormatError(f"{log}: metadata {METADATA_CONFIG} does not load: {exc}") from None
+    record = metadata.get(METADATA_PDO_MAPPING)
+    if record is None:
+        return pdo_plan(drive.operation_mode, drive.node_id, load_od(drive.eds, drive.node_id)), drive
+    try:
+        rpdos, tpdos = decode_pdo_mapping(record)
+    except (ValueError, KeyError, TypeError) as exc:
+        raise LogFormatError(f"{log}: metadata {METADATA_PDO_MAPPING} does not load: {exc!r}") from None
+    return PdoPlan(rpdos, tpdos), drive
+
+
+def export_dbc(log: str | Path, out: str | Path) -> DbcExport:
+    """Write the DBC of the mapping the run of ``log`` installed to ``out`` (format by suffix, as ``--dbc``)."""
+    from foilc_hil.commission.dbc import write_dbc
+
+    plan, drive = logged_mapping(log)
+    return write_dbc(plan, drive, out)

@@ -989,6 +989,18 @@ def _commission(drive: Any, config: Any, session: RealtimeSession | None) -> Non
     drive.configure(config.drive.operation_mode, config.sample_time)
 
 
+def _log_mapping(sink: McapSink | None, drive: Any, config: Any) -> None:
+    """Log the PDO mapping ``configure`` installed (``foilc_hil.pdo_mapping``: ``export --format dbc`` reads it)."""
+    if sink is None:
+        return
+    from drivers.cia402_master import pdo_plan
+    from foilc_hil.io.schemas import METADATA_PDO_MAPPING, encode_pdo_mapping
+
+    # the layouts of configure's preflight: the same function of the mode, the node and the drive's EDS
+    plan = pdo_plan(config.drive.operation_mode, config.drive.node_id, drive.od)
+    sink.writer.add_metadata(METADATA_PDO_MAPPING, encode_pdo_mapping(plan.rpdos, plan.tpdos))
+
+
 def run_bench(request: RunRequest) -> RunReport:
     """Run learning trials over CAN: commission the drive, run the loop, and leave a safe drive and a closed log.
 
@@ -1019,6 +1031,7 @@ def run_bench(request: RunRequest) -> RunReport:
                              progress=progress, stop=stop, before_trial=_trial_hook(emulator, faulty))
             loops.append(loop)
             _commission(drive, config, session)
+            _log_mapping(sink, drive, config)
             drive.enable()  # walks the 402 state machine over SYNCs; the loop's first SYNC follows at once
             outcome = loop.run(plan.trials)
             if session is not None and outcome.timing is not None:
