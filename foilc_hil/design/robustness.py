@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -65,12 +66,12 @@ CHUNKS_PER_WORKER = 4
 
 @dataclass(frozen=True)
 class Perturbation:
-    """One plant of the uncertainty set: ``A + dA``, ``B + dB``; ``vertex`` when it is an uncertainty vertex."""
+    """One plant of the uncertainty set, ``A + delta_a``, ``B + delta_b``; ``vertex``: an uncertainty vertex."""
 
     index: int
     vertex: bool
-    dA: np.ndarray
-    dB: np.ndarray
+    delta_a: np.ndarray
+    delta_b: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -149,7 +150,7 @@ def certify_draws(design: Design, law: LawStructure, draws: Sequence[Perturbatio
         gain = noilc_gain(model, design.certificates.noilc, law.n_samples)
     results = []
     for draw in draws:
-        A, B = model.A + draw.dA, model.B + draw.dB
+        A, B = model.A + draw.delta_a, model.B + draw.delta_b
         if gain is not None:
             matrix, kind = trial_map(A, B, model, gain, law)
             certificate = matrix_certificate(matrix, kind)
@@ -263,10 +264,11 @@ def robustness(
     shared = dask.delayed(design, pure=True), dask.delayed(law, pure=True)
     chunks = _chunks(draws, CHUNKS_PER_WORKER * workers)
     tasks = [dask.delayed(certify_draws, pure=True)(*shared, chunk) for chunk in chunks]
-    options: dict[str, Any] = {"scheduler": scheduler}
-    if scheduler == "threads":
-        options["num_workers"] = workers
-    results = dask.compute(*tasks, **options)
+    if scheduler == "threads":  # a pool of our own, shut down here (dask's default pool outlives the call)
+        with ThreadPoolExecutor(workers) as pool:
+            results = dask.compute(*tasks, scheduler="threads", pool=pool)
+    else:
+        results = dask.compute(*tasks, scheduler=scheduler)
     certificates = design.certificates
     assert certificates is not None  # every built design is certified
     return RobustnessResult(
