@@ -41,7 +41,24 @@ parameters).
 
 ``scipy.optimize.least_squares`` fits all steps jointly (the nominal model) and each step alone (the spread).
 Reported: R^2 and NRMSE (residual RMS over the step's output range) per step, the residual standard deviation
-overall, and the parameters' standard errors from the Jacobian.
+overall, and the parameters' standard errors and 95 % intervals (*Intervals*).
+
+Intervals
+---------
+The residuals of a step fit are not white: unmodelled dynamics (a second pole, the measurement's half-cycle
+averaging, cogging), a time-varying plant (``plant.variation``) and coloured or quantised sensor noise all leave
+slow, correlated residuals, and for a time-varying plant they are deterministic. The white-noise covariance
+``s^2 (J'J)^-1`` then understates the error several times (on ``configs/paper_sim.yaml``, whose ``a(t)``, ``b(t)``
+vary by 8-9 %, it gave ``a = -1.2518 +- 0.0039`` for a true ``-1.23``: 5.6 standard errors off). The estimate is
+kept (least squares, unweighted: re-weighting for coloured noise, GLS, moves it when the error is a model
+mismatch rather than noise), and its covariance is the sandwich ``B S B``, ``B = (J'J)^-1``, with ``S`` the
+long-run covariance of the scores ``J_k r_k`` estimated by prewhitened HAC (Andrews and Monahan 1992): a VAR(1)
+whitens the scores, Newey-West (Bartlett kernel, Andrews' plug-in lag window) estimates the whitened ones' long-run
+covariance, and ``(I - Phi)^-1`` recolours it. The interval is ``theta +- 1.96 se`` (``fit.intervals``, with the
+white-noise errors for comparison). On paper_sim this gives ``a = -1.2518 +- 0.034`` (the truth 0.64 se away); in
+20 seeded campaigns with AR(1) noise (coefficient 0.9) the 95 % intervals hold the true ``a`` and ``b`` together in
+20 (the white-noise ones in 8), and the standard errors match the estimates' spread within a factor 2
+(``tests/test_commission_identify.py``).
 
 Uncertainty (discrete model, ZOH at ``sample_time``)
 ----------------------------------------------------
