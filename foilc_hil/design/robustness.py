@@ -169,7 +169,7 @@ class RobustnessResult:
     """The distribution of the law's certificates over the drawn plants.
 
     ``design_norm_2``/``design_spectral_radius`` are the design's own worst case (nominal and vertices), for
-    comparison with ``worst_norm_2``/``worst_spectral_radius`` over the draws.
+    comparison with :meth:`worst` over the draws.
     """
 
     law: LawKind
