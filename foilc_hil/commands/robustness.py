@@ -77,8 +77,6 @@ def _scheduler(address: str | None, workers: int) -> Iterator[Any]:
         ):
             yield client
         return
-    if not address.startswith(("tcp://", "tls://")):
-        raise InputError(f"--scheduler: {address!r} is not tcp://HOST:PORT, tls://HOST:PORT, synchronous or threads")
     try:
         client = Client(address, timeout=10)
     except OSError as exc:
@@ -119,6 +117,9 @@ def execute(args: argparse.Namespace) -> CommandResult:
             raise InputError(f"{name}: must be >= 0, got {value}")
     if args.workers < 1:
         raise InputError(f"--workers: must be >= 1, got {args.workers}")
+    address = args.scheduler
+    if not (address is None or address in LOCAL_SCHEDULERS or address.startswith(("tcp://", "tls://"))):
+        raise InputError(f"--scheduler: {address!r} is not tcp://HOST:PORT, tls://HOST:PORT, synchronous or threads")
     config = load_config(args.config, {})
     n_samples = trial_samples(config.reference, config.sample_time)
     design = build_design(config, args.law or config.law.kind, n_samples, input_delay=args.input_delay)
