@@ -27,6 +27,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "tune": ("foilc_hil.commands.tune", "tune the fractional PD function's kp and r from loop specifications"),
     "synthesize": ("foilc_hil.commands.synthesize", "solve the LMI of Theorem 1 for the learning gain P"),
     "simulate": ("foilc_hil.commands.simulate", "run learning trials offline, with no bus"),
+    "robustness": (
+        "foilc_hil.commands.robustness",
+        "certify a designed law on plants drawn from the uncertainty set (Monte Carlo on Dask)",
+    ),
     "run": ("foilc_hil.commands.run", "run learning trials over CAN against a drive"),
     "demo": ("foilc_hil.commands.demo", "FOILC and IOILC side by side on the embedded emulator"),
     "replay": ("foilc_hil.commands.replay", "play a log back onto a bus, or verify it bit for bit"),

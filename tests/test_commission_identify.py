@@ -304,3 +304,41 @@ def test_emulator_config_sets_the_emulated_plant(capsys: pytest.CaptureFixture[s
     assert "model first-order" in text and "rho_A" in text
     assert float(text.split("a = ")[1].split()[0]) == pytest.approx(-5.0, rel=1e-3)
     assert not math.isnan(float(text.split("R^2 = ")[1].split(",")[0]))
+
+
+# --- honest intervals ----------------------------------------------------------------------------------------------
+
+
+def _coloured_record(seed: int, a: float = -3.0, b: float = 4.5, ar1: float = 0.9) -> identify.StepRecord:
+    """A first-order plant sampled exactly (ZOH, closed form ``exp(a Ts)``) plus AR(1) output noise of std 2."""
+    spec = identify.CampaignSpec(amplitudes=(50.0, 100.0), hold=1.0, rest=1.0, repetitions=1, limit=200.0)
+    command = identify.build_campaign(spec, TS)
+    pole = math.exp(a * TS)
+    output = signal.lfilter([0.0, b * (pole - 1.0) / a], [1.0, -pole], command)
+    white = np.random.default_rng(seed).normal(scale=2.0, size=command.size)
+    noise = signal.lfilter([math.sqrt(1.0 - ar1**2)], [1.0, -ar1], white)
+    return identify.StepRecord(command, output + noise, TS)
+
+
+def test_the_95_percent_intervals_cover_the_true_plant_under_coloured_noise() -> None:
+    """20 seeded campaigns with AR(1) noise (coefficient 0.9): the reported 95 % intervals hold the true ``a`` and
+    ``b`` together in at least 18 runs, and are not merely wide: the standard errors are within a factor 2 of the
+    estimates' actual spread. A white-noise covariance (kept for comparison) covers far less often."""
+    truth = np.array([-3.0, 4.5])
+    covered = white_covered = 0
+    estimates, errors = [], []
+    for seed in range(20):
+        fit = identify.fit_model(_coloured_record(seed), "first-order")
+        intervals = fit.errors.to_json(fit.kind, fit.theta)
+        low = np.array([intervals["confidence_95"][k][0] for k in ("a", "b")])
+        high = np.array([intervals["confidence_95"][k][1] for k in ("a", "b")])
+        covered += bool(np.all((low <= truth) & (truth <= high)))
+        white = np.sqrt(np.diag(fit.errors.white_covariance))
+        white_covered += bool(np.all(np.abs(fit.theta - truth) <= 1.96 * white))
+        estimates.append(fit.theta)
+        errors.append(fit.standard_errors)
+        assert fit.errors.score_ar1 > 0.5  # the colour is seen
+    assert covered >= 18
+    assert white_covered < 15
+    ratio = np.median(np.array(errors), axis=0) / np.std(np.array(estimates), axis=0, ddof=1)
+    assert np.all((ratio > 0.5) & (ratio < 2.0))

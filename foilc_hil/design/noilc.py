@@ -40,7 +40,7 @@ from foilc_hil.design.models import DiscreteModel, Uncertainty, uncertainty_vert
 from foilc_hil.design.record import Bounds, CertificateAction, Certificates, Design, NoilcWeights, PlantCertificate
 from foilc_hil.errors import InputError
 
-__all__ = ["certify_noilc", "lifted_plant", "noilc_gain", "noilc_weights"]
+__all__ = ["certify_noilc", "lifted_plant", "noilc_gain", "noilc_weights", "trial_map"]
 
 #: ``r`` recorded by a NOILC design: the law has no fractional term.
 UNUSED_ORDER = 1.0
@@ -68,7 +68,7 @@ def noilc_gain(model: DiscreteModel, weights: NoilcWeights, n_samples: int) -> n
     return np.asarray(np.linalg.solve(normal, weights.q * G.T), dtype=float)
 
 
-def _trial_map(
+def trial_map(
     A: np.ndarray, B: np.ndarray, model: DiscreteModel, gain: np.ndarray, law: LawStructure
 ) -> tuple[np.ndarray, str]:
     """The map the law runs on at plant ``(A, B)``: the error map, or with a Q-filter the input map."""
@@ -106,7 +106,7 @@ def certify_noilc(
     ]
     entries: list[PlantCertificate] = []
     for name, A_v, B_v in plants:
-        matrix, kind = _trial_map(A_v, B_v, model, gain, law)
+        matrix, kind = trial_map(A_v, B_v, model, gain, law)
         entries.append(matrix_certificate(matrix, kind).named(name))
     radius = max(entry.spectral_radius for entry in entries)
     norm = max(entry.norm_2 for entry in entries)

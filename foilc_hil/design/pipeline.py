@@ -7,8 +7,8 @@ tuned pair is only the search's initial guess), synthesised (FOILC, IOILC; FOILC
 given its Arimoto gain (P-type) or its norm-optimal weights (NOILC), and certified exactly as it will run (Q-filter
 from ``law.q_filter``, fractional memory from ``law.fractional_memory``, input delay).
 
-Module order: last in :mod:`foilc_hil.design` (models < fractional, qfilter, ptype < record < certificates < noilc
-< lmi < codesign < tuning < pipeline).
+Module order: in :mod:`foilc_hil.design`, models < fractional, qfilter, ptype < record < certificates < noilc
+< lmi < codesign < tuning < pipeline < robustness (which certifies the designs built here on drawn plants).
 """
 
 from __future__ import annotations
