@@ -19,6 +19,7 @@ from drivers.config import DriveConfig
 from drivers.inprocess import InProcessBus
 from drivers.network import DriveNetwork
 from foilc_hil.errors import ConfigError, InputError
+from plant_emulator import cli as emulator_cli
 from plant_emulator.config import PlantConfig
 from plant_emulator.embedded import EmbeddedEmulator
 from plant_emulator.settings import EmulatorConfig
@@ -124,3 +125,18 @@ def test_one_master_heartbeat_per_bus(network: DriveNetwork) -> None:
 def test_the_emulator_refuses_repeated_node_ids() -> None:
     with pytest.raises(InputError, match="distinct"):
         EmbeddedEmulator(PlantConfig(model="first_order"), EmulatorConfig(), node_id=(1, 1), sample_time=PERIOD)
+
+
+@pytest.mark.parametrize(("node_ids", "said"), [("1,1", "repeats a node id"), ("1,200", "200 is outside 1..127"),
+                                                 ("1,x", "not a comma-separated list")])
+def test_the_emulator_cli_refuses_bad_node_lists(node_ids: str, said: str, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exited:
+        emulator_cli.main(["--bus", "inprocess:unused", "--node-id", node_ids])
+    assert exited.value.code == 2
+    err = capsys.readouterr().err
+    assert said in err and len(err.strip().splitlines()) == 1
+
+
+def test_the_emulator_cli_refuses_injection_into_several_nodes(capsys: pytest.CaptureFixture[str]) -> None:
+    assert emulator_cli.main(["--bus", "inprocess:unused", "--node-id", "1,2", "--inject", "emulator-kill@c5"]) == 2
+    assert "give one --node-id" in capsys.readouterr().err
