@@ -2,7 +2,9 @@
 
 Start-up follows what real CANopen masters do, using only standard objects, so any CiA 402 drive works:
 
-0. Construction (``Cia402Drive.open``) is inert, like canopen's ``Network()``: no thread, nothing on the bus.
+0. Construction (``Cia402Drive.open``, or ``Cia402Drive.on_network`` for one of several drives sharing a
+   :class:`~drivers.network.DriveNetwork`: one receive path, one SYNC, one master heartbeat per bus) is inert, like
+   canopen's ``Network()``: no thread, nothing on the bus.
 1. ``connect``: ``listen`` (Notifier, frame tap, heartbeat watchdog); NMT reset communication, wait for the
    boot-up, NMT pre-operational, read 0x1000 (must be a 402 device), 0x1018:1..4 and 0x6502 over SDO.
 2. ``configure``: :meth:`Cia402Drive.preflight` first (mode in 0x6502, :func:`pdo_plan`: the PDOs and objects

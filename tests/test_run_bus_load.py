@@ -82,3 +82,22 @@ def test_the_limit_is_the_config_s(tmp_path: Path) -> None:
     config = load_config(str(_config(tmp_path, "sample_time: 0.001\nbus: {load_limit: 0.3}\n")))
     with pytest.raises(ConfigError, match=r"bus\.load_limit.*limit 30%"):
         check_bus_load(config, config.bus)
+
+
+def test_four_axes_at_1_khz_do_not_fit_on_1_mbit() -> None:
+    from drivers.busload import CyclicFrame, drive_schedule, schedule_load
+    from drivers.cia402 import OperationMode
+    from drivers.cia402_master import pdo_plan
+    from drivers.od import load_od
+
+    frames = [CyclicFrame("SYNC", 0)]
+    for node in (1, 2, 3, 4):  # one master heartbeat on the bus, each drive its own
+        plan = pdo_plan(OperationMode.CYCLIC_SYNC_VELOCITY, node, load_od(None, node))
+        frames += drive_schedule(plan, period=0.001, drive_heartbeat=0.1, master_heartbeat=0.125 if node == 1 else 0,
+                                 name=f"node {node} ")
+    load = schedule_load(frames, bitrate=1_000_000, period=0.001)
+    by_hand = SYNC_BITS + 4 * 3 * PDO6_BITS + HEARTBEAT_BITS * (4 * 0.001 / 0.1 + 0.001 / 0.125)  # 1438.12
+    assert load.bits_per_cycle == pytest.approx(by_hand)
+    assert not load.fits and load.min_period == pytest.approx(by_hand / 700_000)
+    with pytest.raises(ConfigError, match=r"bus load 143\.8% of 1000 kbit/s at a 1 ms period"):
+        load.check()
