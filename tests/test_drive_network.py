@@ -140,3 +140,41 @@ def test_the_emulator_cli_refuses_bad_node_lists(node_ids: str, said: str, capsy
 def test_the_emulator_cli_refuses_injection_into_several_nodes(capsys: pytest.CaptureFixture[str]) -> None:
     assert emulator_cli.main(["--bus", "inprocess:unused", "--node-id", "1,2", "--inject", "emulator-kill@c5"]) == 2
     assert "give one --node-id" in capsys.readouterr().err
+
+
+@pytest.mark.timeout(60)
+def test_two_realtime_drives_share_one_notifier_thread() -> None:
+    """The threaded receive path: a realtime emulator (python-can ``virtual``, wall clock), one Notifier for both."""
+    import threading
+    import time
+
+    from drivers.realtime import NOTIFIER_THREAD_PREFIX
+
+    def notifiers() -> set[threading.Thread]:
+        return {t for t in threading.enumerate() if t.name.startswith(NOTIFIER_THREAD_PREFIX)}
+
+    plant = PlantConfig(model="first_order", a=-1.23, b=1.68)
+    with EmbeddedEmulator(plant, EmulatorConfig(timing="realtime"), node_id=(5, 6), sample_time=PERIOD,
+                          velocity_scale=1000.0) as emulator:
+        bus = open_bus(emulator.bus_config)
+        network = DriveNetwork(bus)
+        drives: list[Cia402Drive] = []
+        try:
+            before = notifiers()
+            drives = _drives(network, (5, 6))
+            assert len(notifiers() - before) == 1  # the master's end: one receive thread for both drives
+            for drive in drives:
+                drive.enable()
+            for _ in range(20):
+                drives[0].set_target(20.0)
+                drives[1].set_target(-20.0)
+                drives[0].sync()
+                feedback = [drive.wait_feedback(1.0) for drive in drives]
+                time.sleep(PERIOD)  # realtime: the physics ticks on the wall clock, one SYNC per period
+            assert feedback[0].velocity > 0 > feedback[1].velocity
+            assert all(drive.safe_stop().confirmed for drive in drives)
+        finally:
+            for drive in drives:
+                drive.close()
+            network.close()
+            bus.shutdown()
