@@ -22,12 +22,15 @@ from dataclasses import dataclass
 
 import can
 
+from drivers.cia402_master import PdoPlan
 from foilc_hil.errors import ConfigError
 
 __all__ = [
+    "DEFAULT_BITRATE",
     "BusLoad",
     "CyclicFrame",
     "crc15",
+    "drive_schedule",
     "measured_load",
     "schedule_load",
     "stuffed_bits",
@@ -41,6 +44,8 @@ _UNSTUFFED_TAIL = 13  # CRC delimiter 1 + ACK 2 + EOF 7 + interframe space 3
 _CRC15_POLY = 0x4599  # x^15 + x^14 + x^10 + x^8 + x^7 + x^4 + x^3 + 1
 _STUFF_RUN = 5
 _CLASSICAL_MAX_DATA = 8
+DEFAULT_BITRATE = 1_000_000  # bit/s assumed when the config leaves bus.bitrate unset (the CANopen maximum)
+_HEARTBEAT_BYTES = 1  # the NMT state
 
 
 def worst_case_bits(data_bytes: int, *, extended: bool = False) -> int:
@@ -196,6 +201,21 @@ class BusLoad:
             "frames": [{"name": f.name, "data_bytes": f.data_bytes, "per_cycle": f.per_cycle, "bits": f.bits}
                        for f in self.frames],
         }
+
+
+def drive_schedule(plan: PdoPlan, *, period: float, drive_heartbeat: float, master_heartbeat: float,
+                   name: str = "") -> list[CyclicFrame]:
+    """The cyclic frames one drive adds to a SYNC period: its RPDOs and TPDOs (every period, sizes as mapped), its
+    heartbeat every ``drive_heartbeat`` s and the master's every ``master_heartbeat`` s (0: none).
+
+    ``name`` prefixes the frame names (e.g. ``"node 2 "``); the SYNC itself is the caller's, once per bus.
+    """
+    frames = [CyclicFrame(f"{name}{layout.direction.name}{layout.number}", sum(v.bits for v in layout.variables) // 8)
+              for layout in (*plan.rpdos, *plan.tpdos)]
+    for what, every in (("heartbeat", drive_heartbeat), ("master heartbeat", master_heartbeat)):
+        if every > 0:
+            frames.append(CyclicFrame(f"{name}{what}", _HEARTBEAT_BYTES, per_cycle=period / every))
+    return frames
 
 
 def schedule_load(frames: Iterable[CyclicFrame], *, bitrate: int, period: float, limit: float = 0.7) -> BusLoad:

@@ -2,7 +2,9 @@
 
 Start-up follows what real CANopen masters do, using only standard objects, so any CiA 402 drive works:
 
-0. Construction (``Cia402Drive.open``) is inert, like canopen's ``Network()``: no thread, nothing on the bus.
+0. Construction (``Cia402Drive.open``, or ``Cia402Drive.on_network`` for one of several drives sharing a
+   :class:`~drivers.network.DriveNetwork`: one receive path, one SYNC, one master heartbeat per bus) is inert, like
+   canopen's ``Network()``: no thread, nothing on the bus.
 1. ``connect``: ``listen`` (Notifier, frame tap, heartbeat watchdog); NMT reset communication, wait for the
    boot-up, NMT pre-operational, read 0x1000 (must be a 402 device), 0x1018:1..4 and 0x6502 over SDO.
 2. ``configure``: :meth:`Cia402Drive.preflight` first (mode in 0x6502, :func:`pdo_plan`: the PDOs and objects
@@ -83,11 +85,10 @@ from canopen.nmt import NmtMaster
 from canopen.objectdictionary import ObjectDictionary
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
-from drivers.bus import FrameListener, FrameTap
+from drivers.bus import FrameListener
 from drivers.cia301 import (
     NMT_COB_ID,
     RPDO_BASES,
-    SYNC_COB_ID,
     TPDO_BASES,
     CobIdEntry,
     EmcyCode,
@@ -114,8 +115,9 @@ from drivers.cia402 import (
 from drivers.config import DriveConfig
 from drivers.drive import DISABLED_STATES, DeviceInfo, Drive, Feedback, StopPath, StopReport
 from drivers.emcy import decode_emcy
-from drivers.heartbeat import HeartbeatMonitor, HeartbeatProducer
-from drivers.inprocess import LockstepClock, connect_network, timebase_of
+from drivers.heartbeat import HeartbeatMonitor
+from drivers.inprocess import LockstepClock, timebase_of
+from drivers.network import DriveNetwork
 from drivers.od import load_od, mapped_variable
 from drivers.pdo import MappedVariable, PdoCodec, PdoDirection, PdoLayout
 from foilc_hil.errors import (
@@ -277,23 +279,14 @@ class RxStats:
     unknown_frames: int  # COB-ID nobody subscribed to: ignored
 
 
-class _UnknownFrameCounter(can.Listener):
-    """Counts received frames whose COB-ID no canopen subscriber handles (ignored otherwise)."""
-
-    def __init__(self, network: canopen.Network) -> None:
-        self._network = network
-        self.count = 0
-
-    def on_message_received(self, msg: can.Message) -> None:
-        if msg.arbitration_id not in self._network.subscribers and not msg.is_error_frame:
-            self.count += 1
-
-
 class Cia402Drive(Drive):
     """A CiA 402 drive on a python-can bus, driven through canopen's SDO client and NMT master.
 
-    Build it with :meth:`open`. The bus belongs to the caller: :meth:`close` releases the Notifier, the heartbeat
-    producer and the frame tap, never the bus.
+    Build it with :meth:`open` (a drive alone on its bus: it owns a private :class:`~drivers.network.DriveNetwork`)
+    or :meth:`on_network` (one of several drives sharing a network's receive path, SYNC and master heartbeat).
+    The bus belongs to the caller: :meth:`close` of a drive that owns its network releases the Notifier, the
+    heartbeat producer and the frame tap, never the bus; a drive on a shared network only leaves it (the network's
+    owner closes it).
     """
 
     def __init__(
@@ -303,6 +296,7 @@ class Cia402Drive(Drive):
         *,
         sample_time: float,
         od: ObjectDictionary,
+        network: DriveNetwork | None = None,
     ) -> None:
         if not (sample_time > 0 and math.isfinite(sample_time)):
             raise ConfigError(f"must be a positive number of seconds, got {sample_time}", key="sample_time")
@@ -315,14 +309,15 @@ class Cia402Drive(Drive):
         self.od = od
         self._bus = bus
 
-        self._tap = FrameTap()  # attached to the bus by connect(), like the Notifier: construction starts nothing
-        self.network = canopen.Network(bus)
-        self.network.NOTIFIER_CYCLE = 0.1  # bounds how long close() waits for the Notifier thread
-        self._unknown = _UnknownFrameCounter(self.network)
-        # canopen annotates Network.listeners as list[MessageListener]; the Notifier takes any can.Listener.
-        # The tap goes first so a received frame is shown before canopen dispatches it: traces stay causal.
-        self.network.listeners.insert(0, self._tap)  # type: ignore[arg-type]
-        self.network.listeners.append(self._unknown)  # type: ignore[arg-type]
+        if network is not None and network.bus is not bus:
+            raise DriveError(f"node {cfg.node_id}: the shared network is on another bus")
+        self._owns_network = network is None
+        # the tap and the Notifier start with listen(): construction starts nothing
+        self._net = DriveNetwork(bus) if network is None else network
+        self.network = self._net.network
+        if self.node_id in self.network:
+            raise ConfigError(f"node {self.node_id} is already on this bus's network", key="drive.node_id")
+        self._listening = False
         self.node = canopen.RemoteNode(self.node_id, od)
         self._init_waits(bus)
         self.network.add_node(self.node)
@@ -346,8 +341,6 @@ class Cia402Drive(Drive):
         # the final stop reports it even when another error (e.g. the drive's own EMCY) ended the run first
         self._nmt_departure: DriveNmtStateError | None = None
 
-        self._producer: HeartbeatProducer | None = None
-
         # control-thread state
         self._mode: OperationMode | None = None
         self._device_modes: tuple[OperationMode, ...] | None = None  # from 0x6502, read once
@@ -362,7 +355,6 @@ class Cia402Drive(Drive):
         self._operational = False
         self._connected = False  # a boot-up answered connect(): the drive is there to be stopped over SDO
         self._closed = False
-        self._sync_message = can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False)
 
         # canopen's EMCY consumer unpacks without a length check and would stop the callbacks of a short frame:
         # ours replaces it. canopen's NMT state tracking unpacks heartbeats and NMT commands unchecked too: ours
@@ -375,6 +367,7 @@ class Cia402Drive(Drive):
         self.network.subscribe(heartbeat_cob, self._on_heartbeat)
         self.network.unsubscribe(NMT_COB_ID, self._master_nmt.on_command)
         self.network.subscribe(NMT_COB_ID, self._on_nmt_command)
+        self._net.join(self._begin_cycle)
 
     def _init_waits(self, bus: can.BusABC) -> None:
         """Every wait of the master runs on the bus's timebase (module docstring, "Waiting")."""
@@ -383,7 +376,6 @@ class Cia402Drive(Drive):
         self.node.sdo.RESPONSE_TIMEOUT = 0.0 if self._timebase.synchronous else self.cfg.sdo_timeout
         lockstep = self._timebase if isinstance(self._timebase, LockstepClock) else None
         self.heartbeat = HeartbeatMonitor(self.node_id, lockstep=lockstep)
-        self._sync_at = -math.inf  # lockstep: the simulated time of the last SYNC
 
     # --- construction -----------------------------------------------------------------------------------------
 
@@ -395,6 +387,18 @@ class Cia402Drive(Drive):
         """
         od = load_od(cfg.eds, cfg.node_id)
         return cls(bus, cfg, sample_time=sample_time, od=od)
+
+    @classmethod
+    def on_network(cls, network: DriveNetwork, cfg: DriveConfig, *, sample_time: float) -> Cia402Drive:
+        """A master for drive ``cfg.node_id`` sharing ``network`` (its bus, receive path, SYNC, master heartbeat).
+
+        Each drive keeps its own SDO client, NMT commands, PDO codecs, heartbeat supervision and errors: frames
+        reach it by COB-ID through the network's one receive path. :meth:`sync` of any member sends the one SYNC
+        and starts a new cycle on every member. Raises :class:`~foilc_hil.errors.ConfigError` for a node id
+        already on the network and :class:`~foilc_hil.errors.EdsError` for a bad EDS.
+        """
+        od = load_od(cfg.eds, cfg.node_id)
+        return cls(network.bus, cfg, sample_time=sample_time, od=od, network=network)
 
     # --- Drive: start-up --------------------------------------------------------------------------------------
 
@@ -420,25 +424,19 @@ class Cia402Drive(Drive):
         instead. Idempotent; :meth:`close` stops it all.
         """
         self._require_open()
-        if self.network.notifier is not None:
+        if self._listening:
             return
-        self._tap.attach(self._bus)
-        try:
-            connect_network(self.network)
-        except ValueError as exc:  # python-can allows one active Notifier per bus
-            self._tap.detach()
-            raise DriveError(f"cannot listen on the bus: {exc}; the drive object must own the bus's Notifier "
-                             "(use add_frame_listener to see frames)") from exc
+        self._net.listen()
+        self._listening = True
         if not self._timebase.synchronous:  # synchronous: time passes only in this thread, which checks anyway
             self.heartbeat.start_watchdog(self._on_heartbeat_lost, poll=HEARTBEAT_WATCHDOG_POLL)
 
     def _stop_listening(self) -> None:
-        """Undo :meth:`listen` (safe when it never ran); the bus itself stays the caller's."""
+        """Undo :meth:`listen` (safe when it never ran); a shared network keeps listening for the other drives."""
         self.heartbeat.stop_watchdog()
-        if self.network.notifier is not None:
-            self.network.notifier.stop(self.network.NOTIFIER_SHUTDOWN_TIMEOUT)
-            self.network.notifier = None
-        self._tap.detach()
+        self._listening = False
+        if self._owns_network:
+            self._net.close()
 
     def _identify(self) -> DeviceInfo:
         self._reset_communication()
@@ -637,19 +635,15 @@ class Cia402Drive(Drive):
         and the master's heartbeat timers fire on the way), and the answering TPDOs are in when this returns.
         """
         self._require_open()
-        timebase = self._timebase
-        if timebase.synchronous:
-            timebase.sleep(self._sync_at + self._cycle_period - timebase.now())
-            self._sync_at = timebase.now()
+        self._net.sync(self._cycle_period)
+        with self._cv:
+            return self._cycle
+
+    def _begin_cycle(self) -> None:
+        """The network is about to send SYNC: TPDOs received from now on answer the next cycle."""
         with self._cv:
             self._cycle += 1
             self._parts.clear()
-            cycle = self._cycle
-        # sent outside self._cv: on a synchronous bus the answers are delivered inside send, possibly by another
-        # thread's pump, whose listeners take self._cv
-        with self.network.send_lock:
-            self._bus.send(self._sync_message)
-        return cycle
 
     def wait_feedback(self, timeout: float) -> Feedback:
         """Block until the TPDO set answering the last SYNC arrived (see :class:`~drivers.drive.Drive`)."""
@@ -711,13 +705,13 @@ class Cia402Drive(Drive):
                 logger.info("close: could not park node %d: %s", self.node_id, exc)
         self._operational = False
         self._closed = True
-        if self._producer is not None:
-            self._producer.stop()
+        self._net.leave(self._begin_cycle)
         self._stop_listening()
 
     def add_frame_listener(self, listener: FrameListener) -> None:
-        """Call ``listener(message, "tx" | "rx")`` for every frame; runs on the sending and the Notifier thread."""
-        self._tap.add_listener(listener)
+        """Call ``listener(message, "tx" | "rx")`` for every frame on the bus (on a shared network: every drive's);
+        runs on the sending and the Notifier thread."""
+        self._net.tap.add_listener(listener)
 
     # --- SDO access for commissioning (not for the cyclic path) ----------------------------------------------
 
@@ -748,7 +742,7 @@ class Cia402Drive(Drive):
         """Receive-side counters."""
         with self._cv:
             return RxStats(self._tpdo_frames, self._emcy_frames, self._heartbeat_frames, self._bad_frames,
-                           self._unknown.count)
+                           self._net.unknown.count)
 
     @property
     def bad_frames(self) -> int:
@@ -1090,11 +1084,10 @@ class Cia402Drive(Drive):
             )
 
     def _start_master_heartbeat(self) -> None:
-        if self.cfg.heartbeat_consumer_ms == 0 or self._producer is not None:
+        if self.cfg.heartbeat_consumer_ms == 0:
             return
         period = self.cfg.heartbeat_consumer_ms / 1000 / MASTER_HEARTBEATS_PER_CONSUMER_TIME
-        self._producer = HeartbeatProducer(self._bus, self.cfg.master_node_id, period)
-        self._producer.start()
+        self._net.start_master_heartbeat(self.cfg.master_node_id, period)
 
     def _settings(self, mode: OperationMode, cycle_period: float) -> list[_Setting]:
         """The objects ``configure`` writes after the PDOs, in order: (index, sub, format, value, optional)."""

@@ -25,7 +25,9 @@ class BusConfig(Section):
 
     interface: str = "embedded"
     channel: str = "foilc-hil"
-    bitrate: int | None = Field(default=None, gt=0)
+    bitrate: int | None = Field(default=None, gt=0)  # None: 1 Mbit/s for the bus-load check of run
+    # the largest worst-case bus load (fraction of the bit rate) run accepts, computed before it starts
+    load_limit: float = Field(default=0.7, gt=0, le=1)
     receive_own_messages: bool = False
 
     @field_validator("interface")

@@ -1,6 +1,7 @@
 """``plant-emulator``: the virtual CiA 402 servo drive as a process on a CAN bus.
 
-``plant-emulator --config C --bus SPEC [--node-id N] [--mode lockstep|realtime] [--inject KIND@cCYCLE[:K=V,...]]...``
+``plant-emulator --config C --bus SPEC [--node-id N[,N...]] [--mode lockstep|realtime]
+[--inject KIND@cCYCLE[:K=V,...]]...``
 
 It reads the bench's own config file but validates only the sections it uses -- ``plant``, ``emulator``,
 ``sample_time`` and ``drive`` (for ``node_id`` and the ``velocity_scale`` / ``torque_scale`` the master uses, so
@@ -8,6 +9,11 @@ both ends convert units alike) -- and ignores the rest, which the bench validate
 whole-document model of layer 3). Without ``--config`` it drives a default PMSM axis. Bad input: exit 2 with one
 line on stderr. It runs until SIGINT or SIGTERM (exit 0) and says so on stderr when it is ready; its last line
 says how many SYNCs it served and the drive's final CiA 402 and NMT states.
+
+``--node-id 1,2,3,4`` emulates several drives in the one process, one :class:`~plant_emulator.device.VirtualDrive`
+per node, each with its own end of the one bus (a virtual drive takes its bus object over) and answering every
+SYNC; the ``k``-th node's physics has the seed ``plant.seed + emulator.seed + k`` (the first is the single-node
+one). It prints one ready line and one final line per node.
 
 ``--inject`` (repeatable, :mod:`drivers.faults`) injects faults on the drive's side for cross-process runs: the
 emulator kinds (``emulator-kill``, ``emcy-over-current``, ...) and the bus kinds on its own bus (e.g. ``nmt-stop``
@@ -22,7 +28,7 @@ import sys
 import threading
 from collections.abc import Sequence
 from types import FrameType
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from pydantic import ConfigDict, Field
 
@@ -32,6 +38,9 @@ from foilc_hil.errors import ConfigError, ExitCode, FoilcHilError, InputError
 from foilc_hil.schema import Section, apply_overrides, load_document, validate
 from plant_emulator.config import PlantConfig
 from plant_emulator.settings import EmulatorConfig
+
+if TYPE_CHECKING:
+    from plant_emulator.device import VirtualDrive
 
 PROG = "plant-emulator"
 
@@ -60,12 +69,27 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--config", help="bench config file (YAML); uses plant, emulator, sample_time, drive")
     parser.add_argument("--bus", required=True, help="INTERFACE:CHANNEL, e.g. socketcan:vcan0, virtual:bench, "
                         "udp_multicast:239.74.163.2")
-    parser.add_argument("--node-id", type=int, help="CANopen node id (default: drive.node_id, else 1)")
+    parser.add_argument("--node-id", type=parse_node_ids, metavar="N[,N...]",
+                        help="CANopen node id(s), e.g. 3 or 1,2,3,4 (default: drive.node_id, else 1)")
     parser.add_argument("--mode", choices=("lockstep", "realtime"), help="timing (default: emulator.timing)")
     parser.add_argument("--inject", action="append", default=[], metavar="KIND@cCYCLE[:K=V,...]",
                         help="inject a fault at the CYCLE-th SYNC received (repeatable), e.g. emulator-kill@c400, "
                         "nmt-stop@c300, drop-tpdo@c200:count=3")
     return parser
+
+
+def parse_node_ids(text: str) -> tuple[int, ...]:
+    """``"1,2,3,4"`` -> ``(1, 2, 3, 4)``: distinct node ids in 1..127 (argparse turns the error into exit 2)."""
+    try:
+        nodes = tuple(int(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a comma-separated list of node ids") from None
+    outside = [node for node in nodes if not 1 <= node <= 127]
+    if outside:
+        raise argparse.ArgumentTypeError(f"{outside[0]} is outside 1..127")
+    if len(set(nodes)) != len(nodes):
+        raise argparse.ArgumentTypeError(f"{text!r} repeats a node id")
+    return nodes
 
 
 def parse_injections(specs: Sequence[str]) -> list[Injection]:
@@ -98,25 +122,36 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(exc.exit_code)
 
 
-def _serve(args: argparse.Namespace) -> int:
-    from drivers.bus import open_bus, parse_bus_spec
+def _build_drives(settings: EmulatorDocument, nodes: tuple[int, ...]) -> list[VirtualDrive]:
+    """One virtual drive per node id; the ``k``-th with the physics seed ``plant.seed + emulator.seed + k``."""
     from plant_emulator.device import VirtualDrive
     from plant_emulator.physics import build_plant
 
-    if args.node_id is not None and not 1 <= args.node_id <= 127:
-        raise InputError(f"--node-id: {args.node_id} is outside 1..127")
+    seed = settings.plant.seed + settings.emulator.seed
+    return [
+        VirtualDrive(
+            build_plant(settings.plant, seed=seed + k),
+            node_id=node,
+            cycle_period=settings.sample_time,
+            settings=settings.emulator,
+            velocity_scale=settings.drive.velocity_scale,
+            torque_scale=settings.drive.torque_scale,
+        )
+        for k, node in enumerate(nodes)
+    ]
+
+
+def _serve(args: argparse.Namespace) -> int:
+    from drivers.bus import open_bus, parse_bus_spec
+
     injections = parse_injections(args.inject)
-    settings = load_settings(args.config, {"drive.node_id": args.node_id, "emulator.timing": args.mode})
+    nodes: tuple[int, ...] | None = args.node_id
+    if nodes is not None and len(nodes) > 1 and injections:
+        raise InputError(f"--inject: give one --node-id to inject faults into (got {len(nodes)} nodes)")
+    settings = load_settings(args.config, {"drive.node_id": nodes[0] if nodes else None,
+                                           "emulator.timing": args.mode})
     bus_cfg = parse_bus_spec(args.bus)
-    plant = build_plant(settings.plant, seed=settings.plant.seed + settings.emulator.seed)
-    drive = VirtualDrive(
-        plant,
-        node_id=settings.drive.node_id,
-        cycle_period=settings.sample_time,
-        settings=settings.emulator,
-        velocity_scale=settings.drive.velocity_scale,
-        torque_scale=settings.drive.torque_scale,
-    )
+    drives = _build_drives(settings, nodes or (settings.drive.node_id,))
     stop = threading.Event()
 
     def _on_signal(signum: int, frame: FrameType | None) -> None:
@@ -125,30 +160,33 @@ def _serve(args: argparse.Namespace) -> int:
     previous = {sig: signal.signal(sig, _on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     faulty: FaultyBus | None = None
     try:
-        bus = open_bus(bus_cfg)
-        if injections:
-            from plant_emulator.faults import emulator_actions
+        for drive in drives:
+            bus = open_bus(bus_cfg)
+            if injections:
+                from plant_emulator.faults import emulator_actions
 
-            bus = faulty = FaultyBus(bus, injections, node_id=drive.node_id, role=Role.DRIVE,
-                                     actions=emulator_actions(drive))
-        drive.start(bus)
-        print(
-            f"{PROG}: ready: node {drive.node_id} on {bus_cfg.interface}:{bus_cfg.channel} "
-            f"({settings.plant.model}, {drive.timing.value}, {settings.sample_time * 1e3:g} ms)",
-            file=sys.stderr,
-            flush=True,
-        )
+                bus = faulty = FaultyBus(bus, injections, node_id=drive.node_id, role=Role.DRIVE,
+                                         actions=emulator_actions(drive))
+            drive.start(bus)
+            print(
+                f"{PROG}: ready: node {drive.node_id} on {bus_cfg.interface}:{bus_cfg.channel} "
+                f"({settings.plant.model}, {drive.timing.value}, {settings.sample_time * 1e3:g} ms)",
+                file=sys.stderr,
+                flush=True,
+            )
         while not stop.wait(0.2):
             pass
     finally:
-        drive.stop()
+        for drive in drives:
+            drive.stop()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     for report in faulty.reports() if faulty is not None else []:
         started = "never started" if report.started_at_sync is None else f"started at SYNC {report.started_at_sync}"
         print(f"{PROG}: injected {report.injection.describe()}: {started}, {report.frames} frame(s)", file=sys.stderr)
-    print(f"{PROG}: stopped after {drive.sync_count} SYNC; drive {drive.state.name}, NMT {drive.nmt_state.name}",
-          file=sys.stderr, flush=True)
+    for drive in drives:
+        print(f"{PROG}: stopped after {drive.sync_count} SYNC; drive {drive.state.name}, NMT {drive.nmt_state.name}"
+              + (f" (node {drive.node_id})" if len(drives) > 1 else ""), file=sys.stderr, flush=True)
     return int(ExitCode.OK)
 
 

@@ -11,11 +11,13 @@ A realtime emulator ticks its physics on the wall clock in a thread, so it gets 
 from __future__ import annotations
 
 import uuid
+from collections.abc import Sequence
 from typing import Protocol
 
 from drivers.bus import open_bus
 from drivers.config import BusConfig, DriveConfig
 from drivers.inprocess import INTERFACE as INPROCESS_INTERFACE
+from foilc_hil.errors import InputError
 from plant_emulator.config import PlantConfig
 from plant_emulator.device import TimingMode, VirtualDrive
 from plant_emulator.physics import build_plant
@@ -43,7 +45,7 @@ class BenchDocument(Protocol):
 
 
 class EmbeddedEmulator:
-    """A :class:`~plant_emulator.device.VirtualDrive` on a ``virtual`` channel, as a context manager.
+    """One or several :class:`~plant_emulator.device.VirtualDrive` on one channel, as a context manager.
 
     Parameters
     ----------
@@ -52,7 +54,9 @@ class EmbeddedEmulator:
     settings
         The ``emulator:`` section.
     node_id
-        The drive's node id (the bench's ``drive.node_id``).
+        The drive's node id (the bench's ``drive.node_id``), or several: one virtual drive per node id, all on the
+        one channel, each answering every SYNC (the drive of the ``k``-th node id has the physics seed
+        ``plant.seed + settings.seed + k``, so the first is the single-node emulator's).
     sample_time
         Seconds per cycle until the master writes 0x1006.
     velocity_scale, torque_scale
@@ -70,7 +74,8 @@ class EmbeddedEmulator:
     -----
     The seed of the physics is ``plant.seed + settings.seed``. In lockstep the drive runs in the threads that
     send to it (the master's); in realtime in canopen's notifier thread of its own ``virtual`` bus and a physics
-    thread. :meth:`close` stops the drive and shuts its bus down.
+    thread. :meth:`close` stops the drives and shuts their buses down. Each drive has its own end of the channel
+    (a :class:`~plant_emulator.device.VirtualDrive` takes its bus over); the channel is still the one bus.
     Build it from the bench's whole config with :meth:`from_config`, or from its sections with :meth:`for_drive`.
     """
 
@@ -79,7 +84,7 @@ class EmbeddedEmulator:
         plant: PlantConfig,
         settings: EmulatorConfig,
         *,
-        node_id: int,
+        node_id: int | Sequence[int],
         sample_time: float,
         velocity_scale: float | None = None,
         torque_scale: float | None = None,
@@ -88,14 +93,21 @@ class EmbeddedEmulator:
     ) -> None:
         self.channel = channel if channel is not None else f"{CHANNEL_PREFIX}-{uuid.uuid4().hex}"
         self.threaded = threaded
-        self.drive = VirtualDrive(
-            build_plant(plant, seed=plant.seed + settings.seed),
-            node_id=node_id,
-            cycle_period=sample_time,
-            settings=settings,
-            velocity_scale=velocity_scale,
-            torque_scale=torque_scale,
+        node_ids = (node_id,) if isinstance(node_id, int) else tuple(node_id)
+        if not node_ids or len(set(node_ids)) != len(node_ids):
+            raise InputError(f"node ids must be distinct and at least one, got {list(node_ids)}")
+        self.drives = tuple(
+            VirtualDrive(
+                build_plant(plant, seed=plant.seed + settings.seed + k),
+                node_id=node,
+                cycle_period=sample_time,
+                settings=settings,
+                velocity_scale=velocity_scale,
+                torque_scale=torque_scale,
+            )
+            for k, node in enumerate(node_ids)
         )
+        self.drive = self.drives[0]
         self._started = False
 
     @classmethod
@@ -140,21 +152,35 @@ class EmbeddedEmulator:
         wall_clock = self.threaded or self.drive.timing is TimingMode.REALTIME
         return BusConfig(interface="virtual" if wall_clock else INPROCESS_INTERFACE, channel=self.channel)
 
+    def by_node(self, node_id: int) -> VirtualDrive:
+        """The virtual drive with ``node_id``; KeyError when none has it."""
+        for drive in self.drives:
+            if drive.node_id == node_id:
+                return drive
+        raise KeyError(node_id)
+
     def begin_trial(self, trial: int) -> None:
-        """Start trial ``trial`` of the physics (see :meth:`VirtualDrive.begin_trial`)."""
-        self.drive.begin_trial(trial)
+        """Start trial ``trial`` of every drive's physics (see :meth:`VirtualDrive.begin_trial`)."""
+        for drive in self.drives:
+            drive.begin_trial(trial)
 
     def start(self) -> EmbeddedEmulator:
-        """Open the drive's end of the channel and boot the drive (boot-up, pre-operational)."""
+        """Open each drive's end of the channel and boot the drives (boot-up, pre-operational)."""
         if not self._started:
-            self.drive.start(open_bus(self.bus_config))
             self._started = True
+            try:
+                for drive in self.drives:
+                    drive.start(open_bus(self.bus_config))
+            except BaseException:
+                self.close()
+                raise
         return self
 
     def close(self) -> None:
-        """Stop the drive and shut its bus down."""
+        """Stop the drives and shut their buses down."""
         if self._started:
-            self.drive.stop()
+            for drive in self.drives:
+                drive.stop()
             self._started = False
 
     def __enter__(self) -> EmbeddedEmulator:

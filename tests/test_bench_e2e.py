@@ -143,6 +143,7 @@ def test_run_succeeds_and_reports_every_trial(bench_run: dict[str, Any]) -> None
     assert document["timing"]["period"] == SAMPLE_TIME
     assert document["timing"]["missed_deadlines"] == 0
     assert "certificates" in document["design"]
+    assert document["bus_load"]["period"] == SAMPLE_TIME and 0 < document["bus_load"]["load"] <= 0.7
 
 
 def test_log_layout_and_metadata(bench_run: dict[str, Any]) -> None:

@@ -1,7 +1,9 @@
 """``foilc-hil commission scan|info|enable|disable|fault-reset|params|identify``: drive commissioning.
 
 Every action takes ``--bus INTERFACE:CHANNEL`` (default: ``--emulator embedded``, the in-process emulator),
-``--node-id N`` (default: ``drive.node_id`` of ``--config``), ``--config C`` (drive settings, ``sample_time``; and
+``--node-id N`` (default: ``drive.node_id`` of ``--config``; ``info``, ``enable``, ``disable`` and ``fault-reset`` also
+take several, ``--node-id 1,2,3,4`` or ``1-4``, and act on each node in turn over one shared
+:class:`~drivers.network.DriveNetwork`), ``--config C`` (drive settings, ``sample_time``; and
 for the embedded emulator its ``plant:``/``emulator:``) and ``--json``. ``--emulator-config C`` makes the embedded
 emulator emulate the plant of another config (e.g. a known first-order plant); ``--emulated-nodes 1,5,9`` puts
 several emulated drives on its bus. See :mod:`foilc_hil.commission` for what each action does.
@@ -14,6 +16,9 @@ JSON documents:
   "error_register", "error_code", "pdos": [...], "dbc"?}``
 - ``enable``/``disable``/``fault-reset``: ``{"action", "node_id", "final_state", "transitions": [{"t", "state",
   "statusword", "controlword"}], "notes"}``
+- ``info``/``enable``/``disable``/``fault-reset`` with several node ids: ``{"action", "nodes": [one document above
+  per node, in node order]}``; ``enable`` on several nodes that fails on one disables the nodes it enabled before
+  (then exit 1 with the error).
 - ``params read``: ``{"parameters": [{"name", "index", "subindex", "value", "unit"}]}``; ``params write``:
   ``{"ok", "changes": [{"name", "index", "subindex", "old", "new", "status"}], "error", "refused", "rolled_back",
   "not_restored"}`` (exit 1 when not ok)
@@ -24,7 +29,9 @@ JSON documents:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -45,7 +52,8 @@ def _common(parser: argparse.ArgumentParser) -> None:
     where.add_argument("--bus", metavar="SPEC", help="INTERFACE:CHANNEL, e.g. socketcan:vcan0 (default: embedded)")
     where.add_argument("--emulator", choices=["embedded"], help="the in-process emulator (the default)")
     add_bus_options(parser)
-    parser.add_argument("--node-id", type=int, metavar="N", help="the drive's node id (default: drive.node_id)")
+    parser.add_argument("--node-id", metavar="N", help="the drive's node id (default: drive.node_id); info, enable, "
+                        "disable and fault-reset take several, e.g. 1,2,3,4 or 1-4")
     parser.add_argument("--config", metavar="C", help="config YAML: drive settings, sample_time, emulated plant")
     parser.add_argument("--emulator-config", metavar="C",
                         help="config whose plant:/emulator: the embedded emulator runs (default: --config)")
@@ -122,26 +130,33 @@ def _positive(value: float | None, option: str) -> None:
         raise InputError(f"{option}: must be a positive number, got {value}")
 
 
-def _load(args: argparse.Namespace) -> tuple[Config, Config | None, DriveConfig]:
-    from drivers.cia301 import NODE_ID_MAX, NODE_ID_MIN
+def _load_nodes(args: argparse.Namespace) -> tuple[Config, Config | None, tuple[DriveConfig, ...]]:
+    """The configs and one ``drive:`` section per ``--node-id`` (one or several)."""
+    from foilc_hil.commission.target import parse_node_list
     from foilc_hil.config import load_config
 
     config = load_config(args.config)
     emulator_config = load_config(args.emulator_config) if args.emulator_config else None
-    node_id = args.node_id if args.node_id is not None else config.drive.node_id
-    if not NODE_ID_MIN <= node_id <= NODE_ID_MAX:
-        raise InputError(f"--node-id: {node_id} is outside {NODE_ID_MIN}..{NODE_ID_MAX}")
-    return config, emulator_config, config.drive.model_copy(update={"node_id": node_id})
+    nodes = parse_node_list(args.node_id, option="--node-id") if args.node_id is not None else (config.drive.node_id,)
+    return config, emulator_config, tuple(config.drive.model_copy(update={"node_id": node}) for node in nodes)
+
+
+def _load(args: argparse.Namespace) -> tuple[Config, Config | None, DriveConfig]:
+    """As :func:`_load_nodes`, for the actions that act on one node."""
+    config, emulator_config, drives = _load_nodes(args)
+    if len(drives) > 1:
+        raise InputError(f"--node-id: commission {args.action} acts on one node, got {len(drives)}")
+    return config, emulator_config, drives[0]
 
 
 def _target(args: argparse.Namespace, config: Config, emulator_config: Config | None,
-            node_id: int) -> CommissionTarget:
+            *node_ids: int) -> CommissionTarget:
     from drivers.bus import resolve_bus
     from foilc_hil.commission.target import CommissionTarget, parse_node_list
 
     resolved = resolve_bus(bus_options(args), config.bus)  # precedence: drivers.bus.resolve_bus
     bus = None if resolved.interface == "embedded" else resolved  # None: the target's embedded emulator
-    nodes = parse_node_list(args.emulated_nodes, option="--emulated-nodes") if args.emulated_nodes else (node_id,)
+    nodes = parse_node_list(args.emulated_nodes, option="--emulated-nodes") if args.emulated_nodes else node_ids
     return CommissionTarget(config, bus, emulated_nodes=nodes, emulator_config=emulator_config)
 
 
@@ -151,6 +166,27 @@ def _open_drive(target: CommissionTarget, drive_cfg: DriveConfig, sample_time: f
     drive = Cia402Drive.open(target.bus, drive_cfg, sample_time=sample_time)
     drive.listen()  # the actions talk SDO/NMT to the drive as it is: no connect() (that resets its communication)
     return drive
+
+
+@contextlib.contextmanager
+def _shared_drives(target: CommissionTarget, drive_cfgs: tuple[DriveConfig, ...],
+                   sample_time: float) -> Iterator[list[Cia402Drive]]:
+    """Masters for several nodes on one :class:`~drivers.network.DriveNetwork`, listening (no connect()), all
+    closed with the network on exit."""
+    from drivers.cia402_master import Cia402Drive
+    from drivers.network import DriveNetwork
+
+    network = DriveNetwork(target.bus)
+    drives: list[Cia402Drive] = []
+    try:
+        for drive_cfg in drive_cfgs:
+            drives.append(Cia402Drive.on_network(network, drive_cfg, sample_time=sample_time))
+            drives[-1].listen()
+        yield drives
+    finally:
+        for drive in drives:
+            drive.close()
+        network.close()
 
 
 def execute(args: argparse.Namespace) -> CommandResult:
@@ -188,7 +224,15 @@ def _info(args: argparse.Namespace) -> CommandResult:
     from foilc_hil.commission.dbc import write_dbc
     from foilc_hil.commission.info import read_info, render_info
 
-    config, emulator_config, drive_cfg = _load(args)
+    config, emulator_config, drive_cfgs = _load_nodes(args)
+    if len(drive_cfgs) > 1:
+        if args.dbc:
+            raise InputError("--dbc: give one --node-id (the DBC describes one drive's mapping)")
+        with _target(args, config, emulator_config, *(cfg.node_id for cfg in drive_cfgs)) as target, \
+                _shared_drives(target, drive_cfgs, config.sample_time) as drives:
+            documents = tuple(read_info(drive).to_json() for drive in drives)
+        return _per_node("info", documents, "\n".join(render_info(document) for document in documents))
+    drive_cfg = drive_cfgs[0]
     if args.dbc and Path(args.dbc).suffix.lower() not in (".dbc", ".dbf", ".kcd", ".arxml", ".sym", ".json",
                                                           ".xls", ".xlsx", ".yaml"):
         raise InputError(f"--dbc: {args.dbc!r} needs a suffix canmatrix writes (.dbc, .kcd, .arxml, .sym, ...)")
@@ -208,7 +252,10 @@ def _power(args: argparse.Namespace) -> CommandResult:
     from foilc_hil.commission import power
 
     _positive(args.state_timeout, "--state-timeout")
-    config, emulator_config, drive_cfg = _load(args)
+    config, emulator_config, drive_cfgs = _load_nodes(args)
+    if len(drive_cfgs) > 1:
+        return _power_nodes(args, config, emulator_config, drive_cfgs)
+    drive_cfg = drive_cfgs[0]
     timeout = args.state_timeout if args.state_timeout is not None else drive_cfg.state_timeout
     with _target(args, config, emulator_config, drive_cfg.node_id) as target:
         drive = _open_drive(target, drive_cfg, config.sample_time)
@@ -221,6 +268,38 @@ def _power(args: argparse.Namespace) -> CommandResult:
         finally:
             drive.close()
     return CommandResult(report.to_json(), report.render())
+
+
+def _power_nodes(args: argparse.Namespace, config: Config, emulator_config: Config | None,
+                 drive_cfgs: tuple[DriveConfig, ...]) -> CommandResult:
+    """``enable``/``disable``/``fault-reset`` on each node in turn; a failed ``enable`` disables the nodes it had
+    enabled before the error propagates (no drive is left enabled by a command that failed)."""
+    from foilc_hil.commission import power
+
+    reports: list[power.PowerReport] = []
+    with _target(args, config, emulator_config, *(cfg.node_id for cfg in drive_cfgs)) as target, \
+            _shared_drives(target, drive_cfgs, config.sample_time) as drives:
+        for drive, drive_cfg in zip(drives, drive_cfgs, strict=True):
+            timeout = args.state_timeout if args.state_timeout is not None else drive_cfg.state_timeout
+            try:
+                if args.action == "enable":
+                    reports.append(power.enable(drive, state_timeout=timeout, mode=drive_cfg.operation_mode))
+                else:
+                    walk = power.disable if args.action == "disable" else power.fault_reset
+                    reports.append(walk(drive, state_timeout=timeout))
+            except BaseException:
+                if args.action == "enable":
+                    power.disable_all(drives[:len(reports)], state_timeout=timeout)
+                raise
+    return _per_node(args.action, tuple(report.to_json() for report in reports),
+                     "\n".join(report.render() for report in reports))
+
+
+def _per_node(action: str, documents: tuple[dict[str, Any], ...], text: str) -> CommandResult:
+    """The result of an action on several nodes: one document per node, in node order."""
+    from foilc_hil.commission.target import PerNodeResult
+
+    return CommandResult(PerNodeResult(action, documents).to_json(), text)
 
 
 def _params(args: argparse.Namespace) -> CommandResult:

@@ -5,7 +5,14 @@
 --out F.mcap [--json] [--quiet]``
 
 JSON: ``{"law", "trials": [{"trial", "sse", "rmse", "max_abs_error"}, ...], "timing": {"period", "cycles",
-"missed_deadlines", "jitter_p99_us", ...}, "log", "design": {"kp", "r", "certificates", ...}, "stopped"}``.
+"missed_deadlines", "jitter_p99_us", ...}, "log", "design": {"kp", "r", "certificates", ...}, "stopped",
+"bus_load": {"bitrate", "period", "limit", "bits_per_cycle", "load", "min_period", "frames"}}``.
+
+Before anything is designed or sent, the worst-case bus load of the run's cyclic schedule (SYNC, the PDOs the
+master maps -- :func:`drivers.cia402_master.pdo_plan` --, both heartbeats; stuff bits included, see
+:mod:`drivers.busload`) at ``bus.bitrate`` (1 Mbit/s when unset) and a SYNC period of ``sample_time`` is checked
+against ``bus.load_limit`` (default 0.7): over it, the run is refused with exit 2 and one line with the figures and
+the shortest period that would fit.
 Exit 0 when every trial ran; 1 for a drive fault, a bus timeout or learning that diverged and was stopped (the
 JSON document and the log are still written for a divergence stop); 2 for bad input; 130 for Ctrl-C / SIGTERM.
 
@@ -68,6 +75,25 @@ def check_bus(bus: Any) -> None:
     open_bus(bus).shutdown()
 
 
+def check_bus_load(config: Any, bus: Any) -> Any:
+    """The worst-case :class:`~drivers.busload.BusLoad` of the run's schedule on ``bus``; a
+    :class:`~foilc_hil.errors.ConfigError` naming ``bus.load_limit`` with the figures (exit 2) when over the limit.
+
+    The bit rate is the bus's, else the config's ``bus.bitrate``, else 1 Mbit/s (``--emulator embedded`` has none).
+    """
+    from drivers.busload import DEFAULT_BITRATE, CyclicFrame, drive_schedule, schedule_load
+    from drivers.cia402_master import MASTER_HEARTBEATS_PER_CONSUMER_TIME, pdo_plan
+    from drivers.od import load_od
+
+    drive = config.drive
+    plan = pdo_plan(drive.operation_mode, drive.node_id, load_od(drive.eds, drive.node_id))
+    frames = drive_schedule(plan, period=config.sample_time, drive_heartbeat=drive.heartbeat_producer_ms / 1000,
+                            master_heartbeat=drive.heartbeat_consumer_ms / 1000 / MASTER_HEARTBEATS_PER_CONSUMER_TIME)
+    bitrate = bus.bitrate or config.bus.bitrate or DEFAULT_BITRATE
+    return schedule_load([CyclicFrame("SYNC", 0), *frames], bitrate=bitrate, period=config.sample_time,
+                         limit=config.bus.load_limit).check()
+
+
 def execute(args: argparse.Namespace) -> CommandResult:
     from foilc_hil.config import load_config
     from foilc_hil.errors import InputError
@@ -86,6 +112,7 @@ def execute(args: argparse.Namespace) -> CommandResult:
 
     bus = resolve_bus(bus_options(args), config.bus)  # precedence: drivers.bus.resolve_bus
     check_bus(bus)  # before the design, which may take minutes
+    load = check_bus_load(config, bus)
     request = RunRequest(
         config=config,
         out=args.out,
@@ -96,8 +123,8 @@ def execute(args: argparse.Namespace) -> CommandResult:
         quiet=bool(args.quiet or args.json),
     )
     report = run_bench(request)
-    document = report.to_json()
-    text = render_text(document)
+    document = {**report.to_json(), "bus_load": load.to_json()}
+    text = f"{render_text(document)}\n{load.describe()}"
     if report.outcome.diverged:
         return CommandResult(
             document, text, exit_code=ExitCode.RUNTIME_FAILURE, message=report.outcome.stopped or "learning diverged"

@@ -19,8 +19,9 @@ left within ``state_timeout`` raises :class:`~foilc_hil.errors.StateTransitionEr
 
 from __future__ import annotations
 
+import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -31,7 +32,9 @@ from drivers.cia402 import ENABLE_PATH, Command402, Obj, OperationMode, State402
 from drivers.cia402_master import Cia402Drive
 from foilc_hil.errors import DriveError, DriveFaultError, DriveTimeoutError, ProtocolError, StateTransitionError
 
-__all__ = ["PowerReport", "Transition", "disable", "enable", "fault_reset"]
+__all__ = ["PowerReport", "Transition", "disable", "disable_all", "enable", "fault_reset"]
+
+logger = logging.getLogger(__name__)
 
 POLL_PERIOD = 0.01  # s between statusword reads while waiting for a transition
 COMMUNICATION_FAULTS = frozenset({int(EmcyCode.HEARTBEAT_LOSS), int(EmcyCode.SYNC_LOSS)})
@@ -184,6 +187,18 @@ def disable(drive: Cia402Drive, *, state_timeout: float) -> PowerReport:
         report.notes.append("the drive is in FAULT, which disable voltage does not leave; use fault-reset")
     report.final_state = walker.state
     return report
+
+
+def disable_all(drives: Sequence[Cia402Drive], *, state_timeout: float) -> None:
+    """Best effort: :func:`disable` every drive (an error on one is logged and does not stop the others).
+
+    Called while another error propagates (a multi-node ``enable`` that failed on a later node), so it never raises.
+    """
+    for drive in drives:
+        try:
+            disable(drive, state_timeout=state_timeout)
+        except Exception as exc:  # the original error is what the caller reports
+            logger.warning("could not disable node %d after a failed enable: %s", drive.node_id, exc)
 
 
 def fault_reset(drive: Cia402Drive, *, state_timeout: float) -> PowerReport:

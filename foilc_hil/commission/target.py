@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from types import TracebackType
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import can
 
@@ -28,7 +28,18 @@ if TYPE_CHECKING:
     from foilc_hil.config import Config
     from plant_emulator.device import VirtualDrive
 
-__all__ = ["CommissionTarget", "parse_node_list"]
+__all__ = ["CommissionTarget", "PerNodeResult", "parse_node_list"]
+
+
+@dataclass(frozen=True)
+class PerNodeResult:
+    """A commissioning action on several nodes (``--node-id 1,2,3,4``): each node's own document, in node order."""
+
+    action: str
+    documents: tuple[dict[str, Any], ...]
+
+    def to_json(self) -> dict[str, Any]:
+        return {"action": self.action, "nodes": list(self.documents)}
 
 
 def parse_node_list(text: str, *, option: str) -> tuple[int, ...]:
