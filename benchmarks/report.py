@@ -146,8 +146,24 @@ def render(results: dict[str, Any]) -> str:
         "",
         *_science(results),
         "",
+        *_realtime(),
     ]
     return "\n".join(lines)
+
+
+REALTIME_RESULTS = Path(__file__).with_name("realtime.json")
+
+
+def _realtime() -> list[str]:
+    """The realtime section from the last ``make bench-realtime`` (16 minutes in a private network namespace, so
+    not part of ``make bench``); nothing when it was never run."""
+    if not REALTIME_RESULTS.exists():
+        return []
+    from benchmarks.realtime import markdown
+
+    note = ("*From `make bench-realtime` (`benchmarks/realtime.json`), a separate run: its date is its own, not "
+            "this page's.*")
+    return [note, "", markdown(orjson.loads(REALTIME_RESULTS.read_bytes())), ""]
 
 
 def write(results_path: Path, doc_path: Path) -> None:
