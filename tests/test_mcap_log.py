@@ -365,3 +365,30 @@ def test_schemas_name_their_dialect_and_channels_carry_units(tmp_path: Path) -> 
     # a config that does not load gives the time units only, and the log is still written
     McapLogWriter(tmp_path / "odd.mcap", config_yaml="drive: [1, 2]\n").close()
     assert _channel_units(tmp_path / "odd.mcap")["/ilc/sample"] == {"t": "s"}
+
+
+def test_a_slow_writer_bounds_the_queue_and_loses_nothing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Back-pressure: a loop faster than the writer thread waits for it instead of growing the queue without bound."""
+    import time
+
+    from foilc_hil.io import mcap_log
+
+    monkeypatch.setattr(mcap_log, "MAX_BACKLOG", 40)
+    writer = QueuedLogWriter.open(tmp_path / "slow.mcap", config_yaml=None, fsync=False)
+    inner_write = writer.writer.write_sample
+
+    def slow_write(record: object, log_time_ns: int | None = None) -> None:
+        time.sleep(0.0005)  # slower than the producer below, which only enqueues
+        inner_write(record, log_time_ns=log_time_ns)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(writer.writer, "write_sample", slow_write)
+    deepest = 0
+    with writer:
+        for i in range(400):
+            writer.log_sample(1, i * 0.01, 1.0, 0.5, 0.1, 0.5, None, sample=i)
+            deepest = max(deepest, writer.pending())
+        writer.log_trial({"trial": 1, "sse": 1.0, "rmse": 0.5, "max_abs_error": 0.5})
+    assert writer.backpressure_waits > 0
+    assert deepest <= 41  # never more than the bound plus the item that crossed it
+    samples = read_log(tmp_path / "slow.mcap").samples
+    assert [row["sample"] for row in samples] == list(range(400))
