@@ -122,14 +122,17 @@ class LogLevel(StrEnum):
 
 def _configure_logging(level: LogLevel) -> None:
     """Product diagnostics at ``level``; canopen's and python-can's only at ``debug``: below that they repeat what
-    the product's one line already says (e.g. canopen's "Transfer aborted" for each SDO the confirmed stop tried)."""
+    the product's one line already says (e.g. canopen's "Transfer aborted" for each SDO the confirmed stop tried);
+    any other library's only when they are errors."""
     numeric = getattr(logging, level.name)
-    # basicConfig leaves a root logger that already has handlers alone (an application embedding main(), pytest)
-    logging.basicConfig(format="foilc-hil: %(name)s: %(message)s", level=numeric)
+    debug = level is LogLevel.DEBUG
+    # other libraries (matplotlib's font warnings, ...) only report errors unless debugging; basicConfig leaves a root
+    # logger that already has handlers alone (an application embedding main(), pytest)
+    logging.basicConfig(format="foilc-hil: %(name)s: %(message)s", level=numeric if debug else logging.ERROR)
     for product in ("foilc_hil", "drivers", "plant_emulator"):
         logging.getLogger(product).setLevel(numeric)
     for library in ("canopen", "can"):
-        logging.getLogger(library).setLevel(numeric if level is LogLevel.DEBUG else logging.CRITICAL)
+        logging.getLogger(library).setLevel(numeric if debug else logging.CRITICAL)
 
 
 def _with_source(error: ConfigError, config_path: object) -> ConfigError:
