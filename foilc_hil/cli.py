@@ -120,16 +120,26 @@ class LogLevel(StrEnum):
     ERROR = "error"
 
 
+PRODUCT_LOGGERS = ("foilc_hil", "drivers", "plant_emulator")
+
+
 def _configure_logging(level: LogLevel) -> None:
     """Product diagnostics at ``level``; canopen's and python-can's only at ``debug``: below that they repeat what
     the product's one line already says (e.g. canopen's "Transfer aborted" for each SDO the confirmed stop tried);
     any other library's only when they are errors."""
     numeric = getattr(logging, level.name)
     debug = level is LogLevel.DEBUG
-    # other libraries (matplotlib's font warnings, ...) only report errors unless debugging; basicConfig leaves a root
-    # logger that already has handlers alone (an application embedding main(), pytest)
-    logging.basicConfig(format="foilc-hil: %(name)s: %(message)s", level=numeric if debug else logging.ERROR)
-    for product in ("foilc_hil", "drivers", "plant_emulator"):
+    root = logging.getLogger()
+    if not root.handlers:  # an application embedding main() (or pytest) keeps its own logging set-up
+        handler = logging.StreamHandler()
+        handler.setFormatter(logging.Formatter("foilc-hil: %(name)s: %(message)s"))
+        # other libraries (matplotlib's font warnings, dask's cluster chatter, ...) only when they report errors;
+        # a filter on the handler, because some of them (distributed) set their own loggers' levels
+        threshold = numeric if debug else logging.ERROR
+        handler.addFilter(lambda record: record.name.split(".")[0] in PRODUCT_LOGGERS or record.levelno >= threshold)
+        root.addHandler(handler)
+        root.setLevel(numeric)
+    for product in PRODUCT_LOGGERS:
         logging.getLogger(product).setLevel(numeric)
     for library in ("canopen", "can"):
         logging.getLogger(library).setLevel(numeric if debug else logging.CRITICAL)
