@@ -23,9 +23,10 @@ lint: $(STAMP)
 typecheck: $(STAMP)
 	$(BIN)/mypy
 
-# one worker per core (pytest-xdist): each test stays independent of the others and of wall-clock speed
+# one worker per core (pytest-xdist; worksteal evens out the long tests): each test stays independent of the others
+# and of wall-clock speed
 pytest: $(STAMP)
-	$(BIN)/pytest -n auto
+	$(BIN)/pytest -n auto --dist worksteal
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks.run --out benchmarks/results.json --doc docs/benchmarks.md
