@@ -213,7 +213,7 @@ def test_sigint_mid_trial_in_a_subprocess(tmp_path: Path) -> None:
         deadline = time.monotonic() + 120.0
         completed = 0
         while time.monotonic() < deadline and process.poll() is None:
-            completed = _completed_trials_on_disk(out)
+            completed = completed_trials_on_disk(out)
             if completed >= 2:
                 break
             time.sleep(0.05)
@@ -236,7 +236,7 @@ def test_sigint_mid_trial_in_a_subprocess(tmp_path: Path) -> None:
     assert decode_state(last_word(topics["/can"], cob_id(FunctionCode.TPDO1, NODE))) != State402.OPERATION_ENABLED
 
 
-def _completed_trials_on_disk(path: Path) -> int:
+def completed_trials_on_disk(path: Path) -> int:
     """Completed trials in a log still being written (F's damage-tolerant reader reads up to the last chunk)."""
     if not path.exists():
         return 0

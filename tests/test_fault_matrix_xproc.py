@@ -33,6 +33,7 @@ import yaml
 from drivers.cia402 import State402
 from drivers.faults import InjectKind, parse_injection
 from tests.test_bench_crossprocess import NETNS_SETUP, _unshare_available
+from tests.test_bench_faults import completed_trials_on_disk
 from tests.test_fault_matrix import STOPPED_STATES, Outcome, Stop, bench_document, check_log
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -85,18 +86,6 @@ XPROC_MATRIX: tuple[XRow, ...] = (
 )
 
 
-def _completed_trials(path: Path) -> int:
-    if not path.exists():
-        return 0
-    from foilc_hil.io.mcap_log import McapLogReader
-
-    try:
-        with McapLogReader(path) as reader:
-            return len(reader.read().completed_trials)
-    except Exception:  # a file in the middle of its first write
-        return 0
-
-
 def _wait(predicate: Any, limit: float) -> bool:
     deadline = time.monotonic() + limit
     while time.monotonic() < deadline:
@@ -123,7 +112,7 @@ def _share_one_design() -> None:
 
 def _hurt_when_a_trial_is_logged(emulator: subprocess.Popen[bytes], out: Path, signal_name: str) -> threading.Thread:
     def hurt() -> None:
-        _wait(lambda: _completed_trials(out) >= 1, 120.0)
+        _wait(lambda: completed_trials_on_disk(out) >= 1, 120.0)
         os.kill(emulator.pid, signal.Signals[signal_name])
 
     thread = threading.Thread(target=hurt, daemon=True)
