@@ -1089,6 +1089,11 @@ class Cia402Drive(Drive):
         period = self.cfg.heartbeat_consumer_ms / 1000 / MASTER_HEARTBEATS_PER_CONSUMER_TIME
         self._net.start_master_heartbeat(self.cfg.master_node_id, period)
 
+    def settings(self, mode: OperationMode, cycle_period: float) -> list[tuple[int, int, int, bool]]:
+        """The objects :meth:`configure` writes after the PDOs, in order, as ``(index, sub-index, value,
+        optional)``: ``commission check`` reads them and ``commission info --dcf`` records them."""
+        return [(index, sub, value, optional) for index, sub, _, value, optional in self._settings(mode, cycle_period)]
+
     def _settings(self, mode: OperationMode, cycle_period: float) -> list[_Setting]:
         """The objects ``configure`` writes after the PDOs, in order: (index, sub, format, value, optional)."""
         consumer = HeartbeatConsumerEntry(self.cfg.master_node_id, self.cfg.heartbeat_consumer_ms).encode()

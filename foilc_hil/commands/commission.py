@@ -80,6 +80,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     info.add_argument("--dbc", metavar="FILE",
                       help="also write the DBC of the PDO mapping run installs (scaled signals, units, "
                       "402 value tables, node names; any canmatrix format by suffix)")
+    info.add_argument("--dcf", metavar="FILE.dcf",
+                      help="also write the configured drive as a CiA 306 DCF: its EDS plus node id, bit rate and "
+                      "the values run writes (PDO mapping, mode, heartbeats)")
+
+    check = actions.add_parser("check", help="before any motion: will run work on this drive, and why")
+    _common(check)
 
     for name, text in (
         ("enable", "walk the 402 state machine to OPERATION ENABLED"),
@@ -194,6 +200,7 @@ def execute(args: argparse.Namespace) -> CommandResult:
     handlers = {
         "scan": _scan,
         "info": _info,
+        "check": _check,
         "enable": _power,
         "disable": _power,
         "fault-reset": _power,
@@ -222,12 +229,14 @@ def _scan(args: argparse.Namespace) -> CommandResult:
 
 def _info(args: argparse.Namespace) -> CommandResult:
     from foilc_hil.commission.dbc import write_dbc
+    from foilc_hil.commission.dcf import write_dcf
     from foilc_hil.commission.info import read_info, render_info
 
     config, emulator_config, drive_cfgs = _load_nodes(args)
     if len(drive_cfgs) > 1:
-        if args.dbc:
-            raise InputError("--dbc: give one --node-id (the DBC describes one drive's mapping)")
+        if args.dbc or args.dcf:
+            option = "--dbc" if args.dbc else "--dcf"
+            raise InputError(f"{option}: give one --node-id (the file describes one drive's configuration)")
         with _target(args, config, emulator_config, *(cfg.node_id for cfg in drive_cfgs)) as target, \
                 _shared_drives(target, drive_cfgs, config.sample_time) as drives:
             documents = tuple(read_info(drive).to_json() for drive in drives)
@@ -240,12 +249,50 @@ def _info(args: argparse.Namespace) -> CommandResult:
         drive = _open_drive(target, drive_cfg, config.sample_time)
         try:
             document = read_info(drive).to_json()
-            if args.dbc:  # the mapping run will install on this drive (its preflight), not the one it has now
+            if args.dbc or args.dcf:  # the mapping run will install on this drive (its preflight), not today's
                 plan = drive.preflight(drive_cfg.operation_mode, config.sample_time)
-                document["dbc"] = write_dbc(plan, drive_cfg, args.dbc).to_json()
+                if args.dbc:
+                    document["dbc"] = write_dbc(plan, drive_cfg, args.dbc).to_json()
+                if args.dcf:
+                    document["dcf"] = write_dcf(drive, plan, bitrate=_bitrate(args, config),
+                                                path=args.dcf).to_json()
         finally:
             drive.close()
     return CommandResult(document, render_info(document))
+
+
+def _check(args: argparse.Namespace) -> CommandResult:
+    from drivers.bus import resolve_bus
+    from foilc_hil.commands.run import check_bus_load
+    from foilc_hil.commission.check import bus_load_check, check_drive
+    from foilc_hil.errors import ConfigError
+
+    config, emulator_config, drive_cfg = _load(args)
+    config = config.model_copy(update={"drive": drive_cfg})
+    try:  # run's own check, on the bus run would use
+        load = check_bus_load(config, resolve_bus(bus_options(args), config.bus))
+        bus_load = bus_load_check(load.describe(), fits=True)
+    except ConfigError as exc:
+        bus_load = bus_load_check(str(exc), fits=False)
+    with _target(args, config, emulator_config, drive_cfg.node_id) as target:
+        drive = _open_drive(target, drive_cfg, config.sample_time)
+        try:
+            report = check_drive(drive, config, bus_load)
+        finally:
+            drive.close()
+    if not report.runnable:
+        first = report.failures[0]
+        message = f"run would refuse node {report.node_id}: {first.subject}: {first.detail}"
+        return CommandResult(report.to_json(), report.render(), exit_code=ExitCode.RUNTIME_FAILURE, message=message)
+    return CommandResult(report.to_json(), report.render())
+
+
+def _bitrate(args: argparse.Namespace, config: Config) -> int:
+    """The bit rate of the bus the command talks on: ``-b``, the bus's, ``bus.bitrate``, else 1 Mbit/s."""
+    from drivers.bus import resolve_bus
+    from drivers.busload import DEFAULT_BITRATE
+
+    return resolve_bus(bus_options(args), config.bus).bitrate or config.bus.bitrate or DEFAULT_BITRATE
 
 
 def _power(args: argparse.Namespace) -> CommandResult:

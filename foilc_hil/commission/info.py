@@ -7,7 +7,8 @@ PDO mapping as configured now: for RPDO/TPDO 1..4 the COB-ID (valid or not), the
 objects with their EDS names.
 
 ``info --dbc`` writes the mapping ``run`` will install (not the one read here), see
-:mod:`foilc_hil.commission.dbc`.
+:mod:`foilc_hil.commission.dbc`; ``info --dcf`` the drive as ``run`` configures it, see
+:mod:`foilc_hil.commission.dcf`.
 """
 
 from __future__ import annotations
@@ -141,7 +142,7 @@ def _object_name(drive: Cia402Drive, index: int, subindex: int) -> str:
         return f"{obj.name}.{subindex}"
 
 
-def _optional(drive: Cia402Drive, index: int, subindex: int = 0) -> int | None:
+def read_optional(drive: Cia402Drive, index: int, subindex: int = 0) -> int | None:
     """The object's value, or None when the drive does not have it (abort 'no object / sub-index')."""
     try:
         return drive.read_object(index, subindex)
@@ -178,11 +179,11 @@ def read_pdos(drive: Cia402Drive) -> tuple[PdoReport, ...]:
             com, mapping = com_base + number - 1, map_base + number - 1
             if com not in drive.od or mapping not in drive.od:
                 continue  # the drive's EDS has fewer PDOs
-            raw_cob = _optional(drive, com, 1)
+            raw_cob = read_optional(drive, com, 1)
             if raw_cob is None:
                 continue  # the drive has fewer PDOs
-            transmission = _optional(drive, com, 2)
-            count = _optional(drive, mapping, 0) or 0
+            transmission = read_optional(drive, com, 2)
+            count = read_optional(drive, mapping, 0) or 0
             mapped = []
             for sub in range(1, count + 1):
                 entry = MappingEntry.decode(drive.read_object(mapping, sub))
@@ -217,12 +218,12 @@ def read_info(drive: Cia402Drive) -> DriveInfo:
     """Read identity, modes, state, errors and PDO mapping of ``drive`` (see the module docstring)."""
     device_type = drive.read_object(Obj.DEVICE_TYPE)
     identity = {sub.name.lower(): drive.read_object(Obj.IDENTITY, sub) for sub in IdentitySub}
-    supported_bits = _optional(drive, Obj.SUPPORTED_DRIVE_MODES)
-    mode = _optional(drive, Obj.MODES_OF_OPERATION_DISPLAY)
+    supported_bits = read_optional(drive, Obj.SUPPORTED_DRIVE_MODES)
+    mode = read_optional(drive, Obj.MODES_OF_OPERATION_DISPLAY)
     statusword = drive.read_object(Obj.STATUSWORD)
     register = drive.read_object(Obj.ERROR_REGISTER)
-    error_code = _optional(drive, Obj.ERROR_CODE)
-    producer_ms = _optional(drive, Obj.PRODUCER_HEARTBEAT_TIME)
+    error_code = read_optional(drive, Obj.ERROR_CODE)
+    producer_ms = read_optional(drive, Obj.PRODUCER_HEARTBEAT_TIME)
     started = time.monotonic()
     nmt = _nmt_state(drive, producer_ms)
     return DriveInfo(
@@ -272,5 +273,8 @@ def render_info(document: dict[str, Any]) -> str:
     if "dbc" in document:
         lines.append(f"DBC of the mapping run installs written to {document['dbc']['file']} "
                      f"({len(document['dbc']['frames'])} frames)")
+    if "dcf" in document:
+        lines.append(f"DCF of the configured drive written to {document['dcf']['file']} "
+                     f"({len(document['dcf']['parameters'])} parameter values)")
     return "\n".join(lines)
 
