@@ -264,16 +264,18 @@ def _info(args: argparse.Namespace) -> CommandResult:
 def _check(args: argparse.Namespace) -> CommandResult:
     from drivers.bus import resolve_bus
     from foilc_hil.commands.run import check_bus_load
-    from foilc_hil.commission.check import bus_load_check, check_drive
-    from foilc_hil.errors import ConfigError
+    from foilc_hil.commission.check import Verdict, bus_load_check, check_drive
+    from foilc_hil.errors import ConfigError, DriveError
 
     config, emulator_config, drive_cfg = _load(args)
     config = config.model_copy(update={"drive": drive_cfg})
     try:  # run's own check, on the bus run would use
         load = check_bus_load(config, resolve_bus(bus_options(args), config.bus))
-        bus_load = bus_load_check(load.describe(), fits=True)
+        bus_load = bus_load_check(load.describe(), Verdict.PASS)
     except ConfigError as exc:
-        bus_load = bus_load_check(str(exc), fits=False)
+        bus_load = bus_load_check(str(exc), Verdict.FAIL)
+    except DriveError as exc:  # no PDO plan to load the bus with: the plan's own check names the object
+        bus_load = bus_load_check(f"not computed: {exc}", Verdict.WARN)
     with _target(args, config, emulator_config, drive_cfg.node_id) as target:
         drive = _open_drive(target, drive_cfg, config.sample_time)
         try:

@@ -309,6 +309,6 @@ def check_drive(drive: Cia402Drive, config: Config, bus_load: Check) -> CheckRep
     return CheckReport(drive.node_id, mode, tuple(checks))
 
 
-def bus_load_check(describe: str, *, fits: bool) -> Check:
+def bus_load_check(describe: str, verdict: Verdict) -> Check:
     """The line of the bus-load check (its figures: :meth:`drivers.busload.BusLoad.describe`, or the refusal)."""
-    return Check("bus load", Verdict.PASS if fits else Verdict.FAIL, "bus.load_limit", describe)
+    return Check("bus load", verdict, "bus.load_limit", describe)
