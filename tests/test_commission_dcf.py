@@ -39,8 +39,9 @@ def _parameter_values(od: canopen.ObjectDictionary) -> dict[tuple[int, int], int
         obj = od[index]
         members = [obj] if isinstance(obj, ODVariable) else [obj[sub] for sub in obj.subindices]
         for variable in members:
-            if getattr(variable, "value", None) is not None:
-                values[index, variable.subindex] = int(variable.value)
+            value = getattr(variable, "value", None)
+            if value is not None:
+                values[index, variable.subindex] = int(value)
     return values
 
 
