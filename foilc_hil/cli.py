@@ -21,6 +21,7 @@ from typing import NoReturn
 
 from foilc_hil import __version__
 from foilc_hil.errors import ConfigError, ExitCode, FoilcHilError, RunInterruptedError
+from foilc_hil.progress import steps
 
 #: subcommand name -> (module implementing it, one-line help). Modules are imported only when chosen.
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -69,6 +70,9 @@ def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
             _load(name).add_arguments(command_parser)
             if not any(action.dest == "json" for action in command_parser._actions):
                 command_parser.add_argument("--json", action="store_true", help="print one JSON document on stdout")
+            if not any(action.dest in ("quiet", "action") for action in command_parser._actions):
+                # commission's actions add their own where they have slow steps
+                command_parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
     return parser
 
 
@@ -88,7 +92,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     module = _load(args.command)
     want_json = bool(getattr(args, "json", False))
     try:
-        result = module.execute(args)
+        with steps(quiet=want_json or bool(getattr(args, "quiet", False))):  # progress.step of the slow work
+            result = module.execute(args)
     except KeyboardInterrupt:
         error: FoilcHilError = RunInterruptedError("interrupted")
         return _fail(args.command, error, want_json)

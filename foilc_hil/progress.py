@@ -1,17 +1,38 @@
-"""Progress of a bench run on stderr: a bar per trial and a live table of per-trial SSE / RMSE.
+"""Progress on stderr: a bench run's bar per trial and live table of per-trial SSE / RMSE, and the slow steps of
+every command (tuning, the LMI, certificates, co-design, identification, robustness, reports).
 
-Shown with ``rich`` only when stderr is a terminal and ``--quiet`` is not given; otherwise the bench uses
-:class:`NullProgress` (nothing is printed, so ``--json`` stdout and CI logs stay clean). The bench updates the
-bar a few times per trial, never per cycle, so the view costs nothing on the hot path.
+Shown with ``rich`` only when stderr is a terminal and neither ``--quiet`` nor ``--json`` is given; otherwise
+nothing is printed, so ``--json`` stdout and CI logs stay clean. The bench uses :class:`NullProgress` then and
+updates its bar a few times per trial, never per cycle, so the view costs nothing on the hot path.
+
+Steps: the CLI runs every command inside :func:`steps`, which makes the step view current (a
+:class:`contextvars.ContextVar`, so a library caller that never enters it sees no output); code that may take more
+than a second marks itself with :func:`step` (a context manager yielding an ``advance(done)`` callback) or the
+:func:`as_step` decorator. Each step shows a spinner (a bar when its total is known) and the elapsed time while it
+runs, then one line ``done: NAME (S s)``; steps nest.
 """
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import sys
+import time
+from collections.abc import Callable, Iterator
+from contextvars import ContextVar
 from types import TracebackType
-from typing import Any, Protocol
+from typing import Any, ParamSpec, Protocol, TypeVar
 
-__all__ = ["NullProgress", "ProgressView", "RichProgress", "make_progress"]
+__all__ = [
+    "NullProgress",
+    "ProgressView",
+    "RichProgress",
+    "RichSteps",
+    "as_step",
+    "make_progress",
+    "step",
+    "steps",
+]
 
 #: how many bar updates per trial (the loop calls :meth:`ProgressView.advance` this often)
 UPDATES_PER_TRIAL = 20
@@ -112,3 +133,89 @@ def make_progress(title: str, *, quiet: bool) -> ProgressView:
     if quiet or not sys.stderr.isatty():
         return NullProgress()
     return RichProgress(title)
+
+
+# --- steps --------------------------------------------------------------------------------------------------------
+
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
+
+
+class RichSteps:
+    """The rich view of :func:`step`: one spinner (or bar) per running step, one line per finished step."""
+
+    def __init__(self) -> None:
+        from rich.console import Console
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+        self._console = Console(stderr=True)
+        self._progress = Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                                  TimeElapsedColumn(), console=self._console, transient=True)
+        self._running = 0
+
+    def begin(self, name: str, total: int | None) -> Any:
+        """Show ``name`` running; returns the handle :meth:`advance` and :meth:`end` take."""
+        from rich.errors import LiveError
+
+        if self._running == 0:
+            with contextlib.suppress(LiveError):  # another live view (the bench's) owns the terminal: lines only
+                self._progress.start()
+        self._running += 1
+        return self._progress.add_task(name, total=total)
+
+    def advance(self, handle: Any, done: int) -> None:
+        self._progress.update(handle, completed=done)
+
+    def end(self, handle: Any, name: str, seconds: float) -> None:
+        self._progress.remove_task(handle)
+        self._running -= 1
+        if self._running == 0:
+            self._progress.stop()
+        self._console.print(f"done: {name} ({seconds:.1f} s)", highlight=False)
+
+
+_STEPS: ContextVar[RichSteps | None] = ContextVar("foilc_hil_steps", default=None)
+
+
+@contextlib.contextmanager
+def steps(*, quiet: bool) -> Iterator[None]:
+    """Show the :func:`step` progress of the code run inside, on a terminal stderr unless ``quiet``."""
+    view = None if quiet or not sys.stderr.isatty() else RichSteps()
+    token = _STEPS.set(view)
+    try:
+        yield
+    finally:
+        _STEPS.reset(token)
+
+
+def _ignore(done: int) -> None:
+    return None
+
+
+@contextlib.contextmanager
+def step(name: str, total: int | None = None) -> Iterator[Callable[[int], None]]:
+    """Mark a step that may take more than a second; yields ``advance(done)`` (of ``total``, when known)."""
+    view = _STEPS.get()
+    if view is None:
+        yield _ignore
+        return
+    started = time.monotonic()
+    handle = view.begin(name, total)
+    try:
+        yield functools.partial(view.advance, handle)
+    finally:
+        view.end(handle, name, time.monotonic() - started)
+
+
+def as_step(name: str) -> Callable[[Callable[_P, _R]], Callable[_P, _R]]:
+    """Decorator: every call of the function is the step ``name``."""
+
+    def decorate(function: Callable[_P, _R]) -> Callable[_P, _R]:
+        @functools.wraps(function)
+        def wrapper(*args: _P.args, **kwargs: _P.kwargs) -> _R:
+            with step(name):
+                return function(*args, **kwargs)
+
+        return wrapper
+
+    return decorate

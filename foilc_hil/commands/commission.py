@@ -393,6 +393,7 @@ def _identify(args: argparse.Namespace) -> CommandResult:
 
     from drivers.cia402 import OperationMode
     from foilc_hil.commission import identify
+    from foilc_hil.progress import step
     from foilc_hil.schema import load_document
 
     config, emulator_config, drive_cfg = _load(args)
@@ -410,15 +411,15 @@ def _identify(args: argparse.Namespace) -> CommandResult:
             operation = OperationMode.CYCLIC_SYNC_TORQUE if mode == "cst" else OperationMode.CYCLIC_SYNC_VELOCITY
             drive.configure(operation, sample_time)
             drive.enable()
-            progress = None if (args.quiet or args.json) else identify.stderr_progress("identify")
-            record = identify.run_campaign(
-                drive,
-                command,
-                sample_time=sample_time,
-                output_limit=output_limit,
-                feedback_timeout=max(0.5, 20 * sample_time),
-                progress=progress,
-            )
+            with step("identification: step tests", total=int(command.shape[0])) as advance:
+                record = identify.run_campaign(
+                    drive,
+                    command,
+                    sample_time=sample_time,
+                    output_limit=output_limit,
+                    feedback_timeout=max(0.5, 20 * sample_time),
+                    progress=lambda done, _total: advance(done),
+                )
             drive.disable()
     fit = identify.fit_model(record, args.model)
     uncertainty = identify.uncertainty_bounds(fit, margin=args.uncertainty_margin)

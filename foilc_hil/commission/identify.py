@@ -79,8 +79,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import sys
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -89,6 +87,7 @@ from typing import Any, Literal
 import numpy as np
 
 from foilc_hil.errors import DriveError, FoilcHilError, InputError
+from foilc_hil.progress import as_step
 
 __all__ = [
     "CampaignSpec",
@@ -572,6 +571,7 @@ def error_model(jacobian: np.ndarray, residual: np.ndarray) -> ErrorModel:
     return ErrorModel(covariance, white, min(radius, MAX_SCORE_AR1), bandwidth)
 
 
+@as_step("identification: model fit")
 def fit_model(record: StepRecord, kind: ModelKind = "first-order") -> FitResult:
     """Fit ``kind`` to every step of ``record`` jointly and to each alone (see the module docstring).
 
@@ -815,15 +815,3 @@ def plot_fit(record: StepRecord, fit: FitResult, path: str | Path) -> None:
     finally:
         plt.close(fig)
 
-
-def stderr_progress(prefix: str) -> Callable[[int, int], None]:
-    """A one-line progress report on stderr."""
-    started = time.monotonic()
-
-    def report(k: int, total: int) -> None:
-        sys.stderr.write(f"\r{prefix}: cycle {k}/{total} ({time.monotonic() - started:.1f} s)")
-        if k + 100 >= total:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
-
-    return report

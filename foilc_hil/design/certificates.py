@@ -95,6 +95,7 @@ from foilc_hil.design.record import (
     PTypeGain,
 )
 from foilc_hil.errors import ConfigError, ConvergenceCertificateError, InputError
+from foilc_hil.progress import as_step
 
 __all__ = [
     "DENSE_LIMIT",
@@ -1060,6 +1061,7 @@ def _largest_admissible(evaluator: _Evaluator, best: _Verdict, require_monotonic
     return lo
 
 
+@as_step("certificates of the law as it runs")
 def certify(
     model: DiscreteModel,
     uncertainty: Uncertainty,
@@ -1128,6 +1130,7 @@ def certify(
     return Certification(scaled, best.scale, certificates)
 
 
+@as_step("certificates of the P-type law")
 def certify_p_type(
     model: DiscreteModel, uncertainty: Uncertainty, gain: np.ndarray, law: LawStructure, *, require_monotonic: bool
 ) -> Design:

@@ -64,6 +64,7 @@ from foilc_hil.design.lmi import LmiSolution
 from foilc_hil.design.models import DiscreteModel, Uncertainty, uncertainty_vertices
 from foilc_hil.design.record import CertificateAction, CodesignRecord, Design, Timing
 from foilc_hil.errors import ConfigError
+from foilc_hil.progress import as_step
 
 __all__ = ["Candidate", "CodesignSearch", "codesign", "time_varying_map"]
 
@@ -357,6 +358,7 @@ def _choose(
     return min(finalists, key=lambda f: f.objective), finalists[-1], len(pool)
 
 
+@as_step("co-design of kp, r and P")
 def codesign(
     model: DiscreteModel,
     uncertainty: Uncertainty,

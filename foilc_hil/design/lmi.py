@@ -72,6 +72,7 @@ from foilc_hil.design.certificates import LawStructure, certify
 from foilc_hil.design.models import DiscreteModel, Uncertainty, uncertainty_vertices
 from foilc_hil.design.record import Design, LmiChecks, Timing
 from foilc_hil.errors import ConfigError, InputError, LmiInfeasibleError
+from foilc_hil.progress import as_step
 
 __all__ = [
     "LmiSolution",
@@ -332,6 +333,7 @@ def verify_lmi_solution(
     return checks
 
 
+@as_step("LMI (31)")
 def solve_lmi(
     model: DiscreteModel,
     uncertainty: Uncertainty,

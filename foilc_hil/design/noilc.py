@@ -39,6 +39,7 @@ from foilc_hil.design.certificates import (
 from foilc_hil.design.models import DiscreteModel, Uncertainty, uncertainty_vertices
 from foilc_hil.design.record import Bounds, CertificateAction, Certificates, Design, NoilcWeights, PlantCertificate
 from foilc_hil.errors import InputError
+from foilc_hil.progress import as_step
 
 __all__ = ["certify_noilc", "lifted_plant", "noilc_gain", "noilc_weights", "trial_map"]
 
@@ -84,6 +85,7 @@ def trial_map(
     return np.kron(law.q_filter, np.eye(m)) - full @ G_y, "input (Q-filter)"
 
 
+@as_step("NOILC gain and certificates")
 def certify_noilc(
     model: DiscreteModel,
     uncertainty: Uncertainty,

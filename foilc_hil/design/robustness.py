@@ -46,6 +46,7 @@ from foilc_hil.design.noilc import noilc_gain, trial_map
 from foilc_hil.design.pipeline import law_structure
 from foilc_hil.design.record import Design
 from foilc_hil.errors import InputError
+from foilc_hil.progress import step
 
 __all__ = [
     "QUANTILES",
@@ -264,11 +265,12 @@ def robustness(
     shared = dask.delayed(design, pure=True), dask.delayed(law, pure=True)
     chunks = _chunks(draws, CHUNKS_PER_WORKER * workers)
     tasks = [dask.delayed(certify_draws, pure=True)(*shared, chunk) for chunk in chunks]
-    if scheduler == "threads":  # a pool of our own, shut down here (dask's default pool outlives the call)
-        with ThreadPoolExecutor(workers) as pool:
-            results = dask.compute(*tasks, scheduler="threads", pool=pool)
-    else:
-        results = dask.compute(*tasks, scheduler=scheduler)
+    with step(f"robustness: {len(draws)} plants in {len(tasks)} Dask tasks"):
+        if scheduler == "threads":  # a pool of our own, shut down here (dask's default pool outlives the call)
+            with ThreadPoolExecutor(workers) as pool:
+                results = dask.compute(*tasks, scheduler="threads", pool=pool)
+        else:
+            results = dask.compute(*tasks, scheduler=scheduler)
     certificates = design.certificates
     assert certificates is not None  # every built design is certified
     return RobustnessResult(

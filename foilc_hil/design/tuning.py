@@ -73,6 +73,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from foilc_hil.errors import ConfigError, TuningInfeasibleError
+from foilc_hil.progress import as_step
 
 if TYPE_CHECKING:
     from foilc_hil.config import Config
@@ -875,6 +876,7 @@ def evaluate_pair(loop: OpenLoop) -> TuningResult:
     )
 
 
+@as_step("tuning kp, r (loop shaping)")
 def tune(config: Config) -> TuningResult:
     """Tune (or evaluate) the fractional PD function for ``config`` (CLI overrides already applied).
 

@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from foilc_hil.errors import FoilcHilError, InputError
+from foilc_hil.progress import as_step
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -314,6 +315,7 @@ def _union(limits: Sequence[tuple[float, float] | None]) -> tuple[float, float] 
     return (min(low for low, _ in found), max(high for _, high in found)) if found else None
 
 
+@as_step("report: comparison figure")
 def write_comparison(logs: Mapping[str, str | Path], path: str | Path) -> Path:
     """Laws side by side (``comparison.png``): one column per log -- output by trial with the reference, learned
     input, tracking error (shared scales per row, trial 1 and the unlearnable first samples left out of them) --
@@ -509,6 +511,7 @@ def _markdown(summary: dict[str, Any], plots: Sequence[Path]) -> str:
 # --- entry point --------------------------------------------------------------------------------------------------
 
 
+@as_step("report: figures and summary")
 def write_report(log: str | Path, out_dir: str | Path) -> ReportFiles:
     """Read ``log`` and write the plots, ``summary.json`` and ``summary.md`` into ``out_dir``.
 
