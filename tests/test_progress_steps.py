@@ -53,8 +53,8 @@ def _config(tmp_path: Path, **sections: object) -> str:
 
 
 def test_a_step_shows_on_a_terminal_only_and_not_when_quiet(monkeypatch: pytest.MonkeyPatch) -> None:
-    for terminal, quiet, shown in ((True, False, True), (True, True, False), (False, False, False)):
-        stderr = _Terminal() if terminal else io.StringIO()
+    for is_terminal, quiet, shown in ((True, False, True), (True, True, False), (False, False, False)):
+        stderr = _Terminal() if is_terminal else io.StringIO()
         monkeypatch.setattr("sys.stderr", stderr)
         with steps(quiet=quiet), step("outer"), step("inner", total=3) as advance:
             for done in range(1, 4):
