@@ -54,11 +54,11 @@ class DriveConfig(Section):
     velocity_unit: str = Field(default="rpm", min_length=1, max_length=32)
     torque_unit: str = Field(default="permille", min_length=1, max_length=32)  # of rated torque (CiA 402)
     heartbeat_producer_ms: int = Field(default=100, ge=0, le=65535)  # the drive's 0x1017
-    heartbeat_consumer_ms: int = Field(default=500, ge=0, le=65535)  # the drive watching the master
+    heartbeat_consumer_ms: int = Field(default=500, ge=0, le=65535)  # the drive's 0x1016:01, watching the master
     master_node_id: int = Field(default=127, ge=1, le=127)  # the id whose heartbeat the drive consumes
     heartbeat_timeout_factor: float = Field(default=3.0, gt=1)  # master declares loss after factor x 0x1017
-    sdo_timeout: float = Field(default=0.5, gt=0)
-    state_timeout: float = Field(default=2.0, gt=0)  # per 402 transition
+    sdo_timeout: float = Field(default=0.5, gt=0)  # seconds
+    state_timeout: float = Field(default=2.0, gt=0)  # seconds per 402 transition
     quick_stop_option: int = Field(default=2, ge=0, le=8)  # 0x605A
     abort_connection_option: int = Field(default=3, ge=0, le=3)  # 0x6007
 

@@ -170,7 +170,7 @@ class Injection(Section):
     rate: float | None = Field(default=None, gt=0, le=1)
     seed: int = 0
     frames: FrameClass | None = None
-    delay: float = Field(default=0.005, gt=0, le=10.0)
+    delay: float = Field(default=0.005, gt=0, le=10.0)  # seconds (kind delay)
     node: int = Field(default=0x7E, ge=1, le=127)
     factor: float = 2.0
 

@@ -76,7 +76,7 @@ class DivergentFilterPolicy(StrEnum):
 class Segment(Section):
     """One piece of a user-defined piecewise reference: hold or ramp from ``start`` to ``end`` over ``duration``."""
 
-    duration: float = Field(gt=0)
+    duration: float = Field(gt=0)  # seconds
     start: float
     end: float | None = None  # None: hold ``start``
 

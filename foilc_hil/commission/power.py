@@ -84,7 +84,7 @@ class PowerReport:
         lines += [f"  {note}" for note in self.notes]
         for item in self.transitions:
             sent = "" if item.controlword is None else f" (controlword {item.controlword:#04x})"
-            lines.append(f"  {item.time * 1e3:9.1f} ms  {item.state.name:<24} statusword 0x{item.statusword:04X}{sent}")
+            lines.append(f"  {item.time:8.3f} s  {item.state.name:<24} statusword 0x{item.statusword:04X}{sent}")
         if self.final_state is not None:
             lines.append(f"  -> {self.final_state.name}")
         return "\n".join(lines)
