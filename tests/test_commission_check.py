@@ -104,3 +104,16 @@ def test_a_bus_too_slow_for_the_schedule_fails_as_run_refuses_it(tmp_path: Path)
     assert _verdicts(document, "fail") == {"bus.load_limit"}
     code_run, ran = cli("run", "--config", str(config), "-b", "20000", "--out", str(tmp_path / "r.mcap"))
     assert code_run == 2 and "bus.load_limit" in ran["error"]["message"]
+
+
+def test_a_drive_in_fault_is_refused_as_run_s_enable_would(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    config = load_config(config_file(tmp_path, DEFAULT_EDS, DEFAULT_EDS))
+    with emulated_bus([NODE], config) as bus:
+        bus.drives[NODE].inject_fault("over-current")
+        code, document, err = run_json(capsys, "commission", "check", "--bus", bus.spec,
+                                       "--config", str(tmp_path / "standard.yaml"))
+        assert bus.drives[NODE].state is State402.FAULT  # still: the check reset nothing
+    assert code == 1
+    (failed,) = [check for check in document["checks"] if check["verdict"] == "fail"]
+    assert failed["object"] == "0x6041" and "FAULT" in failed["detail"] and "0x603F" in failed["detail"]
+    assert err.startswith(f"foilc-hil commission: run would refuse node {NODE}: 0x6041")

@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, Any
 
 from drivers.cia301 import COB_ID_INVALID, SYNC_COB_ID, CobIdEntry, emcy_text
 from drivers.cia402 import SUPPORTED_MODE_BITS, IdentitySub, Obj, OperationMode, State402, decode_state
-from drivers.cia402_master import MASTER_HEARTBEATS_PER_CONSUMER_TIME, Cia402Drive
+from drivers.cia402_master import CIA402_PROFILE, MASTER_HEARTBEATS_PER_CONSUMER_TIME, Cia402Drive
 from drivers.od import mapped_variable
 from foilc_hil.commission.info import read_optional
 from foilc_hil.errors import ConfigError, DriveError, DriveTimeoutError, SdoError
@@ -69,7 +69,7 @@ class Check:
         return {"check": self.name, "verdict": str(self.verdict), "object": self.subject, "detail": self.detail}
 
     def render(self) -> str:
-        return f"{self.verdict.upper():<4}  {self.name:<10} {self.subject:<14} {self.detail}"
+        return f"{self.verdict.upper():<4}  {self.name:<9} {self.subject:<20} {self.detail}"
 
 
 @dataclass(frozen=True)
@@ -121,7 +121,7 @@ def _drive_checks(drive: Cia402Drive) -> Iterator[Check]:
     """0x1000 (a CiA 402 device answering SDO), 0x1018, the 402 state and 0x603F."""
     device_type = drive.read_object(Obj.DEVICE_TYPE)
     profile = device_type & 0xFFFF
-    if profile != 402:
+    if profile != CIA402_PROFILE:
         yield Check("drive", Verdict.FAIL, _hex(Obj.DEVICE_TYPE),
                     f"device type 0x{device_type:08X}: profile {profile}, not a CiA 402 drive")
         return
