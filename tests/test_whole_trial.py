@@ -147,6 +147,18 @@ def test_whole_trials_give_the_per_cycle_trajectories(tmp_path: Path, law: str, 
     assert not np.array_equal(whole[-1].control, whole[0].control)  # it learned: the comparison is not of zeros
 
 
+@pytest.mark.parametrize("law", ["foilc", "p-type"])
+def test_a_plant_delay_of_whole_samples_runs_whole_trials_too(tmp_path: Path, law: str) -> None:
+    """``plant.delay`` = 2 samples: the plant applies each command two steps late (step() keeps a command queue and
+    integrates over (t + dt) - t); the compiled trial hands it the command from two steps before."""
+    config = _config(tmp_path, {**FIRST_ORDER, "delay": 2 * TS})
+    design = _design(config, law, 3)  # the design looks ahead over the drive's and the plant's delays
+    whole, stopped_whole, ran = _run(config, design, whole=True)
+    per_cycle, stopped, _ = _run(config, design, whole=False)
+    assert ran == TRIALS and stopped_whole == stopped == ""
+    _assert_same(whole, per_cycle)
+
+
 def test_a_whole_trial_stops_where_the_per_cycle_path_stops(tmp_path: Path) -> None:
     """An unstable plant overflows to inf within the first trial: both paths stop at the same cycle, same words."""
     config = _config(tmp_path, {"a": 2000.0, "b": 1.0, "c": 1.0, "x0": [1.0]})

@@ -166,7 +166,8 @@ class SimulatedDrive(Drive):
         ended: list[tuple[int, int]] = []
 
         def run(arguments: StepArguments) -> int:
-            status, index = run_trial(seen, control, self.input_delay, _kernel_program(program), *arguments)
+            delay = self.input_delay + program.delay_steps  # the drive's FIFO, then the plant's own delay
+            status, index = run_trial(seen, control, delay, _kernel_program(program), *arguments)
             ended.append((int(status), int(index)))
             return index + 1 if status == TrialStatus.COMMAND_NOT_FINITE else index  # samples the law issued
 
@@ -186,8 +187,10 @@ class SimulatedDrive(Drive):
         would have left it (``trial``: the ``seen`` and ``control`` arrays; a trial that stopped early is stopped by
         the loop, which clears the FIFO)."""
         seen, control = trial
-        steps = min(cycles, control.shape[0] - 1)  # SYNC i made plant step i
-        plant.end_trial_program(program, steps, float(seen[steps]))
+        steps = min(cycles, control.shape[0] - 1)  # SYNC i made plant step i, with the command u(i - 1 - d)
+        given = np.zeros(steps)
+        given[self.input_delay :] = control[: max(steps - self.input_delay, 0)]
+        plant.end_trial_program(program, given, float(seen[steps]))
         self._cycle += steps + 1
         self._answer(float(seen[steps]))
         self._at_trial_start = False

@@ -7,8 +7,8 @@ solution of a piecewise-constant approximation; its error against a fine Runge-K
 in the step and measured in ``tests/test_physics_first_order.py``. With ``Da = Db = 0`` the matrices are cached
 per step length. A scalar state (the paper's plant) takes the closed form
 ``x+ = e^(a h) x + h expm1(a h)/(a h) (b u + d)`` in the compiled kernel
-:func:`~plant_emulator.physics.kernels.scalar_plant_step` instead of ``expm``; without transport delay and with one
-input and one output it also hands whole trials to a compiled loop (:meth:`FirstOrderPlant.trial_program`,
+:func:`~plant_emulator.physics.kernels.scalar_plant_step` instead of ``expm``; with one input and one output and a
+transport delay of whole steps it also hands whole trials to a compiled loop (:meth:`FirstOrderPlant.trial_program`,
 :mod:`plant_emulator.physics.trial`).
 
 For matrix plants ``Da(t)`` is added to the diagonal of ``a`` (it shifts every mode by the same amount),
@@ -145,12 +145,19 @@ class FirstOrderPlant:
     def trial_program(self, steps: int, dt: float) -> TrialProgram | None:
         """The next ``steps`` steps for a compiled loop (:class:`~plant_emulator.physics.trial.CompiledPlant`):
         ``Delta a``, ``Delta b``, ``d`` and the output noise of each step drawn now, in the order ``steps`` calls of
-        :meth:`step` draw them. ``None`` unless the plant is scalar, single-input, single-output and undelayed."""
-        if (self.n_states, self.n_inputs, self.n_outputs, self._delay) != (1, 1, 1, 0.0):
-            return None
+        :meth:`step` draw them. ``None`` unless the plant is scalar, single-input, single-output, with a transport
+        delay of a whole number of steps (then ``step`` never splits a step)."""
         dt = check_step(dt)
+        delay_steps = round(self._delay / dt)
+        if (self.n_states, self.n_inputs, self.n_outputs) != (1, 1, 1) or abs(self._delay - delay_steps * dt) > (
+            1e-12 * dt
+        ):
+            return None
         t0 = self._t
         inputs = np.zeros((steps, len(ScalarInput)))
+        # a delayed step integrates over [t, t + dt] as step() does: (t + dt) - t, which rounds unlike dt
+        times = self._step_times(t0, dt, steps)
+        inputs[:, ScalarInput.STEP] = (times + dt) - times if delay_steps else dt
         inputs[:, ScalarInput.DELTA_A] = self._delta_a.values(t0, dt, steps)
         inputs[:, ScalarInput.DELTA_B] = self._delta_b.values(t0, dt, steps)
         inputs[:, ScalarInput.DISTURBANCE] = self._disturbance.values(t0, dt, steps)
@@ -166,15 +173,31 @@ class FirstOrderPlant:
         params[ScalarParam.NOISY] = 1.0 if self._noise_std > 0 else 0.0
         state = np.zeros(len(ScalarState))
         state[ScalarState.X], state[ScalarState.TIME] = self._x[0], t0
-        return TrialProgram(PlantKind.SCALAR, state, params, inputs)
+        return TrialProgram(PlantKind.SCALAR, state, params, inputs, delay_steps)
 
-    def end_trial_program(self, program: TrialProgram, steps: int, output: float) -> None:
-        """Take over the state ``program`` reached after ``steps`` steps, measured as ``output`` (the random
-        streams stay where :meth:`trial_program` left them: at the program's end)."""
+    def end_trial_program(self, program: TrialProgram, commands: np.ndarray, output: float) -> None:
+        """Take over the state ``program`` reached after ``len(commands)`` steps given ``commands``, measured as
+        ``output``; the delayed commands still to act are kept as :meth:`step` keeps them (the random streams stay
+        where :meth:`trial_program` left them: at the program's end)."""
+        steps = commands.shape[0]
+        t0 = self._t
         self._x = np.array([program.state[ScalarState.X]])
         self._t = float(program.state[ScalarState.TIME])
         self._y = np.array([output])
         self.saturated = steps > 0 and bool(program.state[ScalarState.SATURATED])
+        if program.delay_steps:  # the commands issued in the last delay + 1 steps, at their steps' start times
+            first = max(0, steps - program.delay_steps - 1)
+            times = self._step_times(t0, check_step(program.params[ScalarParam.STEP]), steps)
+            self._commands = [
+                (float(times[j]), np.array([min(max(float(commands[j]), self._u_min), self._u_max)]))
+                for j in range(first, steps)
+            ]
+
+    @staticmethod
+    def _step_times(t0: float, dt: float, steps: int) -> np.ndarray:
+        """The start times of ``steps`` steps of ``dt`` from ``t0``, accumulated one step at a time as the plant's
+        clock (``cumsum`` adds in order)."""
+        return np.cumsum(np.concatenate([[t0], np.full(max(steps - 1, 0), dt)]))[:steps]
 
     # --- internals --------------------------------------------------------------------------------------------
 

@@ -232,9 +232,10 @@ class PmsmPlant:
             noise[:, 0] = self._noise_std * self._noise_rng.standard_normal(steps)
         return TrialProgram(PlantKind.PMSM, state, params, noise)
 
-    def end_trial_program(self, program: TrialProgram, steps: int, output: float) -> None:
-        """Take over the state ``program`` reached after ``steps`` steps, measured as ``output`` (the noise stream
-        stays where :meth:`trial_program` left it: at the program's end)."""
+    def end_trial_program(self, program: TrialProgram, commands: np.ndarray, output: float) -> None:
+        """Take over the state ``program`` reached after ``len(commands)`` steps, measured as ``output`` (the noise
+        stream stays where :meth:`trial_program` left it: at the program's end)."""
+        steps = commands.shape[0]
         self._state[:] = program.state[:PMSM_STATE_SIZE]
         self._reported_rpm = float(program.state[PmsmTrialState.REPORTED])
         self._y = float(output)

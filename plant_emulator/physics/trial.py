@@ -9,8 +9,9 @@ time-varying of the trial drawn in advance from the plant's own seeded generator
 (:func:`~plant_emulator.physics.kernels.scalar_plant_step`, :func:`~plant_emulator.physics.kernels.pmsm_step`), so a
 trial stepped here and one stepped call by call give the same outputs bit for bit.
 
-Which plants have a program: the scalar first-order plant without transport delay (one state, one input, one
-output) and the PMSM axis (:meth:`CompiledPlant.trial_program`; ``None`` for the others, which are then stepped call
+Which plants have a program: the scalar first-order plant (one state, one input, one output) whose transport delay
+is a whole number of steps (:attr:`TrialProgram.delay_steps`: the loop then hands it the command of that many steps
+before) and the PMSM axis (:meth:`CompiledPlant.trial_program`; ``None`` for the others, which are then stepped call
 by call). After the loop, :meth:`CompiledPlant.end_trial_program` puts the state it reached back into the plant.
 """
 
@@ -49,7 +50,7 @@ __all__ = [
 class PlantKind(enum.IntEnum):
     """Which compiled step a :class:`TrialProgram` runs."""
 
-    SCALAR = 0  # the first-order plant with one state, one input, one output and no transport delay
+    SCALAR = 0  # the first-order plant with one state, one input, one output
     PMSM = 1
 
 
@@ -73,7 +74,7 @@ class ScalarParam(enum.IntEnum):
     C = 3
     U_MIN = 4  # plant.saturation (-inf / inf: none)
     U_MAX = 5
-    STEP = 6  # seconds per step
+    STEP = 6  # seconds per step (the clock's increment)
     NOISY = 7  # 1.0: add the noise column to the output
 
 
@@ -86,6 +87,7 @@ class ScalarInput(enum.IntEnum):
     DELTA_B = 1
     DISTURBANCE = 2
     NOISE = 3
+    STEP = 4  # the step's length as the plant integrates it: dt, or (t + dt) - t with a transport delay
 
 
 @enum.unique
@@ -123,12 +125,16 @@ class TrialProgram:
         Parameters and per-trial settings (read only).
     inputs
         ``(steps, k)``: row ``i`` holds over step ``i`` (and its noise is that of the output after step ``i``).
+    delay_steps
+        The plant's own transport delay in steps: step ``i`` must be given the command of step ``i - delay_steps``
+        (zero before the trial's first).
     """
 
     kind: PlantKind
     state: np.ndarray
     params: np.ndarray
     inputs: np.ndarray
+    delay_steps: int = 0
 
     @property
     def steps(self) -> int:
@@ -146,9 +152,10 @@ class CompiledPlant(Protocol):
         generators, as ``steps`` calls of ``step`` would."""
         ...
 
-    def end_trial_program(self, program: TrialProgram, steps: int, output: float) -> None:
-        """Take over the state ``program`` reached after ``steps`` of its steps, whose measured output is
-        ``output``: the plant is then where ``steps`` calls of ``step`` would have left it."""
+    def end_trial_program(self, program: TrialProgram, commands: np.ndarray, output: float) -> None:
+        """Take over the state ``program`` reached after ``len(commands)`` of its steps, given ``commands`` (before
+        the transport delay and saturation), measured as ``output``: the plant is then where as many calls of
+        ``step`` would have left it."""
         ...
 
 
@@ -159,7 +166,6 @@ def plant_trial_step(kind: int, state: np.ndarray, params: np.ndarray, row: np.n
     if kind == PlantKind.SCALAR:
         state[ScalarState.COMMAND] = min(max(command, params[ScalarParam.U_MIN]), params[ScalarParam.U_MAX])
         state[ScalarState.SATURATED] = 1.0 if state[ScalarState.COMMAND] != command else 0.0
-        h = params[ScalarParam.STEP]
         x = scalar_plant_step(
             state[ScalarState.X],
             params[ScalarParam.A],
@@ -168,10 +174,10 @@ def plant_trial_step(kind: int, state: np.ndarray, params: np.ndarray, row: np.n
             state[ScalarState.COMMAND : ScalarState.COMMAND + 1],
             (row[ScalarInput.DELTA_A], row[ScalarInput.DELTA_B]),
             row[ScalarInput.DISTURBANCE],
-            h,
+            row[ScalarInput.STEP],
         )
         state[ScalarState.X] = x
-        state[ScalarState.TIME] = state[ScalarState.TIME] + h
+        state[ScalarState.TIME] = state[ScalarState.TIME] + params[ScalarParam.STEP]
         y = params[ScalarParam.C] * x
         return y + row[ScalarInput.NOISE] if params[ScalarParam.NOISY] > 0 else y
     applied = min(max(command, params[PmsmTrialParam.U_MIN]), params[PmsmTrialParam.U_MAX])
