@@ -62,14 +62,19 @@ Determinism: every operation is a fixed sequence of numpy calls on fixed-shape f
 reductions whose order depends on data), so the same design, configuration and measured outputs give
 bit-identical commands; ``replay --verify`` relies on this. :meth:`LearningLaw.command` writes into arrays
 allocated once per law (no per-sample array allocation) and returns a read-only view into them.
+
+One per-sample step: the arithmetic within a trial is the compiled :func:`foilc_hil.laws.kernels.law_step`, for
+every law. :meth:`LearningLaw.command` calls it once per cycle; :meth:`LearningLaw.command_trial` hands the same
+arrays to a compiled loop over a whole trial (the simulated drive's trial kernel), which calls the same step.
 """
 
 from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -80,6 +85,7 @@ from foilc_hil.design.ptype import p_type_gain
 from foilc_hil.design.qfilter import QFilter
 from foilc_hil.design.record import Design
 from foilc_hil.errors import ConfigError, InputError, LearningDivergedError
+from foilc_hil.laws.kernels import law_step
 from foilc_hil.metrics import TrialMetrics, trial_metrics
 
 __all__ = [
@@ -88,6 +94,7 @@ __all__ = [
     "LearningLaw",
     "Noilc",
     "PType",
+    "StepArguments",
     "TrialUpdate",
     "make_law",
 ]
@@ -122,6 +129,22 @@ class TrialUpdate:
     error: np.ndarray
     E: np.ndarray
     metrics: TrialMetrics
+
+
+class StepArguments(NamedTuple):
+    """The arguments of :func:`~foilc_hil.laws.kernels.law_step` after the sample, in its order: what a compiled
+    trial loop passes to the law's step (``law_step(t, *arguments)``). The arrays are the law's own."""
+
+    outputs: np.ndarray
+    base: np.ndarray
+    commands: np.ndarray
+    state: np.ndarray
+    previous_state: np.ndarray
+    c_pinv: np.ndarray
+    p1: np.ndarray
+    use_previous: bool
+    lower: float
+    upper: float
 
 
 def _as_trial_array(value: np.ndarray, n_samples: int, width: int, name: str) -> np.ndarray:
@@ -187,6 +210,12 @@ class LearningLaw(ABC):
         self._u_readonly = self._u.view()
         self._u_readonly.flags.writeable = False
         self._y = np.zeros((n, p))  # outputs measured at the start of each sample
+        # The state term of law_step, zero-width for a law without one (P-type, NOILC); a 2D law sets its own.
+        self._x = np.zeros((n, 0))  # x_k(t), augmented
+        self._x_prev = np.zeros((n, 0))  # x_{k-1}(t)
+        self._c_pinv = np.zeros((0, p))
+        self._p1 = np.zeros((m, 0))
+        self._arguments = self._step_arguments()  # law_step's arguments, rebuilt by begin_trial for each trial
         self._next_sample = 0
         self._in_trial = False
 
@@ -208,7 +237,8 @@ class LearningLaw(ABC):
             self._base[: n - d] += self._learning_update(self._learned[d:])
         self._u.fill(0.0)
         self._y.fill(0.0)
-        self._begin_state()
+        self._x.fill(0.0)
+        self._arguments = self._step_arguments()  # fixed for the trial: built once, not per sample
         self._next_sample = 0
         self._in_trial = True
 
@@ -244,7 +274,7 @@ class LearningLaw(ABC):
             np.copyto(self._feedforward, self.q_filter.apply(self._u))
         else:
             np.copyto(self._feedforward, self._u)
-        self._end_state()
+        np.copyto(self._x_prev, self._x)  # this trial's state becomes the previous trial's
         self._has_record = True
         self._in_trial = False
         self.trial += 1
@@ -291,12 +321,36 @@ class LearningLaw(ABC):
         y[:] = output  # raises if the shape does not fit (p,)
         if not math.isfinite(float(y.sum())):  # a scalar check: no temporary array in the real-time path
             raise LearningDivergedError(f"trial {self.trial + 1}, sample {t}: the measured output is not finite")
-        u_out = self._u[t]
-        self._command(t, y, u_out)
-        if self.limits is not None:  # learn from what is applied (module notes); in place, no allocation
-            np.clip(u_out, self.limits[0], self.limits[1], out=u_out)
+        law_step(t, *self._arguments)  # clamps to the limits: learn from what is applied (module notes)
         self._next_sample = t + 1
         return self._u_readonly[t]
+
+    def command_trial(self, run: Callable[[StepArguments], int]) -> int:
+        """Issue the trial's commands from a compiled loop instead of :meth:`command`, sample by sample.
+
+        ``run`` gets the law's step arguments and calls ``law_step(t, *arguments)`` for ``t = 0, 1, ...`` in order,
+        each after writing ``y_k(t Ts)`` into ``arguments.outputs[t]``; it returns how many samples it issued (fewer
+        than ``N`` when it stopped early, e.g. at a non-finite value). Afterwards the law is where :meth:`command`
+        would have left it after those samples.
+
+        Raises
+        ------
+        foilc_hil.errors.InputError
+            Outside a trial, after :meth:`command` has issued samples of this trial, or for a count out of range.
+        """
+        if not self._in_trial or self._next_sample != 0:
+            raise InputError("command_trial: call begin_trial() first, and issue no sample before it")
+        issued = int(run(self._arguments))
+        if not 0 <= issued <= self.n_samples:
+            raise InputError(f"command_trial: issued {issued} of {self.n_samples} samples")
+        self._next_sample = issued
+        return issued
+
+    def _step_arguments(self) -> StepArguments:
+        lower, upper = self.limits if self.limits is not None else (-math.inf, math.inf)
+        return StepArguments(
+            self._y, self._base, self._u, self._x, self._x_prev, self._c_pinv, self._p1, self._has_record, lower, upper
+        )
 
     @property
     def control(self) -> np.ndarray:
@@ -306,10 +360,6 @@ class LearningLaw(ABC):
     # --- subclass hooks -------------------------------------------------------------------------------------
 
     @abstractmethod
-    def _command(self, t: int, y: np.ndarray, u_out: np.ndarray) -> None:
-        """Write ``u_k(t)`` into ``u_out`` from ``self._base[t]`` and the measured ``y``."""
-
-    @abstractmethod
     def _learning_signal(self, error: np.ndarray) -> np.ndarray:
         """``E`` from ``e`` (both ``(N, p)``)."""
 
@@ -317,12 +367,6 @@ class LearningLaw(ABC):
         """The learning update of ``u[0..N-d-1]`` from ``E[d..N-1]`` (``(N-d, p)`` -> ``(N-d, m)``): the gain per
         sample; a lifted law (NOILC) acts on the whole trial."""
         return np.asarray(learned @ self._error_gain.T)
-
-    def _begin_state(self) -> None:  # noqa: B027 -- optional hook; laws without a state term keep nothing
-        """Reset per-trial state buffers."""
-
-    def _end_state(self) -> None:  # noqa: B027 -- optional hook
-        """Keep this trial's state as the previous trial's."""
 
 
 class Foilc(LearningLaw):
@@ -402,10 +446,8 @@ class Foilc(LearningLaw):
         self.n_plant_states = n_plant
         self._c_pinv = np.ascontiguousarray(np.linalg.pinv(c_plant))
         self._p1 = np.ascontiguousarray(design.p1, dtype=float)
-        self._x = np.zeros((n_samples, n))  # x_k(t), augmented
-        self._x_prev = np.zeros((n_samples, n))  # x_{k-1}(t)
-        self._dx = np.zeros(n)
-        self._correction = np.zeros(m)
+        self._x = np.zeros((n_samples, n))
+        self._x_prev = np.zeros((n_samples, n))
 
     @staticmethod
     def _kp(design: Design) -> float:
@@ -415,38 +457,21 @@ class Foilc(LearningLaw):
         if self._fractional is None:
             return error.copy()
         if self.fractional_memory is FractionalMemory.TRIAL:
-            return np.asarray(self._fractional.apply(error), dtype=float).reshape(error.shape)
+            return self._fractional_pd(error)
         # Memory from the first controllable sample, zero history before it; E[:d] = e[:d] is never used.
         d = self.input_delay
         learned = error.copy()
         if d < error.shape[0]:
-            learned[d:] = np.asarray(self._fractional.apply(error[d:]), dtype=float).reshape(error[d:].shape)
+            learned[d:] = self._fractional_pd(error[d:])
         return learned
 
-    def _begin_state(self) -> None:
-        self._x.fill(0.0)
-
-    def _end_state(self) -> None:
-        np.copyto(self._x_prev, self._x)
-
-    def _command(self, t: int, y: np.ndarray, u_out: np.ndarray) -> None:
-        n_plant, m = self.n_plant_states, self.n_inputs
-        x = self._x[t]
-        np.dot(self._c_pinv, y, out=x[:n_plant])
-        d = self.input_delay
-        for slot in range(d):  # slot j holds u(t - d + j): oldest first, as augment_input_delay orders them
-            block = x[n_plant + slot * m : n_plant + (slot + 1) * m]
-            issued = t - d + slot
-            if issued >= 0:
-                block[:] = self._u[issued]
-            else:
-                block.fill(0.0)
-        if self._has_record:
-            np.subtract(x, self._x_prev[t], out=self._dx)
-            np.dot(self._p1, self._dx, out=self._correction)
-            np.add(self._base[t], self._correction, out=u_out)
-        else:
-            u_out[:] = self._base[t]
+    def _fractional_pd(self, error: np.ndarray) -> np.ndarray:
+        """``(I + kp D^r)`` of each output's error, ``(N, p)``: one column at a time, because scipy's direct
+        convolution of 2-D arrays (its near field) takes ~50x longer than of 1-D ones (50 ms against 1 ms at
+        N = 6000)."""
+        assert self._fractional is not None
+        columns = [np.asarray(self._fractional.apply(column), dtype=float) for column in error.T]
+        return np.stack(columns, axis=1)
 
     def state_dict(self) -> dict[str, Any]:
         state = super().state_dict()
@@ -522,9 +547,6 @@ class PType(LearningLaw):
     def _learning_signal(self, error: np.ndarray) -> np.ndarray:
         return error.copy()
 
-    def _command(self, t: int, y: np.ndarray, u_out: np.ndarray) -> None:
-        u_out[:] = self._base[t]
-
 
 class Noilc(LearningLaw):
     """Norm-optimal ILC (Amann–Owens), lifted: ``u_k = u_{k-1} + L e_{k-1}`` (:mod:`foilc_hil.design.noilc`).
@@ -572,9 +594,6 @@ class Noilc(LearningLaw):
     def _learning_update(self, learned: np.ndarray) -> np.ndarray:
         assert self._gain is not None  # begin_trial only asks when d < N
         return np.asarray((self._gain @ learned.ravel()).reshape(learned.shape[0], self.n_inputs))
-
-    def _command(self, t: int, y: np.ndarray, u_out: np.ndarray) -> None:
-        u_out[:] = self._base[t]
 
 
 # --- factory ----------------------------------------------------------------------------------------------------

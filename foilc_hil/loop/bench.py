@@ -168,6 +168,33 @@ class LawLike(Protocol):
     def restore(self, feedforward: np.ndarray) -> None: ...
 
 
+@dataclass(frozen=True)
+class WholeTrial:
+    """What a drive's ``run_whole_trial(law, seen, control)`` ran (:data:`WholeTrialRunner`).
+
+    Attributes
+    ----------
+    cycles
+        Cycles completed (``N``: all of the trial's samples; the trial's last cycle is the loop's own).
+    failed
+        ``""``, or what was not finite in cycle ``cycles``, where it stopped (``"drive feedback"``, ``"command"``,
+        as :func:`~foilc_hil.loop.safety.require_finite` names them).
+    value
+        That value.
+    """
+
+    cycles: int
+    failed: str = ""
+    value: float = math.nan
+
+
+#: A drive's ``run_whole_trial(law, seen, control)``, offered by a drive that can run a trial's sample cycles in one
+#: call (the simulated drive's compiled trial, :mod:`foilc_hil.loop.trial_kernel`); the loop asks for it in lockstep
+#: without a limiter. It runs cycles ``0 .. N-1``: writes ``seen[0 .. N-1]`` (each one's feedback) and ``control``
+#: (``law``'s command in each); ``None``: nothing ran (the loop runs them one by one).
+WholeTrialRunner = Callable[[object, np.ndarray, np.ndarray], WholeTrial | None]
+
+
 class LogSink(Protocol):
     """Where finished trials go (an adapter over ``foilc_hil.io.mcap_log``); called off the hot path."""
 
@@ -311,13 +338,21 @@ class _TrialUpdateThread:
 
     @classmethod
     def start(cls, loop: TrialLoop, raw: _RawTrial) -> _TrialUpdateThread:
-        """Begin the update of the trial ``raw`` in its own thread."""
+        """Begin the update of the trial ``raw`` in its own thread; in lockstep without settle phases (the simulated
+        drive) nothing would run meanwhile, so the update runs at once in the caller's thread (a thread's start and
+        hand-over cost more than the update on a loaded host)."""
         update = cls(loop, raw)
-        update._thread.start()
+        if loop.settings.settle_between_trials or loop.scheduler is not None:
+            update._thread.start()
+        else:
+            update._update()
         return update
 
     def _work(self) -> None:
         demote_current_thread()  # bulk work: below the cyclic threads (drivers.realtime)
+        self._update()
+
+    def _update(self) -> None:
         try:
             self._loop._emit_timing()
             self._verdict = self._loop._finish_trial(self._raw)
@@ -332,7 +367,8 @@ class _TrialUpdateThread:
 
     def result(self) -> DivergenceVerdict:
         """Wait for the update; re-raise its error in the caller's thread."""
-        self._thread.join()
+        if self._thread.ident is not None:  # started (else it ran in the caller's thread)
+            self._thread.join()
         if self._error is not None:
             raise self._error
         assert self._verdict is not None
@@ -539,7 +575,7 @@ class TrialLoop:
         drive = self.drive
         law = self.law
         try:
-            for i in range(n):
+            for i in range(self._run_whole_trial(seen, control, applied, sync_times), n):  # those left, one by one
                 y = self._cycle_feedback()
                 sync_times[i] = self._sync_time
                 seen[i] = y
@@ -564,6 +600,32 @@ class TrialLoop:
             trial, seen, control, applied, sync_times, self._clamped_count() - clamped_before, self._feedforward_used,
             faults,
         )
+
+    def _run_whole_trial(
+        self, seen: np.ndarray, control: np.ndarray, applied: np.ndarray, sync_times: np.ndarray
+    ) -> int:
+        """Lockstep without a limiter, on a drive with a :data:`WholeTrialRunner`: the trial's sample cycles in one
+        call, with the same checks (a stop request, non-finite values) and counts; returns how many ran (0: none).
+
+        Their timing is not measured per cycle (``sync_times`` NaN, one unmeasured ``/timing`` row each); nothing is
+        clamped (``applied == control``).
+        """
+        run_whole_trial: WholeTrialRunner | None = getattr(self.drive, "run_whole_trial", None)
+        if self.scheduler is not None or self.limiter is not None or run_whole_trial is None:
+            return 0
+        self._check_stop()
+        ran = run_whole_trial(self.law, seen, control)
+        if ran is None:
+            return 0
+        self.timing.record_unmeasured(ran.cycles)
+        self._cycle += ran.cycles
+        if ran.failed:
+            require_finite(ran.value, ran.failed, self._cycle)
+        sync_times[: ran.cycles] = math.nan
+        applied[: ran.cycles] = control[: ran.cycles]
+        self.watchdog.answered()
+        self._held = float(seen[ran.cycles - 1])
+        return ran.cycles
 
     def _finish_trial(self, raw: _RawTrial) -> DivergenceVerdict:
         """Between trials (off the hot path): the law's update, metrics, progress, log, divergence check."""
@@ -606,8 +668,7 @@ class TrialLoop:
 
     def _cycle_feedback(self) -> float:
         """Release (realtime: wait for the deadline), SYNC, and wait for this cycle's feedback (watchdog-bounded)."""
-        if self.stop.requested:
-            raise RunInterruptedError(f"interrupted by {self.stop.signal_name}; quick stop commanded")
+        self._check_stop()
         if self.scheduler is not None:
             deadline, lateness, skipped = self.scheduler.wait()
         else:
@@ -637,6 +698,10 @@ class TrialLoop:
         require_finite(y, "drive feedback", self._cycle)
         self._held = y
         return y
+
+    def _check_stop(self) -> None:
+        if self.stop.requested:
+            raise RunInterruptedError(f"interrupted by {self.stop.signal_name}; quick stop commanded")
 
     def _lost_feedback(self, cause: FeedbackTimeoutError) -> float:
         """This SYNC's wait expired: count it, and hold the last good feedback -- or trip the watchdog."""

@@ -336,6 +336,19 @@ class TimingRecorder:
         row[8] = 1.0 if missed else 0.0
         self._count += 1
 
+    def record_unmeasured(self, count: int) -> None:
+        """Store ``count`` cycles that ran without per-cycle timing (a whole trial in one call): every measurement
+        NaN, no flag set."""
+        if self._count + count > self._current.shape[0]:
+            grown = np.full((self._count + count, len(self.FIELDS)), np.nan)
+            grown[: self._count] = self._current[: self._count]
+            self._current = grown
+        rows = self._current[self._count : self._count + count]
+        counts = self.FIELDS.index("skipped")  # the measured times come first, then counts and flags
+        rows[:, :counts] = np.nan
+        rows[:, counts:] = 0.0
+        self._count += count
+
     def finish_block(self) -> np.ndarray:
         """Close the current block; returns its rows (columns :attr:`FIELDS`)."""
         block = self._current[: self._count].copy()

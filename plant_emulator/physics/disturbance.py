@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from plant_emulator.config import DisturbanceConfig
-from plant_emulator.physics.kernels import DisturbanceCode, disturbance_value
+from plant_emulator.physics.kernels import DisturbanceCode, disturbance_value, disturbance_values
 
 __all__ = ["Disturbance"]
 
@@ -48,3 +50,11 @@ class Disturbance:
     def over_step(self, t0: float, dt: float) -> float:
         """The value held over ``[t0, t0 + dt]`` (sampled at the midpoint, like ``Delta``)."""
         return self.value(t0 + 0.5 * dt)
+
+    def values(self, t0: float, dt: float, count: int) -> np.ndarray:
+        """What :meth:`over_step` gives for ``count`` consecutive steps of ``dt`` from ``t0``, ``(count,)``."""
+        out = np.zeros(count)
+        if self.active:
+            config = self._config
+            disturbance_values(int(self._code), config.amplitude, config.frequency, config.start_time, t0, dt, out)
+        return out

@@ -7,7 +7,9 @@ solution of a piecewise-constant approximation; its error against a fine Runge-K
 in the step and measured in ``tests/test_physics_first_order.py``. With ``Da = Db = 0`` the matrices are cached
 per step length. A scalar state (the paper's plant) takes the closed form
 ``x+ = e^(a h) x + h expm1(a h)/(a h) (b u + d)`` in the compiled kernel
-:func:`~plant_emulator.physics.kernels.scalar_zoh_step` instead of ``expm``.
+:func:`~plant_emulator.physics.kernels.scalar_plant_step` instead of ``expm``; with one input and one output and a
+transport delay of whole steps it also hands whole trials to a compiled loop (:meth:`FirstOrderPlant.trial_program`,
+:mod:`plant_emulator.physics.trial`).
 
 For matrix plants ``Da(t)`` is added to the diagonal of ``a`` (it shifts every mode by the same amount),
 ``Db(t)`` to every non-zero entry of ``b``, and ``d(t)`` to every state equation. A transport ``delay`` is
@@ -26,7 +28,8 @@ from plant_emulator.config import PlantConfig
 from plant_emulator.linear import continuous_model
 from plant_emulator.physics.base import check_input, check_step, check_trial, trial_rng
 from plant_emulator.physics.disturbance import Disturbance
-from plant_emulator.physics.kernels import scalar_zoh_step
+from plant_emulator.physics.kernels import scalar_plant_step
+from plant_emulator.physics.trial import PlantKind, ScalarInput, ScalarParam, ScalarState, TrialProgram
 from plant_emulator.physics.variation import VariationSignal
 
 __all__ = ["FirstOrderPlant"]
@@ -63,10 +66,10 @@ class FirstOrderPlant:
                 raise ConfigError(f"must have {n} entries (the states of 'a'), got {len(plant.x0)}", key="plant.x0")
             self._x0 = np.asarray(plant.x0, dtype=float)
         self._b_pattern = (self._b != 0).astype(float)
-        # The scalar plant's coefficients as Python floats: its step is one compiled call on scalars.
+        # The scalar plant's coefficients: its step is one compiled call.
         self._a_scalar = float(self._a[0, 0])
-        self._b_row: list[float] = self._b[0].tolist()
-        self._on_row: list[float] = self._b_pattern[0].tolist()
+        self._b_row = np.ascontiguousarray(self._b[0])
+        self._on_row = np.ascontiguousarray(self._b_pattern[0])
         self._seed = seed
         self._delta_a = VariationSignal(plant.variation.a, seed, stream=1)
         self._delta_b = VariationSignal(plant.variation.b, seed, stream=2)
@@ -137,6 +140,65 @@ class FirstOrderPlant:
         """Seconds since :meth:`reset`."""
         return self._t
 
+    # --- a whole trial in a compiled loop ----------------------------------------------------------------------
+
+    def trial_program(self, steps: int, dt: float) -> TrialProgram | None:
+        """The next ``steps`` steps for a compiled loop (:class:`~plant_emulator.physics.trial.CompiledPlant`):
+        ``Delta a``, ``Delta b``, ``d`` and the output noise of each step drawn now, in the order ``steps`` calls of
+        :meth:`step` draw them. ``None`` unless the plant is scalar, single-input, single-output, with a transport
+        delay of a whole number of steps (then ``step`` never splits a step)."""
+        dt = check_step(dt)
+        delay_steps = round(self._delay / dt)
+        if (self.n_states, self.n_inputs, self.n_outputs) != (1, 1, 1) or abs(self._delay - delay_steps * dt) > (
+            1e-12 * dt
+        ):
+            return None
+        t0 = self._t
+        inputs = np.zeros((steps, len(ScalarInput)))
+        # a delayed step integrates over [t, t + dt] as step() does: (t + dt) - t, which rounds unlike dt
+        times = self._step_times(t0, dt, steps)
+        inputs[:, ScalarInput.STEP] = (times + dt) - times if delay_steps else dt
+        inputs[:, ScalarInput.DELTA_A] = self._delta_a.values(t0, dt, steps)
+        inputs[:, ScalarInput.DELTA_B] = self._delta_b.values(t0, dt, steps)
+        inputs[:, ScalarInput.DISTURBANCE] = self._disturbance.values(t0, dt, steps)
+        if self._noise_std > 0:  # the generator continues after the draw of the reset's measurement
+            inputs[:, ScalarInput.NOISE] = self._noise_std * self._noise_rng.standard_normal(steps)
+        params = np.zeros(len(ScalarParam))
+        params[ScalarParam.A] = self._a_scalar
+        params[ScalarParam.B] = self._b_row[0]
+        params[ScalarParam.B_PATTERN] = self._on_row[0]
+        params[ScalarParam.C] = self._c[0, 0]
+        params[ScalarParam.U_MIN], params[ScalarParam.U_MAX] = self._u_min, self._u_max
+        params[ScalarParam.STEP] = dt
+        params[ScalarParam.NOISY] = 1.0 if self._noise_std > 0 else 0.0
+        state = np.zeros(len(ScalarState))
+        state[ScalarState.X], state[ScalarState.TIME] = self._x[0], t0
+        return TrialProgram(PlantKind.SCALAR, state, params, inputs, delay_steps)
+
+    def end_trial_program(self, program: TrialProgram, commands: np.ndarray, output: float) -> None:
+        """Take over the state ``program`` reached after ``len(commands)`` steps given ``commands``, measured as
+        ``output``; the delayed commands still to act are kept as :meth:`step` keeps them (the random streams stay
+        where :meth:`trial_program` left them: at the program's end)."""
+        steps = commands.shape[0]
+        t0 = self._t
+        self._x = np.array([program.state[ScalarState.X]])
+        self._t = float(program.state[ScalarState.TIME])
+        self._y = np.array([output])
+        self.saturated = steps > 0 and bool(program.state[ScalarState.SATURATED])
+        if program.delay_steps:  # the commands issued in the last delay + 1 steps, at their steps' start times
+            first = max(0, steps - program.delay_steps - 1)
+            times = self._step_times(t0, check_step(program.params[ScalarParam.STEP]), steps)
+            self._commands = [
+                (float(times[j]), np.array([min(max(float(commands[j]), self._u_min), self._u_max)]))
+                for j in range(first, steps)
+            ]
+
+    @staticmethod
+    def _step_times(t0: float, dt: float, steps: int) -> np.ndarray:
+        """The start times of ``steps`` steps of ``dt`` from ``t0``, accumulated one step at a time as the plant's
+        clock (``cumsum`` adds in order)."""
+        return np.cumsum(np.concatenate([[t0], np.full(max(steps - 1, 0), dt)]))[:steps]
+
     # --- internals --------------------------------------------------------------------------------------------
 
     def _measure(self) -> np.ndarray:
@@ -149,9 +211,9 @@ class FirstOrderPlant:
         if h <= 0:
             return x
         if self.n_states == 1:  # the compiled closed form (Delta may change every step: no expm, no cache)
-            row = zip(self._b_row, self._on_row, u.tolist(), strict=True)
-            bu = sum((b + delta_b * on) * value for b, on, value in row)
-            return np.array([scalar_zoh_step(float(x[0]), self._a_scalar + delta_a, bu, d, h)])
+            variation = (delta_a, delta_b)
+            x_next = scalar_plant_step(float(x[0]), self._a_scalar, self._b_row, self._on_row, u, variation, d, h)
+            return np.array([x_next])
         phi, gamma_u, gamma_d = self._discrete(h, delta_a, delta_b)
         return np.asarray(phi @ x + gamma_u @ u + gamma_d * d, dtype=float)
 

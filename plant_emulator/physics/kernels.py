@@ -11,6 +11,13 @@ the first time ``plant_emulator.physics`` is imported after an install or a chan
 processes load the machine code from ``__pycache__`` (tens of milliseconds). :func:`warm_up` runs each kernel
 once at import, so neither compilation nor loading ever lands in a control loop's first cycle. No ``fastmath``:
 results are IEEE-exact and reproducible bit for bit for a seed.
+
+Per caller step and per trial: :func:`scalar_plant_step` and :func:`pmsm_step` are a plant's whole step (the
+scalar first-order plant's ZOH step with ``Delta``; the PMSM's sub-steps, the resolver's velocity and its filter),
+called once per step by the plant classes and inside the compiled trial loop of
+:mod:`plant_emulator.physics.trial`. :func:`variation_values` and :func:`disturbance_values` give ``Delta(t)``
+and ``d(t)`` over consecutive steps: one step per call for the plant classes, a whole trial at once for the trial
+loop (the same numbers: the same arithmetic in the same order).
 """
 
 from __future__ import annotations
@@ -25,9 +32,14 @@ __all__ = [
     "DisturbanceCode",
     "PmsmParam",
     "PmsmState",
+    "VariationCode",
     "disturbance_value",
+    "disturbance_values",
     "pmsm_advance",
+    "pmsm_step",
+    "scalar_plant_step",
     "scalar_zoh_step",
+    "variation_values",
     "warm_up",
 ]
 
@@ -43,6 +55,15 @@ class DisturbanceCode(enum.IntEnum):
     STEP = 2
     SINE = 3
     SQUARE = 4
+
+
+@enum.unique
+class VariationCode(enum.IntEnum):
+    """``plant.variation.a`` / ``.b`` kind as the kernels see it."""
+
+    NONE = 0
+    SINE = 1
+    RANDOM_WALK = 2
 
 
 @enum.unique
@@ -129,6 +150,72 @@ def disturbance_value(code: int, amplitude: float, frequency: float, start_time:
     if code == _D.SINE:
         return amplitude * phase
     return amplitude if phase >= 0 else -amplitude  # square
+
+
+@njit(cache=True)
+def disturbance_values(
+    code: int, amplitude: float, frequency: float, start_time: float, t0: float, dt: float, out: np.ndarray
+) -> None:
+    """``d`` held over each of ``len(out)`` consecutive steps of ``dt`` from ``t0``, sampled at the step's midpoint
+    (:meth:`~plant_emulator.physics.disturbance.Disturbance.over_step`); the time accumulates step by step as the
+    plant's clock does."""
+    t = t0
+    for k in range(out.shape[0]):
+        out[k] = disturbance_value(code, amplitude, frequency, start_time, t + 0.5 * dt)
+        t = t + dt
+
+
+@njit(cache=True)
+def variation_values(
+    code: int,
+    amplitude: float,
+    frequency: float,
+    t0: float,
+    dt: float,
+    normals: np.ndarray,
+    walk: float,
+    out: np.ndarray,
+) -> float:
+    """``Delta`` held over each of ``len(out)`` consecutive steps of ``dt`` from ``t0``; returns the random walk's
+    value after them.
+
+    A sine is sampled at each step's midpoint; a random walk is an Ornstein-Uhlenbeck process (rate ``frequency``,
+    stationary standard deviation ``amplitude / 2``) clipped to ``[-amplitude, amplitude]``, advanced once per step
+    by ``normals[k]`` (a standard normal draw per step; unused for the other kinds).
+    """
+    decay = math.exp(-frequency * dt)
+    sigma = 0.5 * amplitude * math.sqrt(max(0.0, 1.0 - decay * decay))
+    t = t0
+    for k in range(out.shape[0]):
+        if code == VariationCode.SINE:
+            out[k] = amplitude * math.sin(frequency * (t + 0.5 * dt))
+        elif code == VariationCode.RANDOM_WALK:
+            walk = min(max(decay * walk + sigma * normals[k], -amplitude), amplitude)
+            out[k] = walk
+        else:
+            out[k] = 0.0
+        t = t + dt
+    return walk
+
+
+@njit(cache=True)
+def scalar_plant_step(
+    x: float,
+    a: float,
+    b: np.ndarray,
+    b_pattern: np.ndarray,
+    u: np.ndarray,
+    variation: tuple[float, float],
+    d: float,
+    h: float,
+) -> float:
+    """One step of the scalar first-order plant ``x' = (a + Da) x + (b + Db on) u + d`` with ``u``, ``variation =
+    (Da, Db)`` and ``d`` held over ``h`` (``on`` = ``b_pattern``: which inputs ``Db`` acts on)."""
+    delta_a, delta_b = variation
+    bu = 0.0
+    for j in range(u.shape[0]):
+        bu += (b[j] + delta_b * b_pattern[j]) * u[j]
+    return scalar_zoh_step(x, a + delta_a, bu, d, h)
 
 
 @njit(cache=True)
@@ -325,13 +412,42 @@ def _store(
     s[_S.TORQUE] = 1.5 * p[_P.POLE_PAIRS] * (psi * i_q + (ld - lq) * i_d * i_q)
 
 
+@njit(cache=True)
+def pmsm_step(
+    s: np.ndarray,
+    p: np.ndarray,
+    command: float,
+    dt: float,
+    steps: int,
+    velocity_mode: bool,
+    trial: int,
+    smoothing: float,
+    reported: float,
+) -> float:
+    """One caller step of ``dt`` seconds of the PMSM (``steps`` internal steps, :func:`pmsm_advance`) and its
+    reported velocity in rpm: the resolver counts over ``dt``, low-passed from the previous ``reported`` with
+    ``smoothing = 1 - exp(-dt / tau)`` (``tau`` = ``pmsm.velocity_filter``), or unfiltered when ``smoothing`` is
+    NaN (no filter)."""
+    count_start = s[_S.COUNT]
+    pmsm_advance(s, p, command, dt / steps, steps, velocity_mode, trial)
+    measured = (s[_S.COUNT] - count_start) * p[_P.COUNT_ANGLE] / dt / _RAD_PER_S_PER_RPM
+    if math.isnan(smoothing):
+        return measured
+    return reported + smoothing * (measured - reported)
+
+
 def warm_up() -> None:
     """Run every kernel once (compiling it, or loading it from numba's cache) so that no control loop pays it."""
     disturbance_value(int(DisturbanceCode.SQUARE), 1.0, 1.0, 0.0, 0.5)
+    values = np.zeros(2)
+    disturbance_values(int(DisturbanceCode.SQUARE), 1.0, 1.0, 0.0, 0.0, 1e-3, values)
+    variation_values(int(VariationCode.RANDOM_WALK), 1.0, 1.0, 0.0, 1e-3, np.zeros(2), 0.0, values)
     scalar_zoh_step(0.0, -1.0, 1.0, 0.0, 1e-3)
+    scalar_plant_step(0.0, -1.0, np.ones(1), np.ones(1), np.ones(1), (0.0, 0.0), 0.0, 1e-3)
     state = np.zeros(PMSM_STATE_SIZE)
     params = np.ones(PMSM_PARAM_SIZE)
     pmsm_advance(state, params, 0.0, 1e-5, 1, True, 1)
+    pmsm_step(state, params, 0.0, 1e-5, 1, True, 1, math.nan, 0.0)
 
 
 warm_up()  # at import: compiled (first run) or loaded from the cache, never inside a control loop

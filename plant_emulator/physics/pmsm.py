@@ -30,8 +30,9 @@ Limits: velocity commands are clamped to ``+-rated_speed``; ``torque_limited`` i
 was clipped during the last step, ``over_speed`` when ``|w|`` exceeded ``speed_limit`` during it, so the
 virtual drive can raise EMCY. ``plant.saturation`` clips the raw input first, in the input's unit.
 
-The sub-steps run in the compiled kernel :func:`~plant_emulator.physics.kernels.pmsm_advance` (one call per
-caller step); this class holds the configuration, the seeded draws and noise, and the ``Plant`` protocol.
+The sub-steps and the reported velocity run in the compiled kernel :func:`~plant_emulator.physics.kernels.pmsm_step`
+(one call per caller step, or a whole trial in a compiled loop: :meth:`PmsmPlant.trial_program`); this class holds
+the configuration, the seeded draws and noise, and the ``Plant`` protocol.
 
 The state is ``[theta (rad, unwrapped mechanical angle), w (rad/s), id (A), iq (A)]``; the output is the
 measured velocity in rpm. ``plant.a``/``b``/``c``/``delay``/``uncertainty`` are the *design* model of a PMSM
@@ -49,7 +50,8 @@ from foilc_hil.errors import ConfigError
 from plant_emulator.config import DisturbanceConfig, PlantConfig, PmsmConfig
 from plant_emulator.physics.base import check_input, check_step, check_trial, trial_rng
 from plant_emulator.physics.disturbance import Disturbance
-from plant_emulator.physics.kernels import PMSM_PARAM_SIZE, PMSM_STATE_SIZE, PmsmParam, PmsmState, pmsm_advance
+from plant_emulator.physics.kernels import PMSM_PARAM_SIZE, PMSM_STATE_SIZE, PmsmParam, PmsmState, pmsm_step
+from plant_emulator.physics.trial import PlantKind, PmsmTrialParam, PmsmTrialState, TrialProgram
 
 __all__ = ["RAD_PER_S_PER_RPM", "InputKind", "PmsmPlant", "nominal_first_order"]
 
@@ -135,21 +137,11 @@ class PmsmPlant:
         command = float(check_input(u, 1)[0])
         applied = min(max(command, self._u_min), self._u_max)
         self.saturated = applied != command
-        steps = self._substeps.get(dt)
-        if steps is None:  # a new step length: checked once, its sub-step count kept (a few lengths in practice)
-            steps = max(1, math.ceil(check_step(dt) / self._config.internal_step - 1e-9))
-            if len(self._substeps) >= _SUBSTEP_CACHE:
-                self._substeps.clear()
-            self._substeps[dt] = steps
-        state = self._state
-        count_start = state[PmsmState.COUNT]
-        pmsm_advance(state, self._params, applied, dt / steps, steps, self._velocity_mode, self._trial)
-        measured = (state[PmsmState.COUNT] - count_start) * self._count_angle / dt / RAD_PER_S_PER_RPM
-        tau = self._config.velocity_filter
-        if tau > 0:
-            self._reported_rpm += (1.0 - math.exp(-dt / tau)) * (measured - self._reported_rpm)
-        else:
-            self._reported_rpm = float(measured)
+        steps = self._substeps_of(dt)
+        self._reported_rpm = pmsm_step(
+            self._state, self._params, applied, dt, steps, self._velocity_mode, self._trial, self._smoothing(dt),
+            self._reported_rpm,
+        )
         self._y = self._reported_rpm + self._noise()
         return np.array([self._y])
 
@@ -220,7 +212,51 @@ class PmsmPlant:
         :func:`nominal_first_order`."""
         return nominal_first_order(self._config, self._input_kind)
 
+    # --- a whole trial in a compiled loop ----------------------------------------------------------------------
+
+    def trial_program(self, steps: int, dt: float) -> TrialProgram:
+        """The next ``steps`` caller steps of ``dt`` for a compiled loop
+        (:class:`~plant_emulator.physics.trial.CompiledPlant`): the state, the kernel's parameters with this trial's
+        settings, and the output noise of each step drawn now, as ``steps`` calls of :meth:`step` draw it."""
+        params = np.concatenate([self._params, np.zeros(len(PmsmTrialParam))])
+        params[PmsmTrialParam.U_MIN], params[PmsmTrialParam.U_MAX] = self._u_min, self._u_max
+        params[PmsmTrialParam.STEP] = dt
+        params[PmsmTrialParam.SUBSTEPS] = self._substeps_of(dt)
+        params[PmsmTrialParam.VELOCITY_MODE] = 1.0 if self._velocity_mode else 0.0
+        params[PmsmTrialParam.TRIAL] = self._trial
+        params[PmsmTrialParam.SMOOTHING] = self._smoothing(dt)
+        state = np.concatenate([self._state, np.zeros(len(PmsmTrialState))])
+        state[PmsmTrialState.REPORTED] = self._reported_rpm
+        noise = np.zeros((steps, 1))
+        if self._noise_std > 0:  # the generator continues after the draw of the reset's measurement
+            noise[:, 0] = self._noise_std * self._noise_rng.standard_normal(steps)
+        return TrialProgram(PlantKind.PMSM, state, params, noise)
+
+    def end_trial_program(self, program: TrialProgram, commands: np.ndarray, output: float) -> None:
+        """Take over the state ``program`` reached after ``len(commands)`` steps, measured as ``output`` (the noise
+        stream stays where :meth:`trial_program` left it: at the program's end)."""
+        steps = commands.shape[0]
+        self._state[:] = program.state[:PMSM_STATE_SIZE]
+        self._reported_rpm = float(program.state[PmsmTrialState.REPORTED])
+        self._y = float(output)
+        self.saturated = steps > 0 and bool(program.state[PmsmTrialState.SATURATED])
+
     # --- internals --------------------------------------------------------------------------------------------
+
+    def _substeps_of(self, dt: float) -> int:
+        """Internal steps per caller step of ``dt`` (checked once per step length and kept)."""
+        steps = self._substeps.get(dt)
+        if steps is None:  # a few step lengths in practice; bounded, a caller passing measured periods must not grow it
+            steps = max(1, math.ceil(check_step(dt) / self._config.internal_step - 1e-9))
+            if len(self._substeps) >= _SUBSTEP_CACHE:
+                self._substeps.clear()
+            self._substeps[dt] = steps
+        return steps
+
+    def _smoothing(self, dt: float) -> float:
+        """The reported velocity's low-pass weight over ``dt`` (``kernels.pmsm_step``; NaN: no filter)."""
+        tau = self._config.velocity_filter
+        return 1.0 - math.exp(-dt / tau) if tau > 0 else math.nan
 
     def _noise(self) -> float:
         return float(self._noise_std * self._noise_rng.standard_normal()) if self._noise_std > 0 else 0.0

@@ -4,17 +4,18 @@ The physics holds ``Delta`` constant over one integration step (piecewise consta
 zero-order-hold solution of a linear system. A ``sine`` is sampled at the step's midpoint (midpoint rule: the
 state error of this approximation is second order in the step, see ``tests/test_physics_first_order.py``); a
 ``random_walk`` is a seeded Ornstein-Uhlenbeck process clipped to ``[-amplitude, amplitude]``, advanced once per
-step and held over it.
+step and held over it. The arithmetic is the compiled :func:`~plant_emulator.physics.kernels.variation_values`:
+one step per :meth:`VariationSignal.over_step`, or a whole trial's steps at once (:meth:`VariationSignal.values`,
+for the compiled trial loop), with the same numbers.
 """
 
 from __future__ import annotations
-
-import math
 
 import numpy as np
 
 from plant_emulator.config import VariationConfig
 from plant_emulator.physics.base import trial_rng
+from plant_emulator.physics.kernels import VariationCode, variation_values
 
 __all__ = ["VariationSignal"]
 
@@ -33,6 +34,7 @@ class VariationSignal:
 
     def __init__(self, config: VariationConfig, seed: int, stream: int) -> None:
         self._config = config
+        self._code = VariationCode[config.kind.upper()]
         self._seed = seed
         self._stream = stream
         self._rng = trial_rng(seed, 1, stream)
@@ -50,15 +52,20 @@ class VariationSignal:
 
     def over_step(self, t0: float, dt: float) -> float:
         """The value of ``Delta`` held over the step ``[t0, t0 + dt]``."""
-        config = self._config
         if not self.active:
             return 0.0
-        if config.kind == "sine":
-            return config.amplitude * math.sin(config.frequency * (t0 + 0.5 * dt))
-        # Ornstein-Uhlenbeck with stationary standard deviation amplitude / 2, then clipped to the bound.
-        rate = config.frequency
-        decay = math.exp(-rate * dt)
-        sigma = 0.5 * config.amplitude * math.sqrt(max(0.0, 1.0 - decay * decay))
-        self._walk = decay * self._walk + sigma * float(self._rng.standard_normal())
-        self._walk = float(np.clip(self._walk, -config.amplitude, config.amplitude))
-        return self._walk
+        return float(self.values(t0, dt, 1)[0])
+
+    def values(self, t0: float, dt: float, count: int) -> np.ndarray:
+        """The values ``count`` calls of :meth:`over_step` would return for the consecutive steps of ``dt`` from
+        ``t0`` (the random walk advances as they would), ``(count,)``: a trial's ``Delta`` drawn in advance."""
+        out = np.zeros(count)
+        if not self.active:
+            return out
+        config = self._config
+        # one standard normal per step, from the trial's generator in order: the same numbers as step by step
+        normals = self._rng.standard_normal(count) if self._code is VariationCode.RANDOM_WALK else out
+        self._walk = variation_values(
+            int(self._code), config.amplitude, config.frequency, t0, dt, normals, self._walk, out
+        )
+        return out
