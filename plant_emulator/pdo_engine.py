@@ -18,6 +18,7 @@ from canopen import objectdictionary as cod
 
 from drivers.cia301 import RPDO_BASES, TPDO_BASES, CobIdEntry, FunctionCode, NmtState, cob_id
 from drivers.cia402 import Obj
+from drivers.inprocess import subscribe_cyclic
 from drivers.pdo import MappingEntry
 from plant_emulator.node import EmulatedNode
 from plant_emulator.sdo_guard import PDO_CHANNELS
@@ -99,6 +100,7 @@ class PdoEngine:
         self._on_length_error = on_length_error
         self._rpdos: dict[int, PdoChannel] = {}  # by COB-ID
         self._tpdos: list[PdoChannel] = []
+        self._event_tpdos: list[PdoChannel] = []  # the valid event-driven ones (none in a cyclic run)
         self._subscribed_rpdo_ids: set[int] = set()
 
     # --- configuration ----------------------------------------------------------------------------------------
@@ -119,6 +121,7 @@ class PdoEngine:
                 tpdos.append(self._read_channel(Obj.TPDO_COMMUNICATION + n, Obj.TPDO_MAPPING + n, n, TPDO_BASES))
         self._rpdos = {cob: ch for cob, ch in rpdos.items() if ch.valid}
         self._tpdos = tpdos
+        self._event_tpdos = [tpdo for tpdo in tpdos if tpdo.valid and tpdo.transmission_type in TRANS_EVENT_TYPES]
         self._subscribe_rpdos()
 
     def _subscribe_rpdos(self) -> None:
@@ -129,7 +132,7 @@ class PdoEngine:
         for cob in self._subscribed_rpdo_ids - wanted:
             network.unsubscribe(cob, self.on_rpdo)
         for cob in wanted - self._subscribed_rpdo_ids:
-            network.subscribe(cob, self.on_rpdo)
+            subscribe_cyclic(network, cob, self.on_rpdo)
         self._subscribed_rpdo_ids = wanted
 
     def _read_channel(
@@ -221,12 +224,10 @@ class PdoEngine:
 
     def send_event_driven(self, *, timer_only: bool = False) -> None:
         """Event-driven TPDOs: those whose event timer ran out, and (unless ``timer_only``) those that changed."""
-        if not self.node.sending or self.node.nmt_state is not NmtState.OPERATIONAL:
+        if not self._event_tpdos or not self.node.sending or self.node.nmt_state is not NmtState.OPERATIONAL:
             return
         now = time.monotonic()
-        for tpdo in self._tpdos:
-            if not tpdo.valid or tpdo.transmission_type not in TRANS_EVENT_TYPES:
-                continue
+        for tpdo in self._event_tpdos:
             timer_due = tpdo.event_timer_ms > 0 and now - tpdo.last_sent_time >= tpdo.event_timer_ms / 1000
             if timer_due:
                 self._send_tpdo(tpdo, only_if_changed=False)
@@ -235,10 +236,9 @@ class PdoEngine:
 
     def _send_tpdo(self, channel: PdoChannel, *, only_if_changed: bool) -> None:
         store = self.node.data_store
-        payload = b"".join(store[entry.index][entry.subindex] for entry in channel.entries)
+        payload = b"".join([store[entry.index][entry.subindex] for entry in channel.entries])
         if only_if_changed and payload == channel.last_sent:
             return
         channel.last_sent = payload
         channel.last_sent_time = time.monotonic()
-        if self.node.link is not None:
-            self.node.link.send_message(channel.cob_id, payload)
+        self.node.transmit(channel.cob_id, payload)
