@@ -163,7 +163,7 @@ def _run(trials: int = 3) -> tuple[int, float, float]:
         finally:
             spent.append((time.perf_counter() - started, time.thread_time() - cpu))
 
-    bench.TrialLoop.run = timed_run  # type: ignore[method-assign]
+    bench.TrialLoop.run = timed_run  # type: ignore[method-assign,assignment]
     try:
         report = bench.run_bench(bench.RunRequest(
             config=config, out=None, law="foilc", trials=trials, mode=TimingMode.LOCKSTEP, design=design, quiet=True,

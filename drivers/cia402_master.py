@@ -329,7 +329,10 @@ class Cia402Drive(Drive):
         self._master_nmt: NmtMaster = self.node.nmt
 
         # state shared with the Notifier and watchdog threads: only under self._cv
-        self._cv = threading.Condition()
+        self._cv = threading.Condition(threading.RLock())
+        # the hot paths take the condition's lock directly: Condition.__enter__/__exit__ are Python-level wrappers
+        # around it, a few calls per cycle that are all overhead (holding the lock is holding the condition)
+        self._lock = self._cv._lock  # type: ignore[attr-defined]
         self._cycle = 0
         self._parts: dict[int, tuple[int, ...]] = {}
         self._feedback: Feedback | None = None
@@ -645,7 +648,7 @@ class Cia402Drive(Drive):
 
     def _begin_cycle(self) -> None:
         """The network is about to send SYNC: TPDOs received from now on answer the next cycle."""
-        with self._cv:
+        with self._lock:
             self._cycle += 1
             self._parts.clear()
 
@@ -791,7 +794,7 @@ class Cia402Drive(Drive):
         except ProtocolError as exc:
             self._post_error(exc, bad_frame=True)
             return
-        with self._cv:
+        with self._lock:
             self._tpdo_frames += 1
             self._parts[can_id] = values
             if len(self._parts) < len(self._tpdo_codecs):
@@ -802,7 +805,8 @@ class Cia402Drive(Drive):
                 self._post_error(exc, bad_frame=True)  # self._cv is reentrant (an RLock)
             else:
                 self._feedback = feedback
-            self._cv.notify_all()
+            if not self._timebase.synchronous:  # on a synchronous bus nobody waits: the answer is in before
+                self._cv.notify_all()
 
     def _assemble(self, received: float) -> Feedback:
         """Feedback from the complete TPDO set of the current cycle (caller holds self._cv)."""
@@ -897,7 +901,7 @@ class Cia402Drive(Drive):
         synchronous = self._timebase.synchronous
         deadline = time.monotonic() + timeout
         poll = 0.05
-        with self._cv:
+        with self._lock:
             cycle = self._cycle
             while True:
                 if self._errors and raise_errors:

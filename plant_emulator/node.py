@@ -107,7 +107,7 @@ class EmulatedNode(canopen.LocalNode):
         """Send a data frame on the drive's network, as canopen's ``Network.send_message`` does (under its send
         lock, then its check of the receive path), with the frame built by :func:`drivers.pdo.data_frame`."""
         link = self.link
-        if link is None:
+        if link is None or link.bus is None:
             return
         with link.send_lock:
             link.bus.send(data_frame(can_id, data))
@@ -162,7 +162,7 @@ class EmulatedNode(canopen.LocalNode):
         """
         var = self.variable(index, subindex)
         unpack = size = None
-        packer = var.STRUCT_TYPES.get(var.data_type)
+        packer = var.STRUCT_TYPES.get(var.data_type) if var.data_type is not None else None
         if packer is not None:
             unpack, size = packer.unpack, packer.size
         low = high = 0
