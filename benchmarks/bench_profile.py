@@ -80,14 +80,15 @@ STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
 class StageTimer:
     """Exclusive time per stage on one thread: a wrapped call books its time minus its wrapped callees'."""
 
-    def __init__(self) -> None:
+    def __init__(self, clock: Callable[[], float] = time.perf_counter) -> None:
         self.seconds: dict[str, float] = {}
         self._stack: list[float] = []
         self._thread = threading.get_ident()
+        self._clock = clock
 
     def wrap(self, stage: str, function: Callable[..., Any]) -> Callable[..., Any]:
         """``function`` with its exclusive time booked to ``stage`` (other threads run it untimed)."""
-        stack, seconds, clock, thread = self._stack, self.seconds, time.perf_counter, self._thread
+        stack, seconds, clock, thread = self._stack, self.seconds, self._clock, self._thread
         seconds.setdefault(stage, 0.0)
 
         @functools.wraps(function)

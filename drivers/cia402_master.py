@@ -330,17 +330,12 @@ class Cia402Drive(Drive):
 
         # state shared with the Notifier and watchdog threads: only under self._cv
         self._cv = threading.Condition(threading.RLock())
-        # the hot paths take the condition's lock directly: Condition.__enter__/__exit__ are Python-level wrappers
-        # around it, a few calls per cycle that are all overhead (holding the lock is holding the condition)
-        self._lock = self._cv._lock  # type: ignore[attr-defined]
+        self._lock = self._cv._lock  # type: ignore[attr-defined]  # the hot paths: see _begin_cycle
         self._cycle = 0
         self._parts: dict[int, tuple[int, ...]] = {}
         self._feedback: Feedback | None = None
         self._errors: collections.deque[FoilcHilError] = collections.deque()
-        self._tpdo_frames = 0
-        self._emcy_frames = 0
-        self._heartbeat_frames = 0
-        self._bad_frames = 0
+        self._tpdo_frames = self._emcy_frames = self._heartbeat_frames = self._bad_frames = 0
         self._heartbeat_fault = False
         #: a frame from the drive that does not decode is raised (BadFrameError) by the next wait_feedback; False:
         #: only counted in stats.bad_frames (the bench's ``bench.faults.bad_frame: count``)
@@ -648,6 +643,8 @@ class Cia402Drive(Drive):
 
     def _begin_cycle(self) -> None:
         """The network is about to send SYNC: TPDOs received from now on answer the next cycle."""
+        # the cyclic path takes the condition's lock itself: Condition.__enter__/__exit__ are Python-level wrappers
+        # of it, calls every cycle that are all overhead (holding the lock is holding the condition)
         with self._lock:
             self._cycle += 1
             self._parts.clear()
