@@ -298,7 +298,7 @@ class InProcessBus(can.BusABC):
         """Called by the pump: frames that pass the bus's filters (python-can's ``_matches_filters``, applied here
         as a controller's acceptance filter would) go to the notifier (a direct route of its, or its listeners),
         or onto the receive queue."""
-        if not self._matches_filters(msg):
+        if self._filters is not None and not self._matches_filters(msg):
             return
         notifier = self._notifier
         if notifier is not None:

@@ -411,9 +411,10 @@ class VirtualDrive:
         with self._lock:
             self.sync_count += 1
             self.supervisor.sync_received()
-            if lockstep:
-                self.physics.tick(self.cycle_period)  # (1) physics with the command that was active
-            if self.nmt_state is NmtState.OPERATIONAL:
+            operational = self.nmt_state is NmtState.OPERATIONAL
+            if lockstep:  # (1) physics with the command that was active; operational: its status is published below
+                self.physics.tick(self.cycle_period, publish=not operational)
+            if operational:
                 self.pdos.latch()  # (2) the RPDOs received since the last SYNC become the command
                 self.application.publish_status()
                 self.pdos.send_synchronous()  # (3) sample and send

@@ -60,6 +60,7 @@ class PdoChannel:
     event_timer_ms: int
     entries: tuple[MappedObject, ...]
     length: int  # bytes
+    reactions: tuple[tuple[int, int], ...] = ()  # RPDO: the mapped objects the application acts on, mode first
     sync_count: int = 0
     pending: bytes | None = None  # RPDO: received since the last SYNC, latched at the next
     last_sent: bytes | None = None  # TPDO: for acyclic / event-driven change detection
@@ -155,6 +156,8 @@ class PdoEngine:
         cob = raw_cob.can_id
         if cob == 0 and n < len(bases):
             cob = cob_id(bases[n], node.node_id)  # 0: the predefined connection set
+        reactions = sorted(((e.index, e.subindex) for e in entries if e.index in _APPLICATION_OBJECTS),
+                           key=lambda key: key[0] != Obj.MODES_OF_OPERATION)
         return PdoChannel(
             number=n + 1,
             cob_id=cob,
@@ -163,6 +166,7 @@ class PdoEngine:
             event_timer_ms=event_timer,
             entries=tuple(entries),
             length=offset,
+            reactions=tuple(reactions),
         )
 
     # --- RPDO -------------------------------------------------------------------------------------------------
@@ -197,14 +201,10 @@ class PdoEngine:
 
     def _store_rpdo(self, channel: PdoChannel, data: bytes) -> None:
         store = self.node.data_store
-        touched: list[tuple[int, int]] = []
         for entry in channel.entries:
             store.setdefault(entry.index, {})[entry.subindex] = data[entry.offset:entry.offset + entry.size]
-            touched.append((entry.index, entry.subindex))
-        touched.sort(key=lambda key: key[0] != Obj.MODES_OF_OPERATION)
-        for index, subindex in touched:
-            if index in _APPLICATION_OBJECTS:
-                self._on_write(index, subindex)
+        for index, subindex in channel.reactions:
+            self._on_write(index, subindex)
 
     # --- TPDO -------------------------------------------------------------------------------------------------
 
