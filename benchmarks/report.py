@@ -92,6 +92,29 @@ def _lockstep(results: dict[str, Any]) -> list[str]:
     ]
 
 
+def _lockstep_profile(results: dict[str, Any]) -> list[str]:
+    """Where each microsecond of a lockstep cycle goes, before and after (``benchmarks/bench_profile.py``)."""
+    profile = results.get("lockstep_profile")
+    if profile is None:
+        return []
+    from benchmarks.bench_profile import markdown
+
+    before, after = profile["load_average"]
+    return [
+        "## The lockstep profile: where each microsecond of a cycle goes",
+        "",
+        "One lockstep `run_bench` of the PMSM axis at 1 ms on the embedded emulator (3 trials of 1000 samples), "
+        f"*before* on main at `{profile['baseline_commit'][:10]}` (before the lean cyclic path), *after* on this "
+        "tree, each in its own process, one after the other. Every stage is the exclusive time of the functions "
+        "`benchmarks/bench_profile.py` names for it, per cycle, on the control thread; the timers themselves cost a "
+        "fraction of a microsecond per call, which is why the timed sum exceeds the plain cycle below it. "
+        f"Load average at the start and end: {before:.2f}, {after:.2f}.",
+        "",
+        *markdown(profile),
+        "",
+    ]
+
+
 def _science(results: dict[str, Any]) -> list[str]:
     science = results["science"]
     lines = [
@@ -142,6 +165,7 @@ def render(results: dict[str, Any]) -> str:
         "",
         *_lockstep(results),
         "",
+        *_lockstep_profile(results),
         "## Science",
         "",
         *_science(results),

@@ -54,7 +54,15 @@ def collect(repeats: int = 3) -> dict[str, Any]:
     import tempfile
     from pathlib import Path
 
-    from benchmarks import bench_lockstep, bench_logging, bench_loop, bench_physics, bench_science, bench_simulate
+    from benchmarks import (
+        bench_lockstep,
+        bench_logging,
+        bench_loop,
+        bench_physics,
+        bench_profile,
+        bench_science,
+        bench_simulate,
+    )
 
     started_load = os.getloadavg()[0]
     date = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M")
@@ -62,6 +70,7 @@ def collect(repeats: int = 3) -> dict[str, Any]:
     simulated = bench_simulate.simulate_comparisons(repeats)
     lockstep, lockstep_row = _lockstep(repeats)
     lockstep_peer, lockstep_rows = bench_lockstep.collect(repeats)
+    lockstep_profile = bench_profile.collect(repeats)
     with tempfile.TemporaryDirectory() as directory:
         logging_costs = bench_logging.per_call_costs(Path(directory))
         writers = bench_logging.writer_comparisons(Path(directory), repeats=repeats)
@@ -83,6 +92,8 @@ def collect(repeats: int = 3) -> dict[str, Any]:
         # foilc-hil run on the embedded emulator (in-process transport and, for contrast, python-can virtual
         # buses), first-order and PMSM plant, against a hand-written python-can lockstep loop, interleaved
         "lockstep_vs_handwritten": lockstep_peer,
+        # where each microsecond of a lockstep cycle goes, on main before the lean cyclic path and now
+        "lockstep_profile": lockstep_profile,
         "load_average_end": os.getloadavg()[0],
     }
 

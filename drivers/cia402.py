@@ -151,6 +151,11 @@ class Controlword(IntFlag):
     HALT = 1 << 8
 
 
+FAULT_RESET_BIT = int(Controlword.FAULT_RESET)
+"""Controlword bit 7 as a plain ``int``: ``word & Controlword.FAULT_RESET`` runs ``IntFlag``'s Python-level operator
+(about a microsecond), and the drive tests this bit on every RPDO."""
+
+
 class Command402(IntEnum):
     """Device control commands: the controlword value that requests each transition (CiA 402-2).
 
@@ -184,9 +189,9 @@ def decode_command(controlword: int) -> Command402 | None:
 
     Fault reset is detected on the rising edge by the caller; here bit 7 set decodes as FAULT_RESET.
     """
-    if controlword & Controlword.FAULT_RESET:
+    if controlword & FAULT_RESET_BIT:
         return Command402.FAULT_RESET
-    low = controlword & 0x0F
+    low = int(controlword) & 0x0F
     if low & 0x02 == 0:  # enable voltage clear
         return Command402.DISABLE_VOLTAGE
     if low & 0x06 == 0x02:  # enable voltage set, quick stop clear

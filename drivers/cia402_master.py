@@ -119,7 +119,7 @@ from drivers.heartbeat import HeartbeatMonitor
 from drivers.inprocess import LockstepClock, timebase_of
 from drivers.network import DriveNetwork
 from drivers.od import load_od, mapped_variable
-from drivers.pdo import MappedVariable, PdoCodec, PdoDirection, PdoLayout
+from drivers.pdo import MappedVariable, PdoCodec, PdoDirection, PdoLayout, data_frame
 from foilc_hil.errors import (
     BadFrameError,
     ConfigError,
@@ -255,6 +255,11 @@ def pdo_plan(mode: OperationMode, node_id: int, od: ObjectDictionary | None) -> 
     return PdoPlan(rpdos, tpdos, tuple(notes))
 
 
+_FAULT_BIT = int(Statusword.FAULT)  # a plain int: IntFlag's operators are Python code, and this is every cycle
+_STATES: dict[int, State402] = {}
+"""Statuswords seen so far and their 402 state (``decode_state`` is pure; a handful of words recur every cycle)."""
+
+
 def _nmt_name(state: int) -> str:
     try:
         return NmtState(state).name
@@ -324,15 +329,13 @@ class Cia402Drive(Drive):
         self._master_nmt: NmtMaster = self.node.nmt
 
         # state shared with the Notifier and watchdog threads: only under self._cv
-        self._cv = threading.Condition()
+        self._cv = threading.Condition(threading.RLock())
+        self._lock = self._cv._lock  # type: ignore[attr-defined]  # the hot paths: see _begin_cycle
         self._cycle = 0
         self._parts: dict[int, tuple[int, ...]] = {}
         self._feedback: Feedback | None = None
         self._errors: collections.deque[FoilcHilError] = collections.deque()
-        self._tpdo_frames = 0
-        self._emcy_frames = 0
-        self._heartbeat_frames = 0
-        self._bad_frames = 0
+        self._tpdo_frames = self._emcy_frames = self._heartbeat_frames = self._bad_frames = 0
         self._heartbeat_fault = False
         #: a frame from the drive that does not decode is raised (BadFrameError) by the next wait_feedback; False:
         #: only counted in stats.bad_frames (the bench's ``bench.faults.bad_frame: count``)
@@ -349,6 +352,7 @@ class Cia402Drive(Drive):
         self._rpdo_codec: PdoCodec | None = None
         self._target_limits = (0, 0)
         self._tpdo_codecs: dict[int, PdoCodec] = {}
+        self._feedback_at: dict[int, tuple[int, int]] = {}  # object index -> (TPDO COB-ID, slot)
         self._controlword = int(Command402.DISABLE_VOLTAGE)
         self._last_statusword = 0  # the statusword of the last state exchange (PDO or SDO)
         self._target_raw = 0
@@ -624,8 +628,7 @@ class Cia402Drive(Drive):
         low, high = self._target_limits
         raw = min(max(round(clamped * scale), low), high)
         self._target_raw = raw
-        self._send(can.Message(arbitration_id=self._rpdo_cob(), data=codec.encode(self._controlword, raw),
-                               is_extended_id=False))
+        self._send(data_frame(self._rpdo_cob(), codec.encode(self._controlword, raw)))
         return raw / scale
 
     def sync(self) -> int:
@@ -636,12 +639,13 @@ class Cia402Drive(Drive):
         """
         self._require_open()
         self._net.sync(self._cycle_period)
-        with self._cv:
-            return self._cycle
+        return self._cycle  # only this thread changes it (in _begin_cycle, just now)
 
     def _begin_cycle(self) -> None:
         """The network is about to send SYNC: TPDOs received from now on answer the next cycle."""
-        with self._cv:
+        # the cyclic path takes the condition's lock itself: Condition.__enter__/__exit__ are Python-level wrappers
+        # of it, calls every cycle that are all overhead (holding the lock is holding the condition)
+        with self._lock:
             self._cycle += 1
             self._parts.clear()
 
@@ -787,7 +791,7 @@ class Cia402Drive(Drive):
         except ProtocolError as exc:
             self._post_error(exc, bad_frame=True)
             return
-        with self._cv:
+        with self._lock:
             self._tpdo_frames += 1
             self._parts[can_id] = values
             if len(self._parts) < len(self._tpdo_codecs):
@@ -798,26 +802,38 @@ class Cia402Drive(Drive):
                 self._post_error(exc, bad_frame=True)  # self._cv is reentrant (an RLock)
             else:
                 self._feedback = feedback
-            self._cv.notify_all()
+            if not self._timebase.synchronous:  # on a synchronous bus nobody waits: the answer is in before
+                self._cv.notify_all()
 
     def _assemble(self, received: float) -> Feedback:
         """Feedback from the complete TPDO set of the current cycle (caller holds self._cv)."""
-        by_object: dict[int, int] = {}
-        for cob, values in self._parts.items():
-            for variable, value in zip(self._tpdo_codecs[cob].variables, values, strict=True):
-                by_object[variable.index] = value
-        statusword = by_object[Obj.STATUSWORD]
-        try:
-            state = decode_state(statusword)
-        except ValueError as exc:
-            raise ProtocolError(f"node {self.node_id}: {exc}") from exc
+        parts = self._parts
+        where = self._feedback_at
+        cob, slot = where[Obj.STATUSWORD]
+        statusword = parts[cob][slot]
+        state = _STATES.get(statusword)
+        if state is None:
+            try:
+                state = _STATES[statusword] = decode_state(statusword)
+            except ValueError as exc:
+                raise ProtocolError(f"node {self.node_id}: {exc}") from exc
+        cob, slot = where[Obj.VELOCITY_ACTUAL_VALUE]
+        velocity = parts[cob][slot]
+        torque: float = math.nan  # NaN: not mapped
+        position = 0  # 0: not mapped
+        if Obj.TORQUE_ACTUAL_VALUE in where:
+            cob, slot = where[Obj.TORQUE_ACTUAL_VALUE]
+            torque = parts[cob][slot]
+        if Obj.POSITION_ACTUAL_VALUE in where:
+            cob, slot = where[Obj.POSITION_ACTUAL_VALUE]
+            position = parts[cob][slot]
         return Feedback(
             cycle=self._cycle,
             statusword=statusword,
             state=state,
-            velocity=by_object[Obj.VELOCITY_ACTUAL_VALUE] / self.cfg.velocity_scale,
-            torque=by_object.get(Obj.TORQUE_ACTUAL_VALUE, math.nan) / self.cfg.torque_scale,  # NaN: not mapped
-            position=by_object.get(Obj.POSITION_ACTUAL_VALUE, 0),  # 0: not mapped
+            velocity=velocity / self.cfg.velocity_scale,
+            torque=torque / self.cfg.torque_scale,
+            position=position,
             timestamp=received,
         )
 
@@ -882,7 +898,7 @@ class Cia402Drive(Drive):
         synchronous = self._timebase.synchronous
         deadline = time.monotonic() + timeout
         poll = 0.05
-        with self._cv:
+        with self._lock:
             cycle = self._cycle
             while True:
                 if self._errors and raise_errors:
@@ -894,7 +910,7 @@ class Cia402Drive(Drive):
                     raise
                 feedback = self._feedback
                 if feedback is not None and feedback.cycle == cycle:
-                    if raise_on_fault and feedback.statusword & Statusword.FAULT:
+                    if raise_on_fault and feedback.statusword & _FAULT_BIT:
                         raise DriveFaultError(
                             f"node {self.node_id} reports a fault: statusword 0x{feedback.statusword:04X} "
                             f"({feedback.state.name})"
@@ -917,8 +933,7 @@ class Cia402Drive(Drive):
         start = self._timebase.now()
         self._controlword = controlword
         codec = self._require_codec()
-        self._send(can.Message(arbitration_id=self._rpdo_cob(), data=codec.encode(controlword, self._target_raw),
-                               is_extended_id=False))
+        self._send(data_frame(self._rpdo_cob(), codec.encode(controlword, self._target_raw)))
         self.sync()
         feedback = self._await_feedback(self._exchange_timeout(), raise_on_fault=False, raise_errors=not ignore_errors)
         self._timebase.sleep(self._cycle_period - (self._timebase.now() - start))
@@ -1021,8 +1036,7 @@ class Cia402Drive(Drive):
         if self._closed or self._rpdo_codec is None or not self._operational:
             return
         try:
-            self._send(can.Message(arbitration_id=self._rpdo_cob(),
-                                   data=self._rpdo_codec.encode(self._controlword, 0), is_extended_id=False))
+            self._send(data_frame(self._rpdo_cob(), self._rpdo_codec.encode(self._controlword, 0)))
             self.sync()
         except Exception as exc:  # called while another error propagates; must not replace it
             logger.warning("could not command %s on node %d: %s", command.name, self.node_id, exc)
@@ -1187,14 +1201,18 @@ class Cia402Drive(Drive):
         missing = [f"0x{index:04X}" for index in _REQUIRED_FEEDBACK if index not in mapped]
         if missing:
             raise DriveError(f"TPDO mapping lacks {', '.join(missing)}")
+        # where each feedback object sits: (TPDO COB-ID, position in the decoded values); the last mapping wins
+        feedback_at = {variable.index: (cob, slot) for cob, c in tpdo_codecs.items()
+                       for slot, variable in enumerate(c.variables)}
         with self._cv:
             self._tpdo_codecs = tpdo_codecs
+            self._feedback_at = feedback_at
             self._parts.clear()
             self._feedback = None
         self._rpdo, self._rpdo_codec = rpdo, codec
         self._target_limits = (target.minimum, target.maximum)
         for cob in tpdo_codecs:
-            self.network.subscribe(cob, self._on_tpdo)
+            self._net.subscribe_cyclic(cob, self._on_tpdo)
 
     @contextlib.contextmanager
     def _sdo_errors(self, index: int, subindex: int, transfer: str) -> Iterator[None]:

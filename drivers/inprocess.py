@@ -39,7 +39,7 @@ import itertools
 import logging
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -50,11 +50,13 @@ from can.broadcastmanager import LimitedDurationCyclicSendTaskABC, ModifiableCyc
 __all__ = [
     "INTERFACE",
     "WALL_CLOCK",
+    "CanopenRoute",
     "InProcessBus",
     "InProcessNotifier",
     "LockstepClock",
     "Timebase",
     "connect_network",
+    "subscribe_cyclic",
     "timebase_of",
 ]
 
@@ -294,12 +296,17 @@ class InProcessBus(can.BusABC):
 
     def _deliver(self, msg: can.Message) -> None:
         """Called by the pump: frames that pass the bus's filters (python-can's ``_matches_filters``, applied here
-        as a controller's acceptance filter would) go to the notifier's listeners, or onto the receive queue."""
-        if not self._matches_filters(msg):
+        as a controller's acceptance filter would) go to the notifier (a direct route of its, or its listeners),
+        or onto the receive queue."""
+        if self._filters is not None and not self._matches_filters(msg):
             return
         notifier = self._notifier
         if notifier is not None:
-            notifier.deliver(msg)
+            route = notifier.routes.get(msg.arbitration_id)
+            if route is None or msg.is_remote_frame or msg.is_error_frame:
+                notifier.deliver(msg)
+            else:
+                notifier.deliver_to(route, msg)
             return
         with self._arrived:
             self._queue.append(msg)
@@ -391,7 +398,16 @@ class InProcessNotifier(can.Notifier):
 
     A listener exception that no listener's ``on_error`` handles is kept in :attr:`exception` and ends the
     notification, as it ends python-can's reader thread; later frames go to the bus's receive queue.
+
+    :attr:`routes` are the direct receive paths of the cyclic COB-IDs (:func:`subscribe_cyclic`): a data frame
+    whose COB-ID has one goes to that one handler instead of through every listener; remote and error frames
+    always take the listeners. Routes live as long as the notifier.
     """
+
+    def __init__(self, bus: can.BusABC | list[can.BusABC], listeners: Iterable[can.notifier.MessageRecipient],
+                 timeout: float = 1.0) -> None:
+        self.routes: dict[int, Callable[[can.Message], None]] = {}
+        super().__init__(bus, listeners, timeout)
 
     def add_bus(self, bus: can.BusABC) -> None:
         """Attach to an :class:`InProcessBus` (:class:`TypeError` for any other bus)."""
@@ -403,10 +419,14 @@ class InProcessNotifier(can.Notifier):
 
     def deliver(self, msg: can.Message) -> None:
         """Call every listener with ``msg`` (the pump's thread)."""
+        self.deliver_to(self._on_message_received, msg)
+
+    def deliver_to(self, handler: Callable[[can.Message], object], msg: can.Message) -> None:
+        """Call ``handler(msg)`` (a route, or every listener) with the notifier's error handling."""
         if self._stopped:
             return
         try:
-            self._on_message_received(msg)
+            handler(msg)
         except Exception as exc:  # a listener's bug must not break the sender: kept, like python-can's thread
             self.exception = exc
             if not self._on_error(exc):
@@ -420,6 +440,7 @@ class InProcessNotifier(can.Notifier):
 
     def _detach(self) -> None:
         self._stopped = True
+        self.routes = {}
         for bus in self._bus_list:
             if isinstance(bus, InProcessBus) and bus._notifier is self:
                 bus._notifier = None
@@ -433,6 +454,41 @@ def connect_network(network: canopen.Network) -> None:
         network.notifier = InProcessNotifier(bus, network.listeners)
     else:
         network.connect()
+
+
+class CanopenRoute:
+    """A direct receive path into a canopen ``Network``: the frame to ``observer`` (the frame tap: traces stay
+    causal, as with the tap first among the listeners), then to the callbacks subscribed to its COB-ID -- what
+    canopen's ``Network.notify`` does, without the Notifier's listener chain, canopen's ``MessageListener`` and its
+    node scanner on the way."""
+
+    __slots__ = ("observer", "subscribers")
+
+    def __init__(self, network: canopen.Network, observer: Callable[[can.Message], None] | None = None) -> None:
+        self.subscribers = network.subscribers
+        self.observer = observer
+
+    def __call__(self, msg: can.Message) -> None:
+        if self.observer is not None:
+            self.observer(msg)
+        can_id = msg.arbitration_id
+        for callback in self.subscribers.get(can_id, ()):
+            callback(can_id, msg.data, msg.timestamp)
+
+
+def subscribe_cyclic(network: canopen.Network, can_id: int, callback: Callable[[int, bytearray, float], None],
+                     *, observer: Callable[[can.Message], None] | None = None) -> None:
+    """``network.subscribe(can_id, callback)`` for a cyclic COB-ID (PDO, SYNC): on a listening in-process bus the
+    frames also get a direct route (:class:`CanopenRoute`), the rest of the traffic keeps the listeners.
+
+    On any other bus, or before the network listens, this is ``network.subscribe``: the frames take canopen's
+    generic path, with the same result. ``observer`` must be what the network's listeners show a frame to before
+    canopen (the frame tap), so that nothing but the route changes.
+    """
+    network.subscribe(can_id, callback)
+    notifier = network.notifier
+    if isinstance(notifier, InProcessNotifier) and can_id not in notifier.routes:
+        notifier.routes[can_id] = CanopenRoute(network, observer)
 
 
 def timebase_of(bus: can.BusABC) -> Timebase:

@@ -27,7 +27,7 @@ import canopen
 from drivers.bus import FrameTap
 from drivers.cia301 import SYNC_COB_ID
 from drivers.heartbeat import HeartbeatProducer
-from drivers.inprocess import connect_network, timebase_of
+from drivers.inprocess import connect_network, subscribe_cyclic, timebase_of
 from foilc_hil.errors import ConfigError, DriveError
 
 __all__ = ["DriveNetwork", "UnknownFrameCounter"]
@@ -80,6 +80,11 @@ class DriveNetwork:
     def listening(self) -> bool:
         """True between :meth:`listen` and :meth:`close`."""
         return self.network.notifier is not None
+
+    def subscribe_cyclic(self, can_id: int, callback: Callable[[int, bytearray, float], None]) -> None:
+        """``network.subscribe`` for a cyclic COB-ID (a member's TPDO): on a listening in-process bus its frames
+        take a direct route to the frame tap and the subscribers (:func:`drivers.inprocess.subscribe_cyclic`)."""
+        subscribe_cyclic(self.network, can_id, callback, observer=self.tap.on_message_received)
 
     def join(self, begin_cycle: Callable[[], None]) -> None:
         """Register a member: ``begin_cycle()`` runs before every SYNC (the member's new cycle starts)."""

@@ -11,7 +11,15 @@ from collections.abc import Callable
 from enum import StrEnum
 
 from drivers.cia301 import EmcyCode, ErrorRegister, NmtState
-from drivers.cia402 import AbortConnectionOption, Command402, Controlword, Obj, OperationMode, QuickStopOption, State402
+from drivers.cia402 import (
+    FAULT_RESET_BIT,
+    AbortConnectionOption,
+    Command402,
+    Obj,
+    OperationMode,
+    QuickStopOption,
+    State402,
+)
 from plant_emulator.axis import Axis, Units
 from plant_emulator.node import EmulatedNode
 from plant_emulator.sdo_guard import SUPPORTED_MODES
@@ -83,6 +91,7 @@ class Cia402Application:
         self.emcy_log: list[tuple[int, int]] = []  # (code, register) as sent, for tests and the CLI
         self._latched_errors: list[EmcyCode] = []
         self._fault_reset_bit = False
+        self._statuswords: dict[tuple[State402, int, bool, bool], int] = {}
 
     def power_on(self) -> None:
         """A fresh application (power on or NMT reset node; the store was reset first): *switch on disabled*."""
@@ -182,7 +191,7 @@ class Cia402Application:
         return int(self.node.read(Obj.QUICK_STOP_OPTION))
 
     def _apply_controlword(self, controlword: int) -> None:
-        reset_bit = bool(controlword & Controlword.FAULT_RESET)
+        reset_bit = bool(controlword & FAULT_RESET_BIT)
         rising = reset_bit and not self._fault_reset_bit
         self._fault_reset_bit = reset_bit
         before = self.machine.state
@@ -213,6 +222,9 @@ class Cia402Application:
             target_reached = abs(self.axis.velocity - target) <= window
         elif self.machine.state is State402.QUICK_STOP_ACTIVE:
             target_reached = self.machine.ramp_done
-        word = self.machine.statusword(mode, target_reached=target_reached,
-                                       internal_limit=self.axis.internal_limit)
+        key = (self.machine.state, mode, target_reached, self.axis.internal_limit)
+        word = self._statuswords.get(key)
+        if word is None:  # the statusword is a function of these four: made once each, looked up every cycle
+            word = self._statuswords[key] = self.machine.statusword(mode, target_reached=target_reached,
+                                                                    internal_limit=self.axis.internal_limit)
         self.node.produce(Obj.STATUSWORD, word)

@@ -63,7 +63,7 @@ from canopen import objectdictionary as cod
 
 from drivers.cia301 import SYNC_COB_ID, CobIdEntry, FunctionCode, NmtCommand, NmtState, check_node_id
 from drivers.cia402 import Obj, State402
-from drivers.inprocess import LockstepClock, connect_network, timebase_of
+from drivers.inprocess import LockstepClock, connect_network, subscribe_cyclic, timebase_of
 from drivers.od import DEFAULT_EDS
 from foilc_hil.errors import InputError
 from plant_emulator.application import APPLICATION_OBJECTS, Cia402Application, FaultKind
@@ -402,7 +402,7 @@ class VirtualDrive:
             network.unsubscribe(self._sync_cob_id, self._on_sync)
         if self.node.has(Obj.COB_ID_SYNC):
             self._sync_cob_id = CobIdEntry.decode(int(self.node.read(Obj.COB_ID_SYNC))).can_id
-        network.subscribe(self._sync_cob_id, self._on_sync)
+        subscribe_cyclic(network, self._sync_cob_id, self._on_sync)
 
     def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if not self.node.alive:
@@ -411,9 +411,10 @@ class VirtualDrive:
         with self._lock:
             self.sync_count += 1
             self.supervisor.sync_received()
-            if lockstep:
-                self.physics.tick(self.cycle_period)  # (1) physics with the command that was active
-            if self.nmt_state is NmtState.OPERATIONAL:
+            operational = self.nmt_state is NmtState.OPERATIONAL
+            if lockstep:  # (1) physics with the command that was active; operational: its status is published below
+                self.physics.tick(self.cycle_period, publish=not operational)
+            if operational:
                 self.pdos.latch()  # (2) the RPDOs received since the last SYNC become the command
                 self.application.publish_status()
                 self.pdos.send_synchronous()  # (3) sample and send

@@ -100,12 +100,13 @@ class AxisPhysics:
         micros = self.node.read(Obj.COMMUNICATION_CYCLE_PERIOD) if self.node.has(Obj.COMMUNICATION_CYCLE_PERIOD) else 0
         return micros * 1e-6 if micros > 0 else self._default_cycle_period
 
-    def tick(self, dt: float) -> None:
-        """Advance the plant one cycle with the active command; update feedback, limits, ramps."""
+    def tick(self, dt: float, *, publish: bool = True) -> None:
+        """Advance the plant one cycle with the active command; update feedback, limits, ramps, and (``publish``)
+        the statusword -- the SYNC consumer, which publishes it anyway once the RPDOs are latched, says not to."""
         motion = self.application.machine.motion()
         kind, u = self._plant_input(motion, dt)
-        if self._is_pmsm:
-            self.plant.set_input_kind(kind)  # type: ignore[attr-defined]
+        if self._is_pmsm and kind != self.plant.input_kind:  # type: ignore[attr-defined]
+            self.plant.set_input_kind(kind)  # type: ignore[attr-defined]  # a bumpless switch, when it changes
         elif motion is MotionKind.TORQUE_OFF:
             u = 0.0
         y = np.asarray(self.plant.step(np.array([u]), dt), dtype=float).reshape(-1)
@@ -126,7 +127,8 @@ class AxisPhysics:
         self.node.produce(Obj.VELOCITY_ACTUAL_VALUE, axis.velocity)
         self.node.produce(Obj.TORQUE_ACTUAL_VALUE, axis.torque)
         self.node.produce(Obj.POSITION_ACTUAL_VALUE, axis.position)
-        self.application.publish_status()
+        if publish:
+            self.application.publish_status()
 
     def _plant_input(self, motion: MotionKind, dt: float) -> tuple[str, float]:
         """The plant's input kind ("velocity" / "torque") and value for this cycle, in plant units."""

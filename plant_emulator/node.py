@@ -8,6 +8,7 @@ NMT state, the network the drive runs on and whether the drive still answers at 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +18,7 @@ from canopen import objectdictionary as cod
 from drivers.cia301 import NmtState
 from drivers.cia402 import Obj
 from drivers.od import DEFAULT_EDS, load_od
+from drivers.pdo import data_frame
 from foilc_hil.errors import EdsError
 
 __all__ = ["EmulatedNode", "load_object_dictionary"]
@@ -36,6 +38,25 @@ def load_object_dictionary(node_id: int, eds: str | Path | None = None) -> cod.O
         if index not in od:
             raise EdsError(f"lacks object 0x{int(index):04X} ({index.name.lower()})", source=source)
     return od
+
+
+_NMT_STATES = {int(state): state for state in NmtState}  # a dict lookup, not EnumType.__call__, twice a cycle
+
+
+@dataclass(frozen=True, slots=True)
+class _Codec:
+    """How one object is read from and produced into the store: its OD entry and the struct calls.
+
+    ``pack`` is None where the value needs canopen's ``encode_raw`` (not an integer, or the EDS gives a range it
+    warns about); ``unpack`` is None where the type has no fixed size.
+    """
+
+    variable: cod.ODVariable
+    unpack: Callable[[bytes], tuple[Any, ...]] | None
+    size: int
+    pack: Callable[[int], bytes] | None
+    low: int
+    high: int
 
 
 def _no_reaction(index: int, subindex: int) -> None:
@@ -65,6 +86,7 @@ class EmulatedNode(canopen.LocalNode):
         self.after_write: Callable[[int, int], None] = _no_reaction
         self.link: canopen.Network | None = None
         self.alive = False
+        self._codecs: dict[tuple[int, int], _Codec] = {}
 
     def set_data(self, index: int, subindex: int, data: bytes, check_writable: bool = False) -> None:
         super().set_data(index, subindex, data, check_writable=check_writable)
@@ -73,12 +95,23 @@ class EmulatedNode(canopen.LocalNode):
     @property
     def nmt_state(self) -> NmtState:
         """The present NMT state."""
-        return NmtState(self.nmt._state)  # canopen keeps the state byte private
+        state = self.nmt._state  # canopen keeps the state byte private
+        return _NMT_STATES.get(state) or NmtState(state)
 
     @property
     def sending(self) -> bool:
         """Whether frames may go out: on a network, alive (the NMT-state rules are each service's own)."""
         return self.link is not None and self.alive
+
+    def transmit(self, can_id: int, data: bytes) -> None:
+        """Send a data frame on the drive's network, as canopen's ``Network.send_message`` does (under its send
+        lock, then its check of the receive path), with the frame built by :func:`drivers.pdo.data_frame`."""
+        link = self.link
+        if link is None or link.bus is None:
+            return
+        with link.send_lock:
+            link.bus.send(data_frame(can_id, data))
+        link.check()
 
     def has(self, index: int) -> bool:
         """Whether the object dictionary has object ``index``."""
@@ -93,7 +126,13 @@ class EmulatedNode(canopen.LocalNode):
 
     def read(self, index: int, subindex: int = 0) -> Any:
         """The decoded value in the store."""
-        return self.variable(index, subindex).decode_raw(self.get_data(index, subindex))
+        codec = self._codecs.get((index, subindex)) or self._codec(index, subindex)
+        if codec.unpack is not None and not self._read_callbacks:
+            stored = self.data_store.get(index)
+            data = stored.get(subindex) if stored is not None else None
+            if data is not None and len(data) == codec.size:
+                return codec.unpack(data)[0]
+        return codec.variable.decode_raw(self.get_data(index, subindex))
 
     def produce(self, index: int, value: int | float, subindex: int = 0) -> None:
         """Store a value the drive itself produces (no callbacks: it is not a write from the bus).
@@ -101,15 +140,42 @@ class EmulatedNode(canopen.LocalNode):
         An integer object saturates at its type's range, as a drive's own counters do; a missing object is
         skipped (an EDS may omit optional feedback).
         """
-        if index not in self.object_dictionary:
-            return
+        codec = self._codecs.get((index, subindex))
+        if codec is None:
+            if index not in self.object_dictionary:
+                return
+            codec = self._codec(index, subindex)
+        if codec.pack is not None:  # an integer without an EDS range: clamp and pack, nothing to warn about
+            data = codec.pack(min(max(round(value), codec.low), codec.high))
+        else:
+            var = codec.variable
+            if var.data_type in cod.INTEGER_TYPES:
+                value = min(max(round(value), codec.low), codec.high)
+            data = var.encode_raw(value)
+        self.data_store.setdefault(index, {})[subindex] = data
+
+    def _codec(self, index: int, subindex: int) -> _Codec:
+        """The codec of ``index:subindex``, made once (the object dictionary never changes while the drive runs).
+
+        Every cycle reads and produces a handful of objects; canopen's ``get_data`` / ``decode_raw`` /
+        ``encode_raw`` look the object up and test its type on every call, which cost more than the physics.
+        """
         var = self.variable(index, subindex)
+        unpack = size = None
+        packer = var.STRUCT_TYPES.get(var.data_type) if var.data_type is not None else None
+        if packer is not None:
+            unpack, size = packer.unpack, packer.size
+        low = high = 0
+        pack = None
         if var.data_type in cod.INTEGER_TYPES:
             bits = len(var)
-            low, high = ((-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if var.data_type in cod.SIGNED_TYPES
-                         else (0, (1 << bits) - 1))
-            value = min(max(round(value), low), high)
-        self.data_store.setdefault(index, {})[subindex] = var.encode_raw(value)
+            signed = var.data_type in cod.SIGNED_TYPES
+            low, high = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if signed else (0, (1 << bits) - 1)
+            if packer is not None and var.min is None and var.max is None:
+                pack = packer.pack
+        codec = _Codec(var, unpack, size or 0, pack, low, high)
+        self._codecs[(index, subindex)] = codec
+        return codec
 
     def reset_store(self, area: range | None) -> None:
         """Every object in ``area`` (all when None) back to its EDS value, pre-encoded in the store."""

@@ -18,6 +18,7 @@ from canopen import objectdictionary as cod
 
 from drivers.cia301 import RPDO_BASES, TPDO_BASES, CobIdEntry, FunctionCode, NmtState, cob_id
 from drivers.cia402 import Obj
+from drivers.inprocess import subscribe_cyclic
 from drivers.pdo import MappingEntry
 from plant_emulator.node import EmulatedNode
 from plant_emulator.sdo_guard import PDO_CHANNELS
@@ -59,6 +60,7 @@ class PdoChannel:
     event_timer_ms: int
     entries: tuple[MappedObject, ...]
     length: int  # bytes
+    reactions: tuple[tuple[int, int], ...] = ()  # RPDO: the mapped objects the application acts on, mode first
     sync_count: int = 0
     pending: bytes | None = None  # RPDO: received since the last SYNC, latched at the next
     last_sent: bytes | None = None  # TPDO: for acyclic / event-driven change detection
@@ -99,6 +101,7 @@ class PdoEngine:
         self._on_length_error = on_length_error
         self._rpdos: dict[int, PdoChannel] = {}  # by COB-ID
         self._tpdos: list[PdoChannel] = []
+        self._event_tpdos: list[PdoChannel] = []  # the valid event-driven ones (none in a cyclic run)
         self._subscribed_rpdo_ids: set[int] = set()
 
     # --- configuration ----------------------------------------------------------------------------------------
@@ -119,6 +122,7 @@ class PdoEngine:
                 tpdos.append(self._read_channel(Obj.TPDO_COMMUNICATION + n, Obj.TPDO_MAPPING + n, n, TPDO_BASES))
         self._rpdos = {cob: ch for cob, ch in rpdos.items() if ch.valid}
         self._tpdos = tpdos
+        self._event_tpdos = [tpdo for tpdo in tpdos if tpdo.valid and tpdo.transmission_type in TRANS_EVENT_TYPES]
         self._subscribe_rpdos()
 
     def _subscribe_rpdos(self) -> None:
@@ -129,7 +133,7 @@ class PdoEngine:
         for cob in self._subscribed_rpdo_ids - wanted:
             network.unsubscribe(cob, self.on_rpdo)
         for cob in wanted - self._subscribed_rpdo_ids:
-            network.subscribe(cob, self.on_rpdo)
+            subscribe_cyclic(network, cob, self.on_rpdo)
         self._subscribed_rpdo_ids = wanted
 
     def _read_channel(
@@ -152,6 +156,8 @@ class PdoEngine:
         cob = raw_cob.can_id
         if cob == 0 and n < len(bases):
             cob = cob_id(bases[n], node.node_id)  # 0: the predefined connection set
+        reactions = sorted(((e.index, e.subindex) for e in entries if e.index in _APPLICATION_OBJECTS),
+                           key=lambda key: key[0] != Obj.MODES_OF_OPERATION)
         return PdoChannel(
             number=n + 1,
             cob_id=cob,
@@ -160,6 +166,7 @@ class PdoEngine:
             event_timer_ms=event_timer,
             entries=tuple(entries),
             length=offset,
+            reactions=tuple(reactions),
         )
 
     # --- RPDO -------------------------------------------------------------------------------------------------
@@ -194,14 +201,10 @@ class PdoEngine:
 
     def _store_rpdo(self, channel: PdoChannel, data: bytes) -> None:
         store = self.node.data_store
-        touched: list[tuple[int, int]] = []
         for entry in channel.entries:
             store.setdefault(entry.index, {})[entry.subindex] = data[entry.offset:entry.offset + entry.size]
-            touched.append((entry.index, entry.subindex))
-        touched.sort(key=lambda key: key[0] != Obj.MODES_OF_OPERATION)
-        for index, subindex in touched:
-            if index in _APPLICATION_OBJECTS:
-                self._on_write(index, subindex)
+        for index, subindex in channel.reactions:
+            self._on_write(index, subindex)
 
     # --- TPDO -------------------------------------------------------------------------------------------------
 
@@ -221,12 +224,10 @@ class PdoEngine:
 
     def send_event_driven(self, *, timer_only: bool = False) -> None:
         """Event-driven TPDOs: those whose event timer ran out, and (unless ``timer_only``) those that changed."""
-        if not self.node.sending or self.node.nmt_state is not NmtState.OPERATIONAL:
+        if not self._event_tpdos or not self.node.sending or self.node.nmt_state is not NmtState.OPERATIONAL:
             return
         now = time.monotonic()
-        for tpdo in self._tpdos:
-            if not tpdo.valid or tpdo.transmission_type not in TRANS_EVENT_TYPES:
-                continue
+        for tpdo in self._event_tpdos:
             timer_due = tpdo.event_timer_ms > 0 and now - tpdo.last_sent_time >= tpdo.event_timer_ms / 1000
             if timer_due:
                 self._send_tpdo(tpdo, only_if_changed=False)
@@ -235,10 +236,9 @@ class PdoEngine:
 
     def _send_tpdo(self, channel: PdoChannel, *, only_if_changed: bool) -> None:
         store = self.node.data_store
-        payload = b"".join(store[entry.index][entry.subindex] for entry in channel.entries)
+        payload = b"".join([store[entry.index][entry.subindex] for entry in channel.entries])
         if only_if_changed and payload == channel.last_sent:
             return
         channel.last_sent = payload
         channel.last_sent_time = time.monotonic()
-        if self.node.link is not None:
-            self.node.link.send_message(channel.cob_id, payload)
+        self.node.transmit(channel.cob_id, payload)

@@ -35,9 +35,9 @@ from dataclasses import dataclass, field
 from enum import IntEnum
 
 from drivers.cia402 import (
+    FAULT_RESET_BIT,
     STATE_STATUSWORD,
     Command402,
-    Controlword,
     OperationMode,
     QuickStopOption,
     State402,
@@ -124,7 +124,7 @@ class PowerStateMachine:
         A controlword that requests nothing valid in this state leaves it unchanged (as real drives do).
         Fault reset acts on the rising edge of bit 7 only.
         """
-        reset_bit = bool(controlword & Controlword.FAULT_RESET)
+        reset_bit = bool(controlword & FAULT_RESET_BIT)
         rising = reset_bit and not self._fault_reset_bit
         self._fault_reset_bit = reset_bit
         if self.state is State402.FAULT:
@@ -133,7 +133,7 @@ class PowerStateMachine:
             return self.state
         if self.state in (State402.FAULT_REACTION_ACTIVE, State402.NOT_READY_TO_SWITCH_ON):
             return self.state  # commands are not accepted while the drive reacts or starts
-        command = decode_command(controlword & ~Controlword.FAULT_RESET)
+        command = decode_command(controlword & ~FAULT_RESET_BIT)
         if command is None:
             return self.state
         if self.state is State402.QUICK_STOP_ACTIVE and command is Command402.ENABLE_OPERATION:

@@ -22,6 +22,7 @@ from drivers.inprocess import (
     InProcessNotifier,
     LockstepClock,
     connect_network,
+    subscribe_cyclic,
     timebase_of,
 )
 
@@ -289,3 +290,79 @@ def test_periodic_task_duration_bounds_it(channel: str) -> None:
         producer.send_periodic(frame(0x700, 1), 0.1, duration=0.25)
         producer.clock.sleep(1.0)
         assert len(list(iter(lambda: consumer.recv(0), None))) == 3  # at 0, 0.1 and 0.2 s
+
+
+class _Subscriber:
+    """A canopen subscriber callback that records what it was called with."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[int, bytes]] = []
+
+    def __call__(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        self.calls.append((can_id, bytes(data)))
+
+
+def _feed(channel: str, routed: bool) -> tuple[_Subscriber, list[tuple[int, bytes, str]], list[int], canopen.Network]:
+    """A canopen network on an in-process end, its PDO COB-ID subscribed with or without a direct route, fed the
+    same frames; returns the subscriber, what the frame tap saw, what canopen's node scanner saw, the notifier."""
+    sender = InProcessBus(channel)
+    network = canopen.Network(InProcessBus(channel))
+    tap = FrameTap()
+    seen: list[tuple[int, bytes, str]] = []
+    tap.add_listener(lambda msg, direction: seen.append((msg.arbitration_id, bytes(msg.data), direction)))
+    network.listeners.insert(0, tap)  # type: ignore[arg-type]
+    connect_network(network)
+    subscriber = _Subscriber()
+    if routed:
+        subscribe_cyclic(network, 0x181, subscriber, observer=tap.on_message_received)
+    else:
+        network.subscribe(0x181, subscriber)
+    for msg in (frame(0x181, 1, 2), frame(0x701, 5), frame(0x181, 3, 4),
+                can.Message(arbitration_id=0x181, is_remote_frame=True, is_extended_id=False)):
+        sender.send(msg)
+    scanned = list(network.scanner.nodes)
+    sender.shutdown()
+    return subscriber, seen, scanned, network
+
+
+def test_a_direct_route_delivers_what_canopens_notify_does(channel: str) -> None:
+    generic, generic_seen, generic_scanned, generic_network = _feed(channel, routed=False)
+    routed, routed_seen, _, network = _feed(f"{channel}-routed", routed=True)
+    notifier, generic_notifier = network.notifier, generic_network.notifier
+    assert isinstance(notifier, InProcessNotifier) and isinstance(generic_notifier, InProcessNotifier)
+    assert 0x181 in notifier.routes and 0x181 not in generic_notifier.routes
+    assert routed.calls == generic.calls == [(0x181, b"\x01\x02"), (0x181, b"\x03\x04")]  # the RTR is not data
+    assert routed_seen == generic_seen  # the tap sees every frame, in order, the remote frame included
+    assert len(routed_seen) == 4 and generic_scanned == [1]  # the heartbeat 0x701 still reaches the scanner
+    for each in (notifier, generic_notifier):
+        each.stop()
+    for bus in (network.bus, generic_network.bus):
+        assert bus is not None
+        bus.shutdown()
+    assert notifier.routes == {}  # routes live as long as their notifier
+
+
+def test_a_route_error_is_kept_like_a_listener_error(channel: str) -> None:
+    with InProcessBus(channel) as master, InProcessBus(channel) as drive:
+        network = canopen.Network(drive)
+        connect_network(network)
+
+        def broken(can_id: int, data: bytearray, timestamp: float) -> None:
+            raise RuntimeError("subscriber bug")
+
+        subscribe_cyclic(network, 0x80, broken)
+        master.send(frame(0x80))  # the sender is not hurt
+        notifier = network.notifier
+        assert notifier is not None and isinstance(notifier.exception, RuntimeError)
+        notifier.stop()
+
+
+def test_subscribe_cyclic_is_plain_subscribe_off_the_inprocess_transport() -> None:
+    network = canopen.Network(can.Bus(interface="virtual", channel=f"test-route-{uuid.uuid4().hex}"))
+    try:
+        subscriber = _Subscriber()
+        subscribe_cyclic(network, 0x181, subscriber)  # not listening, and not in-process: no route anywhere
+        assert network.subscribers[0x181] == [subscriber]
+    finally:
+        assert network.bus is not None
+        network.bus.shutdown()

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import struct
 
+import can
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from drivers.pdo import MappedVariable, PdoCodec, PdoDirection, PdoLayout
+from drivers.pdo import MappedVariable, PdoCodec, PdoDirection, PdoLayout, data_frame
 from foilc_hil.errors import ProtocolError
 
 CONTROLWORD = MappedVariable(0x6040, 0, 16, signed=False)
@@ -77,3 +78,11 @@ def test_layout_indices() -> None:
     assert (tpdo4.communication_index, tpdo4.mapping_index) == (0x1803, 0x1A03)
     assert rpdo2.name == "RPDO2 (0x305)"
     assert rpdo2.codec().encode(6, -1) == b"\x06\x00\xff\xff"
+
+
+def test_data_frame_is_the_message_python_can_would_build() -> None:
+    built = data_frame(0x201, b"\x0f\x00\x10\x27\x00\x00")
+    reference = can.Message(arbitration_id=0x201, data=b"\x0f\x00\x10\x27\x00\x00", is_extended_id=False)
+    for name in set(can.Message.__slots__) - {"__weakref__"}:
+        assert getattr(built, name) == getattr(reference, name), name  # an unset slot raises AttributeError here
+    assert isinstance(built.data, bytearray) and built.equals(reference)
