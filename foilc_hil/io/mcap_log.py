@@ -27,11 +27,13 @@ import binascii
 import enum
 import json
 import math
+import operator
 import os
 import struct
 import threading
 import time
 from abc import abstractmethod
+from collections import deque
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -84,6 +86,9 @@ Direction = Literal["tx", "rx"]
 _COMPRESSION: Final[dict[str, str]] = {"zstd": "zstd", "lz4": "lz4", "none": ""}
 _PROFILE: Final = ""  # no ROS profile: plain JSON messages
 _LIBRARY: Final = "foilc-hil"
+#: frames encoded at once: one loop over them instead of a chain of calls per frame (the batch costs a few hundred
+#: microseconds; a trial's end, any other message and close write a partial batch)
+FRAME_BATCH: Final = 1024
 
 
 class LogWriteError(FoilcHilError, OSError):
@@ -245,6 +250,7 @@ class McapLogWriter(_ClosingListener):
             self._owns_stream = False
         self._fsync = fsync
         self._lock = threading.Lock()
+        self._frames: deque[tuple[FrameFields, Direction, int]] = deque()  # logged, not yet encoded
         self._closed = False
         try:
             self._writer = ChunkedMcapWriter(self._stream, chunk_size=chunk_size, compression=_COMPRESSION[compression])
@@ -259,6 +265,7 @@ class McapLogWriter(_ClosingListener):
             self._channels[topic] = self._writer.register_channel(
                 topic=topic, message_encoding=MESSAGE_ENCODING, schema_id=schema_id, metadata=metadata[topic]
             )
+        self._can_channel = self._channels[TOPIC_CAN]
         if config_yaml is not None:
             self._writer.add_metadata(METADATA_CONFIG, {"yaml": config_yaml})
         if design is not None:
@@ -269,29 +276,26 @@ class McapLogWriter(_ClosingListener):
 
     def on_message_received(self, msg: can.Message) -> None:
         """python-can listener hook: log a received frame (``dir: "rx"``)."""
-        self.log_frame(msg, "rx")
+        self.log_frame_fields(frame_fields(msg), "rx", time.time_ns())
 
     def log_frame(self, msg: can.Message, direction: Direction, log_time_ns: int | None = None) -> None:
         """Log one CAN frame on ``/can``.
 
         ``timestamp`` is the frame's own (bus) timestamp; a frame built by the bench has none (0.0), so it gets
-        its log time.
+        its log time. Frames are encoded in batches (:data:`FRAME_BATCH`, and before any other message, so the file
+        keeps the calls' order): the payload is referenced until then, so do not change ``msg.data`` in place.
         """
-        now = time.time_ns() if log_time_ns is None else log_time_ns
-        timestamp = msg.timestamp if msg.timestamp else now / 1e9
-        document = {
-            "timestamp": timestamp,
-            "id": msg.arbitration_id,
-            "extended": msg.is_extended_id,
-            "dlc": msg.dlc,
-            "data": binascii.b2a_base64(msg.data, newline=False).decode("ascii"),
-            "dir": direction,
-        }
-        # the rarer fields only when set: a classic data frame keeps the record it always had (and its cost)
-        if msg.is_remote_frame or msg.is_error_frame or msg.is_fd or msg.channel is not None:
-            document.update(_frame_flags(msg))
-        # the frame document holds only ints, bools, strings and one float: orjson directly, no fallback needed
-        self._append(self._channels[TOPIC_CAN], orjson.dumps(document), now, round(timestamp * 1e9))
+        self.log_frame_fields(frame_fields(msg), direction, time.time_ns() if log_time_ns is None else log_time_ns)
+
+    def log_frame_fields(self, fields: FrameFields, direction: Direction, log_time_ns: int) -> None:
+        """:meth:`log_frame` of a frame given as its :func:`frame_fields` (what the writer process receives)."""
+        if self._closed:
+            raise LogWriteError(f"{self.path}: the log is closed")
+        frames = self._frames
+        frames.append((fields, direction, log_time_ns))
+        if len(frames) >= FRAME_BATCH:
+            with self._lock:
+                self._write_frames()
 
     def write_sample(self, record: SampleRecord, log_time_ns: int | None = None) -> None:
         """Log one sample on ``/ilc/sample``: ``output`` is the feedback the law saw, ``control`` its command.
@@ -325,20 +329,20 @@ class McapLogWriter(_ClosingListener):
     def log_design(self, design: Mapping[str, Any]) -> None:
         """Write the ``foilc_hil.design`` metadata record (if it was not known at construction)."""
         with self._lock:
-            self._check_open()
+            self._write_frames()
             self._writer.add_metadata(METADATA_DESIGN, _design_record(design))
 
     def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
         """Write another metadata record (str -> str)."""
         with self._lock:
-            self._check_open()
+            self._write_frames()
             self._writer.add_metadata(name, dict(data))
 
     def end_trial(self) -> None:
         """Close the chunk in progress and push it to disk: the trial just logged survives a crash."""
         with self._lock:
-            self._check_open()
             try:
+                self._write_frames()
                 self._writer.flush()
                 if self._fsync and hasattr(self._stream, "fileno"):
                     os.fsync(self._stream.fileno())
@@ -350,13 +354,15 @@ class McapLogWriter(_ClosingListener):
         with self._lock:
             if self._closed:
                 return
-            self._closed = True
             try:
+                self._write_frames()
+                self._closed = True
                 self._writer.finish()
                 self._stream.flush()
             except OSError as exc:
                 raise LogWriteError(f"{self.path}: {exc.strerror or exc}") from None
             finally:
+                self._closed = True
                 self._close_stream()
 
     @property
@@ -366,6 +372,7 @@ class McapLogWriter(_ClosingListener):
     def message_count(self, topic: str) -> int:
         """Messages written on ``topic`` so far."""
         with self._lock:
+            self._write_frames()
             return self._writer.message_count(self._channels[topic])
 
     # -- internals -------------------------------------------------------------------------------------------
@@ -375,11 +382,28 @@ class McapLogWriter(_ClosingListener):
 
     def _append(self, channel: int, data: bytes, log_time_ns: int, publish_time_ns: int) -> None:
         with self._lock:
-            self._check_open()
+            self._write_frames()  # the frames logged before this message go first
             try:
                 self._writer.add_message(channel, log_time_ns, data, publish_time_ns)
             except OSError as exc:
                 raise LogWriteError(f"{self.path}: {exc.strerror or exc}") from None
+
+    def _write_frames(self) -> None:
+        """Encode and append the frames logged so far (the lock is held)."""
+        self._check_open()
+        frames = self._frames
+        if not frames:
+            return
+        popleft = frames.popleft
+        batch = []
+        for _ in range(len(frames)):  # frames appended meanwhile by another thread wait for the next batch
+            fields, direction, log_time_ns = popleft()
+            timestamp = fields[0] or log_time_ns / 1e9
+            batch.append((log_time_ns, frame_json(fields, timestamp, direction), round(timestamp * 1e9)))
+        try:
+            self._writer.add_messages(self._can_channel, batch)
+        except OSError as exc:
+            raise LogWriteError(f"{self.path}: {exc.strerror or exc}") from None
 
     def _check_open(self) -> None:
         if self._closed:
@@ -818,21 +842,58 @@ def read_log(path: str | os.PathLike[str]) -> LogContents:
         return reader.read()
 
 
-def _frame_flags(msg: can.Message) -> dict[str, Any]:
+#: the attributes of a ``can.Message`` a ``/can`` record holds, in this order (one C call on the hot path):
+#: timestamp, arbitration_id, is_extended_id, dlc, data, then the rarer remote, error, fd, brs, esi and channel
+frame_fields: Final = operator.attrgetter(
+    "timestamp", "arbitration_id", "is_extended_id", "dlc", "data",
+    "is_remote_frame", "is_error_frame", "is_fd", "bitrate_switch", "error_state_indicator", "channel",
+)
+FrameFields = tuple[Any, ...]
+"""A frame as :func:`frame_fields` gives it: plain values (``marshal`` ships them to the writer process)."""
+
+#: the classic data frame's document with its values left open, per direction: what ``orjson.dumps`` of the
+#: document writes (same keys, same order, no spaces), built by formatting instead of a dict per frame
+_FRAME_TEMPLATES: Final = {
+    direction: '{"timestamp":%s,"id":%d,"extended":%s,"dlc":%d,"data":"%s","dir":"' + direction + '"}'
+    for direction in ("tx", "rx")
+}
+_JSON_BOOL: Final = ("false", "true")
+
+
+def frame_json(fields: FrameFields, timestamp: float, direction: Direction) -> bytes:
+    """The ``/can`` JSON document of one frame (``fields`` from :func:`frame_fields`, ``timestamp`` resolved).
+
+    A classic data frame (the cyclic traffic) is formatted from a template; ``repr`` of a float is its shortest
+    round-trip form, as orjson writes it, except for exponents and non-finite values, which go to orjson. Any
+    other frame (remote, error, FD, with a channel) is a dict encoded by orjson with its optional fields.
+    """
+    template = _FRAME_TEMPLATES.get(direction)
+    if template is not None and not any(fields[5:10]) and fields[10] is None:
+        text = repr(timestamp)
+        if "e" in text or "n" in text:  # 1e-05, 1e+16, inf, nan: orjson's spelling (null for non-finite)
+            text = orjson.dumps(timestamp).decode()
+        data = binascii.b2a_base64(fields[4], newline=False).decode("ascii")
+        return (template % (text, fields[1], _JSON_BOOL[bool(fields[2])], fields[3], data)).encode()
+    document = {
+        "timestamp": timestamp,
+        "id": fields[1],
+        "extended": bool(fields[2]),
+        "dlc": fields[3],
+        "data": binascii.b2a_base64(fields[4], newline=False).decode("ascii"),
+        "dir": direction,
+    }
+    document.update(_frame_flags(fields))
+    return orjson.dumps(document)
+
+
+def _frame_flags(fields: FrameFields) -> dict[str, Any]:
     """The optional ``/can`` fields of a frame that is not a classic data frame (schema: ``CAN_FRAME_SCHEMA``)."""
     flags: dict[str, Any] = {
-        name: True
-        for name, value in (
-            ("remote", msg.is_remote_frame),
-            ("error", msg.is_error_frame),
-            ("fd", msg.is_fd),
-            ("brs", msg.bitrate_switch),
-            ("esi", msg.error_state_indicator),
-        )
-        if value
+        name: True for name, value in zip(("remote", "error", "fd", "brs", "esi"), fields[5:10], strict=True) if value
     }
-    if msg.channel is not None:
-        flags["channel"] = msg.channel if isinstance(msg.channel, (str, int)) else str(msg.channel)
+    channel = fields[10]
+    if channel is not None:
+        flags["channel"] = channel if isinstance(channel, (str, int)) else str(channel)
     return flags
 
 
