@@ -160,7 +160,8 @@ class ChunkedMcapWriter:
                 end = log_time
             index.append(log_time)
             index.append(len(chunk))
-            chunk += pack(opcode, _MESSAGE_FIELDS + len(data), channel_id, sequence & 0xFFFFFFFF, log_time, publish_time)
+            size = _MESSAGE_FIELDS + len(data)
+            chunk += pack(opcode, size, channel_id, sequence & 0xFFFFFFFF, log_time, publish_time)
             chunk += data
             sequence += 1
             if len(chunk) > limit:
