@@ -36,7 +36,7 @@ from mcap.records import (
 
 from foilc_hil.errors import LogFormatError
 
-__all__ = ["MCAP_MAGIC", "ChunkedMcapWriter"]
+__all__ = ["MCAP_MAGIC", "ChunkedMcapWriter", "compressor"]
 
 MCAP_MAGIC: Final = b"\x89MCAP0\r\n"
 # opcode, record length, channel id, sequence, log time, publish time (then the data)
@@ -47,7 +47,7 @@ _FOOTER_PREFIX: Final = struct.Struct("<BQQQ")
 _FOOTER_FIELDS: Final = 8 + 8 + 4
 
 
-def _compressor(compression: str) -> Callable[[bytes], bytes]:
+def compressor(compression: str) -> Callable[[bytes], bytes]:
     """The chunk compressor for ``"zstd"``, ``"lz4"`` or ``""`` (none)."""
     if compression == "zstd":
         try:
@@ -82,7 +82,7 @@ class ChunkedMcapWriter:
         self._stream = stream
         self._chunk_size = chunk_size
         self._compression = compression
-        self._compress = _compressor(compression)
+        self._compress = compressor(compression)
         self._schemas: list[Schema] = []
         self._channels: list[Channel] = []
         self._metadata_indexes: list[MetadataIndex] = []
