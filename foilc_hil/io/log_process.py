@@ -140,6 +140,7 @@ class ProcessLogWriter(_ClosingListener):
         self._items: deque[tuple[Any, ...]] = deque()
         self._send_lock = threading.Lock()
         self._error: str | None = None
+        self._broken = False  # an error was raised: said once, later items are dropped
         self._closed = False
         self._replies = bytearray()
         self.backpressure_waits = 0
@@ -291,7 +292,7 @@ class ProcessLogWriter(_ClosingListener):
             self._error = self._error or f"{self.path}: the log writer process did not finish in {CLOSE_TIMEOUT} s"
         self._wait_reply(None, time.monotonic())  # read what is left (EOF: the child has exited)
         os.close(self._reply)
-        if self._process.returncode and self._error is None:
+        if self._process.returncode and self._error is None and not self._broken:
             self._error = f"{self.path}: the log writer process exited with status {self._process.returncode}"
 
     def _wait_reply(self, token: int | None, deadline: float | None) -> bool:
@@ -327,6 +328,7 @@ class ProcessLogWriter(_ClosingListener):
         if self._error is None:
             return
         error, self._error = self._error, None
+        self._broken = True
         # once broken, the log stays broken: later items are dropped (_data closed) and this is said once
         self._close_data()
         raise LogWriteError(error)
