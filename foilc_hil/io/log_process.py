@@ -151,7 +151,14 @@ class ProcessLogWriter(_ClosingListener):
         plain_design = None if design is None else _json_values(design)
         opened = (self.path, compression, config_yaml, plain_design, chunk_size, fsync)
         self._items.append((int(WireOp.OPEN), *opened))
-        self._send(block=True)
+        try:
+            # Wait for the child to have written the header: from here on it reads as fast as the loop logs. Without
+            # this a child still importing (a second on a loaded machine) let the pipe fill during the first trial,
+            # and the loop's thread blocked on it (a 0.56 s SYNC gap, the emulator's SYNC-loss EMCY).
+            self.sync()
+        except BaseException:
+            self.close()
+            raise
 
     @classmethod
     def open(

@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import struct
 import zlib
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
+from itertools import accumulate, chain, repeat
+from operator import add
 from typing import IO, Final
 
 from mcap.data_stream import RecordBuilder
@@ -135,44 +137,41 @@ class ChunkedMcapWriter:
 
     def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int) -> None:
         """Append one message to the chunk in progress (see :meth:`add_messages`)."""
-        self.add_messages(channel_id, ((log_time, data, publish_time),))
+        self.add_messages(channel_id, (log_time,), (data,), (publish_time,))
 
-    def add_messages(self, channel_id: int, messages: Iterable[tuple[int, bytes, int]]) -> None:
-        """Append ``(log_time, data, publish_time)`` messages of one channel to the chunk in progress, closing the
-        chunk whenever it is full; a message's ``sequence`` is the channel's message count so far (modulo 2**32).
+    def add_messages(
+        self, channel_id: int, log_times: Sequence[int], datas: Sequence[bytes], publish_times: Sequence[int]
+    ) -> None:
+        """Append messages of one channel (columns: log times, data, publish times) to the chunk in progress, then
+        close the chunk if it is full; a message's ``sequence`` is the channel's message count so far (modulo 2**32).
 
-        One loop over local variables: the writer's cost per message is this loop's body (a batch of frames is
-        the hot case, ``make bench``'s frames-written row).
+        The records, their index entries and the chunk's time range are built by ``map``/``zip`` over the columns
+        (C loops): a batch of frames costs no Python bytecode per message here (``make bench``'s frames-written row).
         """
-        pack = _MESSAGE.pack
-        opcode = int(Opcode.MESSAGE)
-        limit = self._chunk_size
+        count = len(datas)
+        if not count:
+            return
+        sizes = list(map(len, datas))
         sequence = self._message_counts[channel_id]
+        self._message_counts[channel_id] = sequence + count
+        sequences: Iterable[int] = range(sequence, sequence + count)
+        if sequence + count > 1 << 32:
+            sequences = [number & 0xFFFFFFFF for number in sequences]
+        headers = map(
+            _MESSAGE.pack, repeat(Opcode.MESSAGE), map(add, sizes, repeat(_MESSAGE_FIELDS)), repeat(channel_id),
+            sequences, log_times, publish_times,
+        )
         chunk = self._chunk
-        index = self._index.setdefault(channel_id, [])
-        start, end = (self._chunk_start, self._chunk_end) if chunk else (-1, -1)
-        for log_time, data, publish_time in messages:
-            if start < 0:
-                start = end = log_time
-            elif log_time < start:
-                start = log_time
-            elif log_time > end:
-                end = log_time
-            index.append(log_time)
-            index.append(len(chunk))
-            size = _MESSAGE_FIELDS + len(data)
-            chunk += pack(opcode, size, channel_id, sequence & 0xFFFFFFFF, log_time, publish_time)
-            chunk += data
-            sequence += 1
-            if len(chunk) > limit:
-                self._chunk_start, self._chunk_end = start, end
-                self._finish_chunk()
-                chunk = self._chunk
-                index = self._index.setdefault(channel_id, [])
-                start = end = -1
-        self._message_counts[channel_id] = sequence
+        offsets = accumulate(map(add, sizes, repeat(_MESSAGE.size)), initial=len(chunk))
+        self._index.setdefault(channel_id, []).extend(chain.from_iterable(zip(log_times, offsets, strict=False)))
+        earliest, latest = min(log_times), max(log_times)
         if chunk:
-            self._chunk_start, self._chunk_end = start, end
+            self._chunk_start, self._chunk_end = min(self._chunk_start, earliest), max(self._chunk_end, latest)
+        else:
+            self._chunk_start, self._chunk_end = earliest, latest
+        chunk += b"".join(chain.from_iterable(zip(headers, datas, strict=True)))
+        if len(chunk) > self._chunk_size:
+            self._finish_chunk()
 
     def message_count(self, channel_id: int) -> int:
         """Messages added on ``channel_id`` so far."""

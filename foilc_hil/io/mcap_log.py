@@ -17,7 +17,9 @@ Real time
 ---------
 :class:`McapLogWriter` encodes JSON and compresses on the calling thread. The bench's cycle must not pay for that:
 :class:`QueuedLogWriter` has the same logging methods, but they only put a small tuple on a
-:class:`queue.SimpleQueue`; a background thread (python-can ``Notifier`` style) does the encoding and the I/O.
+:class:`queue.SimpleQueue`; a background thread (python-can ``Notifier`` style) does the encoding and the I/O -- still
+under the loop's GIL. ``run`` logs through :class:`foilc_hil.io.log_process.ProcessLogWriter` instead: the same
+:class:`McapLogWriter` in a child process, off the loop's GIL.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ from abc import abstractmethod
 from collections import deque
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
+from itertools import repeat
 from pathlib import Path
 from queue import SimpleQueue
 from types import TracebackType
@@ -276,7 +279,10 @@ class McapLogWriter(_ClosingListener):
 
     def on_message_received(self, msg: can.Message) -> None:
         """python-can listener hook: log a received frame (``dir: "rx"``)."""
-        self.log_frame_fields(frame_fields(msg), "rx", time.time_ns())
+        frames = self._frames
+        frames.append((frame_fields(msg), "rx", time.time_ns()))  # log_frame_fields inlined: the per-frame cost
+        if len(frames) >= FRAME_BATCH or self._closed:
+            self._write_batch()
 
     def log_frame(self, msg: can.Message, direction: Direction, log_time_ns: int | None = None) -> None:
         """Log one CAN frame on ``/can``.
@@ -289,13 +295,14 @@ class McapLogWriter(_ClosingListener):
 
     def log_frame_fields(self, fields: FrameFields, direction: Direction, log_time_ns: int) -> None:
         """:meth:`log_frame` of a frame given as its :func:`frame_fields` (what the writer process receives)."""
-        if self._closed:
-            raise LogWriteError(f"{self.path}: the log is closed")
         frames = self._frames
         frames.append((fields, direction, log_time_ns))
-        if len(frames) >= FRAME_BATCH:
-            with self._lock:
-                self._write_frames()
+        if len(frames) >= FRAME_BATCH or self._closed:
+            self._write_batch()
+
+    def _write_batch(self) -> None:
+        with self._lock:
+            self._write_frames()  # raises if closed
 
     def write_sample(self, record: SampleRecord, log_time_ns: int | None = None) -> None:
         """Log one sample on ``/ilc/sample``: ``output`` is the feedback the law saw, ``control`` its command.
@@ -394,14 +401,17 @@ class McapLogWriter(_ClosingListener):
         frames = self._frames
         if not frames:
             return
-        popleft = frames.popleft
-        batch = []
-        for _ in range(len(frames)):  # frames appended meanwhile by another thread wait for the next batch
-            fields, direction, log_time_ns = popleft()
-            timestamp = fields[0] or log_time_ns / 1e9
-            batch.append((log_time_ns, frame_json(fields, timestamp, direction), round(timestamp * 1e9)))
+        # popped one by one (in a C loop): frames appended meanwhile by another thread wait for the next batch
+        fields, directions, log_times = zip(*map(operator.call, repeat(frames.popleft, len(frames))), strict=True)
+        encoded = classic_frames_json(fields, directions, log_times)
+        if encoded is None:  # a remote, error or FD frame, a channel, an odd timestamp: one by one
+            timestamps = [field[0] or log_time / 1e9 for field, log_time in zip(fields, log_times, strict=True)]
+            documents = list(map(frame_json, fields, timestamps, directions))
+            publish_times = [round(timestamp * 1e9) for timestamp in timestamps]
+        else:
+            documents, publish_times = encoded
         try:
-            self._writer.add_messages(self._can_channel, batch)
+            self._writer.add_messages(self._can_channel, log_times, documents, publish_times)
         except OSError as exc:
             raise LogWriteError(f"{self.path}: {exc.strerror or exc}") from None
 
@@ -858,6 +868,49 @@ _FRAME_TEMPLATES: Final = {
     for direction in ("tx", "rx")
 }
 _JSON_BOOL: Final = ("false", "true")
+
+
+#: :data:`_FRAME_TEMPLATES` as bytes, and JSON's booleans as bytes (indexed by a bool)
+_FRAME_TEMPLATES_BYTES: Final = {direction: template.encode() for direction, template in _FRAME_TEMPLATES.items()}
+_JSON_BOOL_BYTES: Final = (b"false", b"true")
+
+
+def classic_frames_json(
+    fields: Sequence[FrameFields], directions: Sequence[str], log_times: Sequence[int]
+) -> tuple[list[bytes], list[int]] | None:
+    """The ``/can`` documents and publish times (ns) of a batch of classic data frames, as :func:`frame_json` writes
+    them (a frame without a timestamp gets its log time); ``None`` if any frame is not a classic data frame, or a
+    timestamp needs orjson's spelling.
+
+    Every step is a ``map`` over a column (C loops): the writer's batch costs little Python bytecode per frame.
+    """
+    columns = list(zip(*fields, strict=True))
+    timestamps: Sequence[float] = columns[0]
+    if any(map(any, columns[5:10])) or columns[10].count(None) != len(timestamps):
+        return None
+    if not all(timestamps):  # the bench's own frames: their log time
+        timestamps = [stamp or log_time / 1e9 for stamp, log_time in zip(timestamps, log_times, strict=True)]
+    if not _FRAME_TEMPLATES_BYTES.keys() >= set(directions):
+        return None
+    texts = list(map(repr, timestamps))
+    joined = "".join(texts)
+    if "e" in joined or "n" in joined:  # an exponent or a non-finite value: orjson's spelling, frame by frame
+        return None
+    documents = list(
+        map(
+            bytes.__mod__,
+            map(_FRAME_TEMPLATES_BYTES.__getitem__, directions),
+            zip(
+                map(str.encode, texts),
+                columns[1],
+                map(_JSON_BOOL_BYTES.__getitem__, map(bool, columns[2])),
+                columns[3],
+                map(bytes.rstrip, map(binascii.b2a_base64, columns[4])),  # base64 has no blank: only its newline goes
+                strict=True,
+            ),
+        )
+    )
+    return documents, list(map(round, map(operator.mul, timestamps, repeat(1e9))))
 
 
 def frame_json(fields: FrameFields, timestamp: float, direction: Direction) -> bytes:
