@@ -169,3 +169,19 @@ def test_the_backlog_stays_bounded_while_a_send_is_in_progress(tmp_path: Path, m
         assert writer.pending() < log_process.BATCH
     samples = read_log(tmp_path / "b.mcap").samples
     assert [row["sample"] for row in samples] == list(range(8 * log_process.BATCH))
+
+
+def test_received_frames_wait_for_the_loops_own_calls(tmp_path: Path) -> None:
+    """Frames logged on the receiving thread never send a batch themselves (below the bound); the loop's next call
+    does, and nothing is lost or reordered."""
+    path = tmp_path / "rx.mcap"
+    with ProcessLogWriter(path, config_yaml=None, fsync=False) as writer:
+        for i in range(2 * log_process.BATCH):
+            writer.on_message_received(can.Message(arbitration_id=0x181, data=bytes([i & 0xFF]), timestamp=1.0 + i,
+                                                   is_extended_id=False))
+        assert writer.pending() == 2 * log_process.BATCH
+        writer.log_frame(can.Message(arbitration_id=0x80, data=b"", is_extended_id=False, timestamp=5000.0), "tx")
+        assert writer.pending() == 0
+    frames = read_log(path).frames
+    assert [frame["timestamp"] for frame in frames] == [1.0 + i for i in range(2 * log_process.BATCH)] + [5000.0]
+    assert [frame["dir"] for frame in frames] == ["rx"] * (2 * log_process.BATCH) + ["tx"]

@@ -177,11 +177,24 @@ class ProcessLogWriter(_ClosingListener):
 
     def on_message_received(self, msg: can.Message) -> None:
         """python-can listener hook (runs on the Notifier thread): log a received frame."""
-        self._put((_FRAME, time.time_ns(), "rx", frame_fields(msg)))
+        self._put_received((_FRAME, time.time_ns(), "rx", frame_fields(msg)))
 
     def log_frame(self, msg: can.Message, direction: Direction) -> None:
         """Log one frame the bench sent (``"tx"``) or received (``"rx"``)."""
-        self._put((_FRAME, time.time_ns(), direction, frame_fields(msg)))
+        item = (_FRAME, time.time_ns(), direction, frame_fields(msg))
+        if direction == "rx":
+            self._put_received(item)
+        else:
+            self._put(item)
+
+    def _put_received(self, item: tuple[Any, ...]) -> None:
+        # Why: a received frame is logged on the receiving thread, whose hand-off of the feedback the loop waits for;
+        # the batches go out from the loop's own calls (a sent frame: right after a SYNC or a command), unless the
+        # backlog reaches its bound
+        items = self._items
+        items.append(item)
+        if len(items) > MAX_BACKLOG:
+            self._send(block=True)
 
     def write_sample(self, record: SampleRecord) -> None:
         """Log one ``/ilc/sample`` message (see :meth:`McapLogWriter.write_sample`)."""
