@@ -161,15 +161,31 @@ class ChunkedMcapWriter:
             _MESSAGE.pack, repeat(Opcode.MESSAGE), map(add, sizes, repeat(_MESSAGE_FIELDS)), repeat(channel_id),
             sequences, log_times, publish_times,
         )
+        offsets = accumulate(map(add, sizes, repeat(_MESSAGE.size)), initial=0)
+        records = b"".join(chain.from_iterable(zip(headers, datas, strict=True)))
+        self._append_records(channel_id, log_times, offsets, records)
+
+    def add_records(self, channel_id: int, log_times: Sequence[int], offsets: Iterable[int], records: bytes) -> None:
+        """Append ``len(log_times)`` ``Message`` records of one channel already encoded (by
+        :func:`foilc_hil.io.frame_kernel.encode_frames`, with the sequence numbers from :meth:`message_count` on),
+        ``offsets`` the offset of each within ``records``."""
+        self._message_counts[channel_id] += len(log_times)
+        self._append_records(channel_id, log_times, offsets, records)
+
+    def _append_records(
+        self, channel_id: int, log_times: Sequence[int], offsets: Iterable[int], records: bytes
+    ) -> None:
+        """Records to the chunk, their index entries and time range; closes the chunk when it is full."""
         chunk = self._chunk
-        offsets = accumulate(map(add, sizes, repeat(_MESSAGE.size)), initial=len(chunk))
-        self._index.setdefault(channel_id, []).extend(chain.from_iterable(zip(log_times, offsets, strict=False)))
+        base = len(chunk)
+        entries = zip(log_times, map(add, offsets, repeat(base)), strict=False)
+        self._index.setdefault(channel_id, []).extend(chain.from_iterable(entries))
         earliest, latest = min(log_times), max(log_times)
         if chunk:
             self._chunk_start, self._chunk_end = min(self._chunk_start, earliest), max(self._chunk_end, latest)
         else:
             self._chunk_start, self._chunk_end = earliest, latest
-        chunk += b"".join(chain.from_iterable(zip(headers, datas, strict=True)))
+        chunk += records
         if len(chunk) > self._chunk_size:
             self._finish_chunk()
 
