@@ -954,6 +954,12 @@ def classic_frames_records(
     return out[:size].tobytes(), offsets.tolist()
 
 
+def load_frame_kernel() -> None:
+    """Load (or, on a machine's first run, compile) the frame kernel now, by one tiny batch through it: a writer
+    that must not pause at its first batch (the writer process, while the loop fills its pipe) calls this first."""
+    classic_frames_records((1.0,), (1,), (False,), (0,), (b"",), ("tx",), (1,), 1, 0)
+
+
 def frame_json(fields: FrameFields, timestamp: float, direction: Direction) -> bytes:
     """The ``/can`` JSON document of one frame (``fields`` from :func:`frame_fields`, ``timestamp`` resolved).
 
