@@ -59,7 +59,6 @@ from foilc_hil.io.mcap_log import (
     _design_record,
     _encode,
     frame_fields,
-    load_frame_kernel,
 )
 from foilc_hil.io.records import SampleRecord, TimingRecord
 from foilc_hil.io.schemas import METADATA_DESIGN
@@ -433,12 +432,13 @@ def _reply(stream: IO[bytes], kind: ReplyKind, value: Any) -> None:
 
 def _open_writer(item: tuple[Any, ...], file_fd: int) -> McapLogWriter:
     path, compression, config_yaml, design, chunk_size, fsync = item[1:]
-    # before the bench is told the log is open: numba's import and the kernel's load took 1.9 s on a loaded machine,
-    # in the first trial, and the bench's loop blocked on the full pipe meanwhile (a SYNC gap, the drive's SYNC loss)
-    load_frame_kernel()
     stream = os.fdopen(file_fd, "wb")
+    # Python frames, no compiled kernel: numba's import took 1.9 s at the first batch on a loaded machine, and the
+    # bench's loop blocked on the full pipe meanwhile (a SYNC gap, the drive's SYNC-loss EMCY). Here, off the loop's
+    # GIL, a frame's few microseconds in Python cost the loop nothing.
     writer = McapLogWriter(
-        stream, compression=compression, config_yaml=config_yaml, design=design, chunk_size=chunk_size, fsync=fsync
+        stream, compression=compression, config_yaml=config_yaml, design=design, chunk_size=chunk_size, fsync=fsync,
+        compiled_frames=False,
     )
     writer.path = path
     return writer

@@ -232,6 +232,10 @@ class McapLogWriter(_ClosingListener):
         Chunks are closed at this size (bytes, uncompressed) as well as at every :meth:`end_trial`.
     fsync
         ``os.fsync`` the file at every :meth:`end_trial` so a completed trial survives a power cut too.
+    compiled_frames
+        Write batches of classic frames with the compiled kernel (:mod:`foilc_hil.io.frame_kernel`, loaded at the
+        first batch: numba's import); ``False``: frame by frame in Python, the same bytes, for a process that must
+        start fast and not pause at its first batch (the writer process of ``run``).
     """
 
     def __init__(
@@ -243,6 +247,7 @@ class McapLogWriter(_ClosingListener):
         design: Mapping[str, Any] | None = None,
         chunk_size: int = 4 * 1024 * 1024,
         fsync: bool = True,
+        compiled_frames: bool = True,
     ) -> None:
         if compression not in _COMPRESSION:
             raise LogFormatError(f"compression must be one of {', '.join(_COMPRESSION)}, not {compression!r}")
@@ -257,6 +262,7 @@ class McapLogWriter(_ClosingListener):
             self._stream = output
             self._owns_stream = False
         self._fsync = fsync
+        self._compiled_frames = compiled_frames
         self._lock = threading.Lock()
         self._frames: list[Any] = []  # logged, not yet encoded: rows of _FRAME_ROW values, one after the other
         self._closed = False
@@ -427,14 +433,14 @@ class McapLogWriter(_ClosingListener):
         stamps, ids, extended, dlcs, datas, directions, log_times, rares = (rows[k::_FRAME_ROW] for k in range(8))
         channel = self._can_channel
         encoded = None
-        if rares.count(None) == len(rares):
+        if self._compiled_frames and rares.count(None) == len(rares):
             first = self._writer.message_count(channel)
             encoded = classic_frames_records(stamps, ids, extended, dlcs, datas, directions, log_times, channel, first)
         try:
             if encoded is not None:
                 self._writer.add_records(channel, log_times, encoded[1], encoded[0])
                 return
-            # a remote, error or FD frame, a channel, an odd timestamp: one by one
+            # a remote, error or FD frame, a channel, an odd timestamp, no compiled kernel: one by one
             classic = zip(stamps, ids, extended, dlcs, datas, strict=True)
             fields = [rare or (*row, *_CLASSIC) for rare, row in zip(rares, classic, strict=True)]
             timestamps = [field[0] or log_time / 1e9 for field, log_time in zip(fields, log_times, strict=True)]
@@ -952,12 +958,6 @@ def classic_frames_records(
         channel_id, sequence, out, offsets,
     )
     return out[:size].tobytes(), offsets.tolist()
-
-
-def load_frame_kernel() -> None:
-    """Load (or, on a machine's first run, compile) the frame kernel now, by one tiny batch through it: a writer
-    that must not pause at its first batch (the writer process, while the loop fills its pipe) calls this first."""
-    classic_frames_records((1.0,), (1,), (False,), (0,), (b"",), ("tx",), (1,), 1, 0)
 
 
 def frame_json(fields: FrameFields, timestamp: float, direction: Direction) -> bytes:
