@@ -145,6 +145,12 @@ def test_bad_output_and_compression_fail_at_once(tmp_path: Path) -> None:
         ProcessLogWriter(tmp_path / "x.mcap", compression="brotli", config_yaml=None)  # type: ignore[arg-type]
 
 
+def test_a_writer_process_that_cannot_start_is_said_at_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(log_process.sys, "executable", "/bin/false")  # exits at once, reads nothing
+    with pytest.raises(LogWriteError, match=r"did not start \(exit status 1\)"):
+        ProcessLogWriter(tmp_path / "never.mcap", config_yaml=None)
+
+
 def test_a_missing_trial_field_is_refused_at_the_call(tmp_path: Path) -> None:
     with ProcessLogWriter(tmp_path / "t.mcap", config_yaml=None, fsync=False) as writer:
         with pytest.raises(LogFormatError, match="lacks rmse, max_abs_error"):

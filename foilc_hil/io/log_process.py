@@ -155,7 +155,9 @@ class ProcessLogWriter(_ClosingListener):
             # Wait for the child to have written the header: from here on it reads as fast as the loop logs. Without
             # this a child still importing (a second on a loaded machine) let the pipe fill during the first trial,
             # and the loop's thread blocked on it (a 0.56 s SYNC gap, the emulator's SYNC-loss EMCY).
-            self.sync()
+            if not self.sync():
+                status = self._process.wait()
+                raise LogWriteError(f"{self.path}: the log writer process did not start (exit status {status})")
         except BaseException:
             self.close()
             raise
