@@ -136,8 +136,13 @@ class ChunkedMcapWriter:
         self._metadata_count += 1
 
     def add_message(self, channel_id: int, log_time: int, data: bytes, publish_time: int) -> None:
-        """Append one message to the chunk in progress (see :meth:`add_messages`)."""
-        self.add_messages(channel_id, (log_time,), (data,), (publish_time,))
+        """Append one message to the chunk in progress (see :meth:`add_messages`; one record packed directly: the
+        column machinery costs more than it saves for one)."""
+        sequence = self._message_counts[channel_id]
+        self._message_counts[channel_id] = sequence + 1
+        size = _MESSAGE_FIELDS + len(data)
+        header = _MESSAGE.pack(Opcode.MESSAGE, size, channel_id, sequence & 0xFFFFFFFF, log_time, publish_time)
+        self._append_records(channel_id, (log_time,), (0,), header + data)
 
     def add_messages(
         self, channel_id: int, log_times: Sequence[int], datas: Sequence[bytes], publish_times: Sequence[int]
