@@ -147,7 +147,7 @@ def test_bad_output_and_compression_fail_at_once(tmp_path: Path) -> None:
 
 def test_a_writer_process_that_cannot_start_is_said_at_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(log_process.sys, "executable", "/bin/false")  # exits at once, reads nothing
-    with pytest.raises(LogWriteError, match="the log writer process (stopped|did not start)"):
+    with pytest.raises(LogWriteError, match=r"the log writer process (stopped|did not start)"):
         ProcessLogWriter(tmp_path / "never.mcap", config_yaml=None)
 
 
