@@ -1,6 +1,7 @@
 """Realtime 1 kHz across processes: the bench against canopen's and python-can's SYNC producers, quiet and loaded.
 
-``python -m benchmarks.realtime [--quick] [--out benchmarks/realtime.json]`` (as root: it needs ``unshare --net``)
+``python -m benchmarks.realtime [--quick] [--conditions quiet load] [--out benchmarks/realtime.json]`` (as root: it
+needs ``unshare --net``)
 
 Everything runs inside one private network namespace this module creates (``unshare --net``, multicast routed over
 its own loopback), so no frame leaves it. In that namespace, for each condition (``quiet``; ``load``: busy-loop
@@ -60,6 +61,7 @@ RECEIVER_FIFO = 49  # the instrument: above every normal process, below the cycl
 LATENESS_WINDOW = 50
 FULL = {"trials": 10, "time_scale": 1.0, "peer_seconds": 10.0}
 QUICK = {"trials": 2, "time_scale": 0.2, "peer_seconds": 3.0}
+CONDITIONS = ("quiet", "load")
 
 _RECEIVER = """
 import signal, sys, can, numpy as np
@@ -276,13 +278,13 @@ def _condition(name: str, settings: dict[str, Any], work: Path) -> dict[str, Any
             process.wait()
 
 
-def _inside(quick: bool) -> dict[str, Any]:
+def _inside(quick: bool, conditions_wanted: Sequence[str] = CONDITIONS) -> dict[str, Any]:
     """The whole measurement (run inside the private namespace)."""
     for step in NETNS_SETUP:
         subprocess.run(shlex.split(step), check=True)
     settings = QUICK if quick else FULL
     with tempfile.TemporaryDirectory(prefix="foilc-realtime-") as directory:
-        conditions = {name: _condition(name, settings, Path(directory)) for name in ("quiet", "load")}
+        conditions = {name: _condition(name, settings, Path(directory)) for name in conditions_wanted}
     return {
         "settings": settings,
         "config": str(CONFIG.relative_to(ROOT)),
@@ -309,9 +311,10 @@ def _ratio(peer: float | None, bench: float | None) -> float | None:
     return peer / bench if peer is not None and bench else None
 
 
-def collect(quick: bool = False) -> dict[str, Any]:
+def collect(quick: bool = False, conditions: Sequence[str] = CONDITIONS) -> dict[str, Any]:
     """Run the benchmark in a private network namespace (``unshare --net``); the results document."""
-    command = [_python(), "-m", "benchmarks.realtime", "--inside", *(["--quick"] if quick else [])]
+    options = [*(["--quick"] if quick else []), "--conditions", *conditions]
+    command = [_python(), "-m", "benchmarks.realtime", "--inside", *options]
     started = time.time()
     result = subprocess.run(["unshare", "--net", "--", *command], capture_output=True, text=True, cwd=ROOT,
                             env={**os.environ, "PYTHONPATH": str(ROOT)}, check=True)
@@ -324,7 +327,7 @@ def collect(quick: bool = False) -> dict[str, Any]:
     }
     document["date"] = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
     document["seconds"] = round(time.time() - started, 1)
-    document["command"] = "python -m benchmarks.realtime" + (" --quick" if quick else "")
+    document["command"] = shlex.join(["python", "-m", "benchmarks.realtime", *options])
     return document
 
 
@@ -332,6 +335,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.realtime", description=__doc__.splitlines()[0])
     parser.add_argument("--out", help="JSON file to write (default: stdout)")
     parser.add_argument("--quick", action="store_true", help="2 short trials and 3 s peers instead of 10 x 6000")
+    parser.add_argument("--conditions", nargs="+", choices=CONDITIONS, default=list(CONDITIONS),
+                        help="which conditions to run (default both; 'quiet' alone starts no busy loops)")
     parser.add_argument("--inside", action="store_true", help=argparse.SUPPRESS)  # already in the namespace
     parser.add_argument("--markdown", metavar="JSON", help="print the docs section of a results file and exit")
     args = parser.parse_args(argv)
@@ -339,9 +344,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stdout.write(markdown(json.loads(Path(args.markdown).read_text(encoding="utf-8"))))
         return 0
     if args.inside:
-        sys.stdout.write(json.dumps(_inside(args.quick)))
+        sys.stdout.write(json.dumps(_inside(args.quick, args.conditions)))
         return 0
-    emit(collect(args.quick), args.out)
+    emit(collect(args.quick, args.conditions), args.out)
     return 0
 
 

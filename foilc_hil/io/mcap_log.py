@@ -17,7 +17,9 @@ Real time
 ---------
 :class:`McapLogWriter` encodes JSON and compresses on the calling thread. The bench's cycle must not pay for that:
 :class:`QueuedLogWriter` has the same logging methods, but they only put a small tuple on a
-:class:`queue.SimpleQueue`; a background thread (python-can ``Notifier`` style) does the encoding and the I/O.
+:class:`queue.SimpleQueue`; a background thread (python-can ``Notifier`` style) does the encoding and the I/O -- still
+under the loop's GIL. ``run`` logs through :class:`foilc_hil.io.log_process.ProcessLogWriter` instead: the same
+:class:`McapLogWriter` in a child process, off the loop's GIL.
 """
 
 from __future__ import annotations
@@ -27,12 +29,13 @@ import binascii
 import enum
 import json
 import math
+import operator
 import os
 import struct
 import threading
 import time
 from abc import abstractmethod
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from queue import SimpleQueue
@@ -84,6 +87,16 @@ Direction = Literal["tx", "rx"]
 _COMPRESSION: Final[dict[str, str]] = {"zstd": "zstd", "lz4": "lz4", "none": ""}
 _PROFILE: Final = ""  # no ROS profile: plain JSON messages
 _LIBRARY: Final = "foilc-hil"
+#: frames encoded at once: one loop over them instead of a chain of calls per frame (the batch costs a few hundred
+#: microseconds; a trial's end, any other message and close write a partial batch)
+FRAME_BATCH: Final = 1024
+#: a logged frame waits as one row of values: timestamp, id, extended, dlc, data, direction, log time, and its
+#: :func:`frame_fields` if it is not a classic data frame (else ``None``)
+_FRAME_ROW: Final = 8
+_FRAME_BATCH_VALUES: Final = FRAME_BATCH * _FRAME_ROW
+_time_ns: Final = time.time_ns  # one global lookup per frame instead of two
+#: the rare fields of a classic data frame (not remote, not error, not FD, no channel)
+_CLASSIC: Final = (False, False, False, False, False, None)
 
 
 class LogWriteError(FoilcHilError, OSError):
@@ -219,6 +232,10 @@ class McapLogWriter(_ClosingListener):
         Chunks are closed at this size (bytes, uncompressed) as well as at every :meth:`end_trial`.
     fsync
         ``os.fsync`` the file at every :meth:`end_trial` so a completed trial survives a power cut too.
+    compiled_frames
+        Write batches of classic frames with the compiled kernel (:mod:`foilc_hil.io.frame_kernel`, loaded at the
+        first batch: numba's import); ``False``: frame by frame in Python, the same bytes, for a process that must
+        start fast and not pause at its first batch (the writer process of ``run``).
     """
 
     def __init__(
@@ -230,6 +247,7 @@ class McapLogWriter(_ClosingListener):
         design: Mapping[str, Any] | None = None,
         chunk_size: int = 4 * 1024 * 1024,
         fsync: bool = True,
+        compiled_frames: bool = True,
     ) -> None:
         if compression not in _COMPRESSION:
             raise LogFormatError(f"compression must be one of {', '.join(_COMPRESSION)}, not {compression!r}")
@@ -244,7 +262,9 @@ class McapLogWriter(_ClosingListener):
             self._stream = output
             self._owns_stream = False
         self._fsync = fsync
+        self._compiled_frames = compiled_frames
         self._lock = threading.Lock()
+        self._frames: list[Any] = []  # logged, not yet encoded: rows of _FRAME_ROW values, one after the other
         self._closed = False
         try:
             self._writer = ChunkedMcapWriter(self._stream, chunk_size=chunk_size, compression=_COMPRESSION[compression])
@@ -259,6 +279,7 @@ class McapLogWriter(_ClosingListener):
             self._channels[topic] = self._writer.register_channel(
                 topic=topic, message_encoding=MESSAGE_ENCODING, schema_id=schema_id, metadata=metadata[topic]
             )
+        self._can_channel = self._channels[TOPIC_CAN]
         if config_yaml is not None:
             self._writer.add_metadata(METADATA_CONFIG, {"yaml": config_yaml})
         if design is not None:
@@ -268,30 +289,44 @@ class McapLogWriter(_ClosingListener):
     # -- logging ---------------------------------------------------------------------------------------------
 
     def on_message_received(self, msg: can.Message) -> None:
-        """python-can listener hook: log a received frame (``dir: "rx"``)."""
-        self.log_frame(msg, "rx")
+        """python-can listener hook: log a received frame (``dir: "rx"``; :meth:`log_frame` inlined: a Python call
+        is a tenth of a frame's cost)."""
+        odd = msg.is_remote_frame or msg.is_error_frame or msg.is_fd or msg.channel is not None
+        rare = frame_fields(msg) if odd else None
+        frames = self._frames
+        frames.extend(
+            (msg.timestamp, msg.arbitration_id, msg.is_extended_id, msg.dlc, msg.data, "rx", _time_ns(), rare)
+        )
+        if len(frames) >= _FRAME_BATCH_VALUES:
+            self._write_batch()
 
     def log_frame(self, msg: can.Message, direction: Direction, log_time_ns: int | None = None) -> None:
         """Log one CAN frame on ``/can``.
 
         ``timestamp`` is the frame's own (bus) timestamp; a frame built by the bench has none (0.0), so it gets
-        its log time.
+        its log time. Frames are encoded in batches (:data:`FRAME_BATCH`, and before any other message, so the file
+        keeps the calls' order): the payload is referenced until then, so do not change ``msg.data`` in place.
         """
-        now = time.time_ns() if log_time_ns is None else log_time_ns
-        timestamp = msg.timestamp if msg.timestamp else now / 1e9
-        document = {
-            "timestamp": timestamp,
-            "id": msg.arbitration_id,
-            "extended": msg.is_extended_id,
-            "dlc": msg.dlc,
-            "data": binascii.b2a_base64(msg.data, newline=False).decode("ascii"),
-            "dir": direction,
-        }
-        # the rarer fields only when set: a classic data frame keeps the record it always had (and its cost)
-        if msg.is_remote_frame or msg.is_error_frame or msg.is_fd or msg.channel is not None:
-            document.update(_frame_flags(msg))
-        # the frame document holds only ints, bools, strings and one float: orjson directly, no fallback needed
-        self._append(self._channels[TOPIC_CAN], orjson.dumps(document), now, round(timestamp * 1e9))
+        odd = msg.is_remote_frame or msg.is_error_frame or msg.is_fd or msg.channel is not None
+        rare = frame_fields(msg) if odd else None
+        frames = self._frames
+        # one row of _FRAME_ROW values; list.extend is one C call, atomic under the GIL, whatever thread logs
+        frames.extend((msg.timestamp, msg.arbitration_id, msg.is_extended_id, msg.dlc, msg.data, direction,
+                       _time_ns() if log_time_ns is None else log_time_ns, rare))
+        if len(frames) >= _FRAME_BATCH_VALUES:
+            self._write_batch()
+
+    def log_frame_fields(self, fields: FrameFields, direction: Direction, log_time_ns: int) -> None:
+        """:meth:`log_frame` of a frame given as its :func:`frame_fields` (what the writer process receives)."""
+        rare = fields if any(fields[5:10]) or fields[10] is not None else None
+        frames = self._frames
+        frames.extend((*fields[:5], direction, log_time_ns, rare))
+        if len(frames) >= _FRAME_BATCH_VALUES:
+            self._write_batch()
+
+    def _write_batch(self) -> None:
+        with self._lock:
+            self._write_frames()  # raises if closed
 
     def write_sample(self, record: SampleRecord, log_time_ns: int | None = None) -> None:
         """Log one sample on ``/ilc/sample``: ``output`` is the feedback the law saw, ``control`` its command.
@@ -325,20 +360,20 @@ class McapLogWriter(_ClosingListener):
     def log_design(self, design: Mapping[str, Any]) -> None:
         """Write the ``foilc_hil.design`` metadata record (if it was not known at construction)."""
         with self._lock:
-            self._check_open()
+            self._write_frames()
             self._writer.add_metadata(METADATA_DESIGN, _design_record(design))
 
     def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
         """Write another metadata record (str -> str)."""
         with self._lock:
-            self._check_open()
+            self._write_frames()
             self._writer.add_metadata(name, dict(data))
 
     def end_trial(self) -> None:
         """Close the chunk in progress and push it to disk: the trial just logged survives a crash."""
         with self._lock:
-            self._check_open()
             try:
+                self._write_frames()
                 self._writer.flush()
                 if self._fsync and hasattr(self._stream, "fileno"):
                     os.fsync(self._stream.fileno())
@@ -350,13 +385,17 @@ class McapLogWriter(_ClosingListener):
         with self._lock:
             if self._closed:
                 return
-            self._closed = True
             try:
+                self._write_frames()
+                self._closed = True
+                self._frames = _ClosedRows(self.path)
                 self._writer.finish()
                 self._stream.flush()
             except OSError as exc:
                 raise LogWriteError(f"{self.path}: {exc.strerror or exc}") from None
             finally:
+                self._closed = True
+                self._frames = _ClosedRows(self.path)
                 self._close_stream()
 
     @property
@@ -366,6 +405,7 @@ class McapLogWriter(_ClosingListener):
     def message_count(self, topic: str) -> int:
         """Messages written on ``topic`` so far."""
         with self._lock:
+            self._write_frames()
             return self._writer.message_count(self._channels[topic])
 
     # -- internals -------------------------------------------------------------------------------------------
@@ -375,11 +415,40 @@ class McapLogWriter(_ClosingListener):
 
     def _append(self, channel: int, data: bytes, log_time_ns: int, publish_time_ns: int) -> None:
         with self._lock:
-            self._check_open()
+            self._write_frames()  # the frames logged before this message go first
             try:
                 self._writer.add_message(channel, log_time_ns, data, publish_time_ns)
             except OSError as exc:
                 raise LogWriteError(f"{self.path}: {exc.strerror or exc}") from None
+
+    def _write_frames(self) -> None:
+        """Encode and append the frames logged so far (the lock is held)."""
+        self._check_open()
+        frames = self._frames
+        size = len(frames) - len(frames) % _FRAME_ROW  # whole rows: another thread may be extending
+        if not size:
+            return
+        rows = frames[:size]
+        del frames[:size]  # rows added meanwhile are past ``size``: they wait for the next batch
+        stamps, ids, extended, dlcs, datas, directions, log_times, rares = (rows[k::_FRAME_ROW] for k in range(8))
+        channel = self._can_channel
+        encoded = None
+        if self._compiled_frames and rares.count(None) == len(rares):
+            first = self._writer.message_count(channel)
+            encoded = classic_frames_records(stamps, ids, extended, dlcs, datas, directions, log_times, channel, first)
+        try:
+            if encoded is not None:
+                self._writer.add_records(channel, log_times, encoded[1], encoded[0])
+                return
+            # a remote, error or FD frame, a channel, an odd timestamp, no compiled kernel: one by one
+            classic = zip(stamps, ids, extended, dlcs, datas, strict=True)
+            fields = [rare or (*row, *_CLASSIC) for rare, row in zip(rares, classic, strict=True)]
+            timestamps = [field[0] or log_time / 1e9 for field, log_time in zip(fields, log_times, strict=True)]
+            documents = list(map(frame_json, fields, timestamps, directions))
+            publish_times = [round(timestamp * 1e9) for timestamp in timestamps]
+            self._writer.add_messages(channel, log_times, documents, publish_times)
+        except OSError as exc:
+            raise LogWriteError(f"{self.path}: {exc.strerror or exc}") from None
 
     def _check_open(self) -> None:
         if self._closed:
@@ -388,6 +457,17 @@ class McapLogWriter(_ClosingListener):
     def _close_stream(self) -> None:
         if self._owns_stream:
             self._stream.close()
+
+
+class _ClosedRows(list[Any]):
+    """The frame rows of a closed writer: logging a frame raises (the hot path checks no flag for that)."""
+
+    def __init__(self, path: str) -> None:
+        super().__init__()
+        self.path = path
+
+    def extend(self, values: Iterable[Any], /) -> None:
+        raise LogWriteError(f"{self.path}: the log is closed")
 
 
 def _design_record(design: Mapping[str, Any]) -> dict[str, str]:
@@ -818,21 +898,102 @@ def read_log(path: str | os.PathLike[str]) -> LogContents:
         return reader.read()
 
 
-def _frame_flags(msg: can.Message) -> dict[str, Any]:
+#: the attributes of a ``can.Message`` a ``/can`` record holds, in this order (one C call on the hot path):
+#: timestamp, arbitration_id, is_extended_id, dlc, data, then the rarer remote, error, fd, brs, esi and channel
+frame_fields: Final = operator.attrgetter(
+    "timestamp", "arbitration_id", "is_extended_id", "dlc", "data",
+    "is_remote_frame", "is_error_frame", "is_fd", "bitrate_switch", "error_state_indicator", "channel",
+)
+FrameFields = tuple[Any, ...]
+"""A frame as :func:`frame_fields` gives it: plain values (``marshal`` ships them to the writer process)."""
+
+#: the classic data frame's document with its values left open, per direction: what ``orjson.dumps`` of the
+#: document writes (same keys, same order, no spaces), built by formatting instead of a dict per frame
+_FRAME_TEMPLATES: Final = {
+    direction: '{"timestamp":%s,"id":%d,"extended":%s,"dlc":%d,"data":"%s","dir":"' + direction + '"}'
+    for direction in ("tx", "rx")
+}
+_JSON_BOOL: Final = ("false", "true")
+
+
+def classic_frames_records(
+    stamps: Sequence[float],
+    ids: Sequence[int],
+    extended: Sequence[bool],
+    dlcs: Sequence[int],
+    datas: Sequence[bytes | bytearray],
+    directions: Sequence[str],
+    log_times: Sequence[int],
+    channel_id: int,
+    sequence: int,
+) -> tuple[bytes, list[int]] | None:
+    """The MCAP ``Message`` records (and their offsets) of a batch of classic data frames, given as columns, on
+    ``channel_id`` from sequence number ``sequence`` on, with the ``/can`` JSON :func:`frame_json` writes (a frame
+    without a timestamp gets its log time); ``None`` if a timestamp needs orjson's spelling or a direction is odd.
+
+    The columns go to numpy by C loops and one compiled kernel writes the records
+    (:func:`foilc_hil.io.frame_kernel.encode_frames`): no Python bytecode per frame.
+    """
+    from foilc_hil.io.frame_kernel import FIXED_BYTES, encode_frames
+
+    count = len(ids)
+    if not {"tx", "rx"}.issuperset(directions):
+        return None
+    if not all(stamps):  # the bench's own frames: their log time
+        stamps = [stamp or log_time / 1e9 for stamp, log_time in zip(stamps, log_times, strict=True)]
+    texts = list(map(repr, stamps))
+    joined = "".join(texts)
+    if "e" in joined or "n" in joined:  # an exponent or a non-finite value: orjson's spelling, frame by frame
+        return None
+    text = np.frombuffer(joined.encode("ascii"), np.uint8)
+    payload = np.frombuffer(b"".join(datas), np.uint8)
+    out = np.empty(count * FIXED_BYTES + text.size + 2 * payload.size, np.uint8)
+    offsets = np.empty(count, np.int64)
+    size = encode_frames(
+        text, np.cumsum(np.fromiter(map(len, texts), np.int64, count)),
+        np.fromiter(ids, np.int64, count), np.fromiter(extended, np.bool_, count), np.fromiter(dlcs, np.int64, count),
+        payload, np.cumsum(np.fromiter(map(len, datas), np.int64, count)),
+        np.frombuffer("".join(directions).encode("ascii"), np.uint8)[::2] == ord("t"),
+        np.fromiter(log_times, np.int64, count), np.rint(np.fromiter(stamps, np.float64, count) * 1e9).astype(np.int64),
+        channel_id, sequence, out, offsets,
+    )
+    return out[:size].tobytes(), offsets.tolist()
+
+
+def frame_json(fields: FrameFields, timestamp: float, direction: Direction) -> bytes:
+    """The ``/can`` JSON document of one frame (``fields`` from :func:`frame_fields`, ``timestamp`` resolved).
+
+    A classic data frame (the cyclic traffic) is formatted from a template; ``repr`` of a float is its shortest
+    round-trip form, as orjson writes it, except for exponents and non-finite values, which go to orjson. Any
+    other frame (remote, error, FD, with a channel) is a dict encoded by orjson with its optional fields.
+    """
+    template = _FRAME_TEMPLATES.get(direction)
+    if template is not None and not any(fields[5:10]) and fields[10] is None:
+        text = repr(timestamp)
+        if "e" in text or "n" in text:  # 1e-05, 1e+16, inf, nan: orjson's spelling (null for non-finite)
+            text = orjson.dumps(timestamp).decode()
+        data = binascii.b2a_base64(fields[4], newline=False).decode("ascii")
+        return (template % (text, fields[1], _JSON_BOOL[bool(fields[2])], fields[3], data)).encode()
+    document = {
+        "timestamp": timestamp,
+        "id": fields[1],
+        "extended": bool(fields[2]),
+        "dlc": fields[3],
+        "data": binascii.b2a_base64(fields[4], newline=False).decode("ascii"),
+        "dir": direction,
+    }
+    document.update(_frame_flags(fields))
+    return orjson.dumps(document)
+
+
+def _frame_flags(fields: FrameFields) -> dict[str, Any]:
     """The optional ``/can`` fields of a frame that is not a classic data frame (schema: ``CAN_FRAME_SCHEMA``)."""
     flags: dict[str, Any] = {
-        name: True
-        for name, value in (
-            ("remote", msg.is_remote_frame),
-            ("error", msg.is_error_frame),
-            ("fd", msg.is_fd),
-            ("brs", msg.bitrate_switch),
-            ("esi", msg.error_state_indicator),
-        )
-        if value
+        name: True for name, value in zip(("remote", "error", "fd", "brs", "esi"), fields[5:10], strict=True) if value
     }
-    if msg.channel is not None:
-        flags["channel"] = msg.channel if isinstance(msg.channel, (str, int)) else str(msg.channel)
+    channel = fields[10]
+    if channel is not None:
+        flags["channel"] = channel if isinstance(channel, (str, int)) else str(channel)
     return flags
 
 

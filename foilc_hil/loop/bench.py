@@ -107,6 +107,7 @@ from plant_emulator.device import TimingMode
 if TYPE_CHECKING:
     import can
 
+    from foilc_hil.io.log_process import ProcessLogWriter
     from foilc_hil.io.mcap_log import McapLogWriter, QueuedLogWriter
 
 __all__ = [
@@ -864,8 +865,8 @@ def loop_settings(config: Any, mode: TimingMode | None = None, *, settle_between
 
 
 class McapSink:
-    """The loop's :class:`LogSink` over an MCAP writer (a :class:`~foilc_hil.io.mcap_log.QueuedLogWriter` only
-    enqueues; its thread writes).
+    """The loop's :class:`LogSink` over an MCAP writer (``run`` gives it a
+    :class:`~foilc_hil.io.log_process.ProcessLogWriter`: the loop's process only packs tuples, a child writes).
 
     Parameters
     ----------
@@ -876,7 +877,9 @@ class McapSink:
         ``/ilc/trial`` then has neither ``clamped`` nor ``command_limits``.
     """
 
-    def __init__(self, writer: McapLogWriter | QueuedLogWriter, command_limits: tuple[float, float] | None) -> None:
+    def __init__(
+        self, writer: McapLogWriter | QueuedLogWriter | ProcessLogWriter, command_limits: tuple[float, float] | None
+    ) -> None:
         from foilc_hil.io.schemas import METADATA_LAYOUT, SAMPLE_LAYOUT
 
         self.writer = writer
@@ -974,11 +977,11 @@ def _plan_run(request: RunRequest) -> _RunPlan:
 
 def _open_log(stack: contextlib.ExitStack, request: RunRequest, plan: _RunPlan) -> McapSink | None:
     from foilc_hil.config import dump_config
-    from foilc_hil.io.mcap_log import QueuedLogWriter
+    from foilc_hil.io.log_process import ProcessLogWriter
 
     if request.out is None:
         return None
-    writer = QueuedLogWriter.open(request.out, config_yaml=dump_config(request.config), design=plan.design.to_json())
+    writer = ProcessLogWriter.open(request.out, config_yaml=dump_config(request.config), design=plan.design.to_json())
     stack.callback(writer.close)
     return McapSink(writer, (plan.limiter.lower, plan.limiter.upper))
 
