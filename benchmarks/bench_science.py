@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import functools
 import statistics
 import time
 from collections.abc import Callable, Sequence
@@ -189,7 +190,7 @@ def design_comparisons(repeats: int = 3) -> list[Comparison]:
         ("configs/demo.yaml", "foilc", 2.0, "the demo's FOILC design at N = 6000 (Ts = 1 ms)"),
         ("configs/demo.yaml", "ioilc", 2.0, "the demo's IOILC design at N = 6000 (Ts = 1 ms)"),
     ):
-        figure = repeat(lambda config=config, law=law: design_seconds(config, law), repeats)
+        figure = repeat(functools.partial(design_seconds, config, law), repeats)
         rows.append(Comparison(what, "s", False, figure, limit=limit,
                                note="in process, imports done (scipy, cvxpy and numba add about 3 s to a cold "
                                "command)"))

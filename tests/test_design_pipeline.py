@@ -268,3 +268,21 @@ def test_the_plants_own_delay_is_folded_into_the_design(delay_samples: int) -> N
     result = simulation.simulate(config, law="ioilc", trials=4, design=design, input_delay=1)
     first, last = result.metrics[0].rmse_learnable, result.metrics[-1].rmse_learnable
     assert last < 1e-3 * first, (first, last)
+
+
+def test_the_design_reports_its_steps_on_a_terminal_only(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Progress lines on stderr when it is a terminal (the steps in order, the last one "done"); nothing otherwise."""
+    import io
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    for stream, expected in ((Terminal(), 3), (io.StringIO(), 0)):
+        monkeypatch.setattr("sys.stderr", stream)
+        build_design(_config(law={}), "ioilc", 20, input_delay=0)
+        lines = stream.getvalue().splitlines()
+        assert len(lines) == expected, lines
+        assert all(line.startswith("foilc-hil: design ioilc (N = 20): ") for line in lines)
+        if expected:
+            assert "tuning" in lines[0] and "certificates" in lines[1] and "done" in lines[2]

@@ -55,13 +55,18 @@ What is exact and what is estimated
   Toeplitz symbol (:meth:`LiftedErrorMap.symbol_upper_bound`: the sup of the symbol on a fine grid, widened by its
   Lipschitz constant, plus the correction columns' Frobenius norm). When that bound is below 1 it is the
   certificate (``norm_2_method = "upper bound (truncated Toeplitz symbol)"``; ``norm_2`` is then the bound, at most
-  a few 1e-5 above the exact finite-trial norm on the shipped configs) and nothing iterative runs. Otherwise, for
+  a few 1e-5 above the exact finite-trial norm on the shipped configs) and nothing iterative runs. Otherwise a
+  power iteration's ``||T v||`` (a unit ``v``: a rigorous LOWER bound) at or above 1 settles the verdict, not
+  monotonic (``"lower bound (power iteration; the symbol bound is not below 1)"``). Only between the two, for
   the exact value: ARPACK (``scipy.sparse.linalg.svds``) with
   FFT matrix-vector products, to a relative tolerance of 1e-8 -- an iterative estimate of the exact finite-trial
   norm, not a bound. For trials short enough (``L p <= DENSE_LIMIT``) it is a dense SVD instead; if ARPACK does
   not converge, a dense SVD up to ``DENSE_FALLBACK_LIMIT`` rows, else no certificate. When the spectral radius
   is already ``>= 1`` the norm is not needed for the verdict: ``norm_2`` is then a lower bound (the larger of
   the radius and a short power iteration).
+* The rescale search of :func:`certify` evaluates tens of scales of ``p2`` at every plant; for single-output
+  Toeplitz maps the blocks are affine in the scale, so :class:`_ScaledErrorMap` computes each plant's symbol once
+  and a scale costs one pass over the grid -- the same bounds, not an approximation of them.
 * ``norm_2_symbol``: the sup over a frequency grid of the Toeplitz symbol of ``T`` (the long-trial limit of the
   2-norm of the Toeplitz part), for information.
 * With a Q-filter: spectral radius by ARPACK ``eigs`` (an estimate; dense ``eigvals`` for small trials), 2-norm
@@ -386,6 +391,36 @@ def markov_blocks(A_cl: np.ndarray, B_in: np.ndarray, C_out: np.ndarray, start: 
     return blocks
 
 
+def _symbol_grid(length: int, moments: tuple[float, float, float], cap: int) -> int:
+    """Points of the symbol grid: a power of two, at least ``max(4096, 2 L)``, fine enough that the curvature
+    widening of :func:`_grid_bound` is at most :data:`SYMBOL_SLACK` (``moments``: ``S_k = sum_j j^k ||tau_j||``)."""
+    s0, s1, s2 = moments
+    curvature = 2.0 * (s0 * s2 + s1 * s1)
+    wanted = max(4096, 2 * length, math.ceil(2.0 * math.pi * math.sqrt(curvature / (8.0 * SYMBOL_SLACK))))
+    return min(cap, 1 << math.ceil(math.log2(wanted)))
+
+
+def _grid_bound(peak: float, grid: int, moments: tuple[float, float, float]) -> float:
+    """A rigorous bound on ``sup_theta |a(theta)|`` from its maximum ``peak`` on a uniform ``grid``-point grid.
+
+    With ``S_k = sum_j j^k |tau_j|``: every ``theta`` lies within ``pi / M`` of a grid point and ``|a'| <= S_1``
+    (Lipschitz); ``g = |a|^2`` has ``|g''| <= 2 (S_0 S_2 + S_1^2)``, so between two grid points ``g`` exceeds the
+    larger end by at most ``(2 pi / M)^2 / 8`` times that (curvature); and ``|a| <= S_0`` (triangle inequality).
+    The smallest of the three.
+    """
+    s0, s1, s2 = moments
+    step = 2.0 * math.pi / grid
+    lipschitz = peak + s1 * step / 2.0
+    curvature = math.sqrt(peak * peak + step * step / 8.0 * 2.0 * (s0 * s2 + s1 * s1))
+    return min(lipschitz, curvature, s0)
+
+
+def _moments(magnitudes: np.ndarray) -> tuple[float, float, float]:
+    """``S_k = sum_j j^k magnitudes[j]`` for ``k = 0, 1, 2``."""
+    j = np.arange(magnitudes.shape[0], dtype=float)
+    return float(np.sum(magnitudes)), float(np.sum(j * magnitudes)), float(np.sum(j * j * magnitudes))
+
+
 @dataclass(frozen=True)
 class LiftedErrorMap:
     """``T = I - H F'`` on ``e[lead:]`` (module notes), with its pieces for fast products."""
@@ -468,27 +503,29 @@ class LiftedErrorMap:
 
         The Toeplitz part of ``T`` is a finite section (a compression) of the Laurent operator of the truncated
         symbol ``a(theta) = sum_{j < L} tau_j e^{i j theta}``, whose norm is ``sup_theta ||a(theta)||_2``; so that sup
-        bounds it, for every trial length. The sup is taken on an ``M``-point grid and widened by
-        ``(pi / M) sum_j j ||tau_j||_2`` (``||a'|| <= sum_j j ||tau_j||`` and every ``theta`` lies within ``pi / M`` of
-        a grid point); the correction columns of the "trial" memory add their Frobenius norm.
+        bounds it, for every trial length. The sup is taken on an ``M``-point grid and widened rigorously: for one
+        output by :func:`_grid_bound` (the smallest of a Lipschitz, a curvature and the triangle bound; the
+        curvature widening shrinks like ``1 / M^2``, so the grid stays small), for several by
+        ``(pi / M) sum_j j ||tau_j||_2`` (``||a'|| <= sum_j j ||tau_j||``, every ``theta`` within ``pi / M`` of a
+        grid point); the correction columns of the "trial" memory add their Frobenius norm.
         """
         if self.F is None:
             return self.norm_upper_bound()
         from scipy.fft import fft
 
         taus = self._taus()
-        lipschitz = float(np.sum(np.arange(self.length) * np.linalg.norm(taus, ord=2, axis=(1, 2))))
-        cap = SYMBOL_GRID_CAP if self.n_outputs == 1 else SYMBOL_GRID_CAP_MIMO
-        wanted = max(4096, 2 * self.length, math.ceil(lipschitz * math.pi / SYMBOL_SLACK))
-        grid = min(cap, 1 << math.ceil(math.log2(wanted)))
-        symbol = fft(taus, n=grid, axis=0)
+        magnitudes = np.linalg.norm(taus, ord=2, axis=(1, 2))
+        moments = _moments(magnitudes)
         if self.n_outputs == 1:
-            peak = float(np.max(np.abs(symbol)))
-        else:
-            peak = float(np.max(np.linalg.svd(symbol, compute_uv=False)))
+            grid = _symbol_grid(self.length, moments, SYMBOL_GRID_CAP)
+            peak = float(np.max(np.abs(fft(taus[:, 0, 0], n=grid))))
+            return _grid_bound(peak, grid, moments) + self._correction_norm()
+        lipschitz = moments[1]
+        wanted = max(4096, 2 * self.length, math.ceil(lipschitz * math.pi / SYMBOL_SLACK))
+        grid = min(SYMBOL_GRID_CAP_MIMO, 1 << math.ceil(math.log2(wanted)))
+        peak = float(np.max(np.linalg.svd(fft(taus, n=grid, axis=0), compute_uv=False)))
         # both are rigorous; the triangle inequality wins when every tau_j has the same phase at one frequency
-        triangle = float(np.sum(np.linalg.norm(taus, ord=2, axis=(1, 2))))
-        return min(peak + lipschitz * math.pi / grid, triangle) + self._correction_norm()
+        return min(peak + lipschitz * math.pi / grid, moments[0]) + self._correction_norm()
 
     def _correction_norm(self) -> float:
         """Frobenius norm of ``T``'s correction columns (the Caputo terms of the "trial" memory); 0 without."""
@@ -714,8 +751,10 @@ def _power_norm(
     matvec: Callable[[np.ndarray], np.ndarray],
     rmatvec: Callable[[np.ndarray], np.ndarray],
     iterations: int = POWER_ITERATIONS,
+    enough: float = math.inf,
 ) -> float:
-    """A LOWER bound on the largest singular value: ``||T v||`` for ``v`` from power iteration on ``T^T T``."""
+    """A LOWER bound on the largest singular value: ``||T v||`` for ``v`` from power iteration on ``T^T T``;
+    it stops early once the bound reaches ``enough`` (all a verdict may need to know)."""
     v = np.random.default_rng(0).standard_normal(size)
     v /= np.linalg.norm(v)
     estimate = 0.0
@@ -724,6 +763,8 @@ def _power_norm(
         estimate = max(estimate, float(np.linalg.norm(w)))
         if not math.isfinite(estimate):
             return math.inf
+        if estimate >= enough:
+            break
         v = rmatvec(w)
         norm = float(np.linalg.norm(v))
         if norm == 0.0:
@@ -790,7 +831,7 @@ def _error_map_certificate(loop: LoopPlant, law: LawStructure) -> PlantCertifica
     else:
         # a cheap lower bound first: above one it settles the verdict (not monotonic) without ARPACK, which the
         # rescale search would otherwise run at every scale past the admissible interval (seconds each at N = 6000)
-        lower = _power_norm(T.size, T.matvec, T.rmatvec) if T.size > DENSE_LIMIT else 0.0
+        lower = _power_norm(T.size, T.matvec, T.rmatvec, enough=1.0) if T.size > DENSE_LIMIT else 0.0
         if lower >= 1.0:
             norm, method = lower, "lower bound (power iteration; the symbol bound is not below 1)"
         else:
@@ -892,8 +933,8 @@ class _ScaledErrorMap:
     the Toeplitz blocks are ``tau_j(s) = delta_j - s c_j`` with ``c = h * w`` (``h`` the unscaled Markov
     parameters, ``w`` the filter's weights) computed once, and so is their spectrum on the symbol grid: a scale
     then costs one pass over that grid. The numbers are those of :meth:`LiftedErrorMap.spectral_radius` and
-    :meth:`LiftedErrorMap.symbol_upper_bound` (the same rigorous bound: the grid's maximum plus the Lipschitz
-    widening ``s (pi / M) sum_j j |c_j|``, or the triangle inequality), for pure Toeplitz maps (no correction
+    :meth:`LiftedErrorMap.symbol_upper_bound` (the same rigorous :func:`_grid_bound`, with ``S_1``, ``S_2`` of
+    ``T(s)`` equal to ``s`` times those of ``c``), for pure Toeplitz maps (no correction
     columns) longer than :data:`DENSE_LIMIT`; anything else, and any scale whose bound is not below one, takes
     :func:`map_certificate`.
     """
@@ -904,7 +945,7 @@ class _ScaledErrorMap:
     real: np.ndarray
     modulus2: np.ndarray
     grid: int
-    lipschitz: float  # sum_j j |c_j|: the symbol's Lipschitz constant at s = 1
+    c_moments: tuple[float, float]  # sum_j j |c_j|, sum_j j^2 |c_j|: S_1 and S_2 of T(s) are s times these
     info_spectrum: np.ndarray  # fft of c on LiftedErrorMap.symbol_norm's grid
 
     @staticmethod
@@ -917,15 +958,15 @@ class _ScaledErrorMap:
         T = lifted_error_map(loop, law)
         if T.F is None or T.F.corrections.shape[1] or T.size <= DENSE_LIMIT or not np.all(np.isfinite(T.H.blocks)):
             return None
-        c = -T._taus()[:, 0, 0]  # tau_j = delta_j - c_j
+        taus = T._taus()[:, 0, 0]
+        c = -taus  # tau_j = delta_j - c_j
         c[0] += 1.0
-        lipschitz = float(np.sum(np.arange(T.length) * np.abs(c)))
-        wanted = max(4096, 2 * T.length, math.ceil(lipschitz * math.pi / SYMBOL_SLACK))
-        grid = min(SYMBOL_GRID_CAP, 1 << math.ceil(math.log2(wanted)))
+        _, s1, s2 = _moments(np.abs(c))
+        grid = _symbol_grid(T.length, _moments(np.abs(taus)), SYMBOL_GRID_CAP)  # s = 1: the largest moments
         info = fft(c, n=max(4096, 2 * T.length))
         spectrum = rfft(c, n=grid)
         return _ScaledErrorMap(
-            c, np.ascontiguousarray(spectrum.real), np.abs(spectrum) ** 2, grid, lipschitz, np.asarray(info)
+            c, np.ascontiguousarray(spectrum.real), np.abs(spectrum) ** 2, grid, (s1, s2), np.asarray(info)
         )
 
     def certificate(self, scale: float, loop: LoopPlant, law: LawStructure) -> PlantCertificate | None:
@@ -937,14 +978,15 @@ class _ScaledErrorMap:
         peak = math.sqrt(max(0.0, float(np.max(scale * scale * self.modulus2 - 2.0 * scale * self.real)) + 1.0))
         taus = -scale * self.c
         taus[0] += 1.0
-        bound = min(peak + scale * self.lipschitz * math.pi / self.grid, float(np.sum(np.abs(taus))))
+        moments = (float(np.sum(np.abs(taus))), scale * self.c_moments[0], scale * self.c_moments[1])
+        bound = _grid_bound(peak, self.grid, moments)
         symbol = float(np.max(np.abs(1.0 - scale * self.info_spectrum)))
         if bound < 1.0:
             return PlantCertificate(
                 "", "error", radius, bound, "upper bound (truncated Toeplitz symbol)", norm_2_symbol=symbol
             )
         T = lifted_error_map(loop.scaled(scale), law)
-        lower = _power_norm(T.size, T.matvec, T.rmatvec)
+        lower = _power_norm(T.size, T.matvec, T.rmatvec, enough=1.0)
         if lower < 1.0:  # inconclusive: the exact norm decides (map_certificate)
             return None
         method = "lower bound (power iteration; the symbol bound is not below 1)"

@@ -13,6 +13,9 @@ Module order: in :mod:`foilc_hil.design`, models < fractional, qfilter, ptype < 
 
 from __future__ import annotations
 
+import sys
+import time
+
 from foilc_hil.config import Config, DesignMethod, LawKind
 from foilc_hil.design.certificates import LawStructure, certify_p_type
 from foilc_hil.design.codesign import codesign
@@ -46,6 +49,24 @@ def law_kind(law: str) -> LawKind:
         return LawKind(law)
     except ValueError:
         raise ConfigError(f"unknown law {law!r}; choose {', '.join(LawKind)}", key="law.kind") from None
+
+
+class DesignSteps:
+    """Progress of one design on stderr: a line per step with the time since the design began.
+
+    Printed only when stderr is a terminal (as the bench's progress view), so ``--json`` output, pipes and CI logs
+    stay clean; the design of a long trial (the certificates at N = 6000) then never looks hung.
+    """
+
+    def __init__(self, law: str, n_samples: int) -> None:
+        self.prefix = f"foilc-hil: design {law} (N = {n_samples})"
+        self.started = time.perf_counter()
+        self.enabled = sys.stderr.isatty()
+
+    def step(self, what: str) -> None:
+        """Report that ``what`` starts (or, for the last step, is done)."""
+        if self.enabled:
+            print(f"{self.prefix}: {what} [{time.perf_counter() - self.started:.1f} s]", file=sys.stderr, flush=True)
 
 
 def model_delay_samples(config: Config) -> int:
@@ -149,9 +170,21 @@ def build_design(config: Config, law: str, n_samples: int, *, input_delay: int) 
         Tuning, the LMI or the certificate fails (exit 3).
     """
     kind = law_kind(law)
+    steps = DesignSteps(kind, n_samples)
     input_delay += model_delay_samples(config)
     model, uncertainty = design_model(config, input_delay=input_delay)
+    steps.step("model and law structure (tuning kp, r where needed)")
     structure = law_structure(config, kind, n_samples, input_delay=input_delay)
+    steps.step("gain and certificates of the law as it runs")
+    design = _design(config, kind, model, uncertainty, structure)
+    steps.step("done")
+    return design
+
+
+def _design(
+    config: Config, kind: LawKind, model: DiscreteModel, uncertainty: Uncertainty, structure: LawStructure
+) -> Design:
+    """The gain of ``kind`` on ``model`` and its certificates (the step after tuning of :func:`build_design`)."""
     settings = config.synthesis
     if kind is LawKind.NOILC:
         return certify_noilc(
