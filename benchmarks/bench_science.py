@@ -4,12 +4,18 @@
   ``lfilter`` running the same Grünwald–Letnikov weights as an FIR filter (an independent implementation); the
   largest difference between them is reported next to the times.
 - LMI (31) synthesis: CLARABEL and SCS on the same problem (time, gamma, and whether the numpy re-check passed).
+- Issue 9, target 7 (:func:`fractional_comparisons`): the derivative of one N = 200,000 trial against the analytic
+  truth at every sample, the project beside the ``differint`` package's GL (time and per-sample error) and a
+  direct O(N^2) convolution of the same weights.
+- Issue 9, target 4 (:func:`design_comparisons`): the design step in process (imports done), ``synthesize`` on
+  ``configs/paper_sim.yaml`` (N = 2000) and the demo's design at N = 6000, against their goals.
 
 ``python -m benchmarks.bench_science [--out F.json]``
 """
 
 from __future__ import annotations
 
+import functools
 import statistics
 import time
 from collections.abc import Callable, Sequence
@@ -17,7 +23,14 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.comparison import Comparison, Figure, alternate, comparisons_json, repeat, seconds
 from benchmarks.output import emit, json_parser
+
+#: trial length of target 7
+LONG_TRIAL = 200_000
+#: order and exponent of its signal: the law's r = 0.5 order, and a discrete ``t^1.5`` (see :func:`analytic_pair`)
+LONG_ORDER = 0.5
+LONG_EXPONENT = 2.5
 
 
 def _median_seconds(call: Callable[[], object], repeats: int = 5) -> float:
@@ -97,14 +110,110 @@ def lmi(sample_time: float = 0.01) -> list[dict[str, Any]]:
     return rows
 
 
+def analytic_pair(r: float, b: float, n: int, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """``f`` and its exact Grünwald–Letnikov derivative of order ``r`` with step ``h``, ``n`` samples.
+
+    ``f_k = Gamma(k + b) / (Gamma(b) k!)`` are the coefficients of ``(1 - z)^-b`` (a discrete ``t^(b-1)``); the GL
+    weights are those of ``(1 - z)^r``, so the derivative is exactly ``h^-r`` times the coefficients of
+    ``(1 - z)^(r-b)``. Both by their ratio recurrence (relative rounding at most ``k`` eps: 4e-11 at k = 200,000).
+    """
+    k = np.arange(1, n, dtype=float)
+
+    def coefficients(c: float) -> np.ndarray:
+        return np.concatenate([[1.0], np.cumprod((k - 1.0 + c) / k)])
+
+    return coefficients(b), coefficients(b - r) * h**-r
+
+
+def _worst_relative(got: np.ndarray, truth: np.ndarray) -> float:
+    return float(np.max(np.abs(got - truth) / np.abs(truth)))
+
+
+def fractional_comparisons(n: int = LONG_TRIAL, repeats: int = 3, h: float = 1e-3) -> list[Comparison]:
+    """Target 7: time and worst per-sample relative error at ``n`` samples, against ``differint.GL`` and a direct
+    O(N^2) convolution (``numpy.convolve``, measured once: it takes tens of seconds)."""
+    import differint.differint as differint
+
+    from foilc_hil.design.fractional import gl_derivative, gl_weights
+
+    r = LONG_ORDER
+    f, truth = analytic_pair(r, LONG_EXPONENT, n, h)
+    weights = gl_weights(r, n)
+
+    def ours() -> np.ndarray:
+        return gl_derivative(f, r, h)
+
+    def peer() -> np.ndarray:  # its domain end makes its step (end - start) / (n - 1) equal to h
+        return np.asarray(differint.GL(r, f, 0.0, (n - 1) * h, n))
+
+    def direct() -> np.ndarray:
+        return np.convolve(weights, f)[:n] * h**-r
+
+    ours_time, peer_time = alternate(lambda: seconds(ours), lambda: seconds(peer), repeats)
+    direct_result: list[np.ndarray] = []
+    direct_time = repeat(lambda: seconds(lambda: direct_result.append(direct())), 1)
+    ours_error = Figure((_worst_relative(ours(), truth),))
+    label = f"fractional derivative, N = {n:,} (r = {r}, discrete t^{LONG_EXPONENT - 1:g})"
+    return [
+        Comparison(f"{label}: time", "s", False, ours_time, peer_time, "differint.GL 1.0.0",
+                   note="differint's GL is a circular (unpadded) FFT: fast, right only at the last sample"),
+        Comparison(f"{label}: time", "s", False, ours_time, direct_time, "direct O(N^2) convolution (numpy)"),
+        Comparison(f"{label}: worst per-sample relative error against the analytic truth", "relative error", False,
+                   ours_error, Figure((_worst_relative(peer(), truth),)), "differint.GL 1.0.0", limit=1e-9,
+                   note="truth: the exact GL derivative of a discrete t^1.5 (benchmarks.bench_science.analytic_pair)"),
+        Comparison(f"{label}: worst per-sample relative error against the analytic truth", "relative error", False,
+                   ours_error, Figure((_worst_relative(direct_result[0], truth),)),
+                   "direct O(N^2) convolution (numpy)", limit=1e-9),
+    ]
+
+
+def design_seconds(config_path: str, law: str, n_samples: int | None = None) -> float:
+    """Wall-clock seconds of ``build_design`` for ``config_path`` (imports and numba done beforehand): the design
+    step ``synthesize`` and the demo run, with the CAN loop's input delay."""
+    from pathlib import Path
+
+    from foilc_hil.config import load_config
+    from foilc_hil.design.pipeline import build_design
+    from foilc_hil.references import trial_samples
+
+    config = load_config(Path(config_path))
+    n = n_samples or trial_samples(config.reference, config.sample_time)
+    return seconds(lambda: build_design(config, law, n, input_delay=1))
+
+
+def design_comparisons(repeats: int = 3) -> list[Comparison]:
+    """Target 4: the design step against its goals (no peer: the goals are absolute)."""
+    design_seconds("configs/paper_sim.yaml", "ioilc", 50)  # warm-up: imports, solver set-up
+    rows = []
+    for config, law, limit, what in (
+        ("configs/paper_sim.yaml", "foilc", 1.0, "synthesize --config configs/paper_sim.yaml (N = 2000), design step"),
+        ("configs/demo.yaml", "foilc", 2.0, "the demo's FOILC design at N = 6000 (Ts = 1 ms)"),
+        ("configs/demo.yaml", "ioilc", 2.0, "the demo's IOILC design at N = 6000 (Ts = 1 ms)"),
+    ):
+        figure = repeat(functools.partial(design_seconds, config, law), repeats)
+        rows.append(Comparison(what, "s", False, figure, limit=limit,
+                               note="in process, imports done (scipy, cvxpy and numba add about 3 s to a cold "
+                               "command)"))
+    return rows
+
+
+def science_comparisons(repeats: int = 3) -> list[Comparison]:
+    """The rows :mod:`benchmarks.run` adds to ``docs/benchmarks.md`` from this module."""
+    return [*fractional_comparisons(repeats=repeats), *design_comparisons(repeats)]
+
+
 def collect() -> dict[str, Any]:
     return {"fractional_derivative": fractional(), "lmi_synthesis": lmi()}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = json_parser("python -m benchmarks.bench_science", __doc__).parse_args(argv)
-    emit(collect(), args.out)
+    parser = json_parser("python -m benchmarks.bench_science", __doc__)
+    parser.add_argument("--rows-only", action="store_true", help="only the target 4 and 7 comparison rows")
+    args = parser.parse_args(argv)
+    rows = comparisons_json(science_comparisons())
+    emit({"comparisons": rows} if args.rows_only else {**collect(), "comparisons": rows}, args.out)
     return 0
+
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -72,6 +72,7 @@ def collect(repeats: int = 3) -> dict[str, Any]:
     lockstep, lockstep_row = _lockstep(repeats)
     lockstep_peer, lockstep_rows = bench_lockstep.collect(repeats)
     lockstep_profile = bench_profile.collect(repeats)
+    science_rows = bench_science.science_comparisons(repeats)
     with tempfile.TemporaryDirectory() as directory:
         logging_costs = bench_logging.per_call_costs(Path(directory))
         writers = bench_logging.writer_comparisons(Path(directory), repeats=repeats)
@@ -84,7 +85,7 @@ def collect(repeats: int = 3) -> dict[str, Any]:
             "cpus": os.cpu_count(),
             "load_average_1min": started_load,
         },
-        "comparisons": comparisons_json([*physics, *simulated, lockstep_row, *lockstep_rows, *writers]),
+        "comparisons": comparisons_json([*physics, *simulated, lockstep_row, *lockstep_rows, *writers, *science_rows]),
         "physics": {"jit": bench_physics.jit_cost()},
         "logging_per_call": logging_costs,
         "science": bench_science.collect(),

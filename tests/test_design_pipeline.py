@@ -13,6 +13,7 @@ import yaml
 
 from foilc_hil.cli import main
 from foilc_hil.config import Config, LawKind, load_config
+from foilc_hil.design import pipeline
 from foilc_hil.design.certificates import dense_input_map
 from foilc_hil.design.pipeline import build_design, law_kind
 from foilc_hil.design.ptype import p_type_default_gain
@@ -248,3 +249,40 @@ def test_the_order_check_can_fail() -> None:
     assert "certificates" in _design_imports("lmi")
     assert "lmi" not in _design_imports("certificates")
     assert not {"certificates"} <= set(DESIGN_ORDER[: DESIGN_ORDER.index("certificates")])
+
+
+@pytest.mark.parametrize("delay_samples", [0, 1, 2])
+def test_the_plants_own_delay_is_folded_into_the_design(delay_samples: int) -> None:
+    """``plant.delay`` (whole samples) makes the design look that much further ahead, and ``simulate`` applies it
+    once (the first-order physics delays the command; the simulated drive adds only the loop's transport delay):
+    IOILC then learns the delayed plant's learnable error away. A design that ignored the delay would learn from
+    error samples its input never moved, and not converge."""
+    config = _config(
+        plant={"model": "first_order", "a": -1.23, "b": 1.68, "c": 1.0, "delay": delay_samples * SAMPLE_TIME},
+        law={},
+        synthesis={"require_monotonic": True},
+    )
+    assert pipeline.model_delay_samples(config) == delay_samples
+    design = build_design(config, "ioilc", trial_samples(config.reference, SAMPLE_TIME), input_delay=1)
+    assert design.input_delay == 1 + delay_samples
+    result = simulation.simulate(config, law="ioilc", trials=4, design=design, input_delay=1)
+    first, last = result.metrics[0].rmse_learnable, result.metrics[-1].rmse_learnable
+    assert last < 1e-3 * first, (first, last)
+
+
+def test_the_design_reports_its_steps_on_a_terminal_only(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Progress lines on stderr when it is a terminal (the steps in order, the last one "done"); nothing otherwise."""
+    import io
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    for stream, expected in ((Terminal(), 3), (io.StringIO(), 0)):
+        monkeypatch.setattr("sys.stderr", stream)
+        build_design(_config(law={}), "ioilc", 20, input_delay=0)
+        lines = stream.getvalue().splitlines()
+        assert len(lines) == expected, lines
+        assert all(line.startswith("foilc-hil: design ioilc (N = 20): ") for line in lines)
+        if expected:
+            assert "tuning" in lines[0] and "certificates" in lines[1] and "done" in lines[2]

@@ -11,16 +11,20 @@ laws are computed first, in parallel.
 After the runs it draws ``comparison.png`` (:func:`foilc_hil.logtools.report.write_comparison`: the laws side by
 side) and ends with a one-line verdict (:func:`verdict`) pointing to ``docs/paper-reproduction.md``.
 
-Sample time: ``Ts = 10 ms`` (600 samples per 6 s trial; 2 x 30 x (601 trial + ~80 settle) ~= 41k cycles). With the
-compiled physics (:mod:`plant_emulator.physics.kernels`) the embedded CAN path runs the PMSM at about 3000 lockstep
-cycles/s on the shared two-core reference machine (it ran 550-700 before), so the demo takes about 45-50 s there
-(measured 48 s at load average 12: 15 s of design, 8 s FOILC, 7 s IOILC, the rest reports and start-up).
+The paper's scale: ``Ts = 1 ms``, 6000 samples per 6 s trial (eq. 52 is in milliseconds), 2 x 30 x (6001 trial
++ ~200 settle) = 372k lockstep cycles. What made 1 ms fail before (the drive faulted on its torque limit, EMCY
+0x2310, in the second trial): the axis answers a velocity command about 1 ms late (current loop, the velocity
+loop's filter, the speed measured as an angle difference over one period; a step at 1 ms moves the first sample by
+0.018 of the step where the first-order model says 0.095). At 10 ms that is a tenth of a sample; at 1 ms a whole
+one, and the LMI's in-trial feedback ``p1``, tuned to the model's first Markov parameter, then drives the learned
+command at the Nyquist frequency (+3800 / -850 rpm on alternate samples in trial 2) into the torque limit. The
+config now states that lag (``plant.delay: 0.001``) and the design looks one sample further ahead
+(:func:`foilc_hil.design.pipeline.model_delay_samples`; ``input_delay`` 2 = the CAN cycle + the drive's lag).
 
-The paper's own scale, ``Ts = 1 ms`` and 6000 samples, is 2 x 30 x (6001 + 200) = 372k cycles: at the same rate
-about 2 minutes of loop plus the N = 6000 certificates (about 18 s), so more than the ~90 s a demo may take. It
-also needs a design change: with the demo's model and an uncertainty bound scaled to 1 ms (|dA|, |dB| <= 0.023),
-the second trial's learned command drives the velocity loop into its torque limit and the drive faults (EMCY
-0x2310). Neither is a question of the physics' speed any more (a 1 ms PMSM step costs a few microseconds).
+Left as it is: the axis starts every trial at rest while eq. (52) starts at 400 rpm. At 1 ms the first milliseconds of
+that step are beyond the drive's torque (3.8 N m on 5e-4 kg m^2: at most 73 rpm per sample), so their error is
+not learnable; the law learns the command up to the drive's limit there (``velocity_limit``, the law's command
+limits stop the windup) -- the early swing the reports' notes explain.
 """
 
 from __future__ import annotations

@@ -55,13 +55,18 @@ What is exact and what is estimated
   Toeplitz symbol (:meth:`LiftedErrorMap.symbol_upper_bound`: the sup of the symbol on a fine grid, widened by its
   Lipschitz constant, plus the correction columns' Frobenius norm). When that bound is below 1 it is the
   certificate (``norm_2_method = "upper bound (truncated Toeplitz symbol)"``; ``norm_2`` is then the bound, at most
-  a few 1e-5 above the exact finite-trial norm on the shipped configs) and nothing iterative runs. Otherwise, for
+  a few 1e-5 above the exact finite-trial norm on the shipped configs) and nothing iterative runs. Otherwise a
+  power iteration's ``||T v||`` (a unit ``v``: a rigorous LOWER bound) at or above 1 settles the verdict, not
+  monotonic (``"lower bound (power iteration; the symbol bound is not below 1)"``). Only between the two, for
   the exact value: ARPACK (``scipy.sparse.linalg.svds``) with
   FFT matrix-vector products, to a relative tolerance of 1e-8 -- an iterative estimate of the exact finite-trial
   norm, not a bound. For trials short enough (``L p <= DENSE_LIMIT``) it is a dense SVD instead; if ARPACK does
   not converge, a dense SVD up to ``DENSE_FALLBACK_LIMIT`` rows, else no certificate. When the spectral radius
   is already ``>= 1`` the norm is not needed for the verdict: ``norm_2`` is then a lower bound (the larger of
   the radius and a short power iteration).
+* The rescale search of :func:`certify` evaluates tens of scales of ``p2`` at every plant; for single-output
+  Toeplitz maps the blocks are affine in the scale, so :class:`_ScaledErrorMap` computes each plant's symbol once
+  and a scale costs one pass over the grid -- the same bounds, not an approximation of them.
 * ``norm_2_symbol``: the sup over a frequency grid of the Toeplitz symbol of ``T`` (the long-trial limit of the
   2-norm of the Toeplitz part), for information.
 * With a Q-filter: spectral radius by ARPACK ``eigs`` (an estimate; dense ``eigvals`` for small trials), 2-norm
@@ -387,6 +392,36 @@ def markov_blocks(A_cl: np.ndarray, B_in: np.ndarray, C_out: np.ndarray, start: 
     return blocks
 
 
+def _symbol_grid(length: int, moments: tuple[float, float, float], cap: int) -> int:
+    """Points of the symbol grid: a power of two, at least ``max(4096, 2 L)``, fine enough that the curvature
+    widening of :func:`_grid_bound` is at most :data:`SYMBOL_SLACK` (``moments``: ``S_k = sum_j j^k ||tau_j||``)."""
+    s0, s1, s2 = moments
+    curvature = 2.0 * (s0 * s2 + s1 * s1)
+    wanted = max(4096, 2 * length, math.ceil(2.0 * math.pi * math.sqrt(curvature / (8.0 * SYMBOL_SLACK))))
+    return min(cap, 1 << math.ceil(math.log2(wanted)))
+
+
+def _grid_bound(peak: float, grid: int, moments: tuple[float, float, float]) -> float:
+    """A rigorous bound on ``sup_theta |a(theta)|`` from its maximum ``peak`` on a uniform ``grid``-point grid.
+
+    With ``S_k = sum_j j^k |tau_j|``: every ``theta`` lies within ``pi / M`` of a grid point and ``|a'| <= S_1``
+    (Lipschitz); ``g = |a|^2`` has ``|g''| <= 2 (S_0 S_2 + S_1^2)``, so between two grid points ``g`` exceeds the
+    larger end by at most ``(2 pi / M)^2 / 8`` times that (curvature); and ``|a| <= S_0`` (triangle inequality).
+    The smallest of the three.
+    """
+    s0, s1, s2 = moments
+    step = 2.0 * math.pi / grid
+    lipschitz = peak + s1 * step / 2.0
+    curvature = math.sqrt(peak * peak + step * step / 8.0 * 2.0 * (s0 * s2 + s1 * s1))
+    return min(lipschitz, curvature, s0)
+
+
+def _moments(magnitudes: np.ndarray) -> tuple[float, float, float]:
+    """``S_k = sum_j j^k magnitudes[j]`` for ``k = 0, 1, 2``."""
+    j = np.arange(magnitudes.shape[0], dtype=float)
+    return float(np.sum(magnitudes)), float(np.sum(j * magnitudes)), float(np.sum(j * j * magnitudes))
+
+
 @dataclass(frozen=True)
 class LiftedErrorMap:
     """``T = I - H F'`` on ``e[lead:]`` (module notes), with its pieces for fast products."""
@@ -469,27 +504,29 @@ class LiftedErrorMap:
 
         The Toeplitz part of ``T`` is a finite section (a compression) of the Laurent operator of the truncated
         symbol ``a(theta) = sum_{j < L} tau_j e^{i j theta}``, whose norm is ``sup_theta ||a(theta)||_2``; so that sup
-        bounds it, for every trial length. The sup is taken on an ``M``-point grid and widened by
-        ``(pi / M) sum_j j ||tau_j||_2`` (``||a'|| <= sum_j j ||tau_j||`` and every ``theta`` lies within ``pi / M`` of
-        a grid point); the correction columns of the "trial" memory add their Frobenius norm.
+        bounds it, for every trial length. The sup is taken on an ``M``-point grid and widened rigorously: for one
+        output by :func:`_grid_bound` (the smallest of a Lipschitz, a curvature and the triangle bound; the
+        curvature widening shrinks like ``1 / M^2``, so the grid stays small), for several by
+        ``(pi / M) sum_j j ||tau_j||_2`` (``||a'|| <= sum_j j ||tau_j||``, every ``theta`` within ``pi / M`` of a
+        grid point); the correction columns of the "trial" memory add their Frobenius norm.
         """
         if self.F is None:
             return self.norm_upper_bound()
         from scipy.fft import fft
 
         taus = self._taus()
-        lipschitz = float(np.sum(np.arange(self.length) * np.linalg.norm(taus, ord=2, axis=(1, 2))))
-        cap = SYMBOL_GRID_CAP if self.n_outputs == 1 else SYMBOL_GRID_CAP_MIMO
-        wanted = max(4096, 2 * self.length, math.ceil(lipschitz * math.pi / SYMBOL_SLACK))
-        grid = min(cap, 1 << math.ceil(math.log2(wanted)))
-        symbol = fft(taus, n=grid, axis=0)
+        magnitudes = np.linalg.norm(taus, ord=2, axis=(1, 2))
+        moments = _moments(magnitudes)
         if self.n_outputs == 1:
-            peak = float(np.max(np.abs(symbol)))
-        else:
-            peak = float(np.max(np.linalg.svd(symbol, compute_uv=False)))
+            grid = _symbol_grid(self.length, moments, SYMBOL_GRID_CAP)
+            peak = float(np.max(np.abs(fft(taus[:, 0, 0], n=grid))))
+            return _grid_bound(peak, grid, moments) + self._correction_norm()
+        lipschitz = moments[1]
+        wanted = max(4096, 2 * self.length, math.ceil(lipschitz * math.pi / SYMBOL_SLACK))
+        grid = min(SYMBOL_GRID_CAP_MIMO, 1 << math.ceil(math.log2(wanted)))
+        peak = float(np.max(np.linalg.svd(fft(taus, n=grid, axis=0), compute_uv=False)))
         # both are rigorous; the triangle inequality wins when every tau_j has the same phase at one frequency
-        triangle = float(np.sum(np.linalg.norm(taus, ord=2, axis=(1, 2))))
-        return min(peak + lipschitz * math.pi / grid, triangle) + self._correction_norm()
+        return min(peak + lipschitz * math.pi / grid, moments[0]) + self._correction_norm()
 
     def _correction_norm(self) -> float:
         """Frobenius norm of ``T``'s correction columns (the Caputo terms of the "trial" memory); 0 without."""
@@ -715,8 +752,10 @@ def _power_norm(
     matvec: Callable[[np.ndarray], np.ndarray],
     rmatvec: Callable[[np.ndarray], np.ndarray],
     iterations: int = POWER_ITERATIONS,
+    enough: float = math.inf,
 ) -> float:
-    """A LOWER bound on the largest singular value: ``||T v||`` for ``v`` from power iteration on ``T^T T``."""
+    """A LOWER bound on the largest singular value: ``||T v||`` for ``v`` from power iteration on ``T^T T``;
+    it stops early once the bound reaches ``enough`` (all a verdict may need to know)."""
     v = np.random.default_rng(0).standard_normal(size)
     v /= np.linalg.norm(v)
     estimate = 0.0
@@ -725,6 +764,8 @@ def _power_norm(
         estimate = max(estimate, float(np.linalg.norm(w)))
         if not math.isfinite(estimate):
             return math.inf
+        if estimate >= enough:
+            break
         v = rmatvec(w)
         norm = float(np.linalg.norm(v))
         if norm == 0.0:
@@ -789,7 +830,13 @@ def _error_map_certificate(loop: LoopPlant, law: LawStructure) -> PlantCertifica
     elif bound < 1.0:  # conclusive: monotonic, and no iterative or dense SVD is needed
         norm, method = bound, "upper bound (truncated Toeplitz symbol)"
     else:
-        norm, method = _operator_norm(T.size, T.matvec, T.rmatvec, T.to_dense, T.norm_upper_bound)
+        # a cheap lower bound first: above one it settles the verdict (not monotonic) without ARPACK, which the
+        # rescale search would otherwise run at every scale past the admissible interval (seconds each at N = 6000)
+        lower = _power_norm(T.size, T.matvec, T.rmatvec, enough=1.0) if T.size > DENSE_LIMIT else 0.0
+        if lower >= 1.0:
+            norm, method = lower, "lower bound (power iteration; the symbol bound is not below 1)"
+        else:
+            norm, method = _operator_norm(T.size, T.matvec, T.rmatvec, T.to_dense, T.norm_upper_bound)
     symbol = T.symbol_norm() if T.F is not None else None
     return PlantCertificate("", "error", radius, norm, method, norm_2_symbol=symbol)
 
@@ -880,6 +927,74 @@ class _MatrixOperator:
 
 
 @dataclass(frozen=True)
+class _ScaledErrorMap:
+    """The error map ``T(s) = I - s H F'`` of one single-output plant for every scale ``s`` of ``p2`` at once.
+
+    The rescale search of :func:`certify` evaluates tens of scales at every plant. ``H`` is linear in ``p2``, so
+    the Toeplitz blocks are ``tau_j(s) = delta_j - s c_j`` with ``c = h * w`` (``h`` the unscaled Markov
+    parameters, ``w`` the filter's weights) computed once, and so is their spectrum on the symbol grid: a scale
+    then costs one pass over that grid. The numbers are those of :meth:`LiftedErrorMap.spectral_radius` and
+    :meth:`LiftedErrorMap.symbol_upper_bound` (the same rigorous :func:`_grid_bound`, with ``S_1``, ``S_2`` of
+    ``T(s)`` equal to ``s`` times those of ``c``), for pure Toeplitz maps (no correction
+    columns) longer than :data:`DENSE_LIMIT`; anything else, and any scale whose bound is not below one, takes
+    :func:`map_certificate`.
+    """
+
+    c: np.ndarray  # (L,)
+    # the rfft of c on the symbol grid (|symbol| is even in theta: half the grid suffices) as its real part and
+    # squared modulus: |1 - s C|^2 = 1 - 2 s Re C + s^2 |C|^2, one fused pass per scale
+    real: np.ndarray
+    modulus2: np.ndarray
+    grid: int
+    c_moments: tuple[float, float]  # sum_j j |c_j|, sum_j j^2 |c_j|: S_1 and S_2 of T(s) are s times these
+    info_spectrum: np.ndarray  # fft of c on LiftedErrorMap.symbol_norm's grid
+
+    @staticmethod
+    def of(loop: LoopPlant, law: LawStructure) -> _ScaledErrorMap | None:
+        """The precomputed map, or ``None`` where :func:`map_certificate` must run (see the class notes)."""
+        from scipy.fft import fft, rfft
+
+        if law.q_filter is not None or loop.C_measured.shape[0] != 1 or loop.p2.shape != (1, 1):
+            return None
+        T = lifted_error_map(loop, law)
+        if T.F is None or T.F.corrections.shape[1] or T.size <= DENSE_LIMIT or not np.all(np.isfinite(T.H.blocks)):
+            return None
+        taus = T._taus()[:, 0, 0]
+        c = -taus  # tau_j = delta_j - c_j
+        c[0] += 1.0
+        _, s1, s2 = _moments(np.abs(c))
+        grid = _symbol_grid(T.length, _moments(np.abs(taus)), SYMBOL_GRID_CAP)  # s = 1: the largest moments
+        info = fft(c, n=max(4096, 2 * T.length))
+        spectrum = rfft(c, n=grid)
+        return _ScaledErrorMap(
+            c, np.ascontiguousarray(spectrum.real), np.abs(spectrum) ** 2, grid, (s1, s2), np.asarray(info)
+        )
+
+    def certificate(self, scale: float, loop: LoopPlant, law: LawStructure) -> PlantCertificate | None:
+        """The certificate at ``scale`` when it is conclusive -- the symbol bound below one, or else a power
+        iteration's lower bound at or above one -- else ``None`` (``loop``, ``law``: the unscaled map's)."""
+        radius = abs(1.0 - scale * float(self.c[0]))
+        if radius >= 1.0:
+            return None
+        peak = math.sqrt(max(0.0, float(np.max(scale * scale * self.modulus2 - 2.0 * scale * self.real)) + 1.0))
+        taus = -scale * self.c
+        taus[0] += 1.0
+        moments = (float(np.sum(np.abs(taus))), scale * self.c_moments[0], scale * self.c_moments[1])
+        bound = _grid_bound(peak, self.grid, moments)
+        symbol = float(np.max(np.abs(1.0 - scale * self.info_spectrum)))
+        if bound < 1.0:
+            return PlantCertificate(
+                "", "error", radius, bound, "upper bound (truncated Toeplitz symbol)", norm_2_symbol=symbol
+            )
+        T = lifted_error_map(loop.scaled(scale), law)
+        lower = _power_norm(T.size, T.matvec, T.rmatvec, enough=1.0)
+        if lower < 1.0:  # inconclusive: the exact norm decides (map_certificate)
+            return None
+        method = "lower bound (power iteration; the symbol bound is not below 1)"
+        return PlantCertificate("", "error", radius, lower, method, norm_2_symbol=symbol)
+
+
+@dataclass(frozen=True)
 class Certification:
     """What :func:`certify` hands back: the gain that runs, its scale and the certificates."""
 
@@ -941,6 +1056,7 @@ class _Evaluator:
             for name, A_v, B_v in _plants(model, uncertainty)
         ]
         self._cache: dict[float, _Verdict] = {}
+        self._scaled: dict[tuple[int, float, float, str], _ScaledErrorMap | None] = {}
 
     def at(self, scale: float, law: LawStructure | None = None) -> _Verdict:
         """The verdict with ``p2`` scaled by ``scale`` (for ``law``, default the law as it runs)."""
@@ -951,7 +1067,17 @@ class _Evaluator:
         return self._cache[scale]
 
     def _evaluate(self, scale: float, law: LawStructure) -> _Verdict:
-        return _Verdict(scale, tuple(map_certificate(loop.scaled(scale), law).named(name) for name, loop in self.loops))
+        return _Verdict(scale, tuple(self._certificate(index, scale, law) for index in range(len(self.loops))))
+
+    def _certificate(self, index: int, scale: float, law: LawStructure) -> PlantCertificate:
+        """One plant's certificate: the precomputed scaled map where it is conclusive, else :func:`map_certificate`."""
+        name, loop = self.loops[index]
+        key = (index, law.kp, law.r, str(law.fractional_memory))
+        if key not in self._scaled:
+            self._scaled[key] = _ScaledErrorMap.of(loop, law)
+        scaled = self._scaled[key]
+        fast = None if scaled is None else scaled.certificate(scale, loop, law)
+        return (fast or map_certificate(loop.scaled(scale), law)).named(name)
 
     def objective(self, key: str) -> Callable[[float], float]:
         """The worst-case ``key`` as a function of ``log(scale)`` (``1e300`` where it is not finite)."""

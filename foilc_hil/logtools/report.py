@@ -430,9 +430,12 @@ def _notes(signals: Mapping[int, Mapping[str, np.ndarray]], context: LogContext)
         f"The learned input swings from {float(np.nanmin(early)):.4g} to {float(np.nanmax(early)):.4g}"
         f"{' ' + context.input_unit if context.input_unit else ''} in the first {t_early:.3g} s: to follow the step "
         "as soon as it can, the law learns a large first command (up to the drive's limit) and a damped ringing "
-        "correction after it -- the inverse of the axis's dynamics at a jump it cannot make, not a divergence. A "
-        "reference that starts at the axis's initial value (e.g. a short `piecewise` ramp) or a Q-filter "
-        "(`law.q_filter.cutoff`) removes it.",
+        "correction after it -- the inverse of the axis's dynamics at a jump it cannot make, not a divergence. "
+        "Where the jump is beyond the drive's torque (the demo at 1 ms: the first milliseconds of eq. (52)'s 400 rpm "
+        "from rest), that error stays (`max_abs_error_learnable`) and the learned command stays at "
+        "the drive's limit, where the law's command limits stop it from growing (anti-windup). A reference that "
+        "starts at the axis's initial value (e.g. a short `piecewise` ramp) or a Q-filter (`law.q_filter.cutoff`) "
+        "removes it.",
     ]
 
 

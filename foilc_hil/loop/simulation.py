@@ -206,13 +206,16 @@ class _TrialCollector:
 
 def _run_trials(config: Config, law: LearningLaw, trials: int, collector: _TrialCollector) -> str:
     """The bench's trial loop on a simulated drive, in lockstep; returns why it stopped early (``""``: it did not)."""
+    from foilc_hil.design.pipeline import model_delay_samples
     from foilc_hil.loop.bench import TrialLoop, loop_settings
     from foilc_hil.loop.simulated_drive import SimulatedDrive
     from foilc_hil.references import reference_profile
     from plant_emulator.device import TimingMode
     from plant_emulator.physics import build_plant
 
-    drive = SimulatedDrive(build_plant(config.plant), sample_time=config.sample_time, input_delay=law.input_delay)
+    # the law looks ahead over the transport delay and the plant's own delay; the drive adds only the transport
+    transport = law.input_delay - model_delay_samples(config)
+    drive = SimulatedDrive(build_plant(config.plant), sample_time=config.sample_time, input_delay=transport)
     loop = TrialLoop(
         drive,
         law,
