@@ -24,9 +24,10 @@ from scipy.linalg import expm
 from foilc_hil.errors import ConfigError
 from plant_emulator.config import PlantConfig
 from plant_emulator.linear import continuous_model
-from plant_emulator.physics.base import check_input, check_step, check_trial, trial_rng
+from plant_emulator.physics.base import check_input, check_step, check_trial
 from plant_emulator.physics.disturbance import Disturbance
 from plant_emulator.physics.kernels import scalar_zoh_step
+from plant_emulator.physics.noise import SensorNoise
 from plant_emulator.physics.variation import VariationSignal
 
 __all__ = ["FirstOrderPlant"]
@@ -67,18 +68,17 @@ class FirstOrderPlant:
         self._a_scalar = float(self._a[0, 0])
         self._b_row: list[float] = self._b[0].tolist()
         self._on_row: list[float] = self._b_pattern[0].tolist()
-        self._seed = seed
         self._delta_a = VariationSignal(plant.variation.a, seed, stream=1)
         self._delta_b = VariationSignal(plant.variation.b, seed, stream=2)
         self._disturbance = Disturbance(plant.disturbance)
-        self._noise_std = plant.output_noise
+        self.noise = SensorNoise(plant.output_noise, seed, _NOISE_STREAM, self.n_outputs)
+        """The sensor noise (``plant.output_noise``): its :meth:`~SensorNoise.trial_vector` is a trial's draws."""
         self._u_min = -np.inf if plant.saturation.u_min is None else plant.saturation.u_min
         self._u_max = np.inf if plant.saturation.u_max is None else plant.saturation.u_max
         self._cache: dict[float, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._x = self._x0.copy()
         self._t = 0.0
         self._y = self._c @ self._x
-        self._noise_rng = trial_rng(seed, 1, _NOISE_STREAM)
         self._commands: list[tuple[float, np.ndarray]] = []
         self.saturated = False
         """Whether the last step's input was clipped by ``plant.saturation``."""
@@ -95,7 +95,7 @@ class FirstOrderPlant:
         self._delta_a.reset(trial)
         self._delta_b.reset(trial)
         self._disturbance.reset(trial)
-        self._noise_rng = trial_rng(self._seed, trial, _NOISE_STREAM)
+        self.noise.reset(trial)
         self.saturated = False
         self._y = self._measure()
 
@@ -141,8 +141,8 @@ class FirstOrderPlant:
 
     def _measure(self) -> np.ndarray:
         y = self._c @ self._x
-        if self._noise_std > 0:
-            y = y + self._noise_std * self._noise_rng.standard_normal(self.n_outputs)
+        if self.noise.active:
+            y = y + self.noise.sample()
         return np.asarray(y, dtype=float)
 
     def _advance(self, x: np.ndarray, u: np.ndarray, d: float, h: float, delta_a: float, delta_b: float) -> np.ndarray:

@@ -50,6 +50,7 @@ from plant_emulator.config import DisturbanceConfig, PlantConfig, PmsmConfig
 from plant_emulator.physics.base import check_input, check_step, check_trial, trial_rng
 from plant_emulator.physics.disturbance import Disturbance
 from plant_emulator.physics.kernels import PMSM_PARAM_SIZE, PMSM_STATE_SIZE, PmsmParam, PmsmState, pmsm_advance
+from plant_emulator.physics.noise import SensorNoise
 
 __all__ = ["RAD_PER_S_PER_RPM", "InputKind", "PmsmPlant", "nominal_first_order"]
 
@@ -85,11 +86,11 @@ class PmsmPlant:
         if plant.x0 is not None and len(plant.x0) != 1:
             raise ConfigError(f"a pmsm takes one entry (initial speed, rpm), got {len(plant.x0)}", key="plant.x0")
         self._config = config
-        self._seed = seed
         self._initial_speed = 0.0 if plant.x0 is None else plant.x0[0] * RAD_PER_S_PER_RPM
         self._u_min = -math.inf if plant.saturation.u_min is None else plant.saturation.u_min
         self._u_max = math.inf if plant.saturation.u_max is None else plant.saturation.u_max
-        self._noise_std = plant.output_noise
+        self.noise = SensorNoise(plant.output_noise, seed, _NOISE_STREAM, 1)
+        """The sensor noise on the reported velocity (rpm), on top of the resolver's quantisation."""
         self._disturbance = Disturbance(plant.disturbance)
         self._input_kind: InputKind = config.input_kind
         self._velocity_mode = config.input_kind == "velocity"
@@ -99,7 +100,6 @@ class PmsmPlant:
         _set_disturbance_shape(self._params, plant.disturbance)
         self._state = np.zeros(PMSM_STATE_SIZE)
         self._substeps: dict[float, int] = {}
-        self._noise_rng = trial_rng(seed, 1, _NOISE_STREAM)
         self._trial = 1
         self.reset(1)
 
@@ -115,7 +115,7 @@ class PmsmPlant:
         self._reported_rpm = self._initial_speed / RAD_PER_S_PER_RPM
         self._disturbance.reset(self._trial)
         self._params[PmsmParam.DISTURBANCE_CODE] = float(self._disturbance.code)
-        self._noise_rng = trial_rng(self._seed, self._trial, _NOISE_STREAM)
+        self.noise.reset(self._trial)
         self.saturated = False
         """Whether the last input was clipped by ``plant.saturation``."""
         self._y = self._reported_rpm + self._noise()
@@ -223,7 +223,7 @@ class PmsmPlant:
     # --- internals --------------------------------------------------------------------------------------------
 
     def _noise(self) -> float:
-        return float(self._noise_std * self._noise_rng.standard_normal()) if self._noise_std > 0 else 0.0
+        return float(self.noise.sample()[0]) if self.noise.active else 0.0
 
 
 def _draw_parameters(config: PmsmConfig, seed: int) -> dict[str, float]:
