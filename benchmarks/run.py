@@ -55,6 +55,7 @@ def collect(repeats: int = 3) -> dict[str, Any]:
     from pathlib import Path
 
     from benchmarks import bench_lockstep, bench_logging, bench_loop, bench_physics, bench_science, bench_simulate
+    from benchmarks.bench_robustness import robustness_comparisons
 
     started_load = os.getloadavg()[0]
     date = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M")
@@ -62,6 +63,7 @@ def collect(repeats: int = 3) -> dict[str, Any]:
     simulated = bench_simulate.simulate_comparisons(repeats)
     lockstep, lockstep_row = _lockstep(repeats)
     lockstep_peer, lockstep_rows = bench_lockstep.collect(repeats)
+    robustness = robustness_comparisons()  # root: Dask's loopback TCP inside `unshare --net`
     with tempfile.TemporaryDirectory() as directory:
         logging_costs = bench_logging.per_call_costs(Path(directory))
         writers = bench_logging.writer_comparisons(Path(directory), repeats=repeats)
@@ -74,7 +76,7 @@ def collect(repeats: int = 3) -> dict[str, Any]:
             "cpus": os.cpu_count(),
             "load_average_1min": started_load,
         },
-        "comparisons": comparisons_json([*physics, *simulated, lockstep_row, *lockstep_rows, *writers]),
+        "comparisons": comparisons_json([*physics, *simulated, lockstep_row, *lockstep_rows, *writers, *robustness]),
         "physics": {"jit": bench_physics.jit_cost()},
         "logging_per_call": logging_costs,
         "science": bench_science.collect(),

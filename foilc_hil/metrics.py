@@ -20,7 +20,7 @@ class TrialMetrics:
     from rest under a stepped reference is that first, unlearnable sample in every trial (e.g. the demo's 400 rpm).
     ``noise_floor`` (from trial 2 on; ``None`` in trial 1) is :func:`noise_floor` of this trial's error against the
     previous trial's: the RMS of the error's trial-to-trial variation, the part no learning law can learn
-    (``docs/noise-floor.md``).
+    (``docs/robustness.md``, *Noise floor*).
     """
 
     trial: int
@@ -64,7 +64,7 @@ def noise_floor(error: np.ndarray, previous: np.ndarray) -> float:
     time-varying plant, and the noise the law feeds back into the next input) it cannot. With white noise of
     standard deviation ``sigma`` on the measurement and an input that no longer changes, ``e_k - e_{k-1}`` is the
     difference of two independent noise samples, so the expected square of the figure is exactly ``sigma^2``; once a
-    law has converged it is the level its tracking error fluctuates at (``docs/noise-floor.md`` works out the
+    law has converged it is the level its tracking error fluctuates at (``docs/robustness.md`` works out the
     deadbeat case, ``sqrt(3) sigma``). Before convergence it also holds the learning's own progress. Samples no
     input can move (the input delay) need no special case: what repeats in them cancels, their noise does not.
 

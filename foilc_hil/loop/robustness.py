@@ -31,7 +31,7 @@ Per draw
 - **Trials to tolerance**: the first trial whose ``rmse_learnable`` is below the tolerance (``None``: never).
 - **Final RMSE**: the last completed trial's ``rmse_learnable``.
 - **Noise floor**: the RMS of the per-trial :func:`~foilc_hil.metrics.noise_floor` over the last third of the trials
-  (at least one; ``docs/noise-floor.md``).
+  (at least one; ``docs/robustness.md``).
 - **Diverged**: the run stopped early (the bench's divergence rule, or a non-finite output or command).
 
 Execution
