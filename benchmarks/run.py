@@ -64,6 +64,7 @@ def collect(repeats: int = 3) -> dict[str, Any]:
         bench_science,
         bench_simulate,
     )
+    from benchmarks.bench_robustness import robustness_comparisons
 
     started_load = os.getloadavg()[0]
     date = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M")
@@ -73,6 +74,7 @@ def collect(repeats: int = 3) -> dict[str, Any]:
     lockstep_peer, lockstep_rows = bench_lockstep.collect(repeats)
     lockstep_profile = bench_profile.collect(repeats)
     science_rows = bench_science.science_comparisons(repeats)
+    robustness = robustness_comparisons()  # root: Dask's loopback TCP inside `unshare --net`
     with tempfile.TemporaryDirectory() as directory:
         logging_costs = bench_logging.per_call_costs(Path(directory))
         writers = bench_logging.writer_comparisons(Path(directory), repeats=repeats)
@@ -85,7 +87,9 @@ def collect(repeats: int = 3) -> dict[str, Any]:
             "cpus": os.cpu_count(),
             "load_average_1min": started_load,
         },
-        "comparisons": comparisons_json([*physics, *simulated, lockstep_row, *lockstep_rows, *writers, *science_rows]),
+        "comparisons": comparisons_json(
+            [*physics, *simulated, lockstep_row, *lockstep_rows, *writers, *science_rows, *robustness]
+        ),
         "physics": {"jit": bench_physics.jit_cost()},
         "logging_per_call": logging_costs,
         "science": bench_science.collect(),

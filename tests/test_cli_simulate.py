@@ -34,7 +34,11 @@ def test_json_document(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
     assert document["law"] == "p-type"
     assert [t["trial"] for t in document["trials"]] == [1, 2, 3, 4]
     for trial in document["trials"]:
-        assert set(trial) == {"trial", "sse", "rmse", "max_abs_error", "rmse_learnable", "max_abs_error_learnable"}
+        assert set(trial) == {
+            "trial", "sse", "rmse", "max_abs_error", "rmse_learnable", "max_abs_error_learnable", "noise_floor"
+        }
+    assert document["trials"][0]["noise_floor"] is None  # nothing to compare trial 1 with
+    assert all(trial["noise_floor"] > 0 for trial in document["trials"][1:])  # the law still moves the error
     # the reference is 1 on every sample and trial 1 runs u = 0 from rest: e = 1 everywhere
     assert document["trials"][0]["sse"] == pytest.approx(20.0)
     assert document["trials"][-1]["sse"] < document["trials"][0]["sse"]

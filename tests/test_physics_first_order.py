@@ -14,6 +14,7 @@ from foilc_hil.errors import ConfigError, InputError
 from plant_emulator.config import DisturbanceConfig, PlantConfig, VariationConfig
 from plant_emulator.physics import Plant, build_plant
 from plant_emulator.physics.disturbance import Disturbance
+from plant_emulator.physics.first_order import FirstOrderPlant
 from plant_emulator.physics.variation import VariationSignal
 
 A, B = -1.23, 1.68
@@ -158,6 +159,22 @@ def test_output_noise_is_seeded_per_trial() -> None:
     assert not np.array_equal(noise, run(first, 3))
     assert np.array_equal(noise, run(first, 2))  # a reset replays the trial
     assert 0.08 < float(np.std(noise)) < 0.12
+
+
+def test_the_pre_drawn_noise_vector_is_the_noise_the_plant_adds() -> None:
+    """``noise.trial_vector`` (what a compiled trial kernel takes) equals ``y - c x`` measured step by step."""
+    plant = build_plant(_scalar(output_noise=0.2, c=2.0), seed=9)
+    assert isinstance(plant, FirstOrderPlant)
+    plant.reset(3)
+    added = [plant.output()[0] - 2.0 * plant.state()[0]]
+    for k in range(50):
+        y = plant.step(np.array([math.sin(0.1 * k)]), 0.01)[0]
+        added.append(y - 2.0 * plant.state()[0])
+    assert np.allclose(added, plant.noise.trial_vector(3, 51)[:, 0], rtol=0, atol=1e-12)
+    assert not np.array_equal(plant.noise.trial_vector(3, 51), plant.noise.trial_vector(4, 51))
+    quiet = build_plant(_scalar(), seed=9)
+    assert isinstance(quiet, FirstOrderPlant)
+    assert not quiet.noise.active and not np.any(quiet.noise.trial_vector(1, 5))
 
 
 def test_random_walk_variation_is_bounded_reproducible_and_moves() -> None:

@@ -75,7 +75,7 @@ def test_a_step_shows_on_a_terminal_only_and_not_when_quiet(monkeypatch: pytest.
         (["synthesize"], ["LMI (31)", "certificates of the law as it runs"]),
         (["synthesize", "--law", "noilc"], ["NOILC gain and certificates"]),
         (["synthesize", "--law", "p-type"], ["certificates of the P-type law"]),
-        (["robustness", "--samples", "2", "--scheduler", "synchronous"], ["robustness: ", "LMI (31)"]),
+        (["robustness", "--samples", "2", "--scheduler", "inprocess"], ["robustness: ", "LMI (31)"]),
     ],
     ids=["tune", "synthesize", "noilc", "p-type", "robustness"],
 )

@@ -1,8 +1,12 @@
-"""Robustness Monte Carlo: reproducible whatever the workers, and its vertices agree with an independent lifted map."""
+"""Robustness Monte Carlo: draws inside the set, reproducible whatever the workers, per-draw certificates against an
+independent numpy lifted map, per-draw trial figures against a direct simulation, and the CLI on 20 draws.
+
+Every cluster here runs in this process (``processes=False``: threads and the in-process transport, no socket)."""
 
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -11,112 +15,160 @@ import numpy as np
 import pytest
 
 from foilc_hil.cli import main
-from foilc_hil.config import load_config
-from foilc_hil.design.certificates import LawStructure
+from foilc_hil.commands.robustness import HTTP_ADDRESS
+from foilc_hil.config import Config, LawKind, load_config
 from foilc_hil.design.pipeline import build_design
-from foilc_hil.design.record import Design
-from foilc_hil.design.robustness import draw_perturbations, robustness, running_law
+from foilc_hil.loop.robustness import MonteCarloSettings, draw_plants, drawn_config, run_robustness
+from foilc_hil.loop.simulation import simulate
 
-CONFIG = Path(__file__).resolve().parents[1] / "configs" / "paper_sim.yaml"
-N_SAMPLES = 120
+A_C, B_C, TS = -1.23, 1.68, 0.01
+BOX_A, BOX_B = 0.1, 0.15
+N_SAMPLES = 40
+
+
+def _write(tmp_path: Path, noise: float = 0.001) -> Path:
+    """paper_sim's plant, variation box and disturbance on a 0.4 s trial (40 samples)."""
+    path = tmp_path / "robust.yaml"
+    path.write_text(
+        f"""
+plant:
+  a: {A_C}
+  b: {B_C}
+  c: 1.0
+  variation:
+    a: {{kind: sine, amplitude: {BOX_A}, frequency: 1.0}}
+    b: {{kind: sine, amplitude: {BOX_B}, frequency: 2.3}}
+  uncertainty: {{G1: 0.001, H1: 1.0, G2: 0.0016, H2: 1.0}}
+  disturbance: {{kind: sine, amplitude: 0.1, frequency: 3.14159, start_trial: 3}}
+  output_noise: {noise}
+reference:
+  profile: piecewise
+  segments:
+    - {{duration: 0.2, start: 0.0, end: 1.0}}
+    - {{duration: 0.2, start: 1.0}}
+sample_time: {TS}
+trials: 4
+synthesis: {{tau: 0.868, theta: 0.868}}
+law: {{kind: ioilc}}
+bench: {{divergence_factor: 10000.0}}
+""",
+        encoding="utf-8",
+    )
+    return path
 
 
 @pytest.fixture(scope="module")
-def ioilc() -> tuple[Design, LawStructure]:
-    config = load_config(CONFIG, {})
-    design = build_design(config, "ioilc", N_SAMPLES, input_delay=1)
-    return design, running_law(config, design, N_SAMPLES)
-
-
-def _dense_error_map(
-    A: np.ndarray, B: np.ndarray, C: np.ndarray, p1: np.ndarray, p2: np.ndarray, lead: int
-) -> np.ndarray:
-    """``T = I - H`` of a law with ``E = e`` (kp = 0), built sample by sample with numpy: ``H[i, j]`` is the error
-    sample ``i + lead`` moved by the update ``p2 e[j + lead]`` applied at input ``j`` (state feedback ``p1``)."""
-    length = N_SAMPLES - lead
-    A_cl = A + B @ p1
-    H = np.zeros((length, length))
-    for j in range(length):
-        z = B @ p2  # the update's effect on the state one sample after input j
-        for _ in range(lead):
-            z = A_cl @ z
-        for i in range(j, length):
-            H[i, j] = float((C @ z)[0, 0])
-            z = A_cl @ z
-    return np.eye(length) - H
-
-
-def test_the_same_seed_gives_the_same_result_with_one_and_two_workers(ioilc: tuple[Design, LawStructure]) -> None:
-    design, law = ioilc
-    one = robustness(design, law, samples=12, seed=7, scheduler="synchronous", workers=1).to_json()
-    two = robustness(design, law, samples=12, seed=7, scheduler="threads", workers=2).to_json()
-    assert one == two
-    assert one["draws"] == one["vertices"] + 12 == 16
-    other = robustness(design, law, samples=12, seed=8, scheduler="synchronous", workers=1).to_json()
-    assert other["per_draw"][4:] != one["per_draw"][4:]  # the seed matters for the random draws ...
-    assert other["per_draw"][:4] == one["per_draw"][:4]  # ... not for the vertices
+def config(tmp_path_factory: pytest.TempPathFactory) -> Config:
+    return load_config(_write(tmp_path_factory.mktemp("robust")))
 
 
 @pytest.fixture(scope="module")
 def client() -> Iterator[Any]:
-    """An in-process cluster (inproc transport: no socket), module-scoped and warmed up: dask.distributed starts
-    its workers' executor threads and a process-wide offload thread lazily, on the first tasks, and the per-test
-    leak guard would count those against the test that happened to start them."""
+    """An in-process cluster, module-scoped and warmed up: dask.distributed starts its workers' executor threads and a
+    process-wide offload thread lazily, on the first tasks, and the per-test leak guard would count those against
+    the test that happened to start them."""
     from distributed import Client
 
-    with Client(processes=False, n_workers=2, threads_per_worker=1, dashboard_address=None) as started:
+    with Client(
+        processes=False, n_workers=2, threads_per_worker=1, dashboard_address=None,
+        scheduler_kwargs={"dashboard_address": HTTP_ADDRESS},  # the scheduler's HTTP routes: loopback, not 0.0.0.0
+    ) as started:
         for address in started.scheduler_info()["workers"]:
             started.submit(abs, -1, workers=[address], pure=False).result()
         started.submit(bytes, 1 << 20, pure=False).result()  # a large result goes through the offload thread
         yield started
 
 
-def test_an_in_process_distributed_client_agrees(ioilc: tuple[Design, LawStructure], client: Any) -> None:
-    design, law = ioilc
-    local = robustness(design, law, samples=6, seed=3, scheduler="synchronous").to_json()
-    distributed = robustness(design, law, samples=6, seed=3, scheduler=client, workers=2).to_json()
-    assert distributed == local
+def test_draws_stay_inside_the_box_and_reproduce(config: Config) -> None:
+    draws = draw_plants(config, 300, 5)
+    corners = {(d.delta_a, d.delta_b) for d in draws[:4]}
+    assert corners == {(a, b) for a in (-BOX_A, BOX_A) for b in (-BOX_B, BOX_B)} and all(d.vertex for d in draws[:4])
+    random = draws[4:]
+    assert len(random) == 300 and not any(d.vertex for d in random)
+    for d in random:  # frozen offset plus the walk's bound never leaves the box
+        assert abs(d.delta_a) + d.walk_a == pytest.approx(BOX_A) and abs(d.delta_b) + d.walk_b == pytest.approx(BOX_B)
+        assert -1.0 <= d.disturbance_scale <= 1.0
+    offsets = np.array([d.delta_a for d in random])
+    assert offsets.min() < -0.8 * BOX_A and offsets.max() > 0.8 * BOX_A  # uniform on the whole box
+    assert len({d.seed for d in random}) == 300
+    assert draws == draw_plants(config, 300, 5) and draws[4:] != draw_plants(config, 300, 6)[4:]
+    plant = drawn_config(config, random[0], 0.02).plant
+    assert np.asarray(plant.a) == pytest.approx(A_C + random[0].delta_a) and plant.output_noise == 0.02
+    assert plant.variation.a.kind == "random_walk" and plant.variation.a.amplitude == pytest.approx(random[0].walk_a)
+    assert plant.disturbance.amplitude == pytest.approx(0.1 * random[0].disturbance_scale)
+    assert plant.seed == random[0].seed
 
 
-def test_the_worst_case_agrees_with_the_vertex_certificates(ioilc: tuple[Design, LawStructure]) -> None:
-    design, law = ioilc
-    model = design.model
-    result = robustness(design, law, samples=8, seed=0)
-    draws = draw_perturbations(design.uncertainty, 8, 0)
-    for draw, certificate in zip(draws, result.draws, strict=True):
-        A, B = model.A + draw.delta_a, model.B + draw.delta_b
-        T = _dense_error_map(A, B, model.measured_output, design.p1, design.p2, 1)
-        assert certificate.norm_2 == pytest.approx(np.linalg.norm(T, 2), rel=1e-6)
-        assert certificate.spectral_radius == pytest.approx(max(abs(np.linalg.eigvals(T))), rel=1e-6)
-    nominal = np.linalg.norm(_dense_error_map(model.A, model.B, model.measured_output, design.p1, design.p2, 1), 2)
-    vertex_worst = max(c.norm_2 for c in result.draws if c.vertex)
-    assert design.certificates is not None
-    assert max(vertex_worst, nominal) == pytest.approx(design.certificates.norm_2, rel=1e-6)
-    assert result.vertices == design.certificates.vertices == 4
+def _dense_error_map(ad: float, bd: float, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
+    """``T = I - H`` of the 2D law (kp = 0) on the scalar ZOH plant with one cycle of input delay, state
+    ``[x, u_prev]``, built sample by sample with numpy: ``H[i, j]`` is the error sample ``i + 1`` moved by the
+    update ``p2 e[j + 1]`` applied at input ``j`` (state feedback ``p1``)."""
+    A = np.array([[ad, bd], [0.0, 0.0]])
+    B, C = np.array([[0.0], [1.0]]), np.array([[1.0, 0.0]])
+    A_cl = A + B @ p1
+    length = N_SAMPLES - 1
+    H = np.zeros((length, length))
+    for j in range(length):
+        z = A_cl @ (B @ p2)  # one cycle of input delay: the update reaches the output two samples later
+        for i in range(j, length):
+            H[i, j] = float((C @ z)[0, 0])
+            z = A_cl @ z
+    return np.eye(length) - H
 
 
-def test_random_draws_stay_inside_the_uncertainty_set(ioilc: tuple[Design, LawStructure]) -> None:
-    design, _ = ioilc
-    unc = design.uncertainty
-    bound_a = np.linalg.norm(unc.G1, 2) * np.linalg.norm(unc.H1, 2)
-    bound_b = np.linalg.norm(unc.G2, 2) * np.linalg.norm(unc.H2, 2)
-    draws = draw_perturbations(unc, 200, 5)
-    random = [d for d in draws if not d.vertex]
-    assert len(random) == 200 and all(d.vertex for d in draws[:4])
-    sizes_a = np.array([np.linalg.norm(d.delta_a, 2) for d in random])
-    assert np.all(sizes_a <= bound_a * (1 + 1e-12))
-    assert all(np.linalg.norm(d.delta_b, 2) <= bound_b * (1 + 1e-12) for d in random)
-    assert 0.3 * bound_a < float(np.median(sizes_a)) < 0.7 * bound_a  # uniform radius: median near half the bound
+def test_per_draw_certificates_match_a_numpy_lifted_map_of_the_drawn_plant(config: Config, client: Any) -> None:
+    settings = MonteCarloSettings(samples=2, seed=1, trials=2, noise=0.0, tolerance=0.01)
+    report = run_robustness(config, [LawKind.IOILC], settings, client=client, workers=2)
+    design = build_design(config, "ioilc", N_SAMPLES, input_delay=1)
+    (law,) = report.laws
+    assert law.design_norm_2 == design.certificates.norm_2  # type: ignore[union-attr]
+    for outcome in law.outcomes:
+        a, b = A_C + outcome.draw.delta_a, B_C + outcome.draw.delta_b
+        ad = math.exp(a * TS)
+        T = _dense_error_map(ad, b * (ad - 1.0) / a, design.p1, design.p2)
+        assert outcome.norm_2 == pytest.approx(np.linalg.norm(T, 2), rel=1e-6)
+        assert outcome.spectral_radius == pytest.approx(max(abs(np.linalg.eigvals(T))), rel=1e-6)
 
 
-def test_cli_json_and_bad_input(capsys: pytest.CaptureFixture[str]) -> None:
-    argv = ["robustness", "--config", str(CONFIG), "--law", "p-type", "--samples", "3", "--scheduler", "synchronous"]
-    assert main([*argv, "--json"]) == 0
+def test_one_and_two_workers_agree_and_figures_match_a_direct_simulation(config: Config, client: Any) -> None:
+    settings = MonteCarloSettings(samples=5, seed=3, trials=4, noise=0.002, tolerance=0.01)
+    one = run_robustness(config, [LawKind.IOILC], settings, client=client, workers=1).to_json()
+    two = run_robustness(config, [LawKind.IOILC], settings, client=client, workers=2).to_json()
+    for document in (one, two):
+        document.pop("seconds"), document.pop("workers")
+    assert one == two
+    assert one["draws"] == one["vertices"] + 5 == 9
+    outcome = one["laws"][0]["per_draw"][6]
+    draw = draw_plants(config, 5, 3)[6]
+    design = build_design(config, "ioilc", N_SAMPLES, input_delay=1)
+    direct = simulate(drawn_config(config, draw, 0.002), law="ioilc", trials=4, design=design, input_delay=1)
+    rmse = [m.rmse_learnable for m in direct.metrics]
+    assert outcome["final_rmse"] == rmse[-1]
+    assert outcome["trials_to_tolerance"] == next((k for k, v in enumerate(rmse, 1) if v < 0.01), None)
+    assert outcome["noise_floor"] == pytest.approx(direct.metrics[-1].noise_floor)  # the last third of 4: 1 trial
+    assert outcome["noise_floor"] > 0.002 * 0.5 and not outcome["diverged"]
+
+
+def test_cli_twenty_draws_three_laws_json_plots_and_bad_input(
+    tmp_path: Path, client: Any, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["robustness", "--config", str(_write(tmp_path)), "--samples", "16", "--trials", "3",
+            "--laws", "ioilc,p-type,noilc", "--scheduler", "inprocess", "--workers", "2"]
+    assert main([*argv, "--json", "--out", str(tmp_path / "out")]) == 0
     document = json.loads(capsys.readouterr().out)
-    assert document["law"] == "p-type" and document["draws"] == 7 and len(document["per_draw"]) == 7
-    assert document["norm_2"]["worst"] >= document["norm_2"]["quantiles"]["0.5"]
-    assert document["norm_2"]["worst"] == pytest.approx(document["design"]["norm_2"], rel=1e-6)
-    for bad in (["--samples", "-1"], ["--workers", "0"], ["--scheduler", "udp://x"]):
-        assert main([*argv[:5], *bad]) == 2
+    assert document["draws"] == 20 and document["vertices"] == 4 and document["trials"] == 3
+    assert [law["law"] for law in document["laws"]] == ["ioilc", "p-type", "noilc"]
+    for law in document["laws"]:
+        assert len(law["per_draw"]) == 20
+        norms = [d["norm_2"] for d in law["per_draw"]]
+        assert law["norm_2"]["worst"] == max(norms) >= law["norm_2"]["0.5"]
+        assert law["divergence_rate"] == sum(d["diverged"] for d in law["per_draw"]) / 20
+    names = {Path(f).name for f in document["files"]}
+    assert names == {"ecdf_norm_2.png", "ecdf_final_rmse.png", "ecdf_noise_floor.png", "hist_trials_to_tolerance.png",
+                     "robustness.json"}
+    assert json.loads((tmp_path / "out" / "robustness.json").read_text())["laws"][0]["law"] == "ioilc"
+    for bad in (["--samples", "-1"], ["--workers", "0"], ["--scheduler", "udp://x"], ["--laws", "foilc,pid"],
+                ["--trials", "1"]):
+        assert main([*argv[:3], *bad]) == 2
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and bad[0] in err

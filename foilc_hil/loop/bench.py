@@ -100,7 +100,7 @@ from foilc_hil.loop.safety import (
     require_finite,
 )
 from foilc_hil.loop.scheduler import CycleTiming, DeadlineScheduler, TimingRecorder, TimingSummary
-from foilc_hil.metrics import TrialMetrics
+from foilc_hil.metrics import NoiseFloorTracker, TrialMetrics
 from foilc_hil.progress import UPDATES_PER_TRIAL, NullProgress, ProgressView
 from plant_emulator.device import TimingMode
 
@@ -440,6 +440,7 @@ class TrialLoop:
         self.watchdog = FeedbackWatchdog(settings.feedback_timeout, settings.max_lost_feedback)
         self._held = 0.0  # the last good feedback: what the law is given again for a lost one
         self.guard = DivergenceGuard(settings.divergence_factor)
+        self._noise_floor = NoiseFloorTracker()
         self.timing = TimingRecorder(settings.mode, settings.period)
         realtime = settings.mode is TimingMode.REALTIME
         self.scheduler = (
@@ -635,7 +636,8 @@ class TrialLoop:
         update = self.law.end_trial(self.reference, output)
         error = np.asarray(update.error, dtype=float).reshape(n)
         E = np.asarray(update.E, dtype=float).reshape(n)
-        metrics = update.metrics  # the law's metrics: learnable samples counted from its input delay
+        # the law's metrics (learnable samples counted from its input delay) with the trial-to-trial noise floor
+        metrics = self._noise_floor.measured(update.metrics, error)
         record = TrialRecord(
             trial=raw.trial,
             sample_time=self.settings.period,

@@ -26,9 +26,10 @@ from scipy.linalg import expm
 from foilc_hil.errors import ConfigError
 from plant_emulator.config import PlantConfig
 from plant_emulator.linear import continuous_model
-from plant_emulator.physics.base import check_input, check_step, check_trial, trial_rng
+from plant_emulator.physics.base import check_input, check_step, check_trial
 from plant_emulator.physics.disturbance import Disturbance
 from plant_emulator.physics.kernels import scalar_plant_step
+from plant_emulator.physics.noise import SensorNoise
 from plant_emulator.physics.trial import PlantKind, ScalarInput, ScalarParam, ScalarState, TrialProgram
 from plant_emulator.physics.variation import VariationSignal
 
@@ -70,18 +71,17 @@ class FirstOrderPlant:
         self._a_scalar = float(self._a[0, 0])
         self._b_row = np.ascontiguousarray(self._b[0])
         self._on_row = np.ascontiguousarray(self._b_pattern[0])
-        self._seed = seed
         self._delta_a = VariationSignal(plant.variation.a, seed, stream=1)
         self._delta_b = VariationSignal(plant.variation.b, seed, stream=2)
         self._disturbance = Disturbance(plant.disturbance)
-        self._noise_std = plant.output_noise
+        self.noise = SensorNoise(plant.output_noise, seed, _NOISE_STREAM, self.n_outputs)
+        """The sensor noise (``plant.output_noise``): its :meth:`~SensorNoise.trial_vector` is a trial's draws."""
         self._u_min = -np.inf if plant.saturation.u_min is None else plant.saturation.u_min
         self._u_max = np.inf if plant.saturation.u_max is None else plant.saturation.u_max
         self._cache: dict[float, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._x = self._x0.copy()
         self._t = 0.0
         self._y = self._c @ self._x
-        self._noise_rng = trial_rng(seed, 1, _NOISE_STREAM)
         self._commands: list[tuple[float, np.ndarray]] = []
         self.saturated = False
         """Whether the last step's input was clipped by ``plant.saturation``."""
@@ -98,7 +98,7 @@ class FirstOrderPlant:
         self._delta_a.reset(trial)
         self._delta_b.reset(trial)
         self._disturbance.reset(trial)
-        self._noise_rng = trial_rng(self._seed, trial, _NOISE_STREAM)
+        self.noise.reset(trial)
         self.saturated = False
         self._y = self._measure()
 
@@ -161,8 +161,8 @@ class FirstOrderPlant:
         inputs[:, ScalarInput.DELTA_A] = self._delta_a.values(t0, dt, steps)
         inputs[:, ScalarInput.DELTA_B] = self._delta_b.values(t0, dt, steps)
         inputs[:, ScalarInput.DISTURBANCE] = self._disturbance.values(t0, dt, steps)
-        if self._noise_std > 0:  # the generator continues after the draw of the reset's measurement
-            inputs[:, ScalarInput.NOISE] = self._noise_std * self._noise_rng.standard_normal(steps)
+        if self.noise.active:  # the generator continues after the draw of the reset's measurement
+            inputs[:, ScalarInput.NOISE] = self.noise.following(steps)[:, 0]
         params = np.zeros(len(ScalarParam))
         params[ScalarParam.A] = self._a_scalar
         params[ScalarParam.B] = self._b_row[0]
@@ -170,7 +170,7 @@ class FirstOrderPlant:
         params[ScalarParam.C] = self._c[0, 0]
         params[ScalarParam.U_MIN], params[ScalarParam.U_MAX] = self._u_min, self._u_max
         params[ScalarParam.STEP] = dt
-        params[ScalarParam.NOISY] = 1.0 if self._noise_std > 0 else 0.0
+        params[ScalarParam.NOISY] = 1.0 if self.noise.active else 0.0
         state = np.zeros(len(ScalarState))
         state[ScalarState.X], state[ScalarState.TIME] = self._x[0], t0
         return TrialProgram(PlantKind.SCALAR, state, params, inputs, delay_steps)
@@ -203,8 +203,8 @@ class FirstOrderPlant:
 
     def _measure(self) -> np.ndarray:
         y = self._c @ self._x
-        if self._noise_std > 0:
-            y = y + self._noise_std * self._noise_rng.standard_normal(self.n_outputs)
+        if self.noise.active:
+            y = y + self.noise.sample()
         return np.asarray(y, dtype=float)
 
     def _advance(self, x: np.ndarray, u: np.ndarray, d: float, h: float, delta_a: float, delta_b: float) -> np.ndarray:

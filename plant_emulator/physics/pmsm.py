@@ -51,6 +51,7 @@ from plant_emulator.config import DisturbanceConfig, PlantConfig, PmsmConfig
 from plant_emulator.physics.base import check_input, check_step, check_trial, trial_rng
 from plant_emulator.physics.disturbance import Disturbance
 from plant_emulator.physics.kernels import PMSM_PARAM_SIZE, PMSM_STATE_SIZE, PmsmParam, PmsmState, pmsm_step
+from plant_emulator.physics.noise import SensorNoise
 from plant_emulator.physics.trial import PlantKind, PmsmTrialParam, PmsmTrialState, TrialProgram
 
 __all__ = ["RAD_PER_S_PER_RPM", "InputKind", "PmsmPlant", "nominal_first_order"]
@@ -87,11 +88,11 @@ class PmsmPlant:
         if plant.x0 is not None and len(plant.x0) != 1:
             raise ConfigError(f"a pmsm takes one entry (initial speed, rpm), got {len(plant.x0)}", key="plant.x0")
         self._config = config
-        self._seed = seed
         self._initial_speed = 0.0 if plant.x0 is None else plant.x0[0] * RAD_PER_S_PER_RPM
         self._u_min = -math.inf if plant.saturation.u_min is None else plant.saturation.u_min
         self._u_max = math.inf if plant.saturation.u_max is None else plant.saturation.u_max
-        self._noise_std = plant.output_noise
+        self.noise = SensorNoise(plant.output_noise, seed, _NOISE_STREAM, 1)
+        """The sensor noise on the reported velocity (rpm), on top of the resolver's quantisation."""
         self._disturbance = Disturbance(plant.disturbance)
         self._input_kind: InputKind = config.input_kind
         self._velocity_mode = config.input_kind == "velocity"
@@ -101,7 +102,6 @@ class PmsmPlant:
         _set_disturbance_shape(self._params, plant.disturbance)
         self._state = np.zeros(PMSM_STATE_SIZE)
         self._substeps: dict[float, int] = {}
-        self._noise_rng = trial_rng(seed, 1, _NOISE_STREAM)
         self._trial = 1
         self.reset(1)
 
@@ -117,7 +117,7 @@ class PmsmPlant:
         self._reported_rpm = self._initial_speed / RAD_PER_S_PER_RPM
         self._disturbance.reset(self._trial)
         self._params[PmsmParam.DISTURBANCE_CODE] = float(self._disturbance.code)
-        self._noise_rng = trial_rng(self._seed, self._trial, _NOISE_STREAM)
+        self.noise.reset(self._trial)
         self.saturated = False
         """Whether the last input was clipped by ``plant.saturation``."""
         self._y = self._reported_rpm + self._noise()
@@ -228,8 +228,8 @@ class PmsmPlant:
         state = np.concatenate([self._state, np.zeros(len(PmsmTrialState))])
         state[PmsmTrialState.REPORTED] = self._reported_rpm
         noise = np.zeros((steps, 1))
-        if self._noise_std > 0:  # the generator continues after the draw of the reset's measurement
-            noise[:, 0] = self._noise_std * self._noise_rng.standard_normal(steps)
+        if self.noise.active:  # the generator continues after the draw of the reset's measurement
+            noise[:, :] = self.noise.following(steps)
         return TrialProgram(PlantKind.PMSM, state, params, noise)
 
     def end_trial_program(self, program: TrialProgram, commands: np.ndarray, output: float) -> None:
@@ -259,7 +259,7 @@ class PmsmPlant:
         return 1.0 - math.exp(-dt / tau) if tau > 0 else math.nan
 
     def _noise(self) -> float:
-        return float(self._noise_std * self._noise_rng.standard_normal()) if self._noise_std > 0 else 0.0
+        return float(self.noise.sample()[0]) if self.noise.active else 0.0
 
 
 def _draw_parameters(config: PmsmConfig, seed: int) -> dict[str, float]:
