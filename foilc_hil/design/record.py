@@ -53,6 +53,7 @@ __all__ = [
     "Certificates",
     "CodesignRecord",
     "Design",
+    "GradientStep",
     "GrowthBound",
     "LmiChecks",
     "LmiScaling",
@@ -405,6 +406,28 @@ class NoilcWeights:
         return cls(*(_number(document, key, where) for key in ("q", "r", "r_relative")))
 
 
+@dataclass(frozen=True)
+class GradientStep:
+    """What a gradient ILC design adds to its certificates: the step ``beta`` of ``u_k = u_{k-1} + beta G^T e``
+    and the plant norm ``||G||_2`` it was chosen from (``beta = step_relative / ||G||_2^2``), from which the law
+    rebuilds its lifted gain exactly."""
+
+    beta: float
+    plant_norm: float
+    step_relative: float
+
+    def to_json(self) -> dict[str, Any]:
+        """``certificates["gradient"]``: ``{"beta", "plant_norm", "step_relative"}``."""
+        return {"beta": self.beta, "plant_norm": self.plant_norm, "step_relative": self.step_relative}
+
+    @classmethod
+    def from_json(cls, value: Any) -> GradientStep:
+        """Read :meth:`to_json` output."""
+        where = "design.certificates.gradient"
+        document = _mapping(value, where)
+        return cls(*(_number(document, key, where) for key in ("beta", "plant_norm", "step_relative")))
+
+
 _CODESIGN_NUMBERS = (
     "objective",
     "noise_weight",
@@ -523,6 +546,7 @@ class Certificates:
     p_type: PTypeGain | None = None
     noilc: NoilcWeights | None = None
     codesign: CodesignRecord | None = None
+    gradient: GradientStep | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The ``certificates`` document: exactly the keys, in the order, of the documents earlier versions wrote
@@ -556,7 +580,7 @@ class Certificates:
                 document[key] = record.to_json()
         if self.p_type is not None:
             document.update(self.p_type.to_json())
-        for key, addition in (("noilc", self.noilc), ("codesign", self.codesign)):
+        for key, addition in (("noilc", self.noilc), ("codesign", self.codesign), ("gradient", self.gradient)):
             if addition is not None:  # additions (docs/interface-additions.md): absent from earlier documents
                 document[key] = addition.to_json()
         return dict(jsonable(document))
@@ -613,6 +637,7 @@ class Certificates:
             ),
             noilc=_optional(document, "noilc", NoilcWeights.from_json),
             codesign=_optional(document, "codesign", CodesignRecord.from_json),
+            gradient=_optional(document, "gradient", GradientStep.from_json),
         )
 
 
