@@ -49,9 +49,10 @@ were noise. The LMI is therefore solved on a scaled Roesser model (:class:`Scali
 
 * ``x = T xs``, ``u = S us`` and each channel's ``Gbar Delta H`` split as ``(Gbar c) Delta (H / c)`` (``T``, ``S``
   diagonal, ``c`` one scalar per channel, so a full ``Delta`` commutes with it), chosen by Osborne balancing of the
-  interconnection ``[[Abar, Bbar, Gbar], [pinv(Bbar), 0, 0], [H, 0, 0]]`` (the ``pinv(Bbar)`` row stands for the
-  gain the LMI will find), then one common factor that balances ``T^-1 Dbar`` against ``Cz T``. Every factor is a
-  power of two: scaling and unscaling are exact in floating point.
+  interconnection ``[[Abar, Bbar, Gbar], [1/Bbar', 0, 0], [H, 0, 0]]`` (the ``1/Bbar'`` row, entry by entry, zero
+  where ``Bbar`` is, stands for the size of the gain the LMI will find: a gain that cancels each state's input
+  entry), then one common factor that balances ``T^-1 Dbar`` against ``Cz T``. Every factor is a power of two:
+  scaling and unscaling are exact in floating point.
 * The scaled LMI is a congruence of the original one, ``M = Dg Ms Dg`` with ``Dg = diag(T, T, c, I, I)``, at
   ``Q = T Qs T``, ``J = S Js T``, ``sigma = c^2 sigma_s`` and the same ``gamma`` (``w`` and ``z`` are not scaled),
   so it has the same inertia and ``P = J Q^-1 = S Ps T^-1``.
