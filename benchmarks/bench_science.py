@@ -3,7 +3,8 @@
 - Caputo derivative of one trial: our direct convolution, our zero-padded FFT convolution, and scipy's
   ``lfilter`` running the same Grünwald–Letnikov weights as an FIR filter (an independent implementation); the
   largest difference between them is reported next to the times.
-- LMI (31) synthesis: CLARABEL and SCS on the same problem (time, gamma, and whether the numpy re-check passed).
+- LMI (31) synthesis: CLARABEL and SCS on the same problem (time, gamma, the margin relative to the solved matrix,
+  cond(Q), and whether the numpy re-check passed).
 - Issue 9, target 7 (:func:`fractional_comparisons`): the derivative of one N = 200,000 trial against the analytic
   truth at every sample, the project beside the ``differint`` package's GL (time and per-sample error) and a
   direct O(N^2) convolution of the same weights.
@@ -103,6 +104,8 @@ def lmi(sample_time: float = 0.01) -> list[dict[str, Any]]:
                 "solved_by": solution.solver,
                 "seconds": elapsed,
                 "gamma": solution.gamma,
+                "relative_margin": solution.checks.relative_margin,
+                "Q_condition": solution.checks.Q_condition,
                 "P": solution.P.tolist(),
                 "fallbacks": list(solution.checks.solver_failures),
             }

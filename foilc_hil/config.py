@@ -31,6 +31,7 @@ class LawKind(StrEnum):
     IOILC = "ioilc"
     P_TYPE = "p-type"
     NOILC = "noilc"
+    GRADIENT = "gradient"
 
 
 @enum.unique
@@ -131,7 +132,7 @@ class SynthesisConfig(Section):
     theta: float = Field(default=0.868, gt=0, lt=1)
     discretization: Literal["zoh", "euler"] = "zoh"
     solver: Literal["CLARABEL", "SCS"] = "CLARABEL"
-    margin: float = Field(default=1e-6, gt=0)  # strictness margin of the LMIs
+    margin: float = Field(default=1e-6, gt=0)  # strictness margin of LMI (31), relative to its scaled matrix's norm
     on_divergent_filter: DivergentFilterPolicy = DivergentFilterPolicy.RESCALE
     # Certify monotonic convergence (induced 2-norm of the lifted trial map < 1), not only asymptotic (radius < 1).
     require_monotonic: bool = True

@@ -93,8 +93,8 @@ def test_the_recorded_certificate_is_the_running_laws_input_map(kind: LawKind) -
     assert law.q_filter is not None and design.certificates is not None
     Q = law.q_filter.matrix(n)
     np.testing.assert_array_equal(Q, QFilter(150.0, 2, SAMPLE_TIME).matrix(n))
-    if kind is LawKind.NOILC:
-        M = _noilc_input_map(design, Q, n)
+    if kind in (LawKind.NOILC, LawKind.GRADIENT):
+        M = _lifted_input_map(design, Q, n)
     else:
         if kind is LawKind.FOILC:
             from foilc_hil.design.certificates import law_filter_matrix
@@ -120,13 +120,18 @@ def _impulse_responses(design: Design, n: int) -> np.ndarray:
     return G
 
 
-def _noilc_input_map(design: Design, Q: np.ndarray, n: int) -> np.ndarray:
-    """NOILC's input map with a Q-filter, ``M = Q - L_full G_y``, from the textbook formula on simulated responses."""
-    assert design.certificates is not None and design.certificates.noilc is not None
-    weights, d = design.certificates.noilc, design.input_delay
+def _lifted_input_map(design: Design, Q: np.ndarray, n: int) -> np.ndarray:
+    """NOILC's or gradient ILC's input map with a Q-filter, ``M = Q - L_full G_y``, from the textbook formula on
+    simulated responses: ``L = (q G^T G + r I)^-1 q G^T`` or ``L = G^T / ||G||^2``."""
+    d = design.input_delay
     G_y = _impulse_responses(design, n)
     G = G_y[d:, : n - d]  # the inputs that move the error, to the samples they move
-    L = np.linalg.inv(weights.q * G.T @ G + weights.r * np.eye(n - d)) @ (weights.q * G.T)
+    if design.law is LawKind.GRADIENT:
+        L = G.T / np.linalg.svd(G, compute_uv=False)[0] ** 2
+    else:
+        assert design.certificates is not None and design.certificates.noilc is not None
+        weights = design.certificates.noilc
+        L = np.linalg.inv(weights.q * G.T @ G + weights.r * np.eye(n - d)) @ (weights.q * G.T)
     full = np.zeros((n, n))
     full[: n - d, d:] = L
     return Q - full @ G_y
@@ -216,6 +221,7 @@ DESIGN_ORDER = (
     "record",
     "certificates",
     "noilc",
+    "gradient",
     "lmi",
     "codesign",
     "tuning",

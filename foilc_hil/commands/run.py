@@ -1,7 +1,7 @@
 """``foilc-hil run``: learning trials over CAN against a CiA 402 drive (or the embedded emulator).
 
 ``foilc-hil run --config C [--bus SPEC | -i INTERFACE -c CHANNEL | --emulator embedded] [-b BPS] [--trials N]
-[--mode lockstep|realtime] [--law foilc|ioilc|p-type|noilc] [--inject KIND@WHEN[:KEY=VALUE,...]]...
+[--mode lockstep|realtime] [--law foilc|ioilc|p-type|noilc|gradient] [--inject KIND@WHEN[:KEY=VALUE,...]]...
 --out F.mcap [--json] [--quiet]``
 
 JSON: ``{"law", "trials": [{"trial", "sse", "rmse", "max_abs_error"}, ...], "timing": {"period", "cycles",
@@ -46,7 +46,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--trials", type=int, metavar="N", help="number of trials (default: config 'trials')")
     parser.add_argument("--mode", choices=["lockstep", "realtime"], help="timing mode (default: config bench.mode)")
     parser.add_argument(
-        "--law", choices=["foilc", "ioilc", "p-type", "noilc"], help="learning law (default: config law.kind)"
+        "--law",
+        choices=["foilc", "ioilc", "p-type", "noilc", "gradient"],
+        help="learning law (default: config law.kind)",
     )
     parser.add_argument(
         "--inject",

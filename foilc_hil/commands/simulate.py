@@ -18,7 +18,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``simulate``."""
     parser.add_argument("--config", required=True, help="YAML configuration file")
     parser.add_argument(
-        "--law", choices=("foilc", "ioilc", "p-type", "noilc"), default=None, help="learning law (default: law.kind)"
+        "--law",
+        choices=("foilc", "ioilc", "p-type", "noilc", "gradient"),
+        default=None,
+        help="learning law (default: law.kind)",
     )
     parser.add_argument(
         "--design",

@@ -2,8 +2,8 @@
 
 FOILC and IOILC: Theorem 1's LMI (robust 2D stability within the trial) and, for FOILC with
 ``--design codesign`` (``synthesis.design``), the co-design of ``kp``, ``r`` and the gain
-(:mod:`foilc_hil.design.codesign`; ``certificates.codesign`` says how it chose). P-type and NOILC: their gain or
-weights, no LMI (``Qb``, ``Qt``, ``gamma`` are ``null``).
+(:mod:`foilc_hil.design.codesign`; ``certificates.codesign`` says how it chose). P-type, NOILC and gradient: their
+gain, weights or step, no LMI (``Qb``, ``Qt``, ``gamma`` are ``null``).
 
 JSON (``--json``): ``{"A", "B", "C", "G1", "H1", "G2", "H2", "P", "Qb", "Qt", "gamma", "tau", "theta", "kp", "r",
 "sample_time", "certificates": {...}}`` plus ``law``, ``input_delay``, ``gain_scale``, ``p1``, ``p2`` and
@@ -61,20 +61,20 @@ def _text(design: Design) -> str:
     ]
     if certificates.lmi is not None:
         lmi = certificates.lmi
-        margin = f"LMI margin {lmi.relative_margin:.3g} of its norm, cond(Q) {lmi.Q_condition:.3g}"
-        if lmi.within_rounding:  # never show a gamma the numpy re-check cannot tell from rounding
-            lines.append(
-                f"LMI (31) holds only within rounding ({margin}; solver {lmi.solver}): gamma not confirmed; the "
-                "Lyapunov and vertex checks and the lifted-map certificates below are what certify"
-            )
-        else:
-            lines.append(
-                f"gamma = {design.gamma:.6g} (tau = {design.tau:g}, theta = {design.theta:g}; solver {lmi.solver}; "
-                f"{margin}) -- robust 2D stability within the trial"
-            )
+        # solve_lmi refuses a solution whose margin is within rounding: the gamma here is confirmed
+        lines.append(
+            f"gamma = {design.gamma:.6g} (tau = {design.tau:g}, theta = {design.theta:g}; solver {lmi.solver}; "
+            f"LMI margin {lmi.relative_margin:.3g} of its scaled norm, cond(Q) {lmi.Q_condition:.3g}) -- robust 2D "
+            "stability within the trial"
+        )
     if certificates.noilc is not None:
         weights = certificates.noilc
         lines.append(f"norm-optimal weights: Q = {weights.q:.6g} I, R = {weights.r:.6g} I")
+    if certificates.gradient is not None:
+        step = certificates.gradient
+        lines.append(
+            f"gradient step: beta = {step.beta:.6g} = {step.step_relative:g} / ||G||^2, ||G|| = {step.plant_norm:.6g}"
+        )
     codesign = certificates.codesign
     if codesign is not None:
         lines.append(

@@ -38,12 +38,34 @@ each uncertainty channel (``sigma1, sigma2 > 0``)::
     [ 0              Dbar'                               0        0        0   -g I  ]
 
 (``G1b = [G1; -C G1]``, ``H1b = [H1 0]``, ``G2b = [G2; -C G2]``), minimising ``gamma`` (Remark 1);
-``P = J Q^-1``. Strictness is enforced with margins: the LMI ``<= -margin I``, ``Qb, Qt >= margin I``,
-``sigma >= margin``.
+``P = J Q^-1``.
+
+Numerics: scaling, bounded multipliers, a relative margin
+--------------------------------------------------------
+On the shipped plants the blocks of (31) differ by orders of magnitude (paper_sim: ``B = 0.0167``,
+``G1 = 0.001`` against ``H1 = 1``), so the solver ran with multipliers ``sigma ~ 1e5`` and an LMI that held by an
+absolute margin of 1e-6 -- 1e-11 of the matrix's norm, below the solver's own tolerance: feasibility and ``gamma``
+were noise. The LMI is therefore solved on a scaled Roesser model (:class:`Scaling`):
+
+* ``x = T xs``, ``u = S us`` and each channel's ``Gbar Delta H`` split as ``(Gbar c) Delta (H / c)`` (``T``, ``S``
+  diagonal, ``c`` one scalar per channel, so a full ``Delta`` commutes with it), chosen by Osborne balancing of the
+  interconnection ``[[Abar, Bbar, Gbar], [1/Bbar', 0, 0], [H, 0, 0]]`` (the ``1/Bbar'`` row, entry by entry, zero
+  where ``Bbar`` is, stands for the size of the gain the LMI will find: a gain that cancels each state's input
+  entry), then one common factor that balances ``T^-1 Dbar`` against ``Cz T``. Every factor is a power of two:
+  scaling and unscaling are exact in floating point.
+* The scaled LMI is a congruence of the original one, ``M = Dg Ms Dg`` with ``Dg = diag(T, T, c, I, I)``, at
+  ``Q = T Qs T``, ``J = S Js T``, ``sigma = c^2 sigma_s`` and the same ``gamma`` (``w`` and ``z`` are not scaled),
+  so it has the same inertia and ``P = J Q^-1 = S Ps T^-1``.
+* The margin is relative, in the constraints themselves: with ``s`` a variable bounding the norm,
+  ``-s I <= Ms <= -margin s I``, ``Qs >= margin s I``, ``sigma_s >= margin s``; and the multipliers are bounded,
+  ``sigma_s <= SIGMA_BOUND`` (:data:`SIGMA_BOUND`).
 
 Independent checks (numpy, after the solve)
 -------------------------------------------
-* the LMI matrix rebuilt in numpy from the solved values has largest eigenvalue ``< 0``;
+* the LMI matrix rebuilt in numpy from the solved (unscaled) values has largest eigenvalue ``< 0``, and the scaled
+  matrix ``Dg^-1 M Dg^-1`` a margin relative to its norm of at least
+  :data:`~foilc_hil.design.record.LMI_RELATIVE_MARGIN_MIN` (else LMI (31) holds only within rounding: the solution
+  and its ``gamma`` are refused, never returned);
 * ``Qb, Qt`` have smallest eigenvalue ``> 0``;
 * at every uncertainty vertex (``Delta = +-1`` for scalars; for matrices the sign-diagonal partial isometries and
   seeded random ones, all extreme points of the unit spectral-norm ball), the closed loop
@@ -70,13 +92,16 @@ import numpy as np
 from foilc_hil.config import DivergentFilterPolicy, LawKind
 from foilc_hil.design.certificates import LawStructure, certify
 from foilc_hil.design.models import DiscreteModel, Uncertainty, uncertainty_vertices
-from foilc_hil.design.record import Design, LmiChecks, Timing
+from foilc_hil.design.record import LMI_RELATIVE_MARGIN_MIN, Design, LmiChecks, LmiScaling, Timing
 from foilc_hil.errors import ConfigError, InputError, LmiInfeasibleError
 from foilc_hil.progress import as_step
 
 __all__ = [
+    "SIGMA_BOUND",
     "LmiSolution",
     "RoesserModel",
+    "Scaling",
+    "balance",
     "lmi_matrix",
     "roesser_model",
     "solve_lmi",
@@ -86,6 +111,13 @@ __all__ = [
 
 Solver = Literal["CLARABEL", "SCS"]
 _SOLVERS: tuple[Solver, ...] = ("CLARABEL", "SCS")
+
+#: Upper bound of every multiplier ``sigma_s`` of the scaled LMI (module notes). The scaled blocks are O(1), so a
+#: multiplier beyond this means one channel's Lemma-2 term outweighs the rest of the matrix by 1e4 and the LMI's
+#: margin relative to it would be rounding; the bound makes the solver find another solution or report none.
+SIGMA_BOUND = 1e4
+#: Osborne sweeps of :func:`balance` at most (it converges in a handful on these small matrices).
+_BALANCE_SWEEPS = 50
 
 @dataclass(frozen=True)
 class Channel:
@@ -127,6 +159,110 @@ def roesser_model(model: DiscreteModel, uncertainty: Uncertainty) -> RoesserMode
     Dbar = np.block([[np.eye(n), np.zeros((n, p))], [-C, np.eye(p)]])
     Cz = np.hstack([np.zeros((p, n)), np.eye(p)])
     return RoesserModel(Abar, Bbar, tuple(channels), Dbar, Cz, n, p)
+
+
+def _power_of_two(value: float) -> float:
+    return float(2.0 ** round(math.log2(value)))
+
+
+@dataclass(frozen=True)
+class Scaling:
+    """The diagonal similarity LMI (31) is solved in (module notes): ``x = T xs``, ``u = S us``, channel ``i``
+    split as ``(Gbar c_i) Delta (H / c_i)``; every factor a power of two."""
+
+    state: np.ndarray  # diag(T), n + p
+    inputs: np.ndarray  # diag(S), m
+    channels: tuple[float, ...]  # c_i
+
+    def apply(self, roesser: RoesserModel) -> RoesserModel:
+        """The scaled Roesser model: ``T^-1 Abar T``, ``T^-1 Bbar S``, ``T^-1 Gbar c``, ``H T / c`` (``H S / c``),
+        ``T^-1 Dbar``, ``Cz T``."""
+        T, S = self.state, self.inputs
+        channels = tuple(
+            Channel(ch.kind, ch.Gbar * c / T[:, None], ch.H * (T if ch.kind == "state" else S)[None, :] / c)
+            for ch, c in zip(roesser.channels, self.channels, strict=True)
+        )
+        return replace(
+            roesser,
+            Abar=roesser.Abar * T[None, :] / T[:, None],
+            Bbar=roesser.Bbar * S[None, :] / T[:, None],
+            channels=channels,
+            Dbar=roesser.Dbar / T[:, None],
+            Cz=roesser.Cz * T[None, :],
+        )
+
+    def congruence(self, roesser: RoesserModel) -> np.ndarray:
+        """``diag(Dg)``: the original LMI matrix is ``Dg Ms Dg`` (module notes)."""
+        parts = [self.state, self.state]
+        parts += [np.full(ch.H.shape[0], c) for ch, c in zip(roesser.channels, self.channels, strict=True)]
+        parts += [np.ones(roesser.n_outputs), np.ones(roesser.Dbar.shape[1])]
+        return np.concatenate(parts)
+
+    def unscale(self, values: dict[str, Any]) -> dict[str, Any]:
+        """The scaled problem's solution in the original coordinates: ``Q = T Qs T``, ``J = S Js T``,
+        ``sigma = c^2 sigma_s``, the same ``gamma`` (exact: powers of two)."""
+        T, S = self.state, self.inputs
+        n = values["Qb"].shape[0]
+        return {
+            "Qb": values["Qb"] * np.outer(T[:n], T[:n]),
+            "Qt": values["Qt"] * np.outer(T[n:], T[n:]),
+            "J": values["J"] * np.outer(S, T),
+            "sigmas": tuple(sigma * c**2 for sigma, c in zip(values["sigmas"], self.channels, strict=True)),
+            "gamma": values["gamma"],
+        }
+
+
+def _interconnection(roesser: RoesserModel) -> tuple[np.ndarray, list[list[int]]]:
+    """The square matrix Osborne balances, over the signals ``x``, ``u`` and one block per channel, and its
+    groups (one per state, one per input, one per channel: a channel shares one factor)."""
+    nb, m = roesser.Bbar.shape
+    sizes = [channel.H.shape[0] for channel in roesser.channels]
+    Z = np.zeros((nb + m + sum(sizes),) * 2)
+    Z[:nb, :nb] = roesser.Abar
+    Z[:nb, nb : nb + m] = roesser.Bbar
+    B = roesser.Bbar.T
+    # the size of a gain that cancels each state's input entry (module notes)
+    Z[nb : nb + m, :nb] = np.divide(1.0, B, out=np.zeros_like(B), where=B != 0)
+    groups = [[i] for i in range(nb + m)]
+    start = nb + m
+    for channel, q in zip(roesser.channels, sizes, strict=True):
+        Z[:nb, start : start + q] = channel.Gbar
+        columns = slice(0, nb) if channel.kind == "state" else slice(nb, nb + m)
+        Z[start : start + q, columns] = channel.H
+        groups.append(list(range(start, start + q)))
+        start += q
+    return Z, groups
+
+
+def balance(roesser: RoesserModel) -> Scaling:
+    """Osborne balancing (2-norms of each group's off-diagonal rows and columns made equal, factors rounded to
+    powers of two) of the model's interconnection, then one common factor balancing ``T^-1 Dbar`` against
+    ``Cz T`` (module notes)."""
+    Z, groups = _interconnection(roesser)
+    d = np.ones(Z.shape[0])
+    for _ in range(_BALANCE_SWEEPS):
+        changed = False
+        for group in groups:
+            scaled = Z * d[None, :] / d[:, None]
+            others = np.ones(Z.shape[0], dtype=bool)
+            others[group] = False
+            row = float(np.linalg.norm(scaled[np.ix_(np.array(group), others)]))
+            column = float(np.linalg.norm(scaled[np.ix_(others, np.array(group))]))
+            if row == 0 or column == 0:
+                continue
+            factor = _power_of_two(math.sqrt(row / column))
+            if factor != 1.0:
+                d[group] *= factor
+                changed = True
+        if not changed:
+            break
+    nb, m = roesser.Bbar.shape
+    T = d[:nb]
+    common = _power_of_two(
+        math.sqrt(float(np.linalg.norm(roesser.Dbar / T[:, None])) / float(np.linalg.norm(roesser.Cz * T[None, :])))
+    )
+    channels = tuple(float(d[group[0]]) * common for group in groups[nb + m :])
+    return Scaling(state=T * common, inputs=d[nb : nb + m] * common, channels=channels)
 
 
 @dataclass(frozen=True)
@@ -198,28 +334,31 @@ def _check_rates(tau: float, theta: float, margin: float) -> None:
 
 
 def _solve_once(
-    roesser: RoesserModel, tau: float, theta: float, solver: Solver, margin: float
+    scaled: RoesserModel, tau: float, theta: float, solver: Solver, margin: float
 ) -> tuple[str, dict[str, Any] | None]:
+    """Solve the scaled LMI (module notes: relative margin, bounded multipliers); the values are the scaled ones."""
     import cvxpy as cp
 
-    n, p = roesser.n_states, roesser.n_outputs
-    m = roesser.Bbar.shape[1]
+    n, p = scaled.n_states, scaled.n_outputs
+    m = scaled.Bbar.shape[1]
     Qb = cp.Variable((n, n), symmetric=True, name="Qb")
     Qt = cp.Variable((p, p), symmetric=True, name="Qt")
     J = cp.Variable((m, n + p), name="J")
-    sigmas = [cp.Variable(name=f"sigma{i + 1}") for i in range(len(roesser.channels))]
+    sigmas = [cp.Variable(name=f"sigma{i + 1}") for i in range(len(scaled.channels))]
     gamma = cp.Variable(name="gamma")
-    M = lmi_matrix(roesser, Qb=Qb, Qt=Qt, J=J, sigmas=sigmas, gamma=gamma, tau=tau, theta=theta, bmat=cp.bmat)
-    size = M.shape[0]
+    bound = cp.Variable(name="norm_bound")  # s >= ||Ms||: the margin is relative to it
+    M = lmi_matrix(scaled, Qb=Qb, Qt=Qt, J=J, sigmas=sigmas, gamma=gamma, tau=tau, theta=theta, bmat=cp.bmat)
+    eye = np.eye(M.shape[0])
     # The blocks above are symmetric by construction; cvxpy's PSD constraint still wants a symmetric
     # expression, so symmetrise explicitly (a no-op on the exact value).
     M_sym = (M + M.T) / 2
     constraints = [
-        M_sym << -margin * np.eye(size),
-        Qb >> margin * np.eye(n),
-        Qt >> margin * np.eye(p),
-        gamma >= margin,
-        *[sigma >= margin for sigma in sigmas],
+        M_sym << -margin * bound * eye,
+        M_sym >> -bound * eye,
+        Qb >> margin * bound * np.eye(n),
+        Qt >> margin * bound * np.eye(p),
+        *[sigma >= margin * bound for sigma in sigmas],
+        *[sigma <= SIGMA_BOUND for sigma in sigmas],
     ]
     problem = cp.Problem(cp.Minimize(gamma), constraints)
     try:
@@ -243,18 +382,28 @@ def _spectral_radius(matrix: np.ndarray) -> float:
     return float(np.max(np.abs(np.linalg.eigvals(matrix)))) if matrix.size else 0.0
 
 
-def _spectral_checks(M: np.ndarray, Qb: np.ndarray, Qt: np.ndarray) -> dict[str, Any]:
-    """The eigenvalue checks of the solved LMI matrix and ``Q``, with the margin relative to ``M``'s norm."""
+def _relative_margin(M: np.ndarray) -> float:
+    """``-lambda_max(M) / ||M||_2`` of a symmetric matrix: near machine epsilon means "holds within rounding"."""
     spectrum = np.linalg.eigvalsh((M + M.T) / 2)
-    lmi_max = float(np.max(spectrum))
-    Q_values = np.concatenate([np.linalg.eigvalsh(Qb), np.linalg.eigvalsh(Qt)])
+    return float(-np.max(spectrum) / np.max(np.abs(spectrum)))
+
+
+def _condition(Qb: np.ndarray, Qt: np.ndarray) -> float:
+    """``cond(diag(Qb, Qt))`` from the eigenvalues of its symmetric blocks."""
+    values = np.concatenate([np.linalg.eigvalsh((Qb + Qb.T) / 2), np.linalg.eigvalsh((Qt + Qt.T) / 2)])
+    return float(np.max(values) / np.min(values)) if np.min(values) > 0 else math.inf
+
+
+def _spectral_checks(M: np.ndarray, congruence: np.ndarray, Qb: np.ndarray, Qt: np.ndarray) -> dict[str, Any]:
+    """The eigenvalue checks of the solved LMI matrix and ``Q``, with the margin relative to the norm of the scaled
+    matrix ``Dg^-1 M Dg^-1`` (the one solved) and of ``M`` itself."""
     return {
-        "lmi_max_eigenvalue": lmi_max,
+        "lmi_max_eigenvalue": float(np.max(np.linalg.eigvalsh((M + M.T) / 2))),
         "Qb_min_eigenvalue": float(np.min(np.linalg.eigvalsh(Qb))),
         "Qt_min_eigenvalue": float(np.min(np.linalg.eigvalsh(Qt))),
-        # the margin relative to the matrix's own size: near machine epsilon means "holds within rounding"
-        "relative_margin": -lmi_max / float(np.max(np.abs(spectrum))),
-        "Q_condition": float(np.max(Q_values) / np.min(Q_values)) if np.min(Q_values) > 0 else math.inf,
+        "relative_margin": _relative_margin(M / np.outer(congruence, congruence)),
+        "relative_margin_unscaled": _relative_margin(M),
+        "Q_condition": _condition(Qb, Qt),
     }
 
 
@@ -265,13 +414,15 @@ def verify_lmi_solution(
     *,
     tau: float,
     theta: float,
+    scaling: Scaling | None = None,
 ) -> dict[str, Any]:
-    """The independent numpy checks of the module notes. Returns the measured numbers.
+    """The independent numpy checks of the module notes on ``values`` in the original coordinates (``scaling``: the
+    coordinates they were solved in, for the relative margin). Returns the measured numbers.
 
     Raises
     ------
     foilc_hil.errors.LmiInfeasibleError
-        Naming the first condition that fails.
+        Naming the first condition that fails; a margin within rounding refuses the solution and its ``gamma``.
     """
     roesser = roesser_model(model, uncertainty)
     n = model.n_states
@@ -291,20 +442,35 @@ def verify_lmi_solution(
     )
     if not np.allclose(M, M.T, rtol=0, atol=1e-12 * max(1.0, float(np.max(np.abs(M))))):
         raise LmiInfeasibleError("LMI (31): the assembled matrix is not symmetric (internal error)")
-    checks = _spectral_checks(M, Qb, Qt)
+    congruence = np.ones(M.shape[0]) if scaling is None else scaling.congruence(roesser)
+    checks = _spectral_checks(M, congruence, Qb, Qt)
     lmi_max, qb_min, qt_min = checks["lmi_max_eigenvalue"], checks["Qb_min_eigenvalue"], checks["Qt_min_eigenvalue"]
     if not lmi_max < 0:
         raise LmiInfeasibleError(f"LMI (31): largest eigenvalue of the solved matrix is {lmi_max:.3g}, not < 0")
+    if not checks["relative_margin"] >= LMI_RELATIVE_MARGIN_MIN:
+        raise LmiInfeasibleError(
+            f"LMI (31) holds only within rounding (margin {checks['relative_margin']:.3g} of its norm, below "
+            f"{LMI_RELATIVE_MARGIN_MIN:g}): gamma = {values['gamma']:.6g} is not confirmed"
+        )
     if not (qb_min > 0 and qt_min > 0):
         raise LmiInfeasibleError(f"LMI (31): Q is not positive definite (min eigenvalues {qb_min:.3g}, {qt_min:.3g})")
     Q = np.block([[Qb, np.zeros((n, Qt.shape[0]))], [np.zeros((Qt.shape[0], n)), Qt]])
     P = np.linalg.solve(Q.T, J.T).T  # J Q^-1
-    Qinv = np.linalg.inv(Q)
     rates = np.block(
         [[tau * np.linalg.inv(Qb), np.zeros((n, Qt.shape[0]))], [np.zeros((Qt.shape[0], n)), theta * np.linalg.inv(Qt)]]
     )
+    checks.update(_vertex_checks(model, uncertainty, P, np.linalg.inv(Q), rates))
+    checks["P"] = P
+    return checks
+
+
+def _vertex_checks(
+    model: DiscreteModel, uncertainty: Uncertainty, P: np.ndarray, Qinv: np.ndarray, rates: np.ndarray
+) -> dict[str, Any]:
+    """Theorem 1's Lyapunov decrease and 1D radii at the nominal model and every vertex; the worst of each."""
+    n = model.n_states
     p1, p2 = P[:, :n], P[:, n:]
-    worst = {"lyapunov_max_eigenvalue": -math.inf, "time_radius": 0.0, "trial_radius": 0.0}
+    worst: dict[str, Any] = {"lyapunov_max_eigenvalue": -math.inf, "time_radius": 0.0, "trial_radius": 0.0}
     cases: list[tuple[np.ndarray, np.ndarray]] = [(np.zeros_like(model.A), np.zeros_like(model.B))]
     cases.extend(uncertainty_vertices(uncertainty))
     for index, (dA, dB) in enumerate(cases):
@@ -327,10 +493,8 @@ def verify_lmi_solution(
         worst["lyapunov_max_eigenvalue"] = max(worst["lyapunov_max_eigenvalue"], lyapunov)
         worst["time_radius"] = max(worst["time_radius"], time_radius)
         worst["trial_radius"] = max(worst["trial_radius"], trial_radius)
-    checks.update(worst)
-    checks["vertices_checked"] = len(cases) - 1
-    checks["P"] = P
-    return checks
+    worst["vertices_checked"] = len(cases) - 1
+    return worst
 
 
 @as_step("LMI (31)")
@@ -343,7 +507,8 @@ def solve_lmi(
     solver: Solver = "CLARABEL",
     margin: float = 1e-6,
 ) -> LmiSolution:
-    """Solve LMI (31) minimising ``gamma`` and verify the solution independently (module notes).
+    """Solve LMI (31) minimising ``gamma`` on the scaled model with a margin relative to the matrix's norm
+    (``margin``), and verify the solution independently in the original coordinates (module notes).
 
     The requested solver is tried first, then the other one if it fails to solve or its solution fails a
     check; the solution records which solver produced it.
@@ -358,15 +523,18 @@ def solve_lmi(
     if solver not in _SOLVERS:
         raise ConfigError(f"must be one of {', '.join(_SOLVERS)}, got {solver!r}", key="synthesis.solver")
     roesser = roesser_model(model, uncertainty)
+    scaling = balance(roesser)
+    scaled = scaling.apply(roesser)
     order = [solver, *[s for s in _SOLVERS if s != solver]]
     failures: list[str] = []
     for name in order:
-        status, values = _solve_once(roesser, tau, theta, name, margin)
-        if values is None:
+        status, solved = _solve_once(scaled, tau, theta, name, margin)
+        if solved is None:
             failures.append(f"{name}: {status}")
             continue
+        values = scaling.unscale(solved)
         try:
-            checks = verify_lmi_solution(model, uncertainty, values, tau=tau, theta=theta)
+            checks = verify_lmi_solution(model, uncertainty, values, tau=tau, theta=theta, scaling=scaling)
         except LmiInfeasibleError as exc:
             failures.append(f"{name}: {exc}")
             continue
@@ -377,6 +545,14 @@ def solve_lmi(
             sigmas=tuple(values["sigmas"]),
             solver_failures=tuple(failures),
             P_lmi=P,
+            scaling=LmiScaling(
+                state=tuple(float(x) for x in scaling.state),
+                inputs=tuple(float(x) for x in scaling.inputs),
+                channels=scaling.channels,
+                sigmas=tuple(solved["sigmas"]),
+                sigma_bound=SIGMA_BOUND,
+                Q_condition=_condition(solved["Qb"], solved["Qt"]),
+            ),
             **checks,
         )
         return LmiSolution(

@@ -26,6 +26,9 @@ Module order: after :mod:`foilc_hil.design.certificates`, before :mod:`foilc_hil
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
 import numpy as np
 
 from foilc_hil.config import FractionalMemory, LawKind, NoilcConfig
@@ -41,7 +44,7 @@ from foilc_hil.design.record import Bounds, CertificateAction, Certificates, Des
 from foilc_hil.errors import InputError
 from foilc_hil.progress import as_step
 
-__all__ = ["certify_noilc", "lifted_plant", "noilc_gain", "noilc_weights", "trial_map"]
+__all__ = ["certify_lifted", "certify_noilc", "lifted_plant", "noilc_gain", "noilc_weights", "trial_map"]
 
 #: ``r`` recorded by a NOILC design: the law has no fractional term.
 UNUSED_ORDER = 1.0
@@ -85,31 +88,30 @@ def trial_map(
     return np.kron(law.q_filter, np.eye(m)) - full @ G_y, "input (Q-filter)"
 
 
-@as_step("NOILC gain and certificates")
-def certify_noilc(
+def certify_lifted(
     model: DiscreteModel,
     uncertainty: Uncertainty,
-    config: NoilcConfig,
+    gain: np.ndarray,
     law: LawStructure,
     *,
     require_monotonic: bool,
+    kind: LawKind,
+    addition: Mapping[str, Any],
 ) -> Design:
-    """The NOILC design for ``model``: its weights, and certificates of the law as it runs (nominal, vertices).
-
-    Nothing is rescaled: the certificates report the weights' map as it is (like P-type's).
-    """
+    """The design of a lifted feedforward law ``u_k = u_{k-1} + L e_{k-1}`` (NOILC, gradient): certificates of
+    its dense map (:func:`trial_map`) at the nominal plant and every vertex; ``addition`` is what its certificates
+    add (``{"noilc": weights}``, ``{"gradient": step}``). Nothing is rescaled: the certificates report the map as
+    it is (like P-type's)."""
     if law.lead != model.input_delay:
         raise InputError(f"law: its lead {law.lead} must be the model's input delay {model.input_delay}")
-    weights = noilc_weights(model, config, law.n_samples)
-    gain = noilc_gain(model, weights, law.n_samples)
     plants = [("nominal", model.A, model.B)]
     plants += [
         (f"vertex {i}", model.A + dA, model.B + dB) for i, (dA, dB) in enumerate(uncertainty_vertices(uncertainty), 1)
     ]
     entries: list[PlantCertificate] = []
     for name, A_v, B_v in plants:
-        matrix, kind = trial_map(A_v, B_v, model, gain, law)
-        entries.append(matrix_certificate(matrix, kind).named(name))
+        matrix, map_kind = trial_map(A_v, B_v, model, gain, law)
+        entries.append(matrix_certificate(matrix, map_kind).named(name))
     radius = max(entry.spectral_radius for entry in entries)
     norm = max(entry.norm_2 for entry in entries)
     bounds = Bounds(radius, norm)
@@ -130,15 +132,38 @@ def certify_noilc(
         asymptotic=radius < 1.0,
         monotonic=radius < 1.0 and norm <= CONTRACTION_LIMIT,
         plants=tuple(entries),
-        noilc=weights,
+        **addition,
     )
     P = np.zeros((model.n_inputs, model.n_states + model.n_outputs))
     return Design(
-        law=LawKind.NOILC,
+        law=kind,
         model=model,
         uncertainty=uncertainty,
         P=P,
         kp=0.0,
         r=UNUSED_ORDER,
         certificates=certificates,
+    )
+
+
+@as_step("NOILC gain and certificates")
+def certify_noilc(
+    model: DiscreteModel,
+    uncertainty: Uncertainty,
+    config: NoilcConfig,
+    law: LawStructure,
+    *,
+    require_monotonic: bool,
+) -> Design:
+    """The NOILC design for ``model``: its weights, and certificates of the law as it runs (nominal, vertices)."""
+    weights = noilc_weights(model, config, law.n_samples)
+    gain = noilc_gain(model, weights, law.n_samples)
+    return certify_lifted(
+        model,
+        uncertainty,
+        gain,
+        law,
+        require_monotonic=require_monotonic,
+        kind=LawKind.NOILC,
+        addition={"noilc": weights},
     )

@@ -2,13 +2,14 @@
 
 The bench (``run``), ``simulate``, ``synthesize``, the demo and ``replay`` all call :func:`build_design`, so the
 design a log records is the design of the law that ran: tuned when the law needs it (FOILC without
-``tuning.kp``/``tuning.r``; IOILC, P-type and NOILC never need tuning; under ``synthesis.design: codesign`` the
-tuned pair is only the search's initial guess), synthesised (FOILC, IOILC; FOILC co-designed when configured),
-given its Arimoto gain (P-type) or its norm-optimal weights (NOILC), and certified exactly as it will run (Q-filter
-from ``law.q_filter``, fractional memory from ``law.fractional_memory``, input delay).
+``tuning.kp``/``tuning.r``; IOILC, P-type, NOILC and gradient ILC never need tuning; under
+``synthesis.design: codesign`` the tuned pair is only the search's initial guess), synthesised (FOILC, IOILC; FOILC
+co-designed when configured), given its Arimoto gain (P-type), its norm-optimal weights (NOILC) or its step
+(gradient), and certified exactly as it will run (Q-filter from ``law.q_filter``, fractional memory from
+``law.fractional_memory``, input delay).
 
 Module order: in :mod:`foilc_hil.design`, models < fractional, qfilter, ptype < record < certificates < noilc
-< lmi < codesign < tuning < pipeline < robustness (which certifies the designs built here on drawn plants).
+< gradient < lmi < codesign < tuning < pipeline < robustness (which certifies the designs built here on drawn plants).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import time
 from foilc_hil.config import Config, DesignMethod, LawKind
 from foilc_hil.design.certificates import LawStructure, certify_p_type
 from foilc_hil.design.codesign import codesign
+from foilc_hil.design.gradient import certify_gradient
 from foilc_hil.design.lmi import solve_lmi, synthesize
 from foilc_hil.design.models import (
     DiscreteModel,
@@ -152,7 +154,7 @@ def build_design(config: Config, law: str, n_samples: int, *, input_delay: int) 
     config
         The whole configuration.
     law
-        ``foilc``, ``ioilc``, ``p-type`` or ``noilc`` (:class:`~foilc_hil.config.LawKind`). FOILC follows
+        ``foilc``, ``ioilc``, ``p-type``, ``noilc`` or ``gradient`` (:class:`~foilc_hil.config.LawKind`). FOILC follows
         ``synthesis.design``: ``paper`` (tuner, LMI, certificate) or ``codesign``
         (:mod:`foilc_hil.design.codesign`).
     n_samples
@@ -186,6 +188,8 @@ def _design(
 ) -> Design:
     """The gain of ``kind`` on ``model`` and its certificates (the step after tuning of :func:`build_design`)."""
     settings = config.synthesis
+    if kind is LawKind.GRADIENT:
+        return certify_gradient(model, uncertainty, structure, require_monotonic=settings.require_monotonic)
     if kind is LawKind.NOILC:
         return certify_noilc(
             model, uncertainty, config.law.noilc, structure, require_monotonic=settings.require_monotonic

@@ -53,8 +53,10 @@ __all__ = [
     "Certificates",
     "CodesignRecord",
     "Design",
+    "GradientStep",
     "GrowthBound",
     "LmiChecks",
+    "LmiScaling",
     "NoilcWeights",
     "PTypeGain",
     "PlantCertificate",
@@ -232,6 +234,49 @@ class GrowthBound:
 
 
 @dataclass(frozen=True)
+class LmiScaling:
+    """The scaled coordinates LMI (31) was solved in (:class:`foilc_hil.design.lmi.Scaling`): the diagonal factors
+    (powers of two), the multipliers as solved and their upper bound, and the condition number of the scaled
+    ``Qs = T^-1 Q T^-1`` (``LmiChecks.Q_condition`` is the original ``Q``'s)."""
+
+    state: tuple[float, ...]
+    inputs: tuple[float, ...]
+    channels: tuple[float, ...]
+    sigmas: tuple[float, ...]
+    sigma_bound: float
+    Q_condition: float
+
+    def to_json(self) -> dict[str, Any]:
+        """``certificates["lmi"]["scaling"]``."""
+        return {
+            "state": list(self.state),
+            "inputs": list(self.inputs),
+            "channels": list(self.channels),
+            "sigmas": list(self.sigmas),
+            "sigma_bound": self.sigma_bound,
+            "Q_condition": self.Q_condition,
+        }
+
+    @classmethod
+    def from_json(cls, value: Any) -> LmiScaling:
+        """Read :meth:`to_json` output."""
+        where = "design.certificates.lmi.scaling"
+        document = _mapping(value, where)
+        state, inputs, channels, sigmas = (
+            tuple(float(x) for x in _typed(document, key, list, where))
+            for key in ("state", "inputs", "channels", "sigmas")
+        )
+        return cls(
+            state,
+            inputs,
+            channels,
+            sigmas,
+            sigma_bound=_number(document, "sigma_bound", where),
+            Q_condition=_number(document, "Q_condition", where),
+        )
+
+
+@dataclass(frozen=True)
 class LmiChecks:
     """How LMI (31) was solved and the independent numpy checks of its solution (:mod:`foilc_hil.design.lmi`)."""
 
@@ -249,6 +294,8 @@ class LmiChecks:
     P_lmi: np.ndarray
     relative_margin: float = math.nan
     Q_condition: float = math.nan
+    relative_margin_unscaled: float = math.nan
+    scaling: LmiScaling | None = None
 
     @property
     def within_rounding(self) -> bool:
@@ -273,6 +320,9 @@ class LmiChecks:
             "P_lmi": self.P_lmi,
             "relative_margin": self.relative_margin,
             "Q_condition": self.Q_condition,
+            # additions (docs/interface-additions.md): the scaled problem
+            "relative_margin_unscaled": self.relative_margin_unscaled,
+            "scaling": None if self.scaling is None else self.scaling.to_json(),
         }
 
     @classmethod
@@ -301,6 +351,12 @@ class LmiChecks:
             # additions: absent from documents written before them
             relative_margin=_number(document, "relative_margin", where) if "relative_margin" in document else math.nan,
             Q_condition=_number(document, "Q_condition", where) if "Q_condition" in document else math.nan,
+            relative_margin_unscaled=(
+                _number(document, "relative_margin_unscaled", where)
+                if "relative_margin_unscaled" in document
+                else math.nan
+            ),
+            scaling=_optional(document, "scaling", LmiScaling.from_json),
             **numbers,
         )
 
@@ -348,6 +404,28 @@ class NoilcWeights:
         where = "design.certificates.noilc"
         document = _mapping(value, where)
         return cls(*(_number(document, key, where) for key in ("q", "r", "r_relative")))
+
+
+@dataclass(frozen=True)
+class GradientStep:
+    """What a gradient ILC design adds to its certificates: the step ``beta`` of ``u_k = u_{k-1} + beta G^T e``
+    and the plant norm ``||G||_2`` it was chosen from (``beta = step_relative / ||G||_2^2``), from which the law
+    rebuilds its lifted gain exactly."""
+
+    beta: float
+    plant_norm: float
+    step_relative: float
+
+    def to_json(self) -> dict[str, Any]:
+        """``certificates["gradient"]``: ``{"beta", "plant_norm", "step_relative"}``."""
+        return {"beta": self.beta, "plant_norm": self.plant_norm, "step_relative": self.step_relative}
+
+    @classmethod
+    def from_json(cls, value: Any) -> GradientStep:
+        """Read :meth:`to_json` output."""
+        where = "design.certificates.gradient"
+        document = _mapping(value, where)
+        return cls(*(_number(document, key, where) for key in ("beta", "plant_norm", "step_relative")))
 
 
 _CODESIGN_NUMBERS = (
@@ -468,6 +546,7 @@ class Certificates:
     p_type: PTypeGain | None = None
     noilc: NoilcWeights | None = None
     codesign: CodesignRecord | None = None
+    gradient: GradientStep | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The ``certificates`` document: exactly the keys, in the order, of the documents earlier versions wrote
@@ -501,7 +580,7 @@ class Certificates:
                 document[key] = record.to_json()
         if self.p_type is not None:
             document.update(self.p_type.to_json())
-        for key, addition in (("noilc", self.noilc), ("codesign", self.codesign)):
+        for key, addition in (("noilc", self.noilc), ("codesign", self.codesign), ("gradient", self.gradient)):
             if addition is not None:  # additions (docs/interface-additions.md): absent from earlier documents
                 document[key] = addition.to_json()
         return dict(jsonable(document))
@@ -558,6 +637,7 @@ class Certificates:
             ),
             noilc=_optional(document, "noilc", NoilcWeights.from_json),
             codesign=_optional(document, "codesign", CodesignRecord.from_json),
+            gradient=_optional(document, "gradient", GradientStep.from_json),
         )
 
 

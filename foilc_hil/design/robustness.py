@@ -25,7 +25,8 @@ from foilc_hil.design.certificates import (
     map_certificate,
     matrix_certificate,
 )
-from foilc_hil.design.noilc import noilc_gain, trial_map
+from foilc_hil.design.gradient import lifted_gain
+from foilc_hil.design.noilc import trial_map
 from foilc_hil.design.pipeline import law_structure
 from foilc_hil.design.record import Design
 
@@ -72,10 +73,7 @@ class DrawCertificate:
 def certify_draws(design: Design, law: LawStructure, draws: Sequence[Perturbation]) -> list[DrawCertificate]:
     """Certify ``design``'s law (as it runs: ``law``) on each drawn plant; one Dask task runs this on a chunk."""
     model = design.model
-    gain = None
-    if design.law is LawKind.NOILC:
-        assert design.certificates is not None and design.certificates.noilc is not None  # built by certify_noilc
-        gain = noilc_gain(model, design.certificates.noilc, law.n_samples)
+    gain = lifted_gain(design, law.n_samples)  # NOILC, gradient: their dense map; the others: per sample
     results = []
     for draw in draws:
         A, B = model.A + draw.delta_a, model.B + draw.delta_b

@@ -1,4 +1,5 @@
-"""Learning laws behind one sample-by-sample interface: FOILC (paper eq. 8, 19, 21), IOILC, P-type and NOILC.
+"""Learning laws behind one sample-by-sample interface: FOILC (paper eq. 8, 19, 21), IOILC, P-type, NOILC and
+gradient ILC.
 
 Timing conventions (see also :mod:`foilc_hil.references`)
 ---------------------------------------------------------
@@ -46,7 +47,8 @@ design (gain, model, certificates) comes from the same pipeline (:mod:`foilc_hil
 
 NOILC (norm-optimal, Amann–Owens): ``u_k = u_{k-1} + L e_{k-1}`` with the lifted gain
 ``L = (G^T Q G + R)^-1 G^T Q`` acting on the whole trial (:mod:`foilc_hil.design.noilc`); ``L e[d:]`` updates
-``u[:N-d]`` like every other law's learning term.
+``u[:N-d]`` like every other law's learning term. Gradient ILC (``u_k = u_{k-1} + beta G^T e_{k-1}``,
+:mod:`foilc_hil.design.gradient`) runs the same way with its own lifted gain ``beta G^T``.
 
 First trial and restore
 -----------------------
@@ -80,7 +82,7 @@ import numpy as np
 
 from foilc_hil.config import FractionalMemory, LawConfig, LawKind
 from foilc_hil.design.fractional import FractionalPD, History
-from foilc_hil.design.noilc import noilc_gain
+from foilc_hil.design.gradient import lifted_gain
 from foilc_hil.design.ptype import p_type_gain
 from foilc_hil.design.qfilter import QFilter
 from foilc_hil.design.record import Design
@@ -90,6 +92,7 @@ from foilc_hil.metrics import TrialMetrics, trial_metrics
 
 __all__ = [
     "Foilc",
+    "Gradient",
     "Ioilc",
     "LearningLaw",
     "Noilc",
@@ -574,8 +577,8 @@ class Noilc(LearningLaw):
         q_filter: QFilter | None = None,
         limits: tuple[float, float] | None = None,
     ) -> None:
-        if design.certificates is None or design.certificates.noilc is None:
-            raise InputError("design.certificates.noilc: a norm-optimal ILC design records its weights")
+        if design.law is not self.kind:
+            raise InputError(f"design.law: {type(self).__name__} runs a {self.kind} design, got {design.law}")
         super().__init__(
             n_samples=n_samples,
             n_inputs=design.n_inputs,
@@ -585,8 +588,7 @@ class Noilc(LearningLaw):
             q_filter=q_filter,
             limits=limits,
         )
-        self.weights = design.certificates.noilc
-        self._gain = noilc_gain(design.model, self.weights, self.n_samples) if self.input_delay < n_samples else None
+        self._gain = lifted_gain(design, self.n_samples) if self.input_delay < n_samples else None
 
     def _learning_signal(self, error: np.ndarray) -> np.ndarray:
         return error.copy()
@@ -594,6 +596,14 @@ class Noilc(LearningLaw):
     def _learning_update(self, learned: np.ndarray) -> np.ndarray:
         assert self._gain is not None  # begin_trial only asks when d < N
         return np.asarray((self._gain @ learned.ravel()).reshape(learned.shape[0], self.n_inputs))
+
+
+class Gradient(Noilc):
+    """Gradient ILC, lifted: ``u_k = u_{k-1} + beta G^T e_{k-1}`` (:mod:`foilc_hil.design.gradient`); ``beta G^T``
+    is rebuilt from the design's model and the step its certificates record (``certificates.gradient``). Runs like
+    :class:`Noilc`: feedforward only, the lifted gain applied between trials."""
+
+    kind = LawKind.GRADIENT
 
 
 # --- factory ----------------------------------------------------------------------------------------------------
@@ -606,7 +616,8 @@ def make_law(
     *,
     limits: tuple[float, float] | None = None,
 ) -> LearningLaw:
-    """Build the law ``design.law`` (``foilc``, ``ioilc``, ``p-type``, ``noilc``) for ``n_samples`` samples per trial.
+    """Build the law ``design.law`` (``foilc``, ``ioilc``, ``p-type``, ``noilc``, ``gradient``) for ``n_samples``
+    samples per trial.
 
     ``design`` gives the gain (``P``; ``p2 = Gamma`` for P-type), the model and the input delay;
     ``law_cfg.q_filter`` adds a Q-filter; ``law_cfg.fractional_memory`` picks the fractional operator's memory
@@ -619,6 +630,8 @@ def make_law(
     memory = law_cfg.fractional_memory
     if design.law is LawKind.NOILC:
         return Noilc(design, n_samples, q_filter=q_filter, limits=limits)
+    if design.law is LawKind.GRADIENT:
+        return Gradient(design, n_samples, q_filter=q_filter, limits=limits)
     if design.law is LawKind.FOILC:
         return Foilc(design, n_samples, q_filter=q_filter, fractional_memory=memory, limits=limits)
     if design.law is LawKind.IOILC:
