@@ -100,7 +100,13 @@ def execute(args: argparse.Namespace) -> CommandResult:
         "partial": bool(args.verify and contents.truncated),
     }
     if args.verify:
-        verification = verify_log(contents)
+        from foilc_hil.logtools.axes import log_axes, verify_axes
+
+        if log_axes(contents):  # several axes (axes: runs): each on its own law, one entry per axis
+            verification, axes = verify_axes(contents)
+            document["axes"] = [axis.to_json() for axis in axes]
+        else:
+            verification = verify_log(contents)
         document["verified"] = verification.verified
         document["samples_checked"] = verification.samples_checked
         document["trials_checked"] = verification.trials_checked

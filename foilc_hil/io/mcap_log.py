@@ -73,6 +73,7 @@ __all__ = [
     "McapLogReader",
     "McapLogWriter",
     "QueuedLogWriter",
+    "encode_design",
     "frame_to_message",
     "read_log",
 ]
@@ -262,7 +263,7 @@ class McapLogWriter(_ClosingListener):
         if config_yaml is not None:
             self._writer.add_metadata(METADATA_CONFIG, {"yaml": config_yaml})
         if design is not None:
-            self._writer.add_metadata(METADATA_DESIGN, _design_record(design))
+            self._writer.add_metadata(METADATA_DESIGN, encode_design(design))
         self._stream.flush()  # header and metadata reach the file before the first trial
 
     # -- logging ---------------------------------------------------------------------------------------------
@@ -326,7 +327,7 @@ class McapLogWriter(_ClosingListener):
         """Write the ``foilc_hil.design`` metadata record (if it was not known at construction)."""
         with self._lock:
             self._check_open()
-            self._writer.add_metadata(METADATA_DESIGN, _design_record(design))
+            self._writer.add_metadata(METADATA_DESIGN, encode_design(design))
 
     def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
         """Write another metadata record (str -> str)."""
@@ -390,7 +391,7 @@ class McapLogWriter(_ClosingListener):
             self._stream.close()
 
 
-def _design_record(design: Mapping[str, Any]) -> dict[str, str]:
+def encode_design(design: Mapping[str, Any]) -> dict[str, str]:
     """MCAP metadata is str -> str: every value of the design becomes its JSON text."""
     return {str(key): json.dumps(_jsonable(value), allow_nan=False) for key, value in design.items()}
 

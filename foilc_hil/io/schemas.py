@@ -26,6 +26,7 @@ __all__ = [
     "ILC_TRIAL_SCHEMA",
     "JSON_SCHEMA_DIALECT",
     "MESSAGE_ENCODING",
+    "METADATA_AXIS_PREFIX",
     "METADATA_CONFIG",
     "METADATA_DESIGN",
     "METADATA_LAYOUT",
@@ -57,6 +58,11 @@ TOPIC_TIMING: Final = "/timing"
 METADATA_CONFIG: Final = "foilc_hil.config"
 #: metadata record holding the design (gains, certificates); each value is a JSON text (MCAP metadata is str -> str)
 METADATA_DESIGN: Final = "foilc_hil.design"
+
+#: a run of several axes (``axes:``) also writes, per axis, ``foilc_hil.axis.<node id>.config`` (``{"yaml": ...}``: the
+#: axis's own single-axis config) and ``foilc_hil.axis.<node id>.design`` (its design, as ``foilc_hil.design``);
+#: the ``foilc_hil.config`` and ``foilc_hil.design`` records are the whole document's and the first axis's design
+METADATA_AXIS_PREFIX: Final = "foilc_hil.axis"
 
 #: metadata record holding ``{"ilc_sample": "<version>"}``: how ``/ilc/sample`` rows align (absent: version 1)
 METADATA_LAYOUT: Final = "foilc_hil.layout"

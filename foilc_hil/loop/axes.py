@@ -299,6 +299,17 @@ def _plan_axes(request: RunRequest) -> _AxesPlan:
                      limiter=AxisLimiter(limiters), settings=loop_settings(config, request.mode))
 
 
+def _log_axes(writer: Any, plan: _AxesPlan) -> None:
+    """Each axis's own config and design, for ``replay --verify`` and ``report`` of one axis."""
+    from foilc_hil.config import dump_config
+    from foilc_hil.io.mcap_log import encode_design
+    from foilc_hil.io.schemas import METADATA_AXIS_PREFIX
+
+    for node, axis, design in zip(plan.node_ids, plan.configs, plan.designs, strict=True):
+        writer.add_metadata(f"{METADATA_AXIS_PREFIX}.{node}.config", {"yaml": dump_config(axis)})
+        writer.add_metadata(f"{METADATA_AXIS_PREFIX}.{node}.design", encode_design(design.to_json()))
+
+
 def _start_emulators(stack: contextlib.ExitStack, plan: _AxesPlan, threaded: bool) -> tuple[Any, list[Any]]:
     """``interface: embedded``: one emulated drive per axis (its own plant) on ONE in-process channel."""
     if plan.bus.interface != "embedded":
@@ -401,6 +412,7 @@ def run_axes(request: RunRequest) -> AxesRunReport:
                 writer = QueuedLogWriter.open(request.out, config_yaml=dump_config(config),
                                               design=plan.designs[0].to_json())
                 stack.callback(writer.close)
+                _log_axes(writer, plan)
                 sink = McapSink(writer, None)
             bus_cfg, emulators = _start_emulators(stack, plan, threaded=bool(config.inject))
             group, faulty = _open_axes(stack, plan, config, bus_cfg, sink, stops, emulators)
@@ -456,8 +468,9 @@ def _confirmed_stops(stops: dict[int, StopReport], node_ids: Sequence[int]) -> I
         yield
     except FoilcHilError as exc:
         exc.facts = {**(exc.facts or {}), "drive_stops": {str(node): stops[node].to_json() for node in stops}}
-        for node, report in stops.items():
-            exc.add_note(report.describe(node))
+        for node in node_ids:
+            if node in stops:
+                exc.add_note(stops[node].describe(node))
         raise
     for node in node_ids:
         report = stops.get(node, StopReport(commanded=False, confirmed=False))
