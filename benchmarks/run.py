@@ -54,7 +54,15 @@ def collect(repeats: int = 3) -> dict[str, Any]:
     import tempfile
     from pathlib import Path
 
-    from benchmarks import bench_lockstep, bench_logging, bench_loop, bench_physics, bench_science, bench_simulate
+    from benchmarks import (
+        bench_axes,
+        bench_lockstep,
+        bench_logging,
+        bench_loop,
+        bench_physics,
+        bench_science,
+        bench_simulate,
+    )
 
     started_load = os.getloadavg()[0]
     date = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M")
@@ -62,6 +70,7 @@ def collect(repeats: int = 3) -> dict[str, Any]:
     simulated = bench_simulate.simulate_comparisons(repeats)
     lockstep, lockstep_row = _lockstep(repeats)
     lockstep_peer, lockstep_rows = bench_lockstep.collect(repeats)
+    axes, axes_rows = bench_axes.collect(repeats)
     with tempfile.TemporaryDirectory() as directory:
         logging_costs = bench_logging.per_call_costs(Path(directory))
         writers = bench_logging.writer_comparisons(Path(directory), repeats=repeats)
@@ -74,7 +83,7 @@ def collect(repeats: int = 3) -> dict[str, Any]:
             "cpus": os.cpu_count(),
             "load_average_1min": started_load,
         },
-        "comparisons": comparisons_json([*physics, *simulated, lockstep_row, *lockstep_rows, *writers]),
+        "comparisons": comparisons_json([*physics, *simulated, lockstep_row, *lockstep_rows, *axes_rows, *writers]),
         "physics": {"jit": bench_physics.jit_cost()},
         "logging_per_call": logging_costs,
         "science": bench_science.collect(),
@@ -83,6 +92,8 @@ def collect(repeats: int = 3) -> dict[str, Any]:
         # foilc-hil run on the embedded emulator (in-process transport and, for contrast, python-can virtual
         # buses), first-order and PMSM plant, against a hand-written python-can lockstep loop, interleaved
         "lockstep_vs_handwritten": lockstep_peer,
+        # axes: runs of 1, 2 and 4 axes against the single-axis run, and the bus load of a 4-axis log
+        "axes": axes,
         "load_average_end": os.getloadavg()[0],
     }
 
