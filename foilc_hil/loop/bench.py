@@ -373,9 +373,12 @@ class TrialLoop:
     drive
         Commissioned and enabled (OPERATION ENABLED); the loop only runs the cyclic path and quick-stops on abort.
     law
-        The learning law; ``command`` is called once per cycle with a preallocated ``(1,)`` output array.
+        The learning law; ``command`` is called once per cycle with a preallocated ``(1,)`` output array (``(m,)``
+        for ``m`` axes).
     reference
-        One trial's reference, shape ``(N,)`` (:func:`foilc_hil.references.reference_profile`).
+        One trial's reference, shape ``(N,)`` (:func:`foilc_hil.references.reference_profile`), or ``(N, m)`` for
+        ``m`` axes in one loop (:mod:`foilc_hil.loop.axes`): outputs and commands are then ``(m,)`` arrays, the
+        drive one SYNC for every axis, and the settle phase waits until every axis is at rest.
     limiter
         Command limits in plant units; ``None``: commands go to the drive as the law computed them (the offline
         simulator, whose plant saturates by itself).
