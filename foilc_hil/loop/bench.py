@@ -563,7 +563,8 @@ class TrialLoop:
         self.law.begin_trial()
         output_buffer = self._output_buffer
         clamp: Callable[[Any], Any] = self.limiter.clamp if self.limiter is not None else float
-        signal = self._signal
+        as_command, require = self._signal.command, self._signal.require_finite  # locals: one lookup per trial
+        into = self._signal.into
         clamped_before = self._clamped_count()
         lost_before, bad_before = self.watchdog.total, self.drive.bad_frames
         drive = self.drive
@@ -573,9 +574,9 @@ class TrialLoop:
                 y = self._cycle_feedback()
                 sync_times[i] = self._sync_time
                 seen[i] = y
-                output_buffer[:] = y
-                u = signal.command(law.command(i, output_buffer))
-                signal.require_finite(u, "command", self._cycle)
+                output_buffer[into] = y
+                u = as_command(law.command(i, output_buffer))
+                require(u, "command", self._cycle)
                 control[i] = u
                 applied[i] = drive.set_target(clamp(u))
                 self._finish_cycle()
@@ -741,14 +742,15 @@ def _require_all_finite(values: Any, what: str, cycle: int) -> None:
 class _Signals:
     """How the loop handles one cycle's output and command: floats for one axis, ``(m,)`` arrays for several."""
 
+    into: int | slice  # where y goes in the law's input buffer (an int index is the cheaper store)
     output: Callable[[Any], Any]  # the drive's feedback velocity -> y
     command: Callable[[np.ndarray], Any]  # the law's command array -> u
     peak: Callable[[Any], float]  # |y| (the largest over the axes): the settle test
     require_finite: Callable[[Any, str, int], None]
 
 
-_SCALAR = _Signals(float, _first, abs, require_finite)
-_VECTOR = _Signals(_vector, _vector, _peak, _require_all_finite)
+_SCALAR = _Signals(0, float, _first, abs, require_finite)
+_VECTOR = _Signals(slice(None), _vector, _vector, _peak, _require_all_finite)
 
 
 # --- a whole run: design, law, bus or embedded emulator, drive, log ---------------------------------------------
