@@ -56,6 +56,7 @@ def collect(repeats: int = 3) -> dict[str, Any]:
     from pathlib import Path
 
     from benchmarks import (
+        bench_axes,
         bench_lockstep,
         bench_logging,
         bench_loop,
@@ -75,6 +76,7 @@ def collect(repeats: int = 3) -> dict[str, Any]:
     lockstep_profile = bench_profile.collect(repeats)
     science_rows = bench_science.science_comparisons(repeats)
     robustness = robustness_comparisons()  # root: Dask's loopback TCP inside `unshare --net`
+    axes, axes_rows = bench_axes.collect(repeats)
     with tempfile.TemporaryDirectory() as directory:
         logging_costs = bench_logging.per_call_costs(Path(directory))
         writers = bench_logging.writer_comparisons(Path(directory), repeats=repeats)
@@ -88,7 +90,7 @@ def collect(repeats: int = 3) -> dict[str, Any]:
             "load_average_1min": started_load,
         },
         "comparisons": comparisons_json(
-            [*physics, *simulated, lockstep_row, *lockstep_rows, *writers, *science_rows, *robustness]
+            [*physics, *simulated, lockstep_row, *lockstep_rows, *axes_rows, *writers, *science_rows, *robustness]
         ),
         "physics": {"jit": bench_physics.jit_cost()},
         "logging_per_call": logging_costs,
@@ -100,6 +102,8 @@ def collect(repeats: int = 3) -> dict[str, Any]:
         "lockstep_vs_handwritten": lockstep_peer,
         # where each microsecond of a lockstep cycle goes, on main before the lean cyclic path and now
         "lockstep_profile": lockstep_profile,
+        # axes: runs of 1, 2 and 4 axes against the single-axis run, and the bus load of a 4-axis log
+        "axes": axes,
         "load_average_end": os.getloadavg()[0],
     }
 

@@ -197,6 +197,28 @@ class BenchConfig(Section):
     realtime: RealtimeConfig = RealtimeConfig()  # host settings of a realtime run (drivers.realtime)
 
 
+class AxisConfig(Section):
+    """One entry of ``axes:``: one CiA 402 axis on the shared bus, with its own model, reference, law and drive.
+
+    A section given here replaces the whole top-level section of that name for this axis (it is not merged key by
+    key); a section left out is the top-level one. ``node_id`` is the axis's ``drive.node_id``.
+    """
+
+    node_id: int = Field(ge=1, le=127)
+    plant: PlantConfig | None = None
+    reference: ReferenceConfig | None = None
+    tuning: TuningConfig | None = None
+    law: LawConfig | None = None
+    drive: DriveConfig | None = None
+
+    @model_validator(mode="after")
+    def _one_node_id(self) -> AxisConfig:
+        if self.drive is not None and "node_id" in self.drive.model_fields_set and self.drive.node_id != self.node_id:
+            raise ValueError(f"drive.node_id {self.drive.node_id} differs from node_id {self.node_id}: "
+                             "give node_id only")
+        return self
+
+
 class Config(Section):
     """The whole document."""
 
@@ -213,6 +235,44 @@ class Config(Section):
     emulator: EmulatorConfig = EmulatorConfig()
     # faults to inject into a run (drivers.faults; docs/reliability.md); `run --inject` adds to the list
     inject: tuple[Injection, ...] = ()
+    # several axes on the one bus (one SYNC, one trial loop); empty: the single axis of the sections above
+    axes: tuple[AxisConfig, ...] = ()
+
+    @model_validator(mode="after")
+    def _distinct_axes(self) -> Config:
+        seen: dict[int, int] = {}
+        for k, axis in enumerate(self.axes):
+            if axis.node_id in seen:
+                raise ValueError(f"axes.{k}.node_id: {axis.node_id} is already the node id of "
+                                 f"axes.{seen[axis.node_id]}")
+            seen[axis.node_id] = k
+        masters = {(axis.drive or self.drive).master_node_id for axis in self.axes}
+        if len(masters) > 1:
+            raise ValueError(f"axes: drive.master_node_id must be the same on every axis of one bus, "
+                             f"got {sorted(masters)}")
+        return self
+
+
+def axis_configs(config: Config) -> tuple[Config, ...]:
+    """One single-axis :class:`Config` per axis (``axes:``), or ``(config,)`` for a single-axis document.
+
+    Each is the whole document with the axis's sections in place of the top-level ones, its node id in
+    ``drive.node_id`` and no ``axes``: everything built from one axis's config (its design, law, limits, PDO plan,
+    emulated drive) is built exactly as for a single-axis run.
+    """
+    if not config.axes:
+        return (config,)
+    return tuple(
+        config.model_copy(update={
+            "plant": axis.plant or config.plant,
+            "reference": axis.reference or config.reference,
+            "tuning": axis.tuning or config.tuning,
+            "law": axis.law or config.law,
+            "drive": (axis.drive or config.drive).model_copy(update={"node_id": axis.node_id}),
+            "axes": (),
+        })
+        for axis in config.axes
+    )
 
 
 def load_config(path: str | Path | None, overrides: Mapping[str, Any] | None = None) -> Config:

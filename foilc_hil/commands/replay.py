@@ -74,9 +74,26 @@ def _frame_lines(args: argparse.Namespace, selected: int, sent: int, *, replayed
     return [f"{args.log}: {selected} frames selected (no bus given: nothing replayed)"]
 
 
+def _verify(contents: Any, document: dict[str, Any]) -> None:
+    """``--verify``: re-run the law(s) on the log and put the result into ``document``."""
+    from foilc_hil.logtools.axes import log_axes, verify_axes
+    from foilc_hil.logtools.replay import verify_log
+
+    if log_axes(contents):  # several axes (axes: runs): each on its own law, one entry per axis
+        verification, axes = verify_axes(contents)
+        document["axes"] = [axis.to_json() for axis in axes]
+    else:
+        verification = verify_log(contents)
+    document["verified"] = verification.verified
+    document["samples_checked"] = verification.samples_checked
+    document["trials_checked"] = verification.trials_checked
+    if verification.first_divergence is not None:
+        document["first_divergence"] = verification.first_divergence.to_json()
+
+
 def execute(args: argparse.Namespace) -> CommandResult:
     from foilc_hil.io.mcap_log import read_log
-    from foilc_hil.logtools.replay import play_frames, select_frames, verify_log
+    from foilc_hil.logtools.replay import play_frames, select_frames
 
     if not args.rate > 0:
         raise InputError(f"--rate: must be > 0, got {args.rate}")
@@ -100,12 +117,7 @@ def execute(args: argparse.Namespace) -> CommandResult:
         "partial": bool(args.verify and contents.truncated),
     }
     if args.verify:
-        verification = verify_log(contents)
-        document["verified"] = verification.verified
-        document["samples_checked"] = verification.samples_checked
-        document["trials_checked"] = verification.trials_checked
-        if verification.first_divergence is not None:
-            document["first_divergence"] = verification.first_divergence.to_json()
+        _verify(contents, document)
     if bus_cfg is not None:
         from drivers.bus import open_bus
 

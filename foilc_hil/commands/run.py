@@ -86,14 +86,18 @@ def check_bus_load(config: Any, bus: Any) -> Any:
     from drivers.busload import DEFAULT_BITRATE, CyclicFrame, drive_schedule, schedule_load
     from drivers.cia402_master import MASTER_HEARTBEATS_PER_CONSUMER_TIME, pdo_plan
     from drivers.od import load_od
+    from foilc_hil.config import axis_configs
 
-    drive = config.drive
-    plan = pdo_plan(drive.operation_mode, drive.node_id, load_od(drive.eds, drive.node_id))
-    frames = drive_schedule(plan, period=config.sample_time, drive_heartbeat=drive.heartbeat_producer_ms / 1000,
-                            master_heartbeat=drive.heartbeat_consumer_ms / 1000 / MASTER_HEARTBEATS_PER_CONSUMER_TIME)
+    frames = [CyclicFrame("SYNC", 0)]
+    axes = axis_configs(config)
+    for k, axis in enumerate(axes):  # every axis's PDOs and heartbeat; the master's heartbeat once (the first's)
+        drive = axis.drive
+        plan = pdo_plan(drive.operation_mode, drive.node_id, load_od(drive.eds, drive.node_id))
+        master = drive.heartbeat_consumer_ms / 1000 / MASTER_HEARTBEATS_PER_CONSUMER_TIME if k == 0 else 0
+        frames += drive_schedule(plan, period=config.sample_time, drive_heartbeat=drive.heartbeat_producer_ms / 1000,
+                                 master_heartbeat=master, name=f"node {drive.node_id} " if len(axes) > 1 else "")
     bitrate = bus.bitrate or config.bus.bitrate or DEFAULT_BITRATE
-    return schedule_load([CyclicFrame("SYNC", 0), *frames], bitrate=bitrate, period=config.sample_time,
-                         limit=config.bus.load_limit).check()
+    return schedule_load(frames, bitrate=bitrate, period=config.sample_time, limit=config.bus.load_limit).check()
 
 
 def execute(args: argparse.Namespace) -> CommandResult:
@@ -124,7 +128,12 @@ def execute(args: argparse.Namespace) -> CommandResult:
         bus=bus,
         quiet=bool(args.quiet or args.json),
     )
-    report = run_bench(request)
+    if config.axes:
+        from foilc_hil.loop.axes import run_axes
+
+        report: Any = run_axes(request)
+    else:
+        report = run_bench(request)
     document = {**report.to_json(), "bus_load": load.to_json()}
     text = f"{render_text(document)}\n{load.describe()}"
     if report.outcome.diverged:

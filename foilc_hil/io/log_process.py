@@ -56,7 +56,7 @@ from foilc_hil.io.mcap_log import (
     LogWriteError,
     McapLogWriter,
     _ClosingListener,
-    _design_record,
+    encode_design,
     _encode,
     frame_fields,
 )
@@ -232,7 +232,7 @@ class ProcessLogWriter(_ClosingListener):
 
     def log_design(self, design: Mapping[str, Any]) -> None:
         """Write the ``foilc_hil.design`` metadata record (in order with everything logged before)."""
-        self._put((int(WireOp.METADATA), METADATA_DESIGN, _design_record(design)))
+        self._put((int(WireOp.METADATA), METADATA_DESIGN, encode_design(design)))
 
     def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
         """Write another metadata record (in order with everything logged before)."""

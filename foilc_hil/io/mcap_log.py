@@ -76,6 +76,7 @@ __all__ = [
     "McapLogReader",
     "McapLogWriter",
     "QueuedLogWriter",
+    "encode_design",
     "frame_to_message",
     "read_log",
 ]
@@ -283,7 +284,7 @@ class McapLogWriter(_ClosingListener):
         if config_yaml is not None:
             self._writer.add_metadata(METADATA_CONFIG, {"yaml": config_yaml})
         if design is not None:
-            self._writer.add_metadata(METADATA_DESIGN, _design_record(design))
+            self._writer.add_metadata(METADATA_DESIGN, encode_design(design))
         self._stream.flush()  # header and metadata reach the file before the first trial
 
     # -- logging ---------------------------------------------------------------------------------------------
@@ -361,7 +362,7 @@ class McapLogWriter(_ClosingListener):
         """Write the ``foilc_hil.design`` metadata record (if it was not known at construction)."""
         with self._lock:
             self._write_frames()
-            self._writer.add_metadata(METADATA_DESIGN, _design_record(design))
+            self._writer.add_metadata(METADATA_DESIGN, encode_design(design))
 
     def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
         """Write another metadata record (str -> str)."""
@@ -470,7 +471,7 @@ class _ClosedRows(list[Any]):
         raise LogWriteError(f"{self.path}: the log is closed")
 
 
-def _design_record(design: Mapping[str, Any]) -> dict[str, str]:
+def encode_design(design: Mapping[str, Any]) -> dict[str, str]:
     """MCAP metadata is str -> str: every value of the design becomes its JSON text."""
     return {str(key): json.dumps(_jsonable(value), allow_nan=False) for key, value in design.items()}
 

@@ -50,6 +50,8 @@ class SampleRecord(NamedTuple):
         The law's command ``u(i)``, applied from ``t``.
     sample
         The index ``i`` within the trial; ``None`` writes no ``sample`` field (logs of other tools).
+    axis
+        The axis's node id in a run of several axes (``axes:``); ``None`` writes no ``axis`` field (one axis).
     """
 
     trial: int
@@ -60,6 +62,7 @@ class SampleRecord(NamedTuple):
     error: Signal
     E: Signal = None
     sample: int | None = None
+    axis: int | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The ``/ilc/sample`` document (:data:`foilc_hil.io.schemas.ILC_SAMPLE_SCHEMA`); values are not rounded."""
@@ -74,6 +77,8 @@ class SampleRecord(NamedTuple):
         }
         if self.sample is not None:
             document["sample"] = self.sample
+        if self.axis is not None:
+            document["axis"] = self.axis
         return document
 
 

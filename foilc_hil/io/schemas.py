@@ -26,6 +26,7 @@ __all__ = [
     "ILC_TRIAL_SCHEMA",
     "JSON_SCHEMA_DIALECT",
     "MESSAGE_ENCODING",
+    "METADATA_AXIS_PREFIX",
     "METADATA_CONFIG",
     "METADATA_DESIGN",
     "METADATA_LAYOUT",
@@ -57,6 +58,11 @@ TOPIC_TIMING: Final = "/timing"
 METADATA_CONFIG: Final = "foilc_hil.config"
 #: metadata record holding the design (gains, certificates); each value is a JSON text (MCAP metadata is str -> str)
 METADATA_DESIGN: Final = "foilc_hil.design"
+
+#: a run of several axes (``axes:``) also writes, per axis, ``foilc_hil.axis.<node id>.config`` (``{"yaml": ...}``: the
+#: axis's own single-axis config) and ``foilc_hil.axis.<node id>.design`` (its design, as ``foilc_hil.design``);
+#: the ``foilc_hil.config`` and ``foilc_hil.design`` records are the whole document's and the first axis's design
+METADATA_AXIS_PREFIX: Final = "foilc_hil.axis"
 
 #: metadata record holding ``{"ilc_sample": "<version>"}``: how ``/ilc/sample`` rows align (absent: version 1)
 METADATA_LAYOUT: Final = "foilc_hil.layout"
@@ -150,6 +156,7 @@ ILC_SAMPLE_SCHEMA: Final[dict[str, Any]] = {
         "trial": {"type": "integer", "minimum": 1, "description": "trial index k, from 1"},
         "t": {"type": "number", "description": "time within the trial, seconds: the instant of every signal"},
         "sample": {"type": "integer", "minimum": 0, "description": "sample index within the trial"},
+        "axis": {"type": "integer", "minimum": 1, "maximum": 127, "description": "the axis's node id (axes: runs)"},
         "reference": {**_SIGNAL, "description": "y_r(t)"},
         "output": {**_SIGNAL, "description": "measured feedback y(t, k)"},
         "control": {**_SIGNAL, "description": "command u(t, k) the law produced, applied from t"},
@@ -178,6 +185,7 @@ ILC_TRIAL_SCHEMA: Final[dict[str, Any]] = {
             "description": "SYNCs of the trial without a complete TPDO set in time (the law held the last good one)",
         },
         "bad_frames": {"type": "integer", "minimum": 0, "description": "frames of the trial that did not decode"},
+        "axis": {"type": "integer", "minimum": 1, "maximum": 127, "description": "the axis's node id (axes: runs)"},
     },
     "required": ["trial", "sse", "rmse", "max_abs_error"],
     "additionalProperties": True,

@@ -526,9 +526,46 @@ def write_report(log: str | Path, out_dir: str | Path) -> ReportFiles:
         ``out_dir`` cannot be created.
     """
     from foilc_hil.io.mcap_log import read_log
+    from foilc_hil.logtools.axes import log_axes
 
     contents = read_log(log)
-    directory = Path(out_dir)
+    axes = log_axes(contents)
+    if axes:
+        return _write_axes_report(contents, axes, Path(out_dir))
+    return _write_report(contents, Path(out_dir))
+
+
+def _write_axes_report(contents: LogContents, axes: Sequence[int], directory: Path) -> ReportFiles:
+    """A log of several axes: one report per axis in ``axis-<node id>/`` and an index of them in ``directory``."""
+    from foilc_hil.logtools.axes import axis_view
+
+    reports = [_write_report(axis_view(contents, node), directory / f"axis-{node}") for node in axes]
+    summary: dict[str, Any] = {
+        "log": contents.path,
+        "truncated": contents.truncated,
+        "damage": contents.damage or None,
+        "partial": contents.truncated,
+        "completed_trials": min(report.summary["completed_trials"] for report in reports),
+        "samples": len(contents.samples),
+        "plots": [],
+        "axes": [{"node_id": node, "out": str(report.directory), **report.summary}
+                 for node, report in zip(axes, reports, strict=True)],
+    }
+    summary_json = directory / "summary.json"
+    summary_md = directory / "summary.md"
+    summary_json.write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n", encoding="utf-8")
+    lines = [f"# {contents.path}: {len(axes)} axes", "", "| axis | trials | first SSE | last SSE | report |",
+             "|---|---|---|---|---|"]
+    for node, report in zip(axes, reports, strict=True):
+        trials = report.summary["trials"]
+        first, last = (_fmt(trials[0]["sse"]), _fmt(trials[-1]["sse"])) if trials else ("-", "-")
+        lines.append(f"| {node} | {len(trials)} | {first} | {last} | [axis-{node}](axis-{node}/summary.md) |")
+    summary_md.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return ReportFiles(directory, [], summary_json, summary_md, summary)
+
+
+def _write_report(contents: LogContents, directory: Path) -> ReportFiles:
+    """The report of one axis's log into ``directory``."""
     try:
         directory.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

@@ -77,7 +77,7 @@ from typing import TYPE_CHECKING, Any, Protocol, cast
 import numpy as np
 
 from drivers.cia402 import State402
-from drivers.drive import Feedback, StopReport
+from drivers.drive import StopReport
 from drivers.faults import FaultyBus, InjectionReport, require_actions
 from drivers.realtime import RealtimeConfig, RealtimeSession, collect_young, demote_current_thread
 from foilc_hil.errors import (
@@ -139,14 +139,34 @@ COMMAND_MARGIN_FRACTION = 0.25
 # --- what the loop talks to (drivers.drive.Drive, foilc_hil.laws.learning, foilc_hil.io.mcap_log) ---------------
 
 
+class FeedbackLike(Protocol):
+    """What the loop reads of one SYNC's answer: a :class:`~drivers.drive.Feedback`, or several axes' at once
+    (``velocity`` then an ``(m,)`` array, :mod:`foilc_hil.loop.axes`)."""
+
+    @property
+    def state(self) -> State402: ...
+
+    @property
+    def velocity(self) -> Any: ...
+
+
+class LimiterLike(Protocol):
+    """The command limiter the loop clamps with (:class:`~foilc_hil.loop.safety.CommandLimiter`, or one per axis)."""
+
+    def clamp(self, value: Any) -> Any: ...
+
+    @property
+    def clamped_count(self) -> int: ...
+
+
 class DriveLike(Protocol):
-    """The subset of ``drivers.drive.Drive`` the trial loop uses."""
+    """The subset of ``drivers.drive.Drive`` the trial loop uses (several axes: values are ``(m,)`` arrays)."""
 
     def sync(self) -> int: ...
 
-    def wait_feedback(self, timeout: float) -> Feedback: ...
+    def wait_feedback(self, timeout: float) -> FeedbackLike: ...
 
-    def set_target(self, value: float) -> float: ...
+    def set_target(self, value: Any) -> Any: ...
 
     def quick_stop(self) -> None: ...
 
@@ -243,6 +263,8 @@ class TrialRecord:
     sync_times: np.ndarray  # (N + 1,) perf_counter time of each SYNC
     clamped: int = 0  # commands of this trial the limiter clamped
     faults: FaultCounts = field(default_factory=FaultCounts)  # lost feedbacks, bad frames in the trial
+    axis: int | None = None  # the axis's node id in a run of several axes (``axes:``); None: the only axis
+    command_limits: tuple[float, float] | None = None  # this axis's limits when they are not the sink's
 
     def sample_records(self) -> Iterator[SampleRecord]:
         """The ``/ilc/sample`` messages of this trial, layout :data:`~foilc_hil.io.schemas.SAMPLE_LAYOUT` (module
@@ -258,6 +280,7 @@ class TrialRecord:
                 error=float(self.error[i]),
                 E=float(E[i]),
                 sample=i,
+                axis=self.axis,
             )
 
 
@@ -387,9 +410,12 @@ class TrialLoop:
     drive
         Commissioned and enabled (OPERATION ENABLED); the loop only runs the cyclic path and quick-stops on abort.
     law
-        The learning law; ``command`` is called once per cycle with a preallocated ``(1,)`` output array.
+        The learning law; ``command`` is called once per cycle with a preallocated ``(1,)`` output array (``(m,)``
+        for ``m`` axes).
     reference
-        One trial's reference, shape ``(N,)`` (:func:`foilc_hil.references.reference_profile`).
+        One trial's reference, shape ``(N,)`` (:func:`foilc_hil.references.reference_profile`), or ``(N, m)`` for
+        ``m`` axes in one loop (:mod:`foilc_hil.loop.axes`): outputs and commands are then ``(m,)`` arrays, the
+        drive one SYNC for every axis, and the settle phase waits until every axis is at rest.
     limiter
         Command limits in plant units; ``None``: commands go to the drive as the law computed them (the offline
         simulator, whose plant saturates by itself).
@@ -414,7 +440,7 @@ class TrialLoop:
         drive: DriveLike,
         law: LawLike,
         reference: np.ndarray,
-        limiter: CommandLimiter | None,
+        limiter: LimiterLike | None,
         settings: LoopSettings,
         *,
         log: LogSink | None = None,
@@ -425,8 +451,8 @@ class TrialLoop:
         sleep: Callable[[float], None] = time.sleep,
     ) -> None:
         ref = np.asarray(reference, dtype=float)
-        if ref.ndim != 1 or ref.size == 0:
-            raise ValueError(f"reference must be a non-empty 1-D array (single-output axis), got shape {ref.shape}")
+        if ref.ndim not in (1, 2) or ref.size == 0:
+            raise ValueError(f"reference must be a non-empty (N,) array, or (N, m) for m axes, got shape {ref.shape}")
         self.drive = drive
         self.law = law
         self.reference = ref
@@ -454,7 +480,9 @@ class TrialLoop:
         # trial's 6000 records take milliseconds to build, so the update thread logs them, not the loop thread
         self._timing_backlog: collections.deque[tuple[np.ndarray, int, str, int]] = collections.deque()
         self._cycle = 0  # cycles run so far, over the whole run
-        self._output_buffer = np.zeros(1)
+        self._output_buffer = np.zeros(1 if ref.ndim == 1 else ref.shape[1])
+        # one axis: Python floats through the cycle; m axes (an (N, m) reference): (m,) arrays
+        self._signal = _SCALAR if ref.ndim == 1 else _VECTOR
         self._feedforward_used = np.zeros(0)
         # the current cycle's measurements, written by _cycle_feedback and read by _finish_cycle
         self._sync_time = self._received = self._latency = 0.0
@@ -545,7 +573,7 @@ class TrialLoop:
                 y = self._cycle_feedback()
                 self.drive.set_target(0.0)
                 self._finish_cycle()
-                at_rest = at_rest + 1 if abs(y) <= tolerance else 0
+                at_rest = at_rest + 1 if self._signal.peak(y) <= tolerance else 0
                 if at_rest >= needed and (pending is None or pending.done):
                     self.outcome.settle_cycles += self._cycle - first_cycle
                     return
@@ -560,9 +588,10 @@ class TrialLoop:
     def _run_trial(self, trial: int, total_trials: int) -> _RawTrial:
         """The trial's N + 1 cycles (hot path); returns the raw arrays."""
         n = self.reference.shape[0]
-        seen = np.empty(n + 1)
-        control = np.empty(n)
-        applied = np.empty(n)
+        width = self.reference.shape[1:]  # () for one axis
+        seen = np.empty((n + 1, *width))
+        control = np.empty((n, *width))
+        applied = np.empty((n, *width))
         sync_times = np.empty(n + 1)
         self._feedforward_used = np.array(self.law.feedforward, dtype=float, copy=True)
         self.timing.begin_block(n + 1, phase="trial", trial=trial)
@@ -571,7 +600,9 @@ class TrialLoop:
         self.progress.begin_trial(trial, total_trials, n)
         self.law.begin_trial()
         output_buffer = self._output_buffer
-        clamp: Callable[[float], float] = self.limiter.clamp if self.limiter is not None else float
+        clamp: Callable[[Any], Any] = self.limiter.clamp if self.limiter is not None else float
+        as_command, require = self._signal.command, self._signal.require_finite  # locals: one lookup per trial
+        into = self._signal.into
         clamped_before = self._clamped_count()
         lost_before, bad_before = self.watchdog.total, self.drive.bad_frames
         drive = self.drive
@@ -581,9 +612,9 @@ class TrialLoop:
                 y = self._cycle_feedback()
                 sync_times[i] = self._sync_time
                 seen[i] = y
-                output_buffer[0] = y
-                u = float(law.command(i, output_buffer)[0])
-                require_finite(u, "command", self._cycle)
+                output_buffer[into] = y
+                u = as_command(law.command(i, output_buffer))
+                require(u, "command", self._cycle)
                 control[i] = u
                 applied[i] = drive.set_target(clamp(u))
                 self._finish_cycle()
@@ -634,8 +665,9 @@ class TrialLoop:
         n = self.reference.shape[0]
         output = raw.seen[1:].copy()
         update = self.law.end_trial(self.reference, output)
-        error = np.asarray(update.error, dtype=float).reshape(n)
-        E = np.asarray(update.E, dtype=float).reshape(n)
+        shape = (n, *self.reference.shape[1:])
+        error = np.asarray(update.error, dtype=float).reshape(shape)
+        E = np.asarray(update.E, dtype=float).reshape(shape)
         # the law's metrics (learnable samples counted from its input delay) with the trial-to-trial noise floor
         metrics = self._noise_floor.measured(update.metrics, error)
         record = TrialRecord(
@@ -697,8 +729,8 @@ class TrialLoop:
             raise DriveFaultError(
                 f"the drive left OPERATION ENABLED (now {State402(feedback.state).name}) at cycle {self._cycle}"
             )
-        y = float(feedback.velocity)
-        require_finite(y, "drive feedback", self._cycle)
+        y = self._signal.output(feedback.velocity)
+        self._signal.require_finite(y, "drive feedback", self._cycle)
         self._held = y
         return y
 
@@ -756,6 +788,37 @@ class TrialLoop:
         # best effort on the way out: the caller's finally follows with safe_stop (disable)
         with contextlib.suppress(Exception):
             self.drive.quick_stop()
+
+
+def _first(values: np.ndarray) -> float:
+    return float(values[0])
+
+
+def _vector(values: Any) -> np.ndarray:
+    return np.array(values, dtype=float)
+
+
+def _peak(values: Any) -> float:
+    return float(np.max(np.abs(values)))  # NaN propagates: a NaN axis is never "at rest", never finite
+
+
+def _require_all_finite(values: Any, what: str, cycle: int) -> None:
+    require_finite(_peak(values), what, cycle)
+
+
+@dataclass(frozen=True)
+class _Signals:
+    """How the loop handles one cycle's output and command: floats for one axis, ``(m,)`` arrays for several."""
+
+    into: int | slice  # where y goes in the law's input buffer (an int index is the cheaper store)
+    output: Callable[[Any], Any]  # the drive's feedback velocity -> y
+    command: Callable[[np.ndarray], Any]  # the law's command array -> u
+    peak: Callable[[Any], float]  # |y| (the largest over the axes): the settle test
+    require_finite: Callable[[Any, str, int], None]
+
+
+_SCALAR = _Signals(0, float, _first, abs, require_finite)
+_VECTOR = _Signals(slice(None), _vector, _vector, _peak, _require_all_finite)
 
 
 # --- a whole run: design, law, bus or embedded emulator, drive, log ---------------------------------------------
@@ -896,14 +959,17 @@ class McapSink:
         # initial_output = y(0): the law's input at sample 0, which no row holds (replay --verify);
         # final_output = y(N Ts), also the last row's output (kept: the interface names it)
         ends = {"initial_output": float(record.seen[0]), "final_output": float(record.seen[-1])}
-        if self.command_limits is None:
+        if record.axis is not None:  # a run of several axes: every /ilc/trial names its axis
+            ends["axis"] = record.axis
+        limits = self.command_limits if record.command_limits is None else [float(x) for x in record.command_limits]
+        if limits is None:
             self.writer.log_trial(record.metrics, **ends)
         else:  # command_limits: the limits the law clamped to (replay --verify rebuilds the law with them)
             self.writer.log_trial(
                 record.metrics,
                 clamped=record.clamped,
                 **ends,
-                command_limits=self.command_limits,
+                command_limits=limits,
                 **record.faults.to_json(),
             )
         self.writer.end_trial()
