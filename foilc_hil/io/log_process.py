@@ -56,8 +56,8 @@ from foilc_hil.io.mcap_log import (
     LogWriteError,
     McapLogWriter,
     _ClosingListener,
-    encode_design,
     _encode,
+    encode_design,
     frame_fields,
 )
 from foilc_hil.io.records import SampleRecord, TimingRecord
