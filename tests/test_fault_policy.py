@@ -89,18 +89,18 @@ def shorten_tpdo1(emulator: Any, every: int = 2) -> Countdown:
     """While the countdown lasts, every ``every``-th TPDO1 goes out one byte short (wrong DLC); at most one in a
     row with ``every >= 2``, so the incomplete sets never make consecutive lost feedbacks."""
     countdown = Countdown()
-    link = emulator.drive.node.link
-    send = link.send_message
+    node = emulator.drive.node  # the drive sends its PDOs with EmulatedNode.transmit
+    send = node.transmit
     seen = [0]
 
-    def maybe_short(can_id: int, data: bytes, *args: Any, **kwargs: Any) -> None:
+    def maybe_short(can_id: int, data: bytes) -> None:
         if can_id == TPDO1:
             seen[0] += 1
             if seen[0] % every == 0 and countdown.take():
                 data = bytes(data)[:-1]
-        send(can_id, data, *args, **kwargs)
+        send(can_id, data)
 
-    link.send_message = maybe_short
+    node.transmit = maybe_short
     return countdown
 
 
