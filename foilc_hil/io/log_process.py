@@ -159,7 +159,8 @@ class ProcessLogWriter(_ClosingListener):
                 status = self._process.wait()
                 raise LogWriteError(f"{self.path}: the log writer process did not start (exit status {status})")
         except BaseException:
-            self.close()
+            with contextlib.suppress(LogWriteError):  # the error being raised says it; the child is reaped
+                self.close()
             raise
 
     @classmethod
