@@ -172,3 +172,16 @@ def test_cli_twenty_draws_three_laws_json_plots_and_bad_input(
         assert main([*argv[:3], *bad]) == 2
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and bad[0] in err
+
+
+def test_a_tolerance_never_reached_is_never_in_the_quantiles() -> None:
+    from foilc_hil.loop.robustness import DrawOutcome, LawRobustness, PlantDraw
+
+    def outcome(index: int, reached: int | None) -> DrawOutcome:
+        draw = PlantDraw(index, False, 0.0, 0.0, 0.0, 0.0, 1.0, index)
+        return DrawOutcome(draw, 0.5, 0.6, reached, 0.01, 0.002, False, 5)
+
+    law = LawRobustness(LawKind.IOILC, 0.5, 0.6, tuple(outcome(i, 3 if i < 6 else None) for i in range(10)))
+    figure = law.to_json()["trials_to_tolerance"]
+    assert figure == {"worst": None, "0.5": 3.0, "0.9": None, "0.99": None}
+    assert law.rate("reached") == 0.6 and law.rate("diverged") == 0.0 and law.rate("monotonic") == 1.0

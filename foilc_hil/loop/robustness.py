@@ -281,7 +281,7 @@ def run_draws(
 
 def _quantiles(values: np.ndarray) -> dict[str, float | None]:
     """``{"worst", "0.5", "0.9", "0.99"}`` (a non-finite value, e.g. tolerance never reached, is ``None``)."""
-    ordered = np.nan_to_num(values, nan=math.inf)
+    ordered = np.where(np.isnan(values), math.inf, values)  # not nan_to_num: it would turn inf into the largest float
     points = {"worst": float(np.max(ordered))}
     # inverted_cdf: an observed value, so a tolerance never reached (inf) stays inf instead of being interpolated
     points |= {f"{q:g}": float(np.quantile(ordered, q, method="inverted_cdf")) for q in QUANTILES}
