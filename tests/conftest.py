@@ -60,12 +60,17 @@ def _leaked_threads(before: set[threading.Thread]) -> list[threading.Thread]:
     deadline = time.monotonic() + _THREAD_GRACE_S
     while True:
         leaked = [t for t in threading.enumerate()
-                  if t not in before and t.is_alive() and not _stopped_periodic_task(t)]
+                  if t not in before and t.is_alive() and not _stopped_periodic_task(t)
+                  and not t.name.startswith(_LIBRARY_THREADS)]
         if not leaked or time.monotonic() > deadline:
             return leaked
         time.sleep(0.01)
 
 
+#: Process-wide thread pools a library starts once and keeps for the life of the process (not a test's leak):
+#: dask.distributed's offload executor (`distributed.utils._offload_executor`), started by the first in-process
+#: cluster of a worker process.
+_LIBRARY_THREADS = ("Dask-Offload",)
 _LIBRARY_DATA = (sys.prefix, sys.base_prefix, "/usr/share/")
 
 
