@@ -43,6 +43,7 @@ from foilc_hil.loop.bench import (
     build_design,
     command_limiter,
     loop_settings,
+    trial_hook,
 )
 from foilc_hil.loop.safety import CommandLimiter, StopRequest
 from foilc_hil.metrics import TrialMetrics, trial_metrics
@@ -377,20 +378,6 @@ def _commission_axes(group: AxisGroup, plan: _AxesPlan, sink: McapSink | None) -
         drive.enable()
 
 
-def _trial_hook(emulators: list[Any], faulty: FaultyBus | None) -> Callable[[int], None] | None:
-    hooks = [emulator.begin_trial for emulator in emulators]
-    if faulty is not None:
-        hooks.append(faulty.begin_trial)
-    if not hooks:
-        return None
-
-    def begin_trial(trial: int) -> None:
-        for hook in hooks:
-            hook(trial)
-
-    return begin_trial
-
-
 def run_axes(request: RunRequest) -> AxesRunReport:
     """``foilc-hil run`` for a config with ``axes:``: every axis in one trial loop, one SYNC per cycle.
 
@@ -422,7 +409,7 @@ def run_axes(request: RunRequest) -> AxesRunReport:
             stop = stack.enter_context(StopRequest())
             log = AxesSink(sink, plan.laws, plan.limiter, plan.node_ids) if sink is not None else None
             loop = TrialLoop(group, plan.laws, plan.reference, plan.limiter, plan.settings, log=log,
-                             progress=progress, stop=stop, before_trial=_trial_hook(emulators, faulty))
+                             progress=progress, stop=stop, before_trial=trial_hook(emulators, faulty))
             loops.append(loop)
             _commission_axes(group, plan, sink)
             outcome = loop.run(plan.trials)

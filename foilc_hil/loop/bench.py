@@ -70,7 +70,7 @@ import contextlib
 import math
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Protocol, cast
 
@@ -1101,9 +1101,10 @@ def _inject_faults(bus: Any, config: Any, emulator: Any) -> FaultyBus | None:
     return FaultyBus(bus, config.inject, node_id=config.drive.node_id, actions=actions)
 
 
-def _trial_hook(emulator: Any, faulty: FaultyBus | None) -> Callable[[int], None] | None:
-    """What starts a trial besides the loop: the embedded emulator's physics and the injected faults' clock."""
-    hooks = [hook for hook in (getattr(emulator, "begin_trial", None), getattr(faulty, "begin_trial", None)) if hook]
+def trial_hook(emulators: Sequence[Any], faulty: FaultyBus | None) -> Callable[[int], None] | None:
+    """What starts a trial besides the loop: the embedded emulators' physics and the injected faults' clock."""
+    owners = (*emulators, faulty)
+    hooks = [hook for hook in (getattr(owner, "begin_trial", None) for owner in owners) if hook]
     if not hooks:
         return None
 
@@ -1164,7 +1165,7 @@ def run_bench(request: RunRequest) -> RunReport:
             # the loop and the host setup before the drive is enabled: from its first SYNC in OPERATIONAL the drive
             # supervises SYNC, so nothing slow may run between the enable's last SYNC and the loop's first
             loop = TrialLoop(drive, plan.law, plan.reference, plan.limiter, plan.settings, log=sink,
-                             progress=progress, stop=stop, before_trial=_trial_hook(emulator, faulty))
+                             progress=progress, stop=stop, before_trial=trial_hook((emulator,), faulty))
             loops.append(loop)
             _commission(drive, config, session)
             _log_mapping(sink, drive, config)
