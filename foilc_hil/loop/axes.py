@@ -30,7 +30,7 @@ import numpy as np
 from drivers.cia402 import State402
 from drivers.drive import StopReport
 from drivers.faults import FaultyBus, InjectionReport, require_actions
-from foilc_hil.errors import DriveError, DriveFaultError, DriveNotStoppedError, FoilcHilError
+from foilc_hil.errors import DriveFaultError, FoilcHilError
 from foilc_hil.laws.learning import TrialUpdate
 from foilc_hil.loop.bench import (
     BenchOutcome,
@@ -43,6 +43,7 @@ from foilc_hil.loop.bench import (
     build_design,
     command_limiter,
     loop_settings,
+    stop_error,
     trial_hook,
 )
 from foilc_hil.loop.safety import CommandLimiter, StopRequest
@@ -461,12 +462,7 @@ def _confirmed_stops(stops: dict[int, StopReport], node_ids: Sequence[int]) -> I
         raise
     for node in node_ids:
         report = stops.get(node, StopReport(commanded=False, confirmed=False))
-        error: DriveError | None = None
-        if not report.confirmed:
-            error = DriveNotStoppedError(report.describe(node))
-        elif report.faults or report.state is State402.FAULT:
-            reported = "; ".join(report.faults) or "a fault statusword"
-            error = DriveFaultError(f"node {node} reported {reported} at the end of the run; {report.describe(node)}")
+        error = stop_error(report, node, f"node {node}")
         if error is not None:
             error.facts = {"drive_stops": {str(n): r.to_json() for n, r in stops.items()}}
             raise error

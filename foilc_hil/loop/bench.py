@@ -1213,6 +1213,17 @@ def _realtime_session(stack: contextlib.ExitStack, settings: LoopSettings) -> Re
     return session
 
 
+def stop_error(report: StopReport, node_id: int, subject: str) -> DriveError | None:
+    """The error a run ends with when its stop of drive ``node_id`` (``subject`` in the message) was not confirmed
+    or found the drive faulted; ``None`` when the drive is confirmed stopped and healthy."""
+    if not report.confirmed:
+        return DriveNotStoppedError(report.describe(node_id))
+    if report.faults or report.state is State402.FAULT:
+        reported = "; ".join(report.faults) or "a fault statusword"
+        return DriveFaultError(f"{subject} reported {reported} at the end of the run; {report.describe(node_id)}")
+    return None
+
+
 @contextlib.contextmanager
 def _truth_about_the_stop(stops: list[StopReport], node_id: int) -> Iterator[None]:
     """Say what the final stop really reached: a note on an error that ends the run, and an error (exit 1) for a
@@ -1229,12 +1240,7 @@ def _truth_about_the_stop(stops: list[StopReport], node_id: int) -> Iterator[Non
                 exc.add_note("the drive also reported: " + "; ".join(also))
         raise
     report = stops[-1]
-    error: DriveError | None = None
-    if not report.confirmed:
-        error = DriveNotStoppedError(report.describe(node_id))
-    elif report.faults or report.state is State402.FAULT:
-        reported = "; ".join(report.faults) or "a fault statusword"
-        error = DriveFaultError(f"the drive reported {reported} at the end of the run; {report.describe(node_id)}")
+    error = stop_error(report, node_id, "the drive")
     if error is not None:
         error.facts = {"drive_stop": report.to_json()}
         raise error
