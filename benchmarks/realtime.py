@@ -45,14 +45,16 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks import host_floor
 from benchmarks.output import emit
+from drivers.cia301 import SYNC_COB_ID, TPDO_BASES, cob_id
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "realtime_1khz.yaml"
 GROUP = "239.74.163.7"
 BUS = f"udp_multicast:{GROUP}"
 PERIOD = 0.001
-SYNC_ID, TPDO1_ID = 0x080, 0x181  # drivers.cia301: SYNC and TPDO1 of node 1
+SYNC_ID, TPDO1_ID = SYNC_COB_ID, cob_id(TPDO_BASES[0], 1)  # node 1 of configs/realtime_1khz.yaml
 NETNS_SETUP = ["ip link set lo up", "ip link set lo multicast on", "ip route add 224.0.0.0/4 dev lo"]
 PEER_FIFO = 50
 RECEIVER_FIFO = 49  # the instrument: above every normal process, below the cyclic threads it watches
@@ -264,12 +266,15 @@ def _condition(name: str, settings: dict[str, Any], work: Path) -> dict[str, Any
     try:
         config = _bench_config(work, settings["trials"], settings["time_scale"])
         result: dict[str, Any] = {"load_average_1min_before": os.getloadavg()[0]}
+        steal = host_floor.StealMeter.now()
         result["bench"] = _bench(config, work, name)
         result["peers"] = [
             _peer(peer, script, settings["peer_seconds"], fifo, work)
             for peer, script in (("canopen", _CANOPEN_PEER), ("python-can", _PYTHON_CAN_PEER))
             for fifo in (False, True)
         ]
+        result["host_floor"] = host_floor.wakeups(settings["peer_seconds"], PERIOD, work)
+        result["steal_percent"] = host_floor.StealMeter.now().percent_since(steal)
         result["load_average_1min_after"] = os.getloadavg()[0]
         return result
     finally:
@@ -399,6 +404,21 @@ def targets(document: dict[str, Any]) -> list[dict[str, Any]]:
     return rows
 
 
+def _floor_lines(condition: dict[str, Any]) -> list[str]:
+    """The host floor of a condition (:mod:`benchmarks.host_floor`), if the run measured it."""
+    floor = condition.get("host_floor")
+    if floor is None:
+        return []
+    steal = condition.get("steal_percent")
+    return [
+        f"Host floor (`benchmarks.host_floor`: a `chrt -f {host_floor.PROBE_FIFO}` process only waking on 1 ms "
+        f"deadlines, {floor['wakeups']} wake-ups): lateness p50/p99/p99.9/max {_us(floor['p50_us'])}/"
+        f"{_us(floor['p99_us'])}/{_us(floor['p99_9_us'])}/{_us(floor['max_us'])} us; later than 0.5 ms "
+        f"{100 * floor['over_500us_fraction']:.2f} %, later than 1 ms {100 * floor['over_1000us_fraction']:.2f} %. "
+        f"CPU steal over the condition: {'-' if steal is None else f'{steal:.2f} %'} of the guest's CPU time.",
+    ]
+
+
 def _cell(value: Any) -> str:
     if value is None:
         return "-"
@@ -445,7 +465,7 @@ def markdown(document: dict[str, Any]) -> str:
             _sync_row(f"{peer['peer']}{' (chrt -f 50)' if peer['sched_fifo'] else ''}", peer, receiver)
             for peer in condition["peers"]
         ]
-        lines.append("")
+        lines += ["", *_floor_lines(condition), ""]
     lines += [
         "### Targets (issue 9)",
         "",
