@@ -57,6 +57,7 @@ PERIOD = 0.001
 SYNC_ID, TPDO1_ID = SYNC_COB_ID, cob_id(TPDO_BASES[0], 1)  # node 1 of configs/realtime_1khz.yaml
 NETNS_SETUP = ["ip link set lo up", "ip link set lo multicast on", "ip route add 224.0.0.0/4 dev lo"]
 PEER_FIFO = 50
+HOPS = 3  # process wake-ups in series in one bench cycle (see _floor_lines)
 RECEIVER_FIFO = 49  # the instrument: above every normal process, below the cyclic threads it watches
 # SYNCs each way that define the local grid: short enough that a phase jump of the producer (the bench's start-up
 # SYNCs against its loop's) misjudges at most this many SYNCs, long enough to hold many on-time ones
@@ -415,7 +416,12 @@ def _floor_lines(condition: dict[str, Any]) -> list[str]:
         f"deadlines, {floor['wakeups']} wake-ups): lateness p50/p99/p99.9/max {_us(floor['p50_us'])}/"
         f"{_us(floor['p99_us'])}/{_us(floor['p99_9_us'])}/{_us(floor['max_us'])} us; later than 0.5 ms "
         f"{100 * floor['over_500us_fraction']:.2f} %, later than 1 ms {100 * floor['over_1000us_fraction']:.2f} %. "
-        f"CPU steal over the condition: {'-' if steal is None else f'{steal:.2f} %'} of the guest's CPU time.",
+        f"CPU steal over the condition: {'-' if steal is None else f'{steal:.2f} %'} of the guest's CPU time. "
+        # why 3: a cycle's command waits on three wake-ups in series (the emulator's receive of SYNC, the bench's
+        # receive of the TPDO, the bench's loop), each of which may take half the period before anything runs
+        f"A cycle waits on at least {HOPS} wake-ups in series (the emulator's receive, the bench's receive and "
+        f"loop), so about {100 * (1 - (1 - floor['over_500us_fraction']) ** HOPS):.1f} % of cycles would miss "
+        "their deadline from the host alone (an estimate: each hop later than half a period, independently).",
     ]
 
 

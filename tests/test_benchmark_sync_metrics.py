@@ -37,3 +37,18 @@ def test_answer_times_pair_each_sync_with_the_first_tpdo1_after_it() -> None:
         [[0x80, 1.0], [0x181, 1.0002], [0x281, 1.0003], [0x181, 1.0004], [0x80, 1.001], [0x80, 1.002], [0x181, 1.0025]]
     )
     assert answer_times(frames) == pytest.approx([0.0002, 0.0005])
+
+
+def test_host_floor_steal_share_and_the_estimate_from_half_period_wakeups() -> None:
+    from benchmarks.host_floor import StealMeter
+    from benchmarks.realtime import HOPS, _floor_lines
+
+    # 30 of 1200 jiffies elapsed were stolen
+    assert StealMeter(steal=130, total=1200).percent_since(StealMeter(steal=100, total=0)) == pytest.approx(2.5)
+    assert StealMeter(steal=5, total=10).percent_since(StealMeter(steal=5, total=10)) is None
+    floor = {"wakeups": 1000, "p50_us": 50.0, "p99_us": 900.0, "p99_9_us": 2000.0, "max_us": 5000.0,
+             "over_500us_fraction": 0.1, "over_1000us_fraction": 0.01}
+    (line,) = _floor_lines({"host_floor": floor, "steal_percent": 4.0})
+    expected = 100 * (1 - 0.9**HOPS)  # independent hops, each late with probability 0.1
+    assert f"about {expected:.1f} % of cycles" in line and "4.00 %" in line
+    assert _floor_lines({}) == []
