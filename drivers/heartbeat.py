@@ -194,8 +194,9 @@ class HeartbeatMonitor:
 
     def _silence_locked(self) -> float:
         now = self._clock()
-        starts = [t for t in (self._last_time, self._armed_at) if t is not None]
-        return now - max(starts) if starts else 0.0
+        last, armed = self._last_time, self._armed_at  # the later of the two (no list: check() runs every cycle)
+        start = armed if last is None else last if armed is None or last > armed else armed
+        return now - start if start is not None else 0.0
 
     def check(self) -> None:
         """Raise :class:`HeartbeatLostError` when armed and the heartbeat is overdue."""

@@ -192,20 +192,28 @@ class _Channel:
     def transmit(self, sender: InProcessBus, msg: can.Message) -> None:
         """Deliver ``msg`` to the other ends before returning (queued behind the delivery in progress, if any)."""
         frame = _received_copy(msg, self.name)
-        if self._pumping == threading.get_ident():
+        me = _get_ident()
+        if self._pumping == me:
             self._pending.append((sender, frame))  # sent by a listener: the running pump delivers it next
             return
         with self._pump:
-            self._pumping = threading.get_ident()
+            self._pumping = me
             try:
-                self._pending.append((sender, frame))
-                while self._pending:
-                    source, item = self._pending.popleft()
+                # the frame itself first, then whatever its listeners sent meanwhile: the queue is for those only
+                source, item = sender, frame
+                pending = self._pending
+                while True:
                     for end in self.ends:
                         if end is not source or end.receive_own_messages:
                             end._deliver(item)
+                    if not pending:
+                        break
+                    source, item = pending.popleft()
             finally:
                 self._pumping = None
+
+
+_get_ident = threading.get_ident
 
 
 def _received_copy(msg: can.Message, channel: str) -> can.Message:
@@ -305,8 +313,12 @@ class InProcessBus(can.BusABC):
             route = notifier.routes.get(msg.arbitration_id)
             if route is None or msg.is_remote_frame or msg.is_error_frame:
                 notifier.deliver(msg)
-            else:
-                notifier.deliver_to(route, msg)
+            elif not notifier._stopped:
+                # InProcessNotifier.deliver_to, inlined: the cyclic frames (4 a cycle) save a call each
+                try:
+                    route(msg)
+                except Exception as exc:
+                    notifier.listener_failed(exc)
             return
         with self._arrived:
             self._queue.append(msg)
@@ -428,10 +440,14 @@ class InProcessNotifier(can.Notifier):
         try:
             handler(msg)
         except Exception as exc:  # a listener's bug must not break the sender: kept, like python-can's thread
-            self.exception = exc
-            if not self._on_error(exc):
-                logger.error("in-process notifier stopped by a listener error: %r", exc)
-                self._detach()
+            self.listener_failed(exc)
+
+    def listener_failed(self, exc: Exception) -> None:
+        """A listener or route raised ``exc``: keep it; unless an ``on_error`` handles it, stop notifying."""
+        self.exception = exc
+        if not self._on_error(exc):
+            logger.error("in-process notifier stopped by a listener error: %r", exc)
+            self._detach()
 
     def stop(self, timeout: float = 5.0) -> None:
         """Stop notifying and call ``stop()`` on the listeners (``timeout`` unused: there is no thread)."""

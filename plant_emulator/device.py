@@ -411,7 +411,7 @@ class VirtualDrive:
         with self._lock:
             self.sync_count += 1
             self.supervisor.sync_received()
-            operational = self.nmt_state is NmtState.OPERATIONAL
+            operational = self.node.operational
             if lockstep:  # (1) physics with the command that was active; operational: its status is published below
                 self.physics.tick(self.cycle_period, publish=not operational)
             if operational:

@@ -93,11 +93,13 @@ class AxisPhysics:
         self.units: Units = application.units
         self._default_cycle_period = default_cycle_period
         self._is_pmsm = hasattr(plant, "set_input_kind")
+        # the object dictionary never changes while the drive runs: whether it has 0x1006 is asked once
+        self._has_cycle_period = node.has(Obj.COMMUNICATION_CYCLE_PERIOD)
 
     @property
     def cycle_period(self) -> float:
         """Seconds per cycle: 0x1006 (microseconds) when set, else the default."""
-        micros = self.node.read(Obj.COMMUNICATION_CYCLE_PERIOD) if self.node.has(Obj.COMMUNICATION_CYCLE_PERIOD) else 0
+        micros = self.node.read(Obj.COMMUNICATION_CYCLE_PERIOD) if self._has_cycle_period else 0
         return micros * 1e-6 if micros > 0 else self._default_cycle_period
 
     def tick(self, dt: float, *, publish: bool = True) -> None:
