@@ -205,8 +205,8 @@ class Cia402Application:
         rising = reset_bit and not self._fault_reset_bit
         self._fault_reset_bit = reset_bit
         after = machine.apply_controlword(controlword)
-        # a repeat is a no-op only once the fault-reset edge is recorded (both here and in the machine)
-        self._idle = key if after is before and not rising else None
+        # a repeat finds the fault-reset bit already recorded (here and in the machine): no edge, the same no-op
+        self._idle = key if after is before else None
         if rising and (before is State402.FAULT or self._latched_errors):
             self._clear_errors()
         if after is State402.QUICK_STOP_ACTIVE and before is not State402.QUICK_STOP_ACTIVE:
