@@ -201,9 +201,11 @@ class HeartbeatMonitor:
     def check(self) -> None:
         """Raise :class:`HeartbeatLostError` when armed and the heartbeat is overdue."""
         with self._lock:
-            if self._armed_at is None:
+            armed, last = self._armed_at, self._last_time
+            if armed is None:
                 return
-            silence = self._silence_locked()
+            # _silence_locked inlined (the master checks every cycle): time since the later of arming and the last beat
+            silence = self._clock() - (last if last is not None and last > armed else armed)
             if silence > self._timeout:
                 raise HeartbeatLostError(
                     f"heartbeat of node {self.node_id} lost: none for {silence:.3f} s "

@@ -151,7 +151,8 @@ class LockstepClock:
                 while self._timers and self._timers[0].cancelled:
                     heapq.heappop(self._timers)
                 if not self._timers or self._timers[0].due > when:
-                    self._now = max(self._now, when)
+                    if when > self._now:  # not max(): the common exit, once a cycle
+                        self._now = when
                     return
                 timer = heapq.heappop(self._timers)
                 self._now = max(self._now, timer.due)
