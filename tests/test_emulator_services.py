@@ -203,8 +203,8 @@ def test_a_repeated_controlword_ends_where_the_table_driven_machine_does(node: E
             if reference.motion() is MotionKind.TORQUE_OFF:
                 reference.ramp_finished()
         else:
-            option = rng.choice([0, 1, 2, 5, 6])
-            node.produce(Obj.QUICK_STOP_OPTION, option)
+            quick_stop = rng.choice([0, 1, 2, 5, 6])
+            node.produce(Obj.QUICK_STOP_OPTION, quick_stop)
             application.react(Obj.QUICK_STOP_OPTION)
-            reference.quick_stop_option = option
+            reference.quick_stop_option = quick_stop
         assert application.machine.state is reference.state, f"step {step}"
