@@ -261,10 +261,12 @@ class FrameTap(can.Listener):
 
         def tapped_send(msg: can.Message, timeout: float | None = None) -> None:
             original_send(msg, timeout)
-            self._emit(msg, "tx")
+            if self._listeners:  # no call at all while nobody listens (logging off): the cyclic path sends 2 a cycle
+                self._emit(msg, "tx")
 
         def tapped_send_first(msg: can.Message, timeout: float | None = None) -> None:
-            self._emit(msg, "tx")  # the answers arrive inside send: report the cause first
+            if self._listeners:
+                self._emit(msg, "tx")  # the answers arrive inside send: report the cause first
             original_send(msg, timeout)
 
         bus.send = tapped_send_first if isinstance(bus, InProcessBus) else tapped_send  # type: ignore[method-assign]
@@ -279,7 +281,8 @@ class FrameTap(can.Listener):
 
     def on_message_received(self, msg: can.Message) -> None:
         """``can.Listener`` hook: report a received frame as ``"rx"``."""
-        self._emit(msg, "rx")
+        if self._listeners:
+            self._emit(msg, "rx")
 
     def _emit(self, msg: can.Message, direction: str) -> None:
         for listener in self._listeners:  # the tuple is replaced, never mutated: no lock needed to iterate

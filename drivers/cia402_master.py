@@ -617,18 +617,23 @@ class Cia402Drive(Drive):
 
     def set_target(self, value: float) -> float:
         """Clamp to the mode's limit, scale, round and send RPDO1 (controlword + target); no SDO."""
-        codec = self._require_codec()
+        codec, rpdo = self._rpdo_codec, self._rpdo
+        if self._closed or not self._operational or codec is None or rpdo is None:
+            codec = self._require_codec()  # raises the reason (the checks above, inlined: this runs every cycle)
+        cob = rpdo.cob_id if rpdo is not None else self._rpdo_cob()
         if not math.isfinite(value):
             raise DriveError(f"target {value} is not finite; not sent")
+        cfg = self.cfg
         if self._mode is OperationMode.CYCLIC_SYNC_TORQUE:
-            limit, scale = self.cfg.torque_limit, self.cfg.torque_scale
+            limit, scale = cfg.torque_limit, cfg.torque_scale
         else:
-            limit, scale = self.cfg.velocity_limit, self.cfg.velocity_scale
-        clamped = min(max(value, -limit), limit)
+            limit, scale = cfg.velocity_limit, cfg.velocity_scale
+        clamped = -limit if value < -limit else limit if value > limit else value
         low, high = self._target_limits
-        raw = min(max(round(clamped * scale), low), high)
+        raw = round(clamped * scale)
+        raw = low if raw < low else high if raw > high else raw
         self._target_raw = raw
-        self._send(data_frame(self._rpdo_cob(), codec.encode(self._controlword, raw)))
+        self._send(data_frame(cob, codec.encode(self._controlword, raw)))
         return raw / scale
 
     def sync(self) -> int:
@@ -637,7 +642,8 @@ class Cia402Drive(Drive):
         On a synchronous bus one cycle period of simulated time passes since the previous SYNC first (the drive's
         and the master's heartbeat timers fire on the way), and the answering TPDOs are in when this returns.
         """
-        self._require_open()
+        if self._closed:  # _require_open's test, inlined: every cycle
+            self._require_open()
         self._net.sync(self._cycle_period)
         return self._cycle  # only this thread changes it (in _begin_cycle, just now)
 

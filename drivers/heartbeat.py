@@ -194,15 +194,18 @@ class HeartbeatMonitor:
 
     def _silence_locked(self) -> float:
         now = self._clock()
-        starts = [t for t in (self._last_time, self._armed_at) if t is not None]
-        return now - max(starts) if starts else 0.0
+        last, armed = self._last_time, self._armed_at  # the later of the two (no list: check() runs every cycle)
+        start = armed if last is None else last if armed is None or last > armed else armed
+        return now - start if start is not None else 0.0
 
     def check(self) -> None:
         """Raise :class:`HeartbeatLostError` when armed and the heartbeat is overdue."""
         with self._lock:
-            if self._armed_at is None:
+            armed, last = self._armed_at, self._last_time
+            if armed is None:
                 return
-            silence = self._silence_locked()
+            # _silence_locked inlined (the master checks every cycle): time since the later of arming and the last beat
+            silence = self._clock() - (last if last is not None and last > armed else armed)
             if silence > self._timeout:
                 raise HeartbeatLostError(
                     f"heartbeat of node {self.node_id} lost: none for {silence:.3f} s "

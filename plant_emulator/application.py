@@ -92,11 +92,15 @@ class Cia402Application:
         self._latched_errors: list[EmcyCode] = []
         self._fault_reset_bit = False
         self._statuswords: dict[tuple[State402, int, bool, bool], int] = {}
+        # (controlword, state, quick stop option) whose last application changed nothing: the master repeats its
+        # controlword in every RPDO, so in steady state the table lookup is skipped (same input, same no-op)
+        self._idle: tuple[int, State402, int] | None = None
 
     def power_on(self) -> None:
         """A fresh application (power on or NMT reset node; the store was reset first): *switch on disabled*."""
         self.machine = PowerStateMachine(quick_stop_option=self._quick_stop_option())
         self.machine.power_on()
+        self._idle = None  # a new machine: its fault-reset edge starts again
         self._latched_errors.clear()
         self._fault_reset_bit = False
         self.publish_status()
@@ -148,6 +152,7 @@ class Cia402Application:
             return
         code, register_bits = FAULT_CODES[fault]
         self._latch_error(code, register_bits)
+        self._idle = None  # the machine gets a controlword of its own below (its fault-reset edge moves)
         keep = self.machine.state
         if option == AbortConnectionOption.DISABLE_VOLTAGE:
             self.machine.apply_controlword(Command402.DISABLE_VOLTAGE)
@@ -191,11 +196,17 @@ class Cia402Application:
         return int(self.node.read(Obj.QUICK_STOP_OPTION))
 
     def _apply_controlword(self, controlword: int) -> None:
+        machine = self.machine
+        before = machine.state
+        key = (controlword, before, machine.quick_stop_option)
+        if key == self._idle:
+            return  # applied in this very state last time and nothing happened: it would not now either
         reset_bit = bool(controlword & FAULT_RESET_BIT)
         rising = reset_bit and not self._fault_reset_bit
         self._fault_reset_bit = reset_bit
-        before = self.machine.state
-        after = self.machine.apply_controlword(controlword)
+        after = machine.apply_controlword(controlword)
+        # a repeat finds the fault-reset bit already recorded (here and in the machine): no edge, the same no-op
+        self._idle = key if after is before else None
         if rising and (before is State402.FAULT or self._latched_errors):
             self._clear_errors()
         if after is State402.QUICK_STOP_ACTIVE and before is not State402.QUICK_STOP_ACTIVE:

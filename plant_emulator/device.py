@@ -411,15 +411,16 @@ class VirtualDrive:
         with self._lock:
             self.sync_count += 1
             self.supervisor.sync_received()
-            operational = self.nmt_state is NmtState.OPERATIONAL
+            operational = self.node.operational
             if lockstep:  # (1) physics with the command that was active; operational: its status is published below
-                self.physics.tick(self.cycle_period, publish=not operational)
+                physics = self.physics
+                physics.tick(physics.cycle_period, publish=not operational)
             if operational:
                 self.pdos.latch()  # (2) the RPDOs received since the last SYNC become the command
                 self.application.publish_status()
                 self.pdos.send_synchronous()  # (3) sample and send
-            if lockstep:
-                self._emit_trace()
+            if lockstep and self.trace is not None:
+                self.trace(self.snapshot())
 
     def _emit_trace(self) -> None:
         if self.trace is not None:

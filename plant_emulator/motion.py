@@ -93,11 +93,13 @@ class AxisPhysics:
         self.units: Units = application.units
         self._default_cycle_period = default_cycle_period
         self._is_pmsm = hasattr(plant, "set_input_kind")
+        # the object dictionary never changes while the drive runs: whether it has 0x1006 is asked once
+        self._has_cycle_period = node.has(Obj.COMMUNICATION_CYCLE_PERIOD)
 
     @property
     def cycle_period(self) -> float:
         """Seconds per cycle: 0x1006 (microseconds) when set, else the default."""
-        micros = self.node.read(Obj.COMMUNICATION_CYCLE_PERIOD) if self.node.has(Obj.COMMUNICATION_CYCLE_PERIOD) else 0
+        micros = self.node.read(Obj.COMMUNICATION_CYCLE_PERIOD) if self._has_cycle_period else 0
         return micros * 1e-6 if micros > 0 else self._default_cycle_period
 
     def tick(self, dt: float, *, publish: bool = True) -> None:
@@ -105,28 +107,33 @@ class AxisPhysics:
         the statusword -- the SYNC consumer, which publishes it anyway once the RPDOs are latched, says not to."""
         motion = self.application.machine.motion()
         kind, u = self._plant_input(motion, dt)
-        if self._is_pmsm and kind != self.plant.input_kind:  # type: ignore[attr-defined]
-            self.plant.set_input_kind(kind)  # type: ignore[attr-defined]  # a bumpless switch, when it changes
+        plant, units = self.plant, self.units
+        if self._is_pmsm and kind != plant.input_kind:  # type: ignore[attr-defined]
+            plant.set_input_kind(kind)  # type: ignore[attr-defined]  # a bumpless switch, when it changes
         elif motion is MotionKind.TORQUE_OFF:
             u = 0.0
-        y = np.asarray(self.plant.step(np.array([u]), dt), dtype=float).reshape(-1)
+        out = plant.step(np.array([u]), dt)
+        # a 1-d float array (every plant here) is read as it is; anything else is converted first
+        y = float(out[0]) if type(out) is np.ndarray and out.ndim == 1 else float(
+            np.asarray(out, dtype=float).reshape(-1)[0])
         axis = self.axis
         axis.cycles += 1
-        axis.velocity = self.units.counts(float(y[0]))
-        plant_position = getattr(self.plant, "position_counts", None)
+        axis.velocity = units.counts(y)
+        plant_position = getattr(plant, "position_counts", None)
         if plant_position is not None:
             axis.position = float(plant_position)
         else:
-            axis.position += float(y[0]) * dt  # no encoder in the model: the integral of the output
-        plant_torque = getattr(self.plant, "torque", None)
+            axis.position += y * dt  # no encoder in the model: the integral of the output
+        plant_torque = getattr(plant, "torque", None)
         if plant_torque is not None:
-            axis.torque = float(plant_torque) * self.units.torque_scale
+            axis.torque = float(plant_torque) * units.torque_scale
         else:
-            axis.torque = u * self.units.torque_scale if kind == "torque" else 0.0
+            axis.torque = u * units.torque_scale if kind == "torque" else 0.0
         self._check_limits(motion, dt)
-        self.node.produce(Obj.VELOCITY_ACTUAL_VALUE, axis.velocity)
-        self.node.produce(Obj.TORQUE_ACTUAL_VALUE, axis.torque)
-        self.node.produce(Obj.POSITION_ACTUAL_VALUE, axis.position)
+        produce = self.node.produce
+        produce(Obj.VELOCITY_ACTUAL_VALUE, axis.velocity)
+        produce(Obj.TORQUE_ACTUAL_VALUE, axis.torque)
+        produce(Obj.POSITION_ACTUAL_VALUE, axis.position)
         if publish:
             self.application.publish_status()
 

@@ -40,7 +40,8 @@ def load_object_dictionary(node_id: int, eds: str | Path | None = None) -> cod.O
     return od
 
 
-_NMT_STATES = {int(state): state for state in NmtState}  # a dict lookup, not EnumType.__call__, twice a cycle
+_NMT_STATES = {int(state): state for state in NmtState}  # a dict lookup, not EnumType.__call__
+_OPERATIONAL = int(NmtState.OPERATIONAL)
 
 
 @dataclass(frozen=True, slots=True)
@@ -99,6 +100,11 @@ class EmulatedNode(canopen.LocalNode):
         return _NMT_STATES.get(state) or NmtState(state)
 
     @property
+    def operational(self) -> bool:
+        """Whether the NMT state is OPERATIONAL (the raw state byte compared: RPDOs ask this every cycle)."""
+        return self.nmt._state == _OPERATIONAL
+
+    @property
     def sending(self) -> bool:
         """Whether frames may go out: on a network, alive (the NMT-state rules are each service's own)."""
         return self.link is not None and self.alive
@@ -111,7 +117,9 @@ class EmulatedNode(canopen.LocalNode):
             return
         with link.send_lock:
             link.bus.send(data_frame(can_id, data))
-        link.check()
+        notifier = link.notifier
+        if notifier is not None and notifier.exception is not None:  # what canopen's check() tests, without its call
+            link.check()
 
     def has(self, index: int) -> bool:
         """Whether the object dictionary has object ``index``."""
@@ -128,10 +136,13 @@ class EmulatedNode(canopen.LocalNode):
         """The decoded value in the store."""
         codec = self._codecs.get((index, subindex)) or self._codec(index, subindex)
         if codec.unpack is not None and not self._read_callbacks:
-            stored = self.data_store.get(index)
-            data = stored.get(subindex) if stored is not None else None
-            if data is not None and len(data) == codec.size:
-                return codec.unpack(data)[0]
+            try:  # the stored bytes straight from the store (a miss is rare: canopen's path below handles it)
+                data = self.data_store[index][subindex]
+            except KeyError:
+                pass
+            else:
+                if len(data) == codec.size:
+                    return codec.unpack(data)[0]
         return codec.variable.decode_raw(self.get_data(index, subindex))
 
     def produce(self, index: int, value: int | float, subindex: int = 0) -> None:
@@ -146,13 +157,17 @@ class EmulatedNode(canopen.LocalNode):
                 return
             codec = self._codec(index, subindex)
         if codec.pack is not None:  # an integer without an EDS range: clamp and pack, nothing to warn about
-            data = codec.pack(min(max(round(value), codec.low), codec.high))
+            raw, low, high = round(value), codec.low, codec.high
+            data = codec.pack(low if raw < low else high if raw > high else raw)
         else:
             var = codec.variable
             if var.data_type in cod.INTEGER_TYPES:
                 value = min(max(round(value), codec.low), codec.high)
             data = var.encode_raw(value)
-        self.data_store.setdefault(index, {})[subindex] = data
+        try:  # not setdefault: that builds an empty dict on every call, and this runs four times a cycle
+            self.data_store[index][subindex] = data
+        except KeyError:
+            self.data_store[index] = {subindex: data}
 
     def _codec(self, index: int, subindex: int) -> _Codec:
         """The codec of ``index:subindex``, made once (the object dictionary never changes while the drive runs).

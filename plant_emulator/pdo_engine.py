@@ -102,6 +102,7 @@ class PdoEngine:
         self._rpdos: dict[int, PdoChannel] = {}  # by COB-ID
         self._tpdos: list[PdoChannel] = []
         self._event_tpdos: list[PdoChannel] = []  # the valid event-driven ones (none in a cyclic run)
+        self._sync_tpdos: list[PdoChannel] = []  # the valid synchronous ones (0..240), sent at SYNC
         self._subscribed_rpdo_ids: set[int] = set()
 
     # --- configuration ----------------------------------------------------------------------------------------
@@ -123,6 +124,7 @@ class PdoEngine:
         self._rpdos = {cob: ch for cob, ch in rpdos.items() if ch.valid}
         self._tpdos = tpdos
         self._event_tpdos = [tpdo for tpdo in tpdos if tpdo.valid and tpdo.transmission_type in TRANS_EVENT_TYPES]
+        self._sync_tpdos = [tpdo for tpdo in tpdos if tpdo.valid and tpdo.synchronous]
         self._subscribe_rpdos()
 
     def _subscribe_rpdos(self) -> None:
@@ -173,7 +175,8 @@ class PdoEngine:
 
     def on_rpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """Network callback: a synchronous RPDO waits for the next SYNC, an event-driven one acts now."""
-        if not self.node.alive or self.node.nmt_state is not NmtState.OPERATIONAL:
+        node = self.node
+        if not node.alive or not node.operational:
             return
         with self._lock:
             channel = self._rpdos.get(can_id)
@@ -182,7 +185,7 @@ class PdoEngine:
             if len(data) < channel.length:
                 self._on_length_error()
                 return
-            if channel.synchronous:
+            if channel.transmission_type <= SYNC_TYPE_MAX:  # channel.synchronous, without the property's call
                 channel.pending = bytes(data)  # takes effect at the next SYNC
             else:
                 self._store_rpdo(channel, bytes(data))
@@ -202,7 +205,11 @@ class PdoEngine:
     def _store_rpdo(self, channel: PdoChannel, data: bytes) -> None:
         store = self.node.data_store
         for entry in channel.entries:
-            store.setdefault(entry.index, {})[entry.subindex] = data[entry.offset:entry.offset + entry.size]
+            value = data[entry.offset:entry.offset + entry.size]
+            try:  # not setdefault: it builds an empty dict on every call
+                store[entry.index][entry.subindex] = value
+            except KeyError:
+                store[entry.index] = {entry.subindex: value}
         for index, subindex in channel.reactions:
             self._on_write(index, subindex)
 
@@ -210,17 +217,16 @@ class PdoEngine:
 
     def send_synchronous(self) -> None:
         """At SYNC: sample and send the TPDOs due (acyclic ones only when changed), then the event-driven."""
-        for tpdo in self._tpdos:
-            if not tpdo.valid:
-                continue
+        for tpdo in self._sync_tpdos:
             if tpdo.transmission_type == TRANS_ACYCLIC:
                 self._send_tpdo(tpdo, only_if_changed=True)
-            elif tpdo.synchronous:
+            else:
                 tpdo.sync_count += 1
                 if tpdo.sync_count >= tpdo.transmission_type:
                     tpdo.sync_count = 0
                     self._send_tpdo(tpdo, only_if_changed=False)
-        self.send_event_driven()
+        if self._event_tpdos:  # none in a cyclic run: no call
+            self.send_event_driven()
 
     def send_event_driven(self, *, timer_only: bool = False) -> None:
         """Event-driven TPDOs: those whose event timer ran out, and (unless ``timer_only``) those that changed."""
@@ -240,5 +246,6 @@ class PdoEngine:
         if only_if_changed and payload == channel.last_sent:
             return
         channel.last_sent = payload
-        channel.last_sent_time = time.monotonic()
+        if channel.transmission_type in TRANS_EVENT_TYPES:  # only an event timer reads it: no clock for the rest
+            channel.last_sent_time = time.monotonic()
         self.node.transmit(channel.cob_id, payload)

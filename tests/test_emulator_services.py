@@ -162,3 +162,49 @@ def test_sdo_block_requests_are_aborted_with_0x05040001(node: EmulatedNode, monk
     guard.on_request(cob_id(FunctionCode.SDO_RX, NODE_ID), request, 0.0)
     # CiA 301 abort: command 0x80, the request's multiplexer, code 0x05040001 (all little-endian)
     assert responses == [bytes([0x80, 0x18, 0x10, 0x02, 0x01, 0x00, 0x04, 0x05])]
+
+
+def test_a_repeated_controlword_ends_where_the_table_driven_machine_does(node: EmulatedNode) -> None:
+    """The application skips a controlword it just applied without effect; over a long seeded mix of repeated
+    controlwords (with and without the fault-reset bit), faults, communication aborts under every 0x6007 reaction
+    and quick stop option changes, its state must stay the one a bare ``PowerStateMachine`` reaches when it is fed
+    every controlword and event in full (the reference skips nothing)."""
+    import random
+
+    from plant_emulator.state_machine import MotionKind, PowerStateMachine
+
+    rng = random.Random(9)
+    application = _application(node, [])
+    reference = PowerStateMachine(quick_stop_option=application.machine.quick_stop_option)
+    reference.power_on()
+    words = [0x0006, 0x0007, 0x000F, 0x0000, 0x0002, 0x0080, 0x008F, 0x0086]
+    word = words[0]
+    for step in range(2000):
+        event = rng.random()
+        if event < 0.75:  # mostly controlwords, half of them the previous one again (what a cyclic master sends)
+            word = word if rng.random() < 0.5 else rng.choice(words)
+            _command(node, application, word)
+            reference.apply_controlword(word)
+        elif event < 0.85:
+            option = rng.choice([AbortConnectionOption.FAULT, AbortConnectionOption.DISABLE_VOLTAGE,
+                                 AbortConnectionOption.QUICK_STOP])
+            node.produce(Obj.ABORT_CONNECTION_OPTION, int(option))
+            application.detect(FaultKind.HEARTBEAT_LOSS)
+            if option is AbortConnectionOption.FAULT:
+                reference.fault()
+                if reference.motion() is MotionKind.TORQUE_OFF:
+                    reference.ramp_finished()
+            else:
+                voltage_off = option is AbortConnectionOption.DISABLE_VOLTAGE
+                reference.apply_controlword(Command402.DISABLE_VOLTAGE if voltage_off else Command402.QUICK_STOP)
+        elif event < 0.92:
+            application.detect(FaultKind.OVER_CURRENT)
+            reference.fault()
+            if reference.motion() is MotionKind.TORQUE_OFF:
+                reference.ramp_finished()
+        else:
+            quick_stop = rng.choice([0, 1, 2, 5, 6])
+            node.produce(Obj.QUICK_STOP_OPTION, quick_stop)
+            application.react(Obj.QUICK_STOP_OPTION)
+            reference.quick_stop_option = quick_stop
+        assert application.machine.state is reference.state, f"step {step}"
