@@ -390,10 +390,14 @@ def _time_varying_draws(
 def _lower_norm(T: np.ndarray) -> float:
     """A lower bound on ``||T||_2``: ``||T v|| / ||v||`` after :data:`POWER_STEPS` power iterations on ``T^T T``
     from a fixed start (any ``v`` gives a lower bound; the iterations make it tight)."""
-    v = np.random.default_rng(0).standard_normal(T.shape[1])
+    v: np.ndarray = np.random.default_rng(0).standard_normal(size=(T.shape[1],))
+    v /= np.linalg.norm(v)
     for _ in range(POWER_STEPS):
-        v = T.T @ (T @ v)
-        v /= np.linalg.norm(v)
+        w = T.T @ (T @ v)
+        size = float(np.linalg.norm(w))
+        if size == 0.0:  # T v = 0: the bound so far (zero) is all this start gives
+            return 0.0
+        v = w / size
     return float(np.linalg.norm(T @ v))
 
 
