@@ -31,6 +31,9 @@ is IOILC's own design (``beta = s = 1``).
    points) on a trial shortened to ``time_varying_horizon`` samples: a dense map, a sampled check, not a proof.
    The finalist with the lowest objective wins; IOILC's design is a finalist, so with ``noise_weight = 0`` and no
    time-varying draw above the frozen certificates the co-designed law is never certified worse than IOILC.
+   Speed without changing the choice (``docs/codesign.md``): the grid screens its shapes with a lower bound (a
+   maximum over fewer frequencies), and a finalist whose time-varying norm is already above the best objective
+   (first bounded from below by power iteration) is ruled out before its exact certificate.
 3. The winner goes through :func:`~foilc_hil.design.certificates.certify` like every design (policy and
    monotonicity from ``synthesis``).
 
