@@ -461,7 +461,8 @@ class CodesignRecord:
         The same objective and certified 2-norm at ``kp = 0`` with the LMI gain: IOILC's design, always a
         candidate, so ``objective <= ioilc_objective``.
     candidates
-        Points evaluated by the search.
+        Points the search covered: every grid point (evaluated, or ruled out by a lower bound), the Nelder–Mead
+        evaluations and the finalists (certified, or ruled out by a lower bound).
     initial_guess
         ``(kp, r)`` from ``tuning`` (the tuner or the given values) the search started from, if any.
     """
