@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import enum
 import math
+from collections.abc import Callable
 
 import numpy as np
 from numba import njit, types
@@ -471,4 +472,5 @@ PMSM_STEP_SIGNATURE = (
 #: dispatcher works out the types of all nine arguments on every call to pick an overload, which for the plant's
 #: per-step call is always this one (about a tenth of a 1 ms step's Python time). Scalars are converted as by
 #: ``float()`` / ``int()``; the two vectors must be C-contiguous ``float64`` (the plant's own).
-pmsm_step_compiled = pmsm_step.overloads[PMSM_STEP_SIGNATURE].entry_point
+# (numba's CompileResult declares its fields at run time, so mypy does not see entry_point)
+pmsm_step_compiled: Callable[..., float] = pmsm_step.overloads[PMSM_STEP_SIGNATURE].entry_point  # type: ignore[attr-defined]
