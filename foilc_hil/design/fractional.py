@@ -185,7 +185,12 @@ def _direct(weights: np.ndarray, g: np.ndarray) -> np.ndarray:
 
     if g.ndim == 1:
         return np.asarray(signal.convolve(weights, g, mode="full", method="direct")[: g.shape[0]])
-    return _direct_columns(np.ascontiguousarray(weights, dtype=float), np.asarray(g, dtype=float))
+    return _direct_columns(np.ascontiguousarray(weights, dtype=float), np.ascontiguousarray(g, dtype=float))
+
+
+# At import, compiled or loaded from numba's cache (C-contiguous float64 only, as _direct passes): never in the
+# first update between trials.
+_direct_columns(np.ones(1), np.ones((1, 1)))
 
 
 def _linear_convolution(weights: np.ndarray, g: np.ndarray, method: ConvolutionMethod) -> np.ndarray:
