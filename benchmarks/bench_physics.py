@@ -143,8 +143,10 @@ def physics_comparisons(repeats: int = 5) -> list[Comparison]:
                 peer_name=before,
                 min_ratio=20.0,
                 note="a step is 20 internal steps of 50 us in the kernel (each a serial chain of about 7 sin/tanh/exp "
-                "calls and 8 divisions: 100-200 ns) plus about 2 us of Python around the call (input check, numba "
-                "dispatch, output array); done so far: the state in locals during the loop, per-call constants hoisted",
+                "calls and 8 divisions: 100-200 ns) plus the Python around the call (input check, call, output array); "
+                "done so far: the state in locals during the loop, per-call constants hoisted, the single input read "
+                "directly, sub-steps and filter weight kept per dt, the kernel's machine code called without numba's "
+                "dispatcher (which typed all nine arguments every call)",
             )
         )
     torque_plant = build_plant(PlantConfig.model_validate({"model": "pmsm", "pmsm": PMSM_TORQUE_MODE}))

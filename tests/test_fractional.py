@@ -338,3 +338,28 @@ def test_fft_path_matches_the_discrete_analytic_derivative_at_every_sample(r: fl
     got = gl_derivative(f, r, h)  # auto: the FFT path at this length
     relative = np.abs(got - truth) / np.abs(truth)
     assert relative.max() <= 1e-9, f"worst sample {relative.argmax()}: {relative.max():.2e}"
+
+
+@pytest.mark.parametrize(
+    ("n", "p", "r"), [(1, 1, 0.7), (5, 2, 1.3), (NEAR_FIELD + 3, 1, 0.7), (FFT_THRESHOLD + 40, 3, 1.6)]
+)
+def test_compiled_direct_sum_rounds_as_scipys_2d_direct_convolution(n: int, p: int, r: float) -> None:
+    """The 2-D near field (and short direct path) is a compiled loop; logs written with scipy's 2-D direct
+    ``signal.convolve`` must still replay bit for bit, so every sample equals scipy's to the last bit (float64 bytes,
+    ``-0.0`` included), with and without the FFT far field."""
+    from scipy import signal as scipy_signal
+
+    rng = np.random.default_rng(n + p)
+    g = rng.standard_normal((n, p)) * 10.0 ** rng.integers(-8, 8, size=(n, p))
+    g[::7] = -0.0
+    weights = gl_weights(r, n)
+    kernel = weights[:, None]
+    near = min(n, NEAR_FIELD)
+    scipy_direct = scipy_signal.convolve(kernel, g, mode="full", method="direct")[:n] * 1e-3**-r
+    direct = gl_derivative(g, r, 1e-3, method="direct")
+    assert direct.tobytes() == scipy_direct.tobytes()
+    # the old long path: scipy's 2-D direct near field plus the same FFT far field
+    old = scipy_signal.convolve(kernel[:near], g, mode="full", method="direct")[:n]
+    if n > near:
+        old[near:] += scipy_signal.fftconvolve(kernel[near:], g[: n - near], mode="full", axes=0)[: n - near]
+    assert gl_derivative(g, r, 1e-3, method="fft").tobytes() == (old * 1e-3**-r).tobytes()

@@ -87,3 +87,39 @@ def test_pmsm_is_deterministic_bit_for_bit_across_instances() -> None:
     run_b = [second.step(np.array([u]), 1e-3)[0] for u in commands]
     assert run_a == run_b
     assert np.array_equal(first.state(), second.state())
+
+
+def test_the_plants_direct_kernel_call_is_the_dispatched_kernel_bit_for_bit() -> None:
+    """``PmsmPlant.step`` calls ``pmsm_step``'s machine code without numba's dispatcher: the same function, so a
+    step through it and one through the dispatcher from the same state give the same state and output."""
+    from plant_emulator.physics.kernels import PMSM_STATE_SIZE, pmsm_step, pmsm_step_compiled
+
+    plant = build_plant(PlantConfig.model_validate({"model": "pmsm", "seed": 5}))
+    assert isinstance(plant, PmsmPlant)
+    for _ in range(30):
+        plant.step(np.array([350.0]), 1e-3)
+    params = plant._params
+    direct, dispatched = plant._state.copy(), plant._state.copy()
+    assert direct.shape == (PMSM_STATE_SIZE,)
+    args = (420.0, 1e-3, 20, True, 1, 0.3, 349.0)
+    y_direct = pmsm_step_compiled(direct, params, *args)
+    y_dispatched = pmsm_step(dispatched, params, *args)
+    assert not np.array_equal(direct, plant._state)  # the step moved the axis
+    assert direct.tobytes() == dispatched.tobytes()
+    assert np.float64(y_direct).tobytes() == np.float64(y_dispatched).tobytes()
+
+
+@pytest.mark.parametrize("u", [np.array([2.5]), [2.5], 2.5, np.array([2], dtype=np.int32), np.array([[2.5]])])
+def test_a_single_input_is_read_as_check_input_reads_it(u: object) -> None:
+    from plant_emulator.physics.base import check_input, check_scalar_input
+
+    assert check_scalar_input(u) == float(check_input(u, 1)[0])  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("u", [np.array([math.nan]), np.array([math.inf]), np.array([1.0, 2.0]), [], "x"])
+def test_a_bad_single_input_is_refused_as_check_input_refuses_it(u: object) -> None:
+    from foilc_hil.errors import InputError
+    from plant_emulator.physics.base import check_scalar_input
+
+    with pytest.raises((InputError, ValueError)):
+        check_scalar_input(u)  # type: ignore[arg-type]

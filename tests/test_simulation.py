@@ -218,3 +218,18 @@ def test_controllable_memory_removes_the_mittag_leffler_tail(tmp_path: Path) -> 
     F = FractionalPD(kp, r, TS).matrix(N)
     fixed = -np.linalg.solve(F[1:, 1:], F[1:, :1] @ finals["trial"][:1])
     np.testing.assert_allclose(tail, fixed, atol=1e-6)
+
+
+def test_a_design_that_looks_ahead_less_than_the_plants_delay_names_plant_delay(tmp_path: Path) -> None:
+    """A ready design with ``input_delay`` 0 cannot run a plant whose own delay is 2 samples (the simulated drive
+    would need a negative transport delay): a ConfigError naming ``plant.delay``, not the drive's internal
+    ``input_delay: must be >= 0, got -2``. Below half a sample the delay rounds to none and the design runs."""
+    from foilc_hil.errors import ConfigError
+
+    design = _design(-0.4, 3.0, kp=0.05, r=0.6)
+    with pytest.raises(ConfigError) as caught:
+        simulate(_config(tmp_path, extra=f"  delay: {2 * TS}"), law="foilc", trials=1, design=design)
+    assert caught.value.key == "plant.delay"
+    assert "input_delay 0" in str(caught.value)
+    result = simulate(_config(tmp_path, extra=f"  delay: {0.4 * TS}"), law="foilc", trials=1, design=design)
+    assert len(result.metrics) == 1

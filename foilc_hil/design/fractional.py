@@ -42,7 +42,10 @@ The sum is a *linear* (not circular) convolution of the weights with ``g``. Shor
 convolution; long ones sum the first :data:`NEAR_FIELD` weights directly and the rest by a zero-padded FFT
 (``scipy.signal.fftconvolve``), so the FFT's rounding never dominates the small early samples (at N = 200,000,
 r = 0.7, f = t^1.5: within 6.8e-11 of the direct sum at every sample, 0.04 s against 5.8 s). For r > 1 the sum
-itself cancels (alternating weights against a growing signal) and both methods lose digits alike. The
+itself cancels (alternating weights against a growing signal) and both methods lose digits alike. The direct sum of
+a 2-D signal (the learning law's) is a compiled loop that adds the products in the order of scipy's 2-D direct
+``signal.convolve``, so it equals scipy's bit for bit (``replay --verify`` of logs written with scipy needs it) at a
+fifteenth of its time; a 1-D signal uses scipy's 1-D direct convolution. The
 third-party ``differint`` package's GL uses an unpadded (circular) FFT and is only right at the last sample, so it
 is not used.
 """
@@ -53,6 +56,7 @@ import math
 from typing import Literal
 
 import numpy as np
+from numba import njit
 
 from foilc_hil.errors import ConfigError, InputError
 
@@ -145,24 +149,68 @@ def estimate_initial_slope(f: np.ndarray, h: float) -> np.ndarray | float:
     return float(slope) if array.ndim == 1 else np.asarray(slope)
 
 
+@njit(cache=True)
+def _direct_columns(weights: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """``out[i, c] = sum_{j <= i} weights[j] g[i - j, c]`` for ``i < len(g)``: the first ``len(g)`` rows of the
+    linear convolution of ``weights`` with every column of ``g`` (shape ``(N, p)``).
+
+    Each sum starts from ``0.0`` and adds ``weights[j] * g[i - j, c]`` in ascending ``j``, one rounding per product
+    and per addition: the order of scipy's 2-D direct ``signal.convolve``, so the result is the same bit for bit
+    (``replay --verify`` of logs written with scipy's 2-D call needs it; tests check it against scipy). The loops
+    run ``j`` outside and ``i`` inside over a contiguous copy of the column, which keeps every output's order and
+    lets the compiler vectorise across outputs: ~15x faster than scipy's N-d direct loop at N = 6000, 256 weights.
+    """
+    n, p = g.shape
+    taps = min(n, weights.shape[0])
+    out = np.empty((n, p))
+    column = np.empty(n)
+    acc = np.empty(n)
+    for c in range(p):
+        for i in range(n):
+            column[i] = g[i, c]
+            acc[i] = 0.0
+        for j in range(taps):
+            wj = weights[j]
+            for i in range(j, n):
+                acc[i] += wj * column[i - j]
+        for i in range(n):
+            out[i, c] = acc[i]
+    return out
+
+
+def _direct(weights: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """First ``len(g)`` samples of the direct linear convolution along axis 0 (1-D: scipy's; 2-D: the same sums as
+    scipy's 2-D direct method, compiled -- :func:`_direct_columns`)."""
+    from scipy import signal
+
+    if g.ndim == 1:
+        return np.asarray(signal.convolve(weights, g, mode="full", method="direct")[: g.shape[0]])
+    return _direct_columns(np.ascontiguousarray(weights, dtype=float), np.ascontiguousarray(g, dtype=float))
+
+
+# At import, compiled or loaded from numba's cache (C-contiguous float64 only, as _direct passes): never in the
+# first update between trials.
+_direct_columns(np.ones(1), np.ones((1, 1)))
+
+
 def _linear_convolution(weights: np.ndarray, g: np.ndarray, method: ConvolutionMethod) -> np.ndarray:
     """First ``len(g)`` samples of the linear convolution of ``weights`` with ``g`` along axis 0."""
     from scipy import signal
 
     n = g.shape[0]
     use_fft = method == "fft" or (method == "auto" and n >= FFT_THRESHOLD)
-    kernel = weights if g.ndim == 1 else weights[:, None]
     if not use_fft:
-        return np.asarray(signal.convolve(kernel, g, mode="full", method="direct")[:n])
+        return _direct(weights, g)
     # Near field direct, far field by FFT. An FFT's rounding error is absolute, on the scale of the whole product
     # (~eps * |w| * |g|); on the first samples, where the derivative is small, that is a large relative error
     # (3.7e-6 at N = 200,000). The first NEAR_FIELD weights carry almost all of each sample's value and are summed
     # exactly as the direct method does; the far weights decay like j^(-1-r), so their FFT rounding is small
     # against every sample, and the first NEAR_FIELD samples get no FFT contribution at all.
     near = min(n, NEAR_FIELD)
-    out = np.asarray(signal.convolve(kernel[:near], g, mode="full", method="direct")[:n])
+    out = _direct(weights[:near], g)
     if n > near:
         # fftconvolve pads both operands to the full linear length: no wrap-around.
+        kernel = weights if g.ndim == 1 else weights[:, None]
         far = signal.fftconvolve(kernel[near:], g[: n - near], mode="full", axes=0)[: n - near]
         out[near:] += far
     return out

@@ -469,9 +469,9 @@ class Foilc(LearningLaw):
         return learned
 
     def _fractional_pd(self, error: np.ndarray) -> np.ndarray:
-        """``(I + kp D^r)`` of the error, ``(N, p)``, as one 2-D call: ``replay --verify`` of existing logs needs its
-        rounding bit for bit (one column at a time would be ~50x faster at N = 6000, in scipy's direct near field,
-        but rounds differently)."""
+        """``(I + kp D^r)`` of the error, ``(N, p)``, as one 2-D call: ``replay --verify`` of existing logs needs
+        the rounding of scipy's 2-D direct sum bit for bit, which the compiled near field keeps (a 1-D
+        ``np.convolve`` per column rounds differently)."""
         assert self._fractional is not None
         return np.asarray(self._fractional.apply(error), dtype=float).reshape(error.shape)
 

@@ -117,13 +117,22 @@ def build_law(
     config: Config, law: str, n_samples: int, *, design: Design | None = None, input_delay: int = 0
 ) -> tuple[LearningLaw, Design | None, dict[str, Any]]:
     """The law ``law`` for ``config`` with its design and certificates (:mod:`foilc_hil.design.pipeline`)."""
-    from foilc_hil.design.pipeline import build_design
+    from foilc_hil.design.pipeline import build_design, model_delay_samples
     from foilc_hil.laws.learning import make_law
 
     if design is None:
         design = build_design(config, law, n_samples, input_delay=input_delay)
     elif design.law != law and not (law == "ioilc" and design.kp == 0):
         raise ConfigError(f"the design is for law {design.law!r}, not {law!r}", key="law.kind")
+    elif design.input_delay < model_delay_samples(config):
+        # The design's input_delay is the whole delay its law looks ahead over (transport + the plant's own); the
+        # simulated drive adds only the difference, which cannot be negative. Running the law anyway would time
+        # every update against samples the plant has not answered yet.
+        raise ConfigError(
+            f"is {model_delay_samples(config)} sample(s), more than the design's input_delay "
+            f"{design.input_delay}: re-synthesize the design for this plant",
+            key="plant.delay",
+        )
     certificates = {} if design.certificates is None else design.certificates.to_json()
     return make_law(design, config.law, n_samples), design, certificates
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from foilc_hil.errors import ConfigError, InputError
 
-__all__ = ["Plant", "check_input", "check_step", "check_trial", "trial_rng"]
+__all__ = ["Plant", "check_input", "check_scalar_input", "check_step", "check_trial", "trial_rng"]
 
 
 @runtime_checkable
@@ -64,6 +64,19 @@ def check_input(u: np.ndarray | float | list[float], n_inputs: int) -> np.ndarra
     if not all(map(math.isfinite, vector.tolist())):
         raise InputError("u must be finite")
     return vector
+
+
+def check_scalar_input(u: np.ndarray | float | list[float]) -> float:
+    """The one entry of a single-input plant's ``u`` as a finite float, by the rules of :func:`check_input`.
+
+    The loop's own ``float64`` vector of one entry is read directly (no conversion, no list): this runs every step
+    of a plant, where :func:`check_input`'s general path costs about a fifth of a microsecond more.
+    """
+    if type(u) is np.ndarray and u.shape == (1,) and u.dtype == np.float64:
+        value = float(u[0])
+        if math.isfinite(value):
+            return value
+    return float(check_input(u, 1)[0])  # anything else, and every error, by the general rules
 
 
 def check_step(dt: float) -> float:

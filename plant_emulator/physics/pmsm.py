@@ -48,9 +48,9 @@ import numpy as np
 
 from foilc_hil.errors import ConfigError
 from plant_emulator.config import DisturbanceConfig, PlantConfig, PmsmConfig
-from plant_emulator.physics.base import check_input, check_step, check_trial, trial_rng
+from plant_emulator.physics.base import check_scalar_input, check_step, check_trial, trial_rng
 from plant_emulator.physics.disturbance import Disturbance
-from plant_emulator.physics.kernels import PMSM_PARAM_SIZE, PMSM_STATE_SIZE, PmsmParam, PmsmState, pmsm_step
+from plant_emulator.physics.kernels import PMSM_PARAM_SIZE, PMSM_STATE_SIZE, PmsmParam, PmsmState, pmsm_step_compiled
 from plant_emulator.physics.noise import SensorNoise
 from plant_emulator.physics.trial import PlantKind, PmsmTrialParam, PmsmTrialState, TrialProgram
 
@@ -101,7 +101,7 @@ class PmsmPlant:
         self._params = _kernel_parameters(config, self._drawn, self._count_angle)
         _set_disturbance_shape(self._params, plant.disturbance)
         self._state = np.zeros(PMSM_STATE_SIZE)
-        self._substeps: dict[float, int] = {}
+        self._per_step: dict[float, tuple[int, float]] = {}
         self._trial = 1
         self.reset(1)
 
@@ -134,12 +134,12 @@ class PmsmPlant:
 
     def step(self, u: np.ndarray, dt: float) -> np.ndarray:
         """Hold ``u`` (rpm in velocity mode, N m in torque mode) over ``dt`` seconds; return the measured rpm."""
-        command = float(check_input(u, 1)[0])
+        command = check_scalar_input(u)
         applied = min(max(command, self._u_min), self._u_max)
         self.saturated = applied != command
-        steps = self._substeps_of(dt)
-        self._reported_rpm = pmsm_step(
-            self._state, self._params, applied, dt, steps, self._velocity_mode, self._trial, self._smoothing(dt),
+        steps, smoothing = self._per_step_of(dt)
+        self._reported_rpm = pmsm_step_compiled(
+            self._state, self._params, applied, dt, steps, self._velocity_mode, self._trial, smoothing,
             self._reported_rpm,
         )
         self._y = self._reported_rpm + self._noise()
@@ -221,10 +221,9 @@ class PmsmPlant:
         params = np.concatenate([self._params, np.zeros(len(PmsmTrialParam))])
         params[PmsmTrialParam.U_MIN], params[PmsmTrialParam.U_MAX] = self._u_min, self._u_max
         params[PmsmTrialParam.STEP] = dt
-        params[PmsmTrialParam.SUBSTEPS] = self._substeps_of(dt)
+        params[PmsmTrialParam.SUBSTEPS], params[PmsmTrialParam.SMOOTHING] = self._per_step_of(dt)
         params[PmsmTrialParam.VELOCITY_MODE] = 1.0 if self._velocity_mode else 0.0
         params[PmsmTrialParam.TRIAL] = self._trial
-        params[PmsmTrialParam.SMOOTHING] = self._smoothing(dt)
         state = np.concatenate([self._state, np.zeros(len(PmsmTrialState))])
         state[PmsmTrialState.REPORTED] = self._reported_rpm
         noise = np.zeros((steps, 1))
@@ -243,20 +242,19 @@ class PmsmPlant:
 
     # --- internals --------------------------------------------------------------------------------------------
 
-    def _substeps_of(self, dt: float) -> int:
-        """Internal steps per caller step of ``dt`` (checked once per step length and kept)."""
-        steps = self._substeps.get(dt)
-        if steps is None:  # a few step lengths in practice; bounded, a caller passing measured periods must not grow it
+    def _per_step_of(self, dt: float) -> tuple[int, float]:
+        """Internal steps per caller step of ``dt`` and the reported velocity's low-pass weight over ``dt``
+        (``kernels.pmsm_step``; NaN: no filter), computed once per step length and kept: both are fixed by ``dt``,
+        and a step then pays one dict look-up for them instead of a division, a ceil and an exp."""
+        settings = self._per_step.get(dt)
+        if settings is None:  # a few step lengths in practice; bounded: measured periods must not grow it
             steps = max(1, math.ceil(check_step(dt) / self._config.internal_step - 1e-9))
-            if len(self._substeps) >= _SUBSTEP_CACHE:
-                self._substeps.clear()
-            self._substeps[dt] = steps
-        return steps
-
-    def _smoothing(self, dt: float) -> float:
-        """The reported velocity's low-pass weight over ``dt`` (``kernels.pmsm_step``; NaN: no filter)."""
-        tau = self._config.velocity_filter
-        return 1.0 - math.exp(-dt / tau) if tau > 0 else math.nan
+            tau = self._config.velocity_filter
+            settings = (steps, 1.0 - math.exp(-dt / tau) if tau > 0 else math.nan)
+            if len(self._per_step) >= _SUBSTEP_CACHE:
+                self._per_step.clear()
+            self._per_step[dt] = settings
+        return settings
 
     def _noise(self) -> float:
         return float(self.noise.sample()[0]) if self.noise.active else 0.0
