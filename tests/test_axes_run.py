@@ -7,6 +7,7 @@ axis's law re-run bit for bit by ``replay --verify``, and each drive's final sta
 
 from __future__ import annotations
 
+import base64
 import contextlib
 import io
 import itertools
@@ -74,6 +75,28 @@ def test_every_axis_is_commanded_and_answers_within_each_sync_period(scara_run: 
     # serves every axis); the enable before and the safe stop after have periods of their own
     served = [k for k, period in enumerate(periods) if [period[frame_id] for frame_id in pdo_ids] == [1] * 8]
     assert max(_runs(served)) >= document["timing"]["cycles"] - 1  # one period may be shared with the enable's last
+
+
+def test_export_dbc_holds_every_axis_and_decodes_each_axis_logged_output(scara_run: tuple[int, dict, Path],
+                                                                          tmp_path: Path) -> None:
+    cantools = pytest.importorskip("cantools")  # the oracle: an independent DBC reader
+    _, _, out = scara_run
+    dbc = tmp_path / "axes.dbc"
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(["export", str(out), "--format", "dbc", "--out", str(dbc), "--json"]) == 0
+    db = cantools.database.load_file(str(dbc), strict=True)
+    assert {node.name for node in db.nodes} == {"foilc_hil_master", *(f"drive_{node}" for node in NODES)}
+    contents = read_log(out)
+    for node in NODES:
+        tpdo1 = cob_id(FunctionCode.TPDO1, node)
+        assert db.get_message_by_frame_id(cob_id(FunctionCode.RPDO1, node)).senders == ["foilc_hil_master"]
+        velocities = np.array([db.decode_message(tpdo1, base64.b64decode(frame["data"]))["velocity_actual_value"]
+                               for frame in contents.frames if frame["id"] == tpdo1])
+        outputs = np.array([row["output"] for row in contents.samples if row.get("axis") == node])
+        assert outputs.size == TRIALS * SAMPLES and np.abs(outputs).max() > 1.0  # this axis moved
+        # every logged output of this axis is one of ITS drive's decoded TPDO velocities, in plant units
+        gaps = np.abs(velocities[None, :] - outputs[:, None]).min(axis=1)
+        assert gaps.max() <= 1e-9 * max(1.0, float(np.abs(outputs).max()))
 
 
 def test_replay_verify_and_report_handle_every_axis(scara_run: tuple[int, dict, Path], tmp_path: Path,

@@ -252,7 +252,7 @@ def _info(args: argparse.Namespace) -> CommandResult:
             if args.dbc or args.dcf:  # the mapping run will install on this drive (its preflight), not today's
                 plan = drive.preflight(drive_cfg.operation_mode, config.sample_time)
                 if args.dbc:
-                    document["dbc"] = write_dbc(plan, drive_cfg, args.dbc).to_json()
+                    document["dbc"] = write_dbc([(plan, drive_cfg)], args.dbc).to_json()
                 if args.dcf:
                     document["dcf"] = write_dcf(drive, plan, bitrate=_bitrate(args, config),
                                                 path=args.dcf).to_json()

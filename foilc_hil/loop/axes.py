@@ -374,17 +374,21 @@ def _record_stop(stops: dict[int, StopReport], drive: Any) -> None:
 
 
 def _commission_axes(group: AxisGroup, plan: _AxesPlan, sink: McapSink | None) -> None:
-    """Connect and configure every axis, log the first axis's mapping, then enable every axis."""
+    """Connect and configure every axis, log each axis's mapping (the first's also as the single-axis record), then
+    enable every axis."""
     from drivers.cia402_master import pdo_plan
-    from foilc_hil.io.schemas import METADATA_PDO_MAPPING, encode_pdo_mapping
+    from foilc_hil.io.schemas import METADATA_AXIS_PREFIX, METADATA_PDO_MAPPING, encode_pdo_mapping
 
     for drive, axis in zip(group.drives, plan.configs, strict=True):
         drive.connect()
         drive.configure(axis.drive.operation_mode, axis.sample_time)
     if sink is not None:
-        first = group.drives[0]
-        mapping = pdo_plan(plan.configs[0].drive.operation_mode, first.node_id, first.od)
-        sink.writer.add_metadata(METADATA_PDO_MAPPING, encode_pdo_mapping(mapping.rpdos, mapping.tpdos))
+        for k, (drive, axis) in enumerate(zip(group.drives, plan.configs, strict=True)):
+            mapping = pdo_plan(axis.drive.operation_mode, drive.node_id, drive.od)
+            record = encode_pdo_mapping(mapping.rpdos, mapping.tpdos)
+            sink.writer.add_metadata(f"{METADATA_AXIS_PREFIX}.{drive.node_id}.pdo_mapping", record)
+            if k == 0:  # readers of one axis (older tools) find the first axis's where they always did
+                sink.writer.add_metadata(METADATA_PDO_MAPPING, record)
     for drive in group.drives:
         drive.enable()
 
