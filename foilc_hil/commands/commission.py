@@ -79,7 +79,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     _common(info)
     info.add_argument("--dbc", metavar="FILE",
                       help="also write the DBC of the PDO mapping run installs (scaled signals, units, "
-                      "402 value tables, node names; any canmatrix format by suffix)")
+                      "402 value tables, node names; any canmatrix format by suffix; several --node-id: every "
+                      "node in one file)")
     info.add_argument("--dcf", metavar="FILE.dcf",
                       help="also write the configured drive as a CiA 306 DCF: its EDS plus node id, bit rate and "
                       "the values run writes (PDO mapping, mode, heartbeats)")
