@@ -1,12 +1,14 @@
 """Realtime jitter of four axes across processes: ``foilc-hil run --mode realtime`` on configs/scara_4axis.yaml.
 
 ``python -m benchmarks.realtime_axes [--trials N] [--emulators one four] [--out FILE]`` (as root: it needs
-``unshare --net``); also ``python -m benchmarks.realtime --axes-only``.
+``unshare --net``). Its own module, so the lead can run it alone (it imports :mod:`benchmarks.realtime`'s receiver
+and SYNC statistics; that module does not import this one).
 
 Everything runs inside one private network namespace this module creates (``unshare --net``, multicast routed over
 its own loopback), so no frame leaves it. The bench runs the shipped four-axis config (one SYNC for four CSV drives
 at its 2.5 ms period: 57.7 % of 1 Mbit/s; the bus-load limit of 70 % allows 2.055 ms at the shortest, see the
-config's header) in realtime mode against, in turn:
+config's header) in realtime mode, with the realtime sections of configs/realtime_1khz.yaml
+(:func:`realtime_config`), against, in turn:
 
 - ``one``: ONE ``plant-emulator --mode realtime --node-id 1,2,3,4`` process answering each SYNC for all four nodes
   (every node with the config's base plant: the emulator's ``--node-id`` list shares one plant section);
@@ -43,6 +45,7 @@ from benchmarks.realtime import BUS, NETNS_SETUP, ROOT, _quantiles, _start_recei
 from drivers.cia301 import SYNC_COB_ID, FunctionCode, cob_id
 
 SCARA = ROOT / "configs" / "scara_4axis.yaml"
+REALTIME = ROOT / "configs" / "realtime_1khz.yaml"  # the shipped realtime settings, taken over as a user would
 TOPOLOGIES = ("one", "four")
 TRIALS = 4  # 4 x 200 cycles at 2.5 ms: 2 s of loop per topology, a few seconds with commissioning
 
@@ -90,6 +93,22 @@ def _axis_figures(frames: np.ndarray, logged: list[dict[str, Any]], node: int) -
     }
 
 
+def realtime_config(work: Path) -> Path:
+    """configs/scara_4axis.yaml as shipped (axes, period, laws) with the realtime sections of
+    configs/realtime_1khz.yaml: ``bench.mode``, ``bench.faults``, ``bench.realtime`` and ``emulator`` (the host setup
+    of both processes, the fault tolerances and the emulator's SYNC supervision for a busy 2-core host)."""
+    import yaml
+
+    document = yaml.safe_load(SCARA.read_text(encoding="utf-8"))
+    realtime = yaml.safe_load(REALTIME.read_text(encoding="utf-8"))
+    document["bench"] = {**document.get("bench", {}), "mode": "realtime", "faults": realtime["bench"]["faults"],
+                         "realtime": realtime["bench"]["realtime"]}
+    document["emulator"] = realtime["emulator"]
+    path = work / "scara_realtime.yaml"
+    path.write_text(yaml.safe_dump(document), encoding="utf-8")
+    return path
+
+
 def _emulator_commands(topology: str, config: Path, work: Path) -> list[list[str]]:
     from foilc_hil.config import axis_configs, dump_config, load_config
 
@@ -110,10 +129,11 @@ def _run(topology: str, trials: int, work: Path) -> dict[str, Any]:
     from foilc_hil.io.mcap_log import read_log
 
     out, log = work / f"axes-{topology}.npy", work / f"axes-{topology}.mcap"
+    config = realtime_config(work)
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     emulators, logs = [], []
     try:
-        for k, command in enumerate(_emulator_commands(topology, SCARA, work)):
+        for k, command in enumerate(_emulator_commands(topology, config, work)):
             logs.append(work / f"emulator-{topology}-{k}.stderr")
             with logs[-1].open("w") as stderr:
                 emulators.append(subprocess.Popen(command, stderr=stderr, cwd=ROOT, env=env))
@@ -124,7 +144,7 @@ def _run(topology: str, trials: int, work: Path) -> dict[str, Any]:
         load_before = os.getloadavg()[0]
         receiver = _start_receiver(out)
         run = subprocess.run(
-            [sys.executable, "-m", "foilc_hil.cli", "run", "--config", str(SCARA), "--bus", BUS, "--mode",
+            [sys.executable, "-m", "foilc_hil.cli", "run", "--config", str(config), "--bus", BUS, "--mode",
              "realtime", "--trials", str(trials), "--out", str(log), "--json", "--quiet"],
             capture_output=True, text=True, cwd=ROOT, env=env,
         )
@@ -135,7 +155,7 @@ def _run(topology: str, trials: int, work: Path) -> dict[str, Any]:
             emulator.wait(timeout=30)
     document: dict[str, Any] = json.loads(run.stdout) if run.stdout.strip() else {"error": run.stderr.strip()}
     logged = read_log(log).frames if log.exists() else []
-    period = load_config(SCARA).sample_time
+    period = load_config(config).sample_time
     sent_syncs = sum(1 for f in logged if f["id"] == SYNC_COB_ID and f["dir"] == "tx")
     syncs = frames[frames[:, 0] == SYNC_COB_ID, 1]
     timing = document.get("timing", {})
@@ -153,7 +173,8 @@ def _run(topology: str, trials: int, work: Path) -> dict[str, Any]:
         "missed_deadline_fraction": timing.get("missed_deadlines", 0) / cycles if cycles else None,
         "receiver": {**sync_statistics(syncs, period), "syncs_sent_by_bench": sent_syncs,
                      "syncs_lost": sent_syncs - int(syncs.size)},
-        "axes": [_axis_figures(frames, logged, axis.drive.node_id) for axis in axis_configs(load_config(SCARA))],
+        "axes": [_axis_figures(frames, logged, axis.drive.node_id) for axis in axis_configs(load_config(config))],
+        "emulator_stderr_tail": [path.read_text().splitlines()[-3:] for path in logs],
         "sse": {str(axis["node_id"]): [trial["sse"] for trial in axis["trials"]] for axis in document.get("axes", [])},
     }
 
