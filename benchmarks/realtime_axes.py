@@ -123,7 +123,7 @@ def _emulator_commands(topology: str, config: Path, work: Path) -> list[list[str
     return commands
 
 
-def _run(topology: str, trials: int, work: Path) -> dict[str, Any]:
+def _run(topology: str, trials: int, work: Path, law: str | None) -> dict[str, Any]:
     """One bench run against ``topology``'s emulators, seen by the receiver."""
     from foilc_hil.config import axis_configs, load_config
     from foilc_hil.io.mcap_log import read_log
@@ -145,7 +145,8 @@ def _run(topology: str, trials: int, work: Path) -> dict[str, Any]:
         receiver = _start_receiver(out)
         run = subprocess.run(
             [sys.executable, "-m", "foilc_hil.cli", "run", "--config", str(config), "--bus", BUS, "--mode",
-             "realtime", "--trials", str(trials), "--out", str(log), "--json", "--quiet"],
+             "realtime", "--trials", str(trials), "--out", str(log), "--json", "--quiet",
+             *(["--law", law] if law else [])],
             capture_output=True, text=True, cwd=ROOT, env=env,
         )
         frames = _stop_receiver(receiver, out)
@@ -162,6 +163,7 @@ def _run(topology: str, trials: int, work: Path) -> dict[str, Any]:
     cycles = timing.get("cycles") or 0
     return {
         "topology": topology,
+        "law": law or "as configured",
         "emulator_processes": len(logs),
         "period_s": period,
         "exit_code": run.returncode,
@@ -179,19 +181,19 @@ def _run(topology: str, trials: int, work: Path) -> dict[str, Any]:
     }
 
 
-def _inside(trials: int, topologies: Sequence[str]) -> dict[str, Any]:
+def _inside(trials: int, topologies: Sequence[str], law: str | None = None) -> dict[str, Any]:
     """The whole measurement (run inside the private namespace)."""
     for step in NETNS_SETUP:
         subprocess.run(shlex.split(step), check=True)
     with tempfile.TemporaryDirectory(prefix="foilc-realtime-axes-") as directory:
-        runs = [_run(topology, trials, Path(directory)) for topology in topologies]
+        runs = [_run(topology, trials, Path(directory), law) for topology in topologies]
     return {"config": str(SCARA.relative_to(ROOT)), "trials": trials, "cpus": os.cpu_count(), "runs": runs}
 
 
-def collect(trials: int = TRIALS, topologies: Sequence[str] = TOPOLOGIES) -> dict[str, Any]:
+def collect(trials: int = TRIALS, topologies: Sequence[str] = TOPOLOGIES, law: str | None = None) -> dict[str, Any]:
     """Run the measurement in a private network namespace (``unshare --net``); the results document."""
     command = [sys.executable, "-m", "benchmarks.realtime_axes", "--inside", "--trials", str(trials),
-               "--emulators", *topologies]
+               "--emulators", *topologies, *(["--law", law] if law else [])]
     result = subprocess.run(["unshare", "--net", "--", *command], capture_output=True, text=True, cwd=ROOT,
                             env={**os.environ, "PYTHONPATH": str(ROOT)}, check=True)
     document: dict[str, Any] = json.loads(result.stdout)
@@ -205,7 +207,8 @@ def summary(document: dict[str, Any]) -> str:
         receiver, timing = run["receiver"], run["timing"]
         deviation = receiver.get("interval_deviation_us", {})
         lines.append(
-            f"{run['topology']} ({run['emulator_processes']} emulator process(es)), {run['period_s'] * 1e3:g} ms, "
+            f"{run['topology']} ({run['emulator_processes']} emulator process(es)), {run['law']}, "
+            f"{run['period_s'] * 1e3:g} ms, "
             f"exit {run['exit_code']}, load {run['load_average_1min_before']:.1f}->{run['load_average_1min_after']:.1f}"
             f": {receiver.get('syncs', 0)} SYNCs, interval deviation p50/p99/max "
             f"{_us(deviation.get('p50'))}/{_us(deviation.get('p99'))}/{_us(deviation.get('max'))} us, empty slots "
@@ -231,6 +234,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--trials", type=int, default=TRIALS, help=f"trials per run (default {TRIALS})")
     parser.add_argument("--emulators", nargs="+", choices=TOPOLOGIES, default=list(TOPOLOGIES),
                         help="one process for the four nodes, four processes, or both (default)")
+    parser.add_argument("--law", help="the run's --law (default: the config's, IOILC)")
     parser.add_argument("--summary", metavar="JSON", help="print the text summary of a results file and exit")
     parser.add_argument("--inside", action="store_true", help=argparse.SUPPRESS)  # already in the namespace
     args = parser.parse_args(argv)
@@ -238,9 +242,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stdout.write(summary(json.loads(Path(args.summary).read_text(encoding="utf-8"))))
         return 0
     if args.inside:
-        sys.stdout.write(json.dumps(_inside(args.trials, args.emulators)))
+        sys.stdout.write(json.dumps(_inside(args.trials, args.emulators, args.law)))
         return 0
-    emit(collect(args.trials, args.emulators), args.out)
+    emit(collect(args.trials, args.emulators, args.law), args.out)
     return 0
 
 
