@@ -63,6 +63,7 @@ __all__ = [
     "Role",
     "parse_injection",
     "require_actions",
+    "split_by_axis",
 ]
 
 
@@ -161,6 +162,9 @@ class Injection(Section):
     factor
         ``drift``: the factor on the plant's input gain (``b`` of a first-order plant, the torque or velocity gain
         of a PMSM axis); ``-1`` reverses the input's sign.
+    axis
+        The node id of the axis it acts on (its frames, its emulated drive); ``None``: the first axis (the only
+        one of a single-axis run). :func:`split_by_axis` refuses a node id that is not one of the run's axes.
     """
 
     kind: InjectKind
@@ -173,6 +177,7 @@ class Injection(Section):
     delay: float = Field(default=0.005, gt=0, le=10.0)  # seconds (kind delay)
     node: int = Field(default=0x7E, ge=1, le=127)
     factor: float = 2.0
+    axis: int | None = Field(default=None, ge=1, le=127)
 
     @model_validator(mode="after")
     def _frames_fit_the_kind(self) -> Injection:
@@ -234,6 +239,23 @@ def require_actions(injections: Sequence[Injection], *, emulator: bool, key: str
                 f"{key}[{index}].kind: '{injection.kind}' acts on the embedded emulator (--emulator embedded); "
                 "for a drive in another process give it to plant-emulator --inject"
             )
+
+
+def split_by_axis(injections: Sequence[Injection], node_ids: Sequence[int], *, key: str = "inject"
+                  ) -> dict[int, tuple[Injection, ...]]:
+    """Each axis's injections (keyed by node id, in ``node_ids`` order; axes without any left out).
+
+    An injection without ``axis`` goes to the first axis. Raises :class:`InputError` naming ``key[i].axis`` for a
+    node id that is not one of ``node_ids`` (exit 2: a fault that would silently act on nothing).
+    """
+    split: dict[int, list[Injection]] = {}
+    for index, injection in enumerate(injections):
+        node = node_ids[0] if injection.axis is None else injection.axis
+        if node not in node_ids:
+            raise InputError(f"{key}[{index}].axis: node {node} is not an axis of this run "
+                             f"(axes: {', '.join(str(n) for n in node_ids)})")
+        split.setdefault(node, []).append(injection)
+    return {node: tuple(split[node]) for node in node_ids if node in split}
 
 
 @dataclass(frozen=True)

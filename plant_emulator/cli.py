@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, Any, NoReturn
 from pydantic import ConfigDict, Field
 
 from drivers.config import DriveConfig
-from drivers.faults import FaultyBus, Injection, Role, parse_injection
+from drivers.faults import FaultyBus, Injection, Role, parse_injection, split_by_axis
 from foilc_hil.errors import ConfigError, ExitCode, FoilcHilError, InputError
 from foilc_hil.schema import Section, apply_overrides, load_document, validate
 from plant_emulator.config import PlantConfig
@@ -152,6 +152,7 @@ def _serve(args: argparse.Namespace) -> int:
                                            "emulator.timing": args.mode})
     bus_cfg = parse_bus_spec(args.bus)
     drives = _build_drives(settings, nodes or (settings.drive.node_id,))
+    split_by_axis(injections, [drive.node_id for drive in drives], key="--inject")  # an axis= of another node: exit 2
     stop = threading.Event()
 
     def _on_signal(signum: int, frame: FrameType | None) -> None:

@@ -7,6 +7,7 @@ axis's law re-run bit for bit by ``replay --verify``, and each drive's final sta
 
 from __future__ import annotations
 
+import base64
 import contextlib
 import io
 import itertools
@@ -76,6 +77,28 @@ def test_every_axis_is_commanded_and_answers_within_each_sync_period(scara_run: 
     assert max(_runs(served)) >= document["timing"]["cycles"] - 1  # one period may be shared with the enable's last
 
 
+def test_export_dbc_holds_every_axis_and_decodes_each_axis_logged_output(scara_run: tuple[int, dict, Path],
+                                                                          tmp_path: Path) -> None:
+    cantools = pytest.importorskip("cantools")  # the oracle: an independent DBC reader
+    _, _, out = scara_run
+    dbc = tmp_path / "axes.dbc"
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(["export", str(out), "--format", "dbc", "--out", str(dbc), "--json"]) == 0
+    db = cantools.database.load_file(str(dbc), strict=True)
+    assert {node.name for node in db.nodes} == {"foilc_hil_master", *(f"drive_{node}" for node in NODES)}
+    contents = read_log(out)
+    for node in NODES:
+        tpdo1 = cob_id(FunctionCode.TPDO1, node)
+        assert db.get_message_by_frame_id(cob_id(FunctionCode.RPDO1, node)).senders == ["foilc_hil_master"]
+        velocities = np.array([db.decode_message(tpdo1, base64.b64decode(frame["data"]))["velocity_actual_value"]
+                               for frame in contents.frames if frame["id"] == tpdo1])
+        outputs = np.array([row["output"] for row in contents.samples if row.get("axis") == node])
+        assert outputs.size == TRIALS * SAMPLES and np.abs(outputs).max() > 1.0  # this axis moved
+        # every logged output of this axis is one of ITS drive's decoded TPDO velocities, in plant units
+        gaps = np.abs(velocities[None, :] - outputs[:, None]).min(axis=1)
+        assert gaps.max() <= 1e-9 * max(1.0, float(np.abs(outputs).max()))
+
+
 def test_replay_verify_and_report_handle_every_axis(scara_run: tuple[int, dict, Path], tmp_path: Path,
                                                     capsys: pytest.CaptureFixture[str]) -> None:
     code, _document, out = scara_run
@@ -93,19 +116,39 @@ def test_replay_verify_and_report_handle_every_axis(scara_run: tuple[int, dict, 
         assert len(axis["trials"]) == TRIALS and (tmp_path / "report" / f"axis-{axis['node_id']}" / "sse.png").is_file()
 
 
-def test_a_fault_on_one_axis_stops_all_four_confirmed_per_drive(tmp_path: Path,
+@pytest.mark.parametrize(("spec", "faulted"), [("emcy-over-current@1+20", 1),  # no axis: the first axis
+                                              ("emcy-over-current@1+20:axis=3", 3)])
+def test_a_fault_on_one_axis_stops_all_four_confirmed_per_drive(spec: str, faulted: int, tmp_path: Path,
                                                                 capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "fault.mcap"
-    code = main(["run", "--config", str(SCARA), "--trials", "2", "--inject", "emcy-over-current@1+20", "--json",
-                 "--out", str(out)])
+    code = main(["run", "--config", str(SCARA), "--trials", "2", "--inject", spec, "--json", "--out", str(out)])
     document = json.loads(capsys.readouterr().out)
     assert code == 1 and "EMCY 0x2310" in document["error"]["message"]
     stops = {axis["node_id"]: axis["drive_stop"] for axis in document["axes"]}
     assert sorted(stops) == list(NODES)
     assert all(stop["confirmed"] is True and stop["commanded"] is True for stop in stops.values())
-    assert stops[1]["state"] == "FAULT"  # the faulted axis, read back in FAULT (a disabled power stage)
-    assert {stops[node]["state"] for node in (2, 3, 4)} == {"SWITCH_ON_DISABLED"}
+    assert stops[faulted]["state"] == "FAULT"  # the faulted axis, read back in FAULT (a disabled power stage)
+    assert {stops[node]["state"] for node in NODES if node != faulted} == {"SWITCH_ON_DISABLED"}
     assert document["trials"] == []  # the fault came in the first trial
+
+
+@pytest.mark.parametrize("config", [SCARA, ROOT / "configs" / "demo.yaml"])
+def test_a_fault_on_a_node_that_is_not_an_axis_is_refused(config: Path, tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["run", "--config", str(config), "--trials", "1", "--inject", "drop-tpdo@1+5:axis=9", "--json",
+                 "--out", str(tmp_path / "refused.mcap")])
+    document = json.loads(capsys.readouterr().out)
+    assert code == 2 and document["error"]["message"].startswith("inject[0].axis: node 9 is not an axis")
+
+
+def test_a_precomputed_design_is_refused_for_axes(capsys: pytest.CaptureFixture[str]) -> None:
+    from foilc_hil.config import load_config
+    from foilc_hil.errors import InputError
+    from foilc_hil.loop.axes import run_axes
+    from foilc_hil.loop.bench import RunRequest
+
+    with pytest.raises(InputError, match=r"^design: "):
+        run_axes(RunRequest(config=load_config(SCARA), out=None, trials=1, design=object()))
 
 
 def _runs(indices: list[int]) -> list[int]:

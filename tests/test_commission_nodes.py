@@ -3,8 +3,11 @@ one document per node in ``--json``; a failed multi-node enable leaves no node e
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
+from drivers.cia301 import FunctionCode, cob_id
 from drivers.cia402 import State402
 from tests.commission_bus import emulated_bus, run_cli, run_json
 
@@ -48,7 +51,20 @@ def test_info_on_the_embedded_emulator_for_several_nodes(capsys: pytest.CaptureF
     assert all(node["identity"] == document["nodes"][0]["identity"] for node in document["nodes"])
 
 
-@pytest.mark.parametrize("argv", [("params", "read"), ("identify",), ("info", "--dbc", "x.dbc")])
+def test_info_dbc_for_several_nodes_holds_every_node_mapping(tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    cantools = pytest.importorskip("cantools")  # the oracle: an independent DBC reader
+    dbc = tmp_path / "bus.dbc"
+    code, document, _ = run_json(capsys, "commission", "info", "--node-id", "5,6", "--dbc", str(dbc))
+    assert code == 0 and [node["node_id"] for node in document["nodes"]] == [5, 6]
+    db = cantools.database.load_file(str(dbc), strict=True)
+    assert {node.name for node in db.nodes} == {"foilc_hil_master", "drive_5", "drive_6"}
+    for node in (5, 6):  # each node's RPDO1 from the master and TPDO1 from the drive, at its own COB-ID
+        assert db.get_message_by_frame_id(cob_id(FunctionCode.RPDO1, node)).senders == ["foilc_hil_master"]
+        assert db.get_message_by_frame_id(cob_id(FunctionCode.TPDO1, node)).senders == [f"drive_{node}"]
+
+
+@pytest.mark.parametrize("argv", [("params", "read"), ("identify",), ("info", "--dcf", "x.dcf")])
 def test_one_node_actions_refuse_a_list(argv: tuple[str, ...], capsys: pytest.CaptureFixture[str]) -> None:
     code, out, err = run_cli(capsys, "commission", *argv, "--node-id", "1,2")
     assert code == 2 and "--node-id" in err + out and len(err.strip().splitlines()) == 1

@@ -105,7 +105,7 @@ def _offline_dbc(tmp_path: Path, eds: Path | None = None, **drive: Any) -> canto
     cfg = DriveConfig.model_validate({"node_id": NODE, "velocity_scale": SCALE, **drive})
     plan = pdo_plan(cfg.operation_mode, NODE, load_od(eds, NODE))
     path = tmp_path / "offline.dbc"
-    write_dbc(plan, cfg, path)
+    write_dbc([(plan, cfg)], path)
     db = cantools.database.load_file(str(path))
     assert isinstance(db, cantools.database.can.Database)
     return db

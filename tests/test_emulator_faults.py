@@ -30,6 +30,7 @@ from plant_emulator.config import PlantConfig, PmsmConfig
 from plant_emulator.device import FaultKind
 from plant_emulator.embedded import EmbeddedEmulator
 from plant_emulator.settings import EmulatorConfig
+from plant_emulator.supervision import MONITOR_PERIOD, STALL_POLLS
 from tests.emulator_harness import ABORT_REACTIONS, Harness
 
 pytestmark = pytest.mark.timeout(90)
@@ -149,18 +150,44 @@ def test_heartbeat_loss_reacts_per_0x6007(option: int, state_after: State402) ->
         assert h.drive.state is state_after
 
 
+class _SteppedClock:
+    """The supervision's clock, moved only by the test: SYNC-loss timing independent of the machine's load."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
 def test_sync_loss_in_realtime_mode() -> None:
     settings = EmulatorConfig(timing="realtime", sync_loss_cycles=20)
     with Harness(settings=settings) as h:
+        # The supervision thread keeps polling, but on this clock: a slow SYNC while enabling, or a starved thread,
+        # cannot make or hide a loss. Steps of a quarter period stay under the stall threshold (STALL_POLLS polls),
+        # so no poll (the thread's or ours) takes a step for a stalled process.
+        clock = _SteppedClock()
+        h.drive.supervisor.clock = clock
         h.node.sdo[Obj.ABORT_CONNECTION_OPTION].raw = AbortConnectionOption.FAULT
-        _enable_csv(h)  # SYNCs arrive every few ms here
+        _enable_csv(h)
         cycles = h.drive.snapshot().cycles
-        assert h.recorder.count(h.emcy) == 0
-        time.sleep(0.5)  # no SYNC for 50 periods; the physics goes on by the wall clock
-        assert h.drive.snapshot().cycles > cycles + 5
+        step = h.drive.physics.cycle_period / 4
+        assert step < STALL_POLLS * MONITOR_PERIOD
+        for _ in range(4 * 20 - 1):  # 19.75 periods without SYNC: not yet a loss
+            clock.now += step
+            h.drive.supervisor.poll()
+        assert h.drive.state is State402.OPERATION_ENABLED and h.recorder.count(h.emcy) == 0
+        for _ in range(2):  # 20.25 periods: the loss, reported once
+            clock.now += step
+            h.drive.supervisor.poll()
+        assert h.drive.state is State402.FAULT
         frames = h.recorder.wait_count(h.emcy, 1)
         assert _emcy(frames[0])[0] == EmcyCode.SYNC_LOSS
-        assert h.drive.state is State402.FAULT
+        # the physics goes on by the wall clock without SYNC (waited for, however slowly the machine runs)
+        deadline = time.monotonic() + 30.0
+        while h.drive.snapshot().cycles <= cycles + 5 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert h.drive.snapshot().cycles > cycles + 5
 
 
 def test_lockstep_has_no_sync_loss() -> None:

@@ -79,7 +79,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     _common(info)
     info.add_argument("--dbc", metavar="FILE",
                       help="also write the DBC of the PDO mapping run installs (scaled signals, units, "
-                      "402 value tables, node names; any canmatrix format by suffix)")
+                      "402 value tables, node names; any canmatrix format by suffix; several --node-id: every "
+                      "node in one file)")
     info.add_argument("--dcf", metavar="FILE.dcf",
                       help="also write the configured drive as a CiA 306 DCF: its EDS plus node id, bit rate and "
                       "the values run writes (PDO mapping, mode, heartbeats)")
@@ -233,18 +234,23 @@ def _info(args: argparse.Namespace) -> CommandResult:
     from foilc_hil.commission.info import read_info, render_info
 
     config, emulator_config, drive_cfgs = _load_nodes(args)
-    if len(drive_cfgs) > 1:
-        if args.dbc or args.dcf:
-            option = "--dbc" if args.dbc else "--dcf"
-            raise InputError(f"{option}: give one --node-id (the file describes one drive's configuration)")
-        with _target(args, config, emulator_config, *(cfg.node_id for cfg in drive_cfgs)) as target, \
-                _shared_drives(target, drive_cfgs, config.sample_time) as drives:
-            documents = tuple(read_info(drive).to_json() for drive in drives)
-        return _per_node("info", documents, "\n".join(render_info(document) for document in documents))
-    drive_cfg = drive_cfgs[0]
     if args.dbc and Path(args.dbc).suffix.lower() not in (".dbc", ".dbf", ".kcd", ".arxml", ".sym", ".json",
                                                           ".xls", ".xlsx", ".yaml"):
         raise InputError(f"--dbc: {args.dbc!r} needs a suffix canmatrix writes (.dbc, .kcd, .arxml, .sym, ...)")
+    if len(drive_cfgs) > 1:
+        if args.dcf:
+            raise InputError("--dcf: give one --node-id (the file describes one drive's configuration)")
+        with _target(args, config, emulator_config, *(cfg.node_id for cfg in drive_cfgs)) as target, \
+                _shared_drives(target, drive_cfgs, config.sample_time) as drives:
+            documents = tuple(read_info(drive).to_json() for drive in drives)
+            # one DBC for the bus: every node's mapping as run will install it (each drive's preflight)
+            plans = [(drive.preflight(cfg.operation_mode, config.sample_time), cfg)
+                     for drive, cfg in zip(drives, drive_cfgs, strict=True)] if args.dbc else []
+        result = _per_node("info", documents, "\n".join(render_info(document) for document in documents))
+        if args.dbc:
+            result.document["dbc"] = write_dbc(plans, args.dbc).to_json()
+        return result
+    drive_cfg = drive_cfgs[0]
     with _target(args, config, emulator_config, drive_cfg.node_id) as target:
         drive = _open_drive(target, drive_cfg, config.sample_time)
         try:
@@ -252,7 +258,7 @@ def _info(args: argparse.Namespace) -> CommandResult:
             if args.dbc or args.dcf:  # the mapping run will install on this drive (its preflight), not today's
                 plan = drive.preflight(drive_cfg.operation_mode, config.sample_time)
                 if args.dbc:
-                    document["dbc"] = write_dbc(plan, drive_cfg, args.dbc).to_json()
+                    document["dbc"] = write_dbc([(plan, drive_cfg)], args.dbc).to_json()
                 if args.dcf:
                     document["dcf"] = write_dcf(drive, plan, bitrate=_bitrate(args, config),
                                                 path=args.dcf).to_json()

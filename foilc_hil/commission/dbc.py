@@ -2,7 +2,8 @@
 
 :func:`build_matrix` turns a :class:`~drivers.cia402_master.PdoPlan` (the mapping
 :meth:`~drivers.cia402_master.Cia402Drive.configure` writes -- not the drive's defaults) into a
-``canmatrix.CanMatrix``; :func:`write_dbc` writes it in the format the file's suffix names (``.dbc``, ``.kcd``,
+``canmatrix.CanMatrix`` (one for several drives on a bus: every drive's PDOs); :func:`write_dbc` writes it in the
+format the file's suffix names (``.dbc``, ``.kcd``,
 ``.arxml``, ...). In it:
 
 - node names: the master (``foilc_hil_master``) and the drive (``drive_<node id>``), as transmitter and receiver
@@ -19,6 +20,7 @@
 from __future__ import annotations
 
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 from decimal import Decimal
 from pathlib import Path
@@ -130,25 +132,31 @@ def _frame(layout: PdoLayout, cfg: DriveConfig) -> canmatrix.Frame:
     return frame
 
 
-def build_matrix(plan: PdoPlan, cfg: DriveConfig) -> canmatrix.CanMatrix:
-    """The CAN matrix of ``plan`` for the drive ``cfg`` (module docstring: names, scales, value tables)."""
+def build_matrix(drives: Sequence[tuple[PdoPlan, DriveConfig]]) -> canmatrix.CanMatrix:
+    """The CAN matrix of every drive's ``(plan, cfg)`` on one bus (module docstring: names, scales, value tables).
+
+    One matrix for several drives: each drive is its own node (``drive_<node id>``) and its frames are named after
+    it, so the frames of an ``axes:`` run's four drives sit side by side in one file.
+    """
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)  # canmatrix's own imports; not ours to fix
         import canmatrix
 
     matrix = canmatrix.CanMatrix()
     matrix.add_ecu(canmatrix.Ecu(MASTER_NODE_NAME))
-    matrix.add_ecu(canmatrix.Ecu(drive_node_name(cfg.node_id)))
-    for layout in (*plan.rpdos, *plan.tpdos):
-        matrix.add_frame(_frame(layout, cfg))
+    for plan, cfg in drives:
+        matrix.add_ecu(canmatrix.Ecu(drive_node_name(cfg.node_id)))
+        for layout in (*plan.rpdos, *plan.tpdos):
+            matrix.add_frame(_frame(layout, cfg))
     return matrix
 
 
-def write_dbc(plan: PdoPlan, cfg: DriveConfig, path: str | Path) -> DbcExport:
-    """Write :func:`build_matrix` to ``path`` (format by suffix); :class:`InputError` when canmatrix cannot."""
+def write_dbc(drives: Sequence[tuple[PdoPlan, DriveConfig]], path: str | Path) -> DbcExport:
+    """Write :func:`build_matrix` of ``drives`` to ``path`` (format by suffix); :class:`InputError` when canmatrix
+    cannot."""
     import canmatrix.formats
 
-    matrix = build_matrix(plan, cfg)
+    matrix = build_matrix(drives)
     target = Path(path)
     try:
         with warnings.catch_warnings():

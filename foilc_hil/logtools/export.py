@@ -7,8 +7,9 @@ frames are ``is_rx=False``), written in log order. What each format keeps:
 - BLF: timestamps (nanoseconds relative to the start; the start itself to the millisecond), direction.
 - CSV: timestamps (full float precision) -- python-can's CSV format has no direction column.
 
-``--format dbc`` (:func:`export_dbc`) writes instead the DBC of the PDO mapping the run installed (metadata
-``foilc_hil.pdo_mapping``; logs written before it: the mapping :func:`drivers.cia402_master.pdo_plan` gives for the
+``--format dbc`` (:func:`export_dbc`) writes instead the DBC of the PDO mapping the run installed on every axis
+(metadata ``foilc_hil.pdo_mapping``, ``foilc_hil.axis.<node>.pdo_mapping`` for each axis of an ``axes:`` run; logs
+written before it: the mapping :func:`drivers.cia402_master.pdo_plan` gives for the
 logged ``drive:`` section and its EDS), with the writer of ``commission info --dbc``
 (:mod:`foilc_hil.commission.dbc`): cantools decodes the log's ``/can`` frames with it.
 """
@@ -19,7 +20,7 @@ import collections
 import enum
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from foilc_hil.errors import FoilcHilError, InputError, LogFormatError
 
@@ -28,7 +29,7 @@ if TYPE_CHECKING:
     from drivers.config import DriveConfig
     from foilc_hil.commission.dbc import DbcExport
 
-__all__ = ["ExportFormat", "ExportResult", "export_dbc", "export_frames", "logged_mapping"]
+__all__ = ["ExportFormat", "ExportResult", "export_dbc", "export_frames", "logged_mappings"]
 
 
 @enum.unique
@@ -97,10 +98,12 @@ def export_frames(log: str | Path, out: str | Path, fmt: str, *, channel: int | 
         return ExportResult(out_path, file_format, count, reader.truncated, reader.damage)
 
 
-def logged_mapping(log: str | Path) -> tuple[PdoPlan, DriveConfig]:
-    """The PDO mapping a run installed and its ``drive:`` section, from the log's metadata.
+def logged_mappings(log: str | Path) -> list[tuple[PdoPlan, DriveConfig]]:
+    """The PDO mapping every axis of a run installed and its ``drive:`` section, from the log's metadata.
 
-    ``foilc_hil.pdo_mapping`` when the log has it; else (logs written before it) :func:`pdo_plan` of the logged
+    A log of several axes (``foilc_hil.axis.<node>.config`` records) gives one entry per axis, in node order, each
+    from the axis's own records; a single-axis log gives one from ``foilc_hil.config`` and
+    ``foilc_hil.pdo_mapping``. A mapping record missing (logs written before it) is :func:`pdo_plan` of the logged
     ``drive:`` section on its EDS, which is what ``configure`` installs on a drive described by that EDS.
 
     Raises
@@ -108,38 +111,52 @@ def logged_mapping(log: str | Path) -> tuple[PdoPlan, DriveConfig]:
     foilc_hil.errors.LogFormatError
         The log has no ``foilc_hil.config``, or a record does not load.
     """
+    from foilc_hil.io.mcap_log import McapLogReader
+    from foilc_hil.io.schemas import METADATA_AXIS_PREFIX, METADATA_CONFIG, METADATA_PDO_MAPPING
+
+    with McapLogReader(log) as reader:
+        collections.deque(reader.iter_messages(()), maxlen=0)  # metadata is collected while the records pass
+        metadata = reader.metadata
+    prefix = f"{METADATA_AXIS_PREFIX}."
+    nodes = sorted(int(name[len(prefix):-len(".config")]) for name in metadata
+                   if name.startswith(prefix) and name.endswith(".config"))
+    if not nodes:
+        return [_logged_mapping(log, metadata, METADATA_CONFIG, METADATA_PDO_MAPPING)]
+    return [_logged_mapping(log, metadata, f"{prefix}{node}.config", f"{prefix}{node}.pdo_mapping")
+            for node in nodes]
+
+
+def _logged_mapping(log: str | Path, metadata: dict[str, Any], config_name: str, mapping_name: str
+                    ) -> tuple[PdoPlan, DriveConfig]:
+    """One axis's mapping (record ``mapping_name``, else derived) and ``drive:`` section (from ``config_name``)."""
     import yaml
 
     from drivers.cia402_master import PdoPlan, pdo_plan
     from drivers.config import DriveConfig
     from drivers.od import load_od
-    from foilc_hil.io.mcap_log import McapLogReader
-    from foilc_hil.io.schemas import METADATA_CONFIG, METADATA_PDO_MAPPING, decode_pdo_mapping
+    from foilc_hil.io.schemas import decode_pdo_mapping
     from foilc_hil.schema import load_yaml_text, validate
 
-    with McapLogReader(log) as reader:
-        collections.deque(reader.iter_messages(()), maxlen=0)  # metadata is collected while the records pass
-        metadata = reader.metadata
     try:
-        document = load_yaml_text(metadata[METADATA_CONFIG]["yaml"]) or {}
-        drive = validate(DriveConfig, document.get("drive", {}), source=f"{log} ({METADATA_CONFIG})")
+        document = load_yaml_text(metadata[config_name]["yaml"]) or {}
+        drive = validate(DriveConfig, document.get("drive", {}), source=f"{log} ({config_name})")
     except KeyError:
-        raise LogFormatError(f"{log}: no {METADATA_CONFIG} metadata; the DBC needs the run's drive section") from None
+        raise LogFormatError(f"{log}: no {config_name} metadata; the DBC needs the run's drive section") from None
     except (AttributeError, yaml.YAMLError, FoilcHilError) as exc:
-        raise LogFormatError(f"{log}: metadata {METADATA_CONFIG} does not load: {exc}") from None
-    record = metadata.get(METADATA_PDO_MAPPING)
+        raise LogFormatError(f"{log}: metadata {config_name} does not load: {exc}") from None
+    record = metadata.get(mapping_name)
     if record is None:
         return pdo_plan(drive.operation_mode, drive.node_id, load_od(drive.eds, drive.node_id)), drive
     try:
         rpdos, tpdos = decode_pdo_mapping(record)
     except (ValueError, KeyError, TypeError) as exc:
-        raise LogFormatError(f"{log}: metadata {METADATA_PDO_MAPPING} does not load: {exc!r}") from None
+        raise LogFormatError(f"{log}: metadata {mapping_name} does not load: {exc!r}") from None
     return PdoPlan(rpdos, tpdos), drive
 
 
 def export_dbc(log: str | Path, out: str | Path) -> DbcExport:
-    """Write the DBC of the mapping the run of ``log`` installed to ``out`` (format by suffix, as ``--dbc``)."""
+    """Write the DBC of the mapping every axis of the run of ``log`` installed to ``out`` (one file, every node's
+    PDOs; format by suffix, as ``--dbc``)."""
     from foilc_hil.commission.dbc import write_dbc
 
-    plan, drive = logged_mapping(log)
-    return write_dbc(plan, drive, out)
+    return write_dbc(logged_mappings(log), out)

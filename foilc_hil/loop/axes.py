@@ -15,7 +15,9 @@ vectors for outputs and commands:
 - :class:`AxesSink`: splits each finished trial into one record per axis; every ``/ilc/sample`` and ``/ilc/trial``
   message carries ``axis`` (the node id) -- docs/interface-additions.md.
 
-Injected faults (``inject:``) act on the first axis (its frames, its emulated drive).
+Injected faults (``inject:``) act on the axis their ``axis`` names (its frames, its emulated drive), the first
+axis without one (:func:`drivers.faults.split_by_axis`). A precomputed ``RunRequest.design`` is refused (exit 2):
+it is one axis's design, and each axis is designed on its own model.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ import numpy as np
 
 from drivers.cia402 import State402
 from drivers.drive import StopReport
-from drivers.faults import FaultyBus, InjectionReport, require_actions
+from drivers.faults import FaultyBus, Injection, InjectionReport, require_actions, split_by_axis
 from foilc_hil.errors import DriveFaultError, FoilcHilError
 from foilc_hil.laws.learning import TrialUpdate
 from foilc_hil.loop.bench import (
@@ -267,6 +269,7 @@ class _AxesPlan:
     laws: AxisLaws
     limiter: AxisLimiter
     settings: LoopSettings
+    injections: dict[int, tuple[Injection, ...]]  # node id -> the faults injected on that axis
 
     @property
     def node_ids(self) -> tuple[int, ...]:
@@ -276,15 +279,19 @@ class _AxesPlan:
 def _plan_axes(request: RunRequest) -> _AxesPlan:
     """Each axis's design (on its own model), law and limits; one reference column per axis."""
     from foilc_hil.config import axis_configs
-    from foilc_hil.errors import ConfigError
+    from foilc_hil.errors import ConfigError, InputError
     from foilc_hil.laws.learning import make_law
     from foilc_hil.references import reference_profile
 
     config = request.config
+    if request.design is not None:
+        # one Design is one axis's model; applying it to every axis would run the others on the wrong model
+        raise InputError("design: a precomputed design is one axis's; an axes: run designs each axis on its own model")
     configs = axis_configs(config)
     law_kind = request.law or config.law.kind
     bus = request.bus if request.bus is not None else config.bus
     require_actions(config.inject, emulator=bus.interface == "embedded")
+    injections = split_by_axis(config.inject, [axis.drive.node_id for axis in configs])
     columns = [reference_profile(axis.reference, config.sample_time) for axis in configs]
     lengths = {column.shape[0] for column in columns}
     if len(lengths) != 1:
@@ -298,7 +305,8 @@ def _plan_axes(request: RunRequest) -> _AxesPlan:
             for design, axis, limiter in zip(designs, configs, limiters, strict=True)]
     return _AxesPlan(law_kind=law_kind, trials=request.trials or config.trials, bus=bus, configs=configs,
                      designs=designs, reference=np.column_stack(columns), laws=AxisLaws(laws),
-                     limiter=AxisLimiter(limiters), settings=loop_settings(config, request.mode))
+                     limiter=AxisLimiter(limiters), settings=loop_settings(config, request.mode),
+                     injections=injections)
 
 
 def _log_axes(writer: Any, plan: _AxesPlan) -> None:
@@ -325,23 +333,25 @@ def _start_emulators(stack: contextlib.ExitStack, plan: _AxesPlan, threaded: boo
 
 
 def _open_axes(stack: contextlib.ExitStack, plan: _AxesPlan, config: Any, bus_cfg: Any, sink: McapSink | None,
-               stops: dict[int, StopReport], emulators: list[Any]) -> tuple[AxisGroup, FaultyBus | None]:
-    """The bus (with ``inject:`` on the first axis), one network, one master per axis (each safe-stopped on exit)."""
+               stops: dict[int, StopReport], emulators: list[Any]) -> tuple[AxisGroup, list[FaultyBus]]:
+    """The bus (wrapped in each faulted axis's ``inject:``), one network, one master per axis (each safe-stopped on
+    exit)."""
     from drivers.bus import open_bus
     from drivers.cia402_master import Cia402Drive
     from drivers.network import DriveNetwork
     from foilc_hil.config import BadFramePolicy
+    from plant_emulator.faults import emulator_actions
 
     bus = open_bus(bus_cfg)
     stack.callback(bus.shutdown)
-    faulty: FaultyBus | None = None
-    if config.inject:
-        from plant_emulator.faults import emulator_actions
-
-        actions = emulator_actions(emulators[0].drive) if emulators else {}
-        faulty = FaultyBus(bus, config.inject, node_id=plan.node_ids[0], actions=actions)
-        stack.callback(faulty.shutdown)
-        bus = faulty
+    faulty: list[FaultyBus] = []
+    for node, injections in plan.injections.items():
+        # one wrapper per faulted axis, nested: each sees every SYNC (its clock) and classifies its own node's frames
+        k = plan.node_ids.index(node)
+        actions = emulator_actions(emulators[k].drive) if emulators else {}
+        bus = FaultyBus(bus, injections, node_id=node, actions=actions)
+        stack.callback(bus.shutdown)
+        faulty.append(bus)
     network = DriveNetwork(bus)
     stack.callback(network.close)
     if sink is not None:
@@ -364,17 +374,21 @@ def _record_stop(stops: dict[int, StopReport], drive: Any) -> None:
 
 
 def _commission_axes(group: AxisGroup, plan: _AxesPlan, sink: McapSink | None) -> None:
-    """Connect and configure every axis, log the first axis's mapping, then enable every axis."""
+    """Connect and configure every axis, log each axis's mapping (the first's also as the single-axis record), then
+    enable every axis."""
     from drivers.cia402_master import pdo_plan
-    from foilc_hil.io.schemas import METADATA_PDO_MAPPING, encode_pdo_mapping
+    from foilc_hil.io.schemas import METADATA_AXIS_PREFIX, METADATA_PDO_MAPPING, encode_pdo_mapping
 
     for drive, axis in zip(group.drives, plan.configs, strict=True):
         drive.connect()
         drive.configure(axis.drive.operation_mode, axis.sample_time)
     if sink is not None:
-        first = group.drives[0]
-        mapping = pdo_plan(plan.configs[0].drive.operation_mode, first.node_id, first.od)
-        sink.writer.add_metadata(METADATA_PDO_MAPPING, encode_pdo_mapping(mapping.rpdos, mapping.tpdos))
+        for k, (drive, axis) in enumerate(zip(group.drives, plan.configs, strict=True)):
+            mapping = pdo_plan(axis.drive.operation_mode, drive.node_id, drive.od)
+            record = encode_pdo_mapping(mapping.rpdos, mapping.tpdos)
+            sink.writer.add_metadata(f"{METADATA_AXIS_PREFIX}.{drive.node_id}.pdo_mapping", record)
+            if k == 0:  # readers of one axis (older tools) find the first axis's where they always did
+                sink.writer.add_metadata(METADATA_PDO_MAPPING, record)
     for drive in group.drives:
         drive.enable()
 
@@ -410,7 +424,7 @@ def run_axes(request: RunRequest) -> AxesRunReport:
             stop = stack.enter_context(StopRequest())
             log = AxesSink(sink, plan.laws, plan.limiter, plan.node_ids) if sink is not None else None
             loop = TrialLoop(group, plan.laws, plan.reference, plan.limiter, plan.settings, log=log,
-                             progress=progress, stop=stop, before_trial=trial_hook(emulators, faulty))
+                             progress=progress, stop=stop, before_trial=trial_hook([*emulators, *faulty], None))
             loops.append(loop)
             _commission_axes(group, plan, sink)
             outcome = loop.run(plan.trials)
@@ -422,7 +436,7 @@ def run_axes(request: RunRequest) -> AxesRunReport:
                        "drive_stop": _worst(stops, plan.node_ids).to_json() if stops else None,
                        "axes": [axis.to_json() for axis in _axis_outcomes(plan, stops)]}
         raise
-    injected: list[InjectionReport] = faulty.reports() if faulty is not None else []
+    injected: list[InjectionReport] = [report for wrapper in faulty for report in wrapper.reports()]
     run = RunReport(law=plan.law_kind, outcome=outcome, log=str(request.out) if request.out is not None else "",
                     design=_design_summary(plan.designs[0]), bus=f"{bus_cfg.interface}:{bus_cfg.channel}",
                     cycles=loop.cycles, drive_stop=_worst(stops, plan.node_ids), injected=injected)

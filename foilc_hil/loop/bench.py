@@ -78,7 +78,7 @@ import numpy as np
 
 from drivers.cia402 import State402
 from drivers.drive import StopReport
-from drivers.faults import FaultyBus, InjectionReport, require_actions
+from drivers.faults import FaultyBus, InjectionReport, require_actions, split_by_axis
 from drivers.realtime import RealtimeConfig, RealtimeSession, collect_young, demote_current_thread
 from foilc_hil.errors import (
     DriveError,
@@ -1023,6 +1023,7 @@ def _plan_run(request: RunRequest) -> _RunPlan:
     law_kind = request.law or config.law.kind
     bus = request.bus if request.bus is not None else config.bus
     require_actions(config.inject, emulator=bus.interface == "embedded")  # before the (possibly slow) design
+    split_by_axis(config.inject, [config.drive.node_id])  # an ``axis:`` naming another node: exit 2, not ignored
     reference = reference_profile(config.reference, config.sample_time)
     n_samples = int(reference.shape[0])
     design = request.design if request.design is not None else build_design(config, law_kind, n_samples)

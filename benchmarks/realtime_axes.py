@@ -1,0 +1,252 @@
+"""Realtime jitter of four axes across processes: ``foilc-hil run --mode realtime`` on configs/scara_4axis.yaml.
+
+``python -m benchmarks.realtime_axes [--trials N] [--emulators one four] [--out FILE]`` (as root: it needs
+``unshare --net``). Its own module, so the lead can run it alone (it imports :mod:`benchmarks.realtime`'s receiver
+and SYNC statistics; that module does not import this one).
+
+Everything runs inside one private network namespace this module creates (``unshare --net``, multicast routed over
+its own loopback), so no frame leaves it. The bench runs the shipped four-axis config (one SYNC for four CSV drives
+at its 2.5 ms period: 57.7 % of 1 Mbit/s; the bus-load limit of 70 % allows 2.055 ms at the shortest, see the
+config's header) in realtime mode, with the realtime sections of configs/realtime_1khz.yaml
+(:func:`realtime_config`), against, in turn:
+
+- ``one``: ONE ``plant-emulator --mode realtime --node-id 1,2,3,4`` process answering each SYNC for all four nodes
+  (every node with the config's base plant: the emulator's ``--node-id`` list shares one plant section);
+- ``four``: four ``plant-emulator --mode realtime`` processes, each with its axis's own config
+  (:func:`foilc_hil.config.axis_configs`).
+
+The instrument is the independent receiver process of :mod:`benchmarks.realtime` (kernel receive timestamps). From
+it: SYNC interval deviation ``|dt - period|`` (p50/p99/max), lateness, empty slots, and per axis: the emulator's
+answer time (its TPDO1 after the SYNC), TPDO1 lost on the way to the bench (received by the receiver, not logged
+by the bench) and RPDO1 lost on the way out (logged as sent by the bench, not received). The bench's own counts
+(missed and skipped deadlines, lost feedback) come from its ``--json`` document; lost feedback per axis from its
+log (SYNC periods in which the bench logged no TPDO1 of that node).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from benchmarks.output import emit
+from benchmarks.realtime import BUS, NETNS_SETUP, ROOT, _quantiles, _start_receiver, _stop_receiver, sync_statistics
+from drivers.cia301 import SYNC_COB_ID, FunctionCode, cob_id
+
+SCARA = ROOT / "configs" / "scara_4axis.yaml"
+REALTIME = ROOT / "configs" / "realtime_1khz.yaml"  # the shipped realtime settings, taken over as a user would
+TOPOLOGIES = ("one", "four")
+TRIALS = 4  # 4 x 200 cycles at 2.5 ms: 2 s of loop per topology, a few seconds with commissioning
+
+
+def answer_times(frames: np.ndarray, node: int) -> np.ndarray:
+    """Seconds from each SYNC to node ``node``'s TPDO1 answering it (the first one before the next SYNC)."""
+    tpdo1 = cob_id(FunctionCode.TPDO1, node)
+    answers: list[float] = []
+    last_sync: float | None = None
+    for can_id, stamp in frames:
+        if can_id == SYNC_COB_ID:
+            last_sync = stamp
+        elif can_id == tpdo1 and last_sync is not None:
+            answers.append(stamp - last_sync)
+            last_sync = None
+    return np.array(answers)
+
+
+def _unanswered_periods(frames: list[dict[str, Any]], node: int) -> int:
+    """SYNC periods of the bench's log (from a sent SYNC to the next) in which it logged no TPDO1 of ``node``."""
+    tpdo1 = cob_id(FunctionCode.TPDO1, node)
+    periods: list[bool] = []
+    for frame in frames:
+        if frame["id"] == SYNC_COB_ID and frame["dir"] == "tx":
+            periods.append(False)
+        elif periods and frame["id"] == tpdo1 and frame["dir"] == "rx":
+            periods[-1] = True
+    return periods[:-1].count(False)  # the last period is cut by the end of the run
+
+
+def _axis_figures(frames: np.ndarray, logged: list[dict[str, Any]], node: int) -> dict[str, Any]:
+    """One axis: emulator answer time, frames lost each way, periods without its feedback in the bench's log."""
+    tpdo1, rpdo1 = cob_id(FunctionCode.TPDO1, node), cob_id(FunctionCode.RPDO1, node)
+    received_tpdo = int(np.sum(frames[:, 0] == tpdo1))
+    logged_tpdo = sum(1 for f in logged if f["id"] == tpdo1 and f["dir"] == "rx")
+    sent_rpdo = sum(1 for f in logged if f["id"] == rpdo1 and f["dir"] == "tx")
+    return {
+        "node_id": node,
+        "emulator_answer_us": _quantiles(answer_times(frames, node) * 1e6),
+        "tpdo1_received": received_tpdo,
+        "tpdo1_lost_to_bench": received_tpdo - logged_tpdo,
+        "rpdo1_sent_by_bench": sent_rpdo,
+        "rpdo1_lost": sent_rpdo - int(np.sum(frames[:, 0] == rpdo1)),
+        "periods_without_feedback_in_log": _unanswered_periods(logged, node),
+    }
+
+
+def realtime_config(work: Path) -> Path:
+    """configs/scara_4axis.yaml as shipped (axes, period, laws) with the realtime sections of
+    configs/realtime_1khz.yaml: ``bench.mode``, ``bench.faults``, ``bench.realtime`` and ``emulator`` (the host setup
+    of both processes, the fault tolerances and the emulator's SYNC supervision for a busy 2-core host)."""
+    import yaml
+
+    document = yaml.safe_load(SCARA.read_text(encoding="utf-8"))
+    realtime = yaml.safe_load(REALTIME.read_text(encoding="utf-8"))
+    document["bench"] = {**document.get("bench", {}), "mode": "realtime", "faults": realtime["bench"]["faults"],
+                         "realtime": realtime["bench"]["realtime"]}
+    document["emulator"] = realtime["emulator"]
+    path = work / "scara_realtime.yaml"
+    path.write_text(yaml.safe_dump(document), encoding="utf-8")
+    return path
+
+
+def _emulator_commands(topology: str, config: Path, work: Path) -> list[list[str]]:
+    from foilc_hil.config import axis_configs, dump_config, load_config
+
+    base = [sys.executable, "-m", "plant_emulator", "--bus", BUS, "--mode", "realtime"]
+    if topology == "one":
+        return [[*base, "--config", str(config), "--node-id", "1,2,3,4"]]
+    commands = []
+    for axis in axis_configs(load_config(config)):
+        path = work / f"axis{axis.drive.node_id}.yaml"
+        path.write_text(dump_config(axis), encoding="utf-8")
+        commands.append([*base, "--config", str(path)])
+    return commands
+
+
+def _run(topology: str, trials: int, work: Path, law: str | None) -> dict[str, Any]:
+    """One bench run against ``topology``'s emulators, seen by the receiver."""
+    from foilc_hil.config import axis_configs, load_config
+    from foilc_hil.io.mcap_log import read_log
+
+    out, log = work / f"axes-{topology}.npy", work / f"axes-{topology}.mcap"
+    config = realtime_config(work)
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    emulators, logs = [], []
+    try:
+        for k, command in enumerate(_emulator_commands(topology, config, work)):
+            logs.append(work / f"emulator-{topology}-{k}.stderr")
+            with logs[-1].open("w") as stderr:
+                emulators.append(subprocess.Popen(command, stderr=stderr, cwd=ROOT, env=env))
+        for _ in range(600):  # every ready line, at most 60 s
+            if all("ready" in path.read_text() for path in logs):
+                break
+            time.sleep(0.1)
+        load_before = os.getloadavg()[0]
+        receiver = _start_receiver(out)
+        run = subprocess.run(
+            [sys.executable, "-m", "foilc_hil.cli", "run", "--config", str(config), "--bus", BUS, "--mode",
+             "realtime", "--trials", str(trials), "--out", str(log), "--json", "--quiet",
+             *(["--law", law] if law else [])],
+            capture_output=True, text=True, cwd=ROOT, env=env,
+        )
+        frames = _stop_receiver(receiver, out)
+    finally:
+        for emulator in emulators:  # only the emulators started above, by their own handles
+            emulator.send_signal(signal.SIGINT)
+            emulator.wait(timeout=30)
+    document: dict[str, Any] = json.loads(run.stdout) if run.stdout.strip() else {"error": run.stderr.strip()}
+    logged = read_log(log).frames if log.exists() else []
+    period = load_config(config).sample_time
+    sent_syncs = sum(1 for f in logged if f["id"] == SYNC_COB_ID and f["dir"] == "tx")
+    syncs = frames[frames[:, 0] == SYNC_COB_ID, 1]
+    timing = document.get("timing", {})
+    cycles = timing.get("cycles") or 0
+    return {
+        "topology": topology,
+        "law": law or "as configured",
+        "emulator_processes": len(logs),
+        "period_s": period,
+        "exit_code": run.returncode,
+        "error": document.get("error"),
+        "load_average_1min_before": load_before,
+        "load_average_1min_after": os.getloadavg()[0],
+        "trials_completed": len(document.get("trials", [])),
+        "timing": timing,
+        "missed_deadline_fraction": timing.get("missed_deadlines", 0) / cycles if cycles else None,
+        "receiver": {**sync_statistics(syncs, period), "syncs_sent_by_bench": sent_syncs,
+                     "syncs_lost": sent_syncs - int(syncs.size)},
+        "axes": [_axis_figures(frames, logged, axis.drive.node_id) for axis in axis_configs(load_config(config))],
+        "emulator_stderr_tail": [path.read_text().splitlines()[-3:] for path in logs],
+        "sse": {str(axis["node_id"]): [trial["sse"] for trial in axis["trials"]] for axis in document.get("axes", [])},
+    }
+
+
+def _inside(trials: int, topologies: Sequence[str], law: str | None = None) -> dict[str, Any]:
+    """The whole measurement (run inside the private namespace)."""
+    for step in NETNS_SETUP:
+        subprocess.run(shlex.split(step), check=True)
+    with tempfile.TemporaryDirectory(prefix="foilc-realtime-axes-") as directory:
+        runs = [_run(topology, trials, Path(directory), law) for topology in topologies]
+    return {"config": str(SCARA.relative_to(ROOT)), "trials": trials, "cpus": os.cpu_count(), "runs": runs}
+
+
+def collect(trials: int = TRIALS, topologies: Sequence[str] = TOPOLOGIES, law: str | None = None) -> dict[str, Any]:
+    """Run the measurement in a private network namespace (``unshare --net``); the results document."""
+    command = [sys.executable, "-m", "benchmarks.realtime_axes", "--inside", "--trials", str(trials),
+               "--emulators", *topologies, *(["--law", law] if law else [])]
+    result = subprocess.run(["unshare", "--net", "--", *command], capture_output=True, text=True, cwd=ROOT,
+                            env={**os.environ, "PYTHONPATH": str(ROOT)}, check=True)
+    document: dict[str, Any] = json.loads(result.stdout)
+    return document
+
+
+def summary(document: dict[str, Any]) -> str:
+    """One paragraph per run: the SYNC's jitter, the bench's counts, and one line per axis."""
+    lines = []
+    for run in document["runs"]:
+        receiver, timing = run["receiver"], run["timing"]
+        deviation = receiver.get("interval_deviation_us", {})
+        lines.append(
+            f"{run['topology']} ({run['emulator_processes']} emulator process(es)), {run['law']}, "
+            f"{run['period_s'] * 1e3:g} ms, "
+            f"exit {run['exit_code']}, load {run['load_average_1min_before']:.1f}->{run['load_average_1min_after']:.1f}"
+            f": {receiver.get('syncs', 0)} SYNCs, interval deviation p50/p99/max "
+            f"{_us(deviation.get('p50'))}/{_us(deviation.get('p99'))}/{_us(deviation.get('max'))} us, empty slots "
+            f"{receiver.get('empty_slots', '-')}, SYNCs lost {receiver['syncs_lost']}; bench: cycles "
+            f"{timing.get('cycles', '-')}, missed deadlines {timing.get('missed_deadlines', '-')}, skipped "
+            f"{timing.get('skipped_deadlines', '-')}, lost feedback {timing.get('missing_feedback', '-')}")
+        for axis in run["axes"]:
+            answer = axis["emulator_answer_us"]
+            lines.append(
+                f"  node {axis['node_id']}: answer p50/p99/max {_us(answer['p50'])}/{_us(answer['p99'])}/"
+                f"{_us(answer['max'])} us, TPDO1 lost to bench {axis['tpdo1_lost_to_bench']}, RPDO1 lost "
+                f"{axis['rpdo1_lost']}, periods without feedback in log {axis['periods_without_feedback_in_log']}")
+    return "\n".join(lines) + "\n"
+
+
+def _us(value: float | None) -> str:
+    return "-" if value is None else f"{value:.0f}"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.realtime_axes", description=__doc__.splitlines()[0])
+    parser.add_argument("--out", help="JSON file to write (default: stdout)")
+    parser.add_argument("--trials", type=int, default=TRIALS, help=f"trials per run (default {TRIALS})")
+    parser.add_argument("--emulators", nargs="+", choices=TOPOLOGIES, default=list(TOPOLOGIES),
+                        help="one process for the four nodes, four processes, or both (default)")
+    parser.add_argument("--law", help="the run's --law (default: the config's, IOILC)")
+    parser.add_argument("--summary", metavar="JSON", help="print the text summary of a results file and exit")
+    parser.add_argument("--inside", action="store_true", help=argparse.SUPPRESS)  # already in the namespace
+    args = parser.parse_args(argv)
+    if args.summary:
+        sys.stdout.write(summary(json.loads(Path(args.summary).read_text(encoding="utf-8"))))
+        return 0
+    if args.inside:
+        sys.stdout.write(json.dumps(_inside(args.trials, args.emulators, args.law)))
+        return 0
+    emit(collect(args.trials, args.emulators, args.law), args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
