@@ -806,6 +806,11 @@ class McapLogReader:
         At the first damage (cut file, bad CRC, undecodable record) iteration stops, :attr:`truncated` becomes
         ``True`` and :attr:`damage` says what and where. One pass per reader (the stream is read once).
         """
+        for topic, log_time, publish_time, document in self._documents(topics):
+            yield LogMessage(topic, log_time, publish_time, document)
+
+    def _documents(self, topics: Sequence[str] | None) -> Iterator[tuple[str, int, int, dict[str, Any]]]:
+        """:meth:`iter_messages` as plain tuples (:meth:`read` builds no :class:`LogMessage` per message)."""
         if self._spent:
             raise RuntimeError("McapLogReader reads its file once; create another reader")
         self._spent = True
@@ -818,7 +823,7 @@ class McapLogReader:
             skip_magic=not self._stream.seekable(),  # the magic was consumed by the check above
             validate_crcs=True,
             record_size_limit=self._size,
-            emit_chunks=True,  # split by _chunk_messages
+            emit_chunks=True,  # split by _chunk_records
         )
         channels: dict[int, Channel] = {}
         complete = False
@@ -849,7 +854,7 @@ class McapLogReader:
                     if not isinstance(document, dict):
                         self._mark_damage(McapError(f"{channel.topic} message is not a JSON object"))
                         return
-                    yield LogMessage(channel.topic, item.log_time, item.publish_time, document)
+                    yield channel.topic, item.log_time, item.publish_time, document
                 elif isinstance(item, Channel):
                     channels[item.id] = item
                 elif isinstance(item, Metadata):
@@ -869,10 +874,10 @@ class McapLogReader:
             TOPIC_TRIAL: contents.trials,
             TOPIC_TIMING: contents.timing,
         }
-        for message in self.iter_messages(topics):
-            bucket = buckets.get(message.topic)
+        for topic, _, _, document in self._documents(topics):
+            bucket = buckets.get(topic)
             if bucket is not None:
-                bucket.append(message.data)
+                bucket.append(document)
         contents.metadata = dict(self.metadata)
         contents.truncated = self.truncated
         contents.damage = self.damage
