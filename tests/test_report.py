@@ -221,3 +221,24 @@ def test_the_demo_verdict_names_the_law_that_settles_first() -> None:
     together = verdict({"foilc": run([100.0, 6.0, 5.0]), "ioilc": run([100.0, 20.0, 5.0])})
     assert "FOILC learns more in its first learning trial" in together
     assert "both learn equally fast" in verdict({"foilc": run([100.0, 5.0]), "ioilc": run([100.0, 5.1])})
+
+
+def test_trial_signals_are_the_logged_values_in_sample_order() -> None:
+    from foilc_hil.logtools.report import trial_signals
+
+    # scalars (one numpy conversion), vectors, ragged vectors padded with NaN, nulls as NaN, rows out of order
+    rows = [
+        {"trial": 2, "t": 0.2, "sample": 1, "reference": 1.5, "output": [1.0, 2.0], "control": [1.0], "error": None},
+        {"trial": 2, "t": 0.1, "sample": 0, "reference": 0.5, "output": [3.0, None], "control": [2.0, 4.0],
+         "error": 0.25},
+        {"trial": 1, "t": 0.1, "sample": 0, "reference": 7.0, "output": [0.0, 0.0], "control": 9.0, "error": 1.0},
+    ]
+    signals = trial_signals(rows)
+    assert list(signals) == [1, 2]
+    nan = np.nan
+    np.testing.assert_array_equal(signals[2]["t"], [0.1, 0.2])
+    np.testing.assert_array_equal(signals[2]["reference"], [[0.5], [1.5]])
+    np.testing.assert_array_equal(signals[2]["output"], [[3.0, nan], [1.0, 2.0]])
+    np.testing.assert_array_equal(signals[2]["control"], [[2.0, 4.0], [1.0, nan]])
+    np.testing.assert_array_equal(signals[2]["error"], [[0.25], [nan]])
+    np.testing.assert_array_equal(signals[1]["control"], [[9.0]])

@@ -32,11 +32,14 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from foilc_hil.commands import CommandResult
 from foilc_hil.config import LawKind
 from foilc_hil.errors import ExitCode
+
+if TYPE_CHECKING:
+    from foilc_hil.io.mcap_log import LogContents
 
 HELP = "FOILC and IOILC side by side on the embedded emulator"
 
@@ -79,6 +82,7 @@ def execute(args: argparse.Namespace) -> CommandResult:
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     runs: dict[str, dict[str, Any]] = {}
+    logs: dict[str, LogContents] = {}  # per law, what comparison.png needs of its log (read once, for its report)
     failures: list[str] = []
     started = time.perf_counter()
     designs = design_all(config, DEMO_LAWS)
@@ -104,13 +108,12 @@ def execute(args: argparse.Namespace) -> CommandResult:
         if report.outcome.diverged:
             failures.append(f"{law}: {report.outcome.stopped}")
         if not args.no_report:
-            document["report"] = _write_report(log_path, out_dir / f"report-{law}")
+            document["report"], logs[law] = _write_report(log_path, out_dir / f"report-{law}")
         runs[law] = document
     if not args.no_report:  # the laws side by side (the paper's Figs. 2, 5, 6 compare them)
-        from foilc_hil.logtools.report import write_comparison
+        from foilc_hil.logtools.report import draw_comparison
 
-        comparison = write_comparison({law: out_dir / f"demo-{law}.mcap" for law in DEMO_LAWS},
-                                      out_dir / "comparison.png")
+        comparison = draw_comparison(logs, out_dir / "comparison.png")
     total = time.perf_counter() - started
     line = verdict(runs, config.drive.velocity_unit)
     summary = {
@@ -149,12 +152,17 @@ def design_all(config: Any, laws: tuple[str, ...]) -> dict[str, Any]:
         return {law: Design.from_json(future.result()) for law, future in futures.items()}
 
 
-def _write_report(log_path: Path, report_dir: Path) -> str:
-    """F's report (plots + summary) for one log; returns the directory written."""
+def _write_report(log_path: Path, report_dir: Path) -> tuple[str, LogContents]:
+    """F's report (plots + summary) for one log; returns the directory written and what the comparison figure
+    needs of the log (its samples, trial metrics and metadata: the frames, most of its memory, are let go)."""
+    from dataclasses import replace
+
+    from foilc_hil.io.mcap_log import read_log
     from foilc_hil.logtools import report
 
-    report.write_report(log_path, report_dir)
-    return str(report_dir)
+    contents = read_log(log_path)
+    report.report_of(contents, report_dir)
+    return str(report_dir), replace(contents, frames=[], timing=[])
 
 
 def converged_by(trials: list[dict[str, Any]]) -> int | None:

@@ -39,8 +39,8 @@ if TYPE_CHECKING:
 
     from foilc_hil.io.mcap_log import LogContents
 
-__all__ = ["MAX_TRIALS_DRAWN", "LogContext", "ReportFiles", "log_context", "summarize", "write_comparison",
-           "write_report"]
+__all__ = ["MAX_TRIALS_DRAWN", "LogContext", "ReportFiles", "draw_comparison", "log_context", "report_of",
+           "summarize", "write_comparison", "write_report"]
 
 #: at most this many trials are drawn per plot (evenly spread, first and last always included)
 MAX_TRIALS_DRAWN = 8
@@ -121,6 +121,22 @@ def _signal(value: Any) -> np.ndarray:
     return array
 
 
+def _column(values: Sequence[Any]) -> np.ndarray:
+    """One signal of a trial's rows as an ``(N, width)`` array: one numpy conversion when every row has the same
+    shape (a number each, or equal-length lists; null -> NaN), else row by row, short rows padded with NaN."""
+    try:
+        array = np.array(values, dtype=float)
+    except (ValueError, TypeError):  # ragged: rows of different widths, or numbers mixed with lists
+        array = np.empty(0)
+    if array.ndim == 1 and array.size == len(values):
+        return array.reshape(-1, 1)
+    if array.ndim == 2 and array.shape[0] == len(values):
+        return array
+    columns = [_signal(value) for value in values]
+    width = max(len(column) for column in columns)
+    return np.array([np.pad(column, (0, width - len(column)), constant_values=math.nan) for column in columns])
+
+
 def trial_signals(samples: Sequence[Mapping[str, Any]]) -> dict[int, dict[str, np.ndarray]]:
     """Per trial, ``t`` ``(N,)`` and ``reference``/``output``/``control``/``error`` ``(N, width)`` arrays."""
     rows: dict[int, list[Mapping[str, Any]]] = {}
@@ -132,11 +148,7 @@ def trial_signals(samples: Sequence[Mapping[str, Any]]) -> dict[int, dict[str, n
             trial_rows = sorted(trial_rows, key=lambda row: int(row["sample"]))
         arrays: dict[str, np.ndarray] = {"t": np.array([float(row["t"]) for row in trial_rows])}
         for name in ("reference", "output", "control", "error"):
-            columns = [_signal(row.get(name)) for row in trial_rows]
-            width = max(len(column) for column in columns)
-            arrays[name] = np.array(
-                [np.pad(column, (0, width - len(column)), constant_values=math.nan) for column in columns]
-            )
+            arrays[name] = _column([row.get(name) for row in trial_rows])
         signals[trial] = arrays
     return signals
 
@@ -163,9 +175,11 @@ def _timing_summary(timing: Sequence[Mapping[str, Any]]) -> dict[str, Any] | Non
     }
 
 
-def summarize(contents: LogContents) -> dict[str, Any]:
-    """The summary document: per-trial metrics, design certificates, timing percentiles, truncation."""
-    signals = trial_signals(contents.samples)
+def summarize(contents: LogContents, signals: Mapping[int, Mapping[str, np.ndarray]] | None = None) -> dict[str, Any]:
+    """The summary document: per-trial metrics, design certificates, timing percentiles, truncation. ``signals``:
+    :func:`trial_signals` of the log's samples when the caller has them (else computed here)."""
+    if signals is None:
+        signals = trial_signals(contents.samples)
     completed = contents.completed_trials
     incomplete = [trial for trial in signals if trial not in completed]
     design = contents.design
@@ -315,19 +329,28 @@ def _union(limits: Sequence[tuple[float, float] | None]) -> tuple[float, float] 
     return (min(low for low, _ in found), max(high for _, high in found)) if found else None
 
 
-@as_step("report: comparison figure")
 def write_comparison(logs: Mapping[str, str | Path], path: str | Path) -> Path:
     """Laws side by side (``comparison.png``): one column per log -- output by trial with the reference, learned
     input, tracking error (shared scales per row, trial 1 and the unlearnable first samples left out of them) --
     and one panel of every law's learnable RMSE against trial, the disturbance's first trial marked."""
     from foilc_hil.io.mcap_log import read_log
+    from foilc_hil.io.schemas import TOPIC_SAMPLE, TOPIC_TRIAL
 
-    runs = {name: read_log(log) for name, log in logs.items()}
+    # the figure needs the samples and the trial metrics (and the metadata): the frames are not decoded
+    return draw_comparison({name: read_log(log, (TOPIC_SAMPLE, TOPIC_TRIAL)) for name, log in logs.items()}, path,
+                           [str(log) for log in logs.values()])
+
+
+@as_step("report: comparison figure")
+def draw_comparison(runs: Mapping[str, LogContents], path: str | Path, sources: Sequence[str] = ()) -> Path:
+    """:func:`write_comparison` of logs already read (the demo reads each log once for its report and this
+    figure); ``sources`` names them in the error raised when none has samples (default: their paths)."""
     signals = {name: trial_signals(contents.samples) for name, contents in runs.items()}
     contexts = {name: log_context(contents) for name, contents in runs.items()}
     names = [name for name in runs if signals[name]]
     if not names:
-        raise InputError("comparison: no /ilc/sample messages in " + ", ".join(map(str, logs.values())))
+        raise InputError("comparison: no /ilc/sample messages in "
+                         + ", ".join(sources or [contents.path for contents in runs.values()]))
     figure = _new_figure(4, len(names))
     mosaic: list[Any] = [[f"{row}:{name}" for name in names] for row in ("y", "u", "e")] + [["rmse"] * len(names)]
     axes = figure.subplot_mosaic(mosaic)
@@ -514,7 +537,6 @@ def _markdown(summary: dict[str, Any], plots: Sequence[Path]) -> str:
 # --- entry point --------------------------------------------------------------------------------------------------
 
 
-@as_step("report: figures and summary")
 def write_report(log: str | Path, out_dir: str | Path) -> ReportFiles:
     """Read ``log`` and write the plots, ``summary.json`` and ``summary.md`` into ``out_dir``.
 
@@ -526,9 +548,15 @@ def write_report(log: str | Path, out_dir: str | Path) -> ReportFiles:
         ``out_dir`` cannot be created.
     """
     from foilc_hil.io.mcap_log import read_log
+
+    return report_of(read_log(log), out_dir)
+
+
+@as_step("report: figures and summary")
+def report_of(contents: LogContents, out_dir: str | Path) -> ReportFiles:
+    """:func:`write_report` of a log already read."""
     from foilc_hil.logtools.axes import log_axes
 
-    contents = read_log(log)
     axes = log_axes(contents)
     if axes:
         return _write_axes_report(contents, axes, Path(out_dir))
@@ -570,8 +598,8 @@ def _write_report(contents: LogContents, directory: Path) -> ReportFiles:
         directory.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise InputError(f"--out: {directory}: cannot create: {exc.strerror or exc}") from None
-    summary = summarize(contents)
     signals = trial_signals(contents.samples)
+    summary = summarize(contents, signals)
     context = log_context(contents)
     y, u = _label("y", context.output_unit), _label("u", context.input_unit)
     plots: list[Path] = []
