@@ -147,7 +147,9 @@ CORRECTION_COLUMNS = 4
 CONTRACTION_LIMIT = 1.0 - 1e-9
 #: The Cholesky test of :func:`matrix_norm_bound` tries ``rho^2 = (1 + gap) lambda`` (``lambda``: an estimate of
 #: ``lambda_max(T^T T)``, :func:`_norm_estimate`) for each gap in turn until it succeeds.
-CHOLESKY_GAPS = (1e-8, 1e-6, 1e-4, 1e-2, 1e-1)
+CHOLESKY_GAPS = (1e-8, 1e-6, 1e-4, 1e-2, 1e-1, 1.0, 10.0)
+#: Bisection steps between the last gap that failed and the one that passed, when they are more than 1e-4 apart.
+CHOLESKY_BISECTIONS = 14
 #: Unit roundoff of float64.
 UNIT_ROUNDOFF = 2.0**-53
 #: Transforms behind one FFT product column (forward of each factor, inverse) for its rounding bound.
@@ -983,6 +985,21 @@ def _norm_estimate(T: np.ndarray, gram: np.ndarray) -> float:
     return float(np.max(np.abs(np.fft.fft(response)))) ** 2
 
 
+def _power_lower(gram: np.ndarray, steps: int = 10) -> float:
+    """A lower bound on ``lambda_max`` of a Gram matrix: the best Rayleigh quotient of a few power steps."""
+    vector = np.random.default_rng(0).standard_normal(gram.shape[0])
+    best = 0.0
+    for _ in range(steps):
+        norm = float(np.linalg.norm(vector))
+        if not norm > 0:
+            break
+        vector /= norm
+        image = gram @ vector
+        best = max(best, float(vector @ image))
+        vector = image
+    return best
+
+
 def _cholesky_succeeds(gram: np.ndarray, rho2: float) -> bool:
     """Rump's test (Verification of positive definiteness, BIT 46, 2006): a floating-point Cholesky of
     ``fl(A - c I)`` with ``A = fl(rho2 I - gram)`` runs to completion only if ``A`` is positive definite, for
@@ -1012,14 +1029,16 @@ def matrix_norm_bound(matrix: np.ndarray, error: float = 0.0) -> float | None:
     fails at every gap of :data:`CHOLESKY_GAPS`.
 
     ``||T||_2 < rho`` if and only if ``rho^2 I - T^T T`` is positive definite, which a Cholesky factorisation decides
-    (``n^3 / 3`` flops, no eigenvalue or singular value decomposition). ``rho^2`` is a Ritz value of the Gram matrix
-    (a lower bound on ``lambda_max``, :func:`_gram_estimate`) widened by the gap; the rounding is accounted for:
+    (``n^3 / 3`` flops, no eigenvalue or singular value decomposition). ``rho^2``, an estimate of ``lambda_max`` of the
+    Gram matrix (:func:`_norm_estimate`), is widened by the gap; the rounding is accounted for:
     the computed Gram matrix is within ``gamma_n ||T||_F^2`` of ``T^T T`` (2-norm), forming ``A = rho^2 I - gram``
     rounds its diagonal by at most ``u (rho^2 + max gram_ii)``, and :func:`_cholesky_succeeds` proves ``A``
     positive definite. So ``||matrix||_2^2 < rho^2 + u (rho^2 + max gram_ii) + gamma_n ||matrix||_F^2``, and
     ``||T||_2`` is at most its square root plus ``error``. The bound is as tight as the estimate: at or below the
     exact ``lambda_max`` (the LAPACK value of small maps), the first gap that succeeds; above it (a symbol estimate
-    of a large map, measured about 1.5e-7 relative above on paper_sim's NOILC draws), by that much.
+    of a large map, measured about 1.5e-7 relative above on paper_sim's NOILC draws), by that much. A poor estimate
+    (a map far from Toeplitz) passes only at a wide gap, or far above a power-iteration lower bound: bisection
+    (:data:`CHOLESKY_BISECTIONS` Cholesky tests) narrows it.
     """
     T = np.asarray(matrix, dtype=float)
     if not np.all(np.isfinite(T)):
@@ -1030,12 +1049,27 @@ def matrix_norm_bound(matrix: np.ndarray, error: float = 0.0) -> float | None:
     frobenius2 = float(np.einsum("ij,ij->", T, T)) * (1.0 + _gamma(rows * T.shape[1]))
     gram_error = _gamma(rows) * frobenius2
     diagonal_max = float(np.max(np.diag(gram))) if gram.size else 0.0
+    failed, passed = 0.0, math.nan
     for gap in CHOLESKY_GAPS:
-        rho2 = estimate * (1.0 + gap) + gram_error
-        if _cholesky_succeeds(gram, rho2):
-            bound2 = (rho2 + UNIT_ROUNDOFF * (rho2 + diagonal_max) + gram_error) * (1.0 + 4.0 * UNIT_ROUNDOFF)
-            return math.nextafter(math.sqrt(bound2) * (1.0 + 2.0 * UNIT_ROUNDOFF), math.inf) + error
-    return None
+        if _cholesky_succeeds(gram, estimate * (1.0 + gap) + gram_error):
+            passed = estimate * (1.0 + gap) + gram_error
+            break
+        failed = estimate * (1.0 + gap) + gram_error
+    if math.isnan(passed):
+        return None
+    # A poor estimate (a map far from Toeplitz) passed only at a wide gap, or far above a lower bound (a few power
+    # steps: slow on the clustered spectra of Toeplitz-like maps, hence the 5 % before it counts): bisect.
+    lower = _power_lower(gram)
+    wide = passed > failed * (1.0 + 1e-4) if failed > 0.0 else passed > lower * (1.0 + 0.05)
+    failed = max(failed, lower)
+    for _ in range(CHOLESKY_BISECTIONS if wide else 0):
+        middle = 0.5 * (failed + passed)
+        if _cholesky_succeeds(gram, middle):
+            passed = middle
+        else:
+            failed = middle
+    bound2 = (passed + UNIT_ROUNDOFF * (passed + diagonal_max) + gram_error) * (1.0 + 4.0 * UNIT_ROUNDOFF)
+    return math.nextafter(math.sqrt(bound2) * (1.0 + 2.0 * UNIT_ROUNDOFF), math.inf) + error
 
 
 def bounded_matrix_certificate(matrix: np.ndarray, kind: str, error: float = 0.0) -> PlantCertificate:
