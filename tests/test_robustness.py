@@ -195,7 +195,8 @@ def test_noilc_per_draw_certificates_bound_a_numpy_lifted_map_of_the_drawn_plant
     from foilc_hil.loop.robustness import _frozen_perturbations
 
     design = build_design(config, "noilc", N_SAMPLES, input_delay=1)
-    weights = design.certificates.noilc  # type: ignore[union-attr]
+    assert design.certificates is not None and design.certificates.noilc is not None
+    weights = design.certificates.noilc
     draws = draw_plants(config, 3, 4)
     certificates = certify_draws(
         design, running_law(config, design, N_SAMPLES), _frozen_perturbations(config, design, draws)

@@ -987,15 +987,15 @@ def _norm_estimate(T: np.ndarray, gram: np.ndarray) -> float:
 
 def _power_lower(gram: np.ndarray, steps: int = 10) -> float:
     """A lower bound on ``lambda_max`` of a Gram matrix: the best Rayleigh quotient of a few power steps."""
-    vector = np.random.default_rng(0).standard_normal(gram.shape[0])
+    vector = np.asarray(np.random.default_rng(0).standard_normal((gram.shape[0],)))
     best = 0.0
     for _ in range(steps):
         norm = float(np.linalg.norm(vector))
         if not norm > 0:
             break
         vector /= norm
-        image = gram @ vector
-        best = max(best, float(vector @ image))
+        image = np.asarray(gram @ vector)
+        best = max(best, float(np.dot(vector, image)))
         vector = image
     return best
 
