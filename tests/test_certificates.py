@@ -9,15 +9,21 @@ import pytest
 
 from foilc_hil.config import DivergentFilterPolicy, FractionalMemory
 from foilc_hil.design.certificates import (
+    CHOLESKY_METHOD,
+    CONTRACTION_LIMIT,
     DENSE_LIMIT,
     LawStructure,
     LoopPlant,
+    block_toeplitz_product,
+    bounded_matrix_certificate,
     certify,
+    dense_block_toeplitz,
     dense_error_map,
     dense_input_map,
     lifted_error_map,
     lifted_input_map,
     map_certificate,
+    matrix_norm_bound,
 )
 from foilc_hil.design.fractional import FractionalPD
 from foilc_hil.design.lmi import solve_lmi
@@ -337,3 +343,59 @@ def test_norm_upper_bound_bounds_the_dense_norm(
     dense_norm = float(np.linalg.norm(T.to_dense(), 2))
     assert T.norm_upper_bound() >= dense_norm * (1 - 1e-12)
     assert T.symbol_norm() <= T.norm_upper_bound() * (1 + 1e-12)
+
+
+# --- the Cholesky norm bound of dense maps (per-draw NOILC certificates) -----------------------------------------
+
+
+def _decaying_map(size: int, seed: int) -> np.ndarray:
+    """``I - G L``-like: identity minus a lower-triangular Toeplitz with decaying random taps times a dense matrix."""
+    rng = np.random.default_rng(seed)
+    taps = 0.3 * rng.standard_normal(size) * 0.97 ** np.arange(size)
+    from scipy.linalg import toeplitz
+
+    G = toeplitz(taps, np.zeros(size))
+    return np.eye(size) - G @ (0.05 * rng.standard_normal((size, size)) / np.sqrt(size))
+
+
+@pytest.mark.parametrize(("size", "seed"), [(30, 1), (60, 2), (DENSE_LIMIT + 50, 3)])
+def test_cholesky_norm_bound_is_above_numpys_norm_and_tight(size: int, seed: int) -> None:
+    T = _decaying_map(size, seed)
+    exact = float(np.linalg.svd(T, compute_uv=False)[0])  # LAPACK SVD: a second method
+    bound = matrix_norm_bound(T)
+    assert bound is not None and exact <= bound <= exact * (1 + 1e-3)
+    if size <= DENSE_LIMIT:  # the LAPACK estimate is at or below the exact value: the first gap succeeds
+        assert bound <= exact * (1 + 1e-7)
+    # an admitted rounding error of the matrix is added to the bound
+    assert matrix_norm_bound(T, 1e-3) == pytest.approx(bound + 1e-3, rel=1e-12)
+    certificate = bounded_matrix_certificate(T, "error")
+    if bound <= CONTRACTION_LIMIT:
+        assert certificate.norm_2_method == CHOLESKY_METHOD and certificate.norm_2 == bound
+        assert certificate.spectral_radius >= float(np.max(np.abs(np.linalg.eigvals(T))))
+    else:  # no certificate from the bound: the exact dense path decides
+        assert certificate.norm_2 == pytest.approx(exact, rel=1e-9)
+
+
+def test_cholesky_norm_bound_is_not_fooled_by_a_low_estimate() -> None:
+    """A map whose norm comes from one corner entry (far from Toeplitz): the symbol estimate of the middle column
+    misses it, so the first gaps fail and a later, larger one must hold -- never a bound below the norm."""
+    size = DENSE_LIMIT + 10
+    T = 0.5 * np.eye(size)
+    T[0, -1] = 0.9
+    exact = float(np.linalg.norm(T, 2))
+    bound = matrix_norm_bound(T)
+    assert bound is None or bound >= exact
+    certificate = bounded_matrix_certificate(T, "error")
+    assert certificate.norm_2 >= exact * (1 - 1e-12)
+    assert matrix_norm_bound(np.full((3, 3), np.nan)) is None
+
+
+def test_block_toeplitz_product_matches_the_dense_product_within_its_bound() -> None:
+    rng = np.random.default_rng(7)
+    for rows, cols in ((1, 1), (2, 3)):
+        blocks = rng.standard_normal((50, rows, cols)) * 0.9 ** np.arange(50)[:, None, None]
+        X = rng.standard_normal((50 * cols, 17))
+        product, error = block_toeplitz_product(blocks, X)
+        dense = dense_block_toeplitz(blocks) @ X
+        assert product.shape == dense.shape
+        assert np.linalg.norm(product - dense) <= error and 0 < error < 1e-10

@@ -29,13 +29,16 @@ Module order: after :mod:`foilc_hil.design.noilc`, before :mod:`foilc_hil.design
 
 from __future__ import annotations
 
+import functools
+from dataclasses import dataclass
+
 import numpy as np
 
 from foilc_hil.config import LawKind
 from foilc_hil.design.certificates import LawStructure
 from foilc_hil.design.models import DiscreteModel, Uncertainty
 from foilc_hil.design.noilc import certify_lifted, lifted_plant, noilc_gain
-from foilc_hil.design.record import Design, GradientStep
+from foilc_hil.design.record import Design, GradientStep, NoilcWeights
 from foilc_hil.errors import InputError
 
 __all__ = ["STEP_RELATIVE", "certify_gradient", "gradient_gain", "gradient_step", "lifted_gain"]
@@ -77,12 +80,43 @@ def certify_gradient(
 
 def lifted_gain(design: Design, n_samples: int) -> np.ndarray | None:
     """The lifted gain ``L`` of a NOILC or gradient design for trials of ``n_samples``; ``None`` for the laws that
-    run per sample (FOILC, IOILC, P-type). Rebuilt from the weights or step its certificates record."""
+    run per sample (FOILC, IOILC, P-type). Rebuilt from the weights or step its certificates record.
+
+    The array is read-only and shared: a process keeps the last few gains (a robustness run builds a law per drawn
+    plant from one design, and NOILC's gain costs an ``O(L^3)`` solve, about a second at 2000 samples)."""
     certificates = design.certificates
     if design.law is LawKind.NOILC and certificates is not None and certificates.noilc is not None:
-        return noilc_gain(design.model, certificates.noilc, n_samples)
+        return _shared_gain(_SameModel(design.model), certificates.noilc, n_samples)
     if design.law is LawKind.GRADIENT and certificates is not None and certificates.gradient is not None:
-        return gradient_gain(design.model, certificates.gradient, n_samples)
+        return _shared_gain(_SameModel(design.model), certificates.gradient, n_samples)
     if design.law in (LawKind.NOILC, LawKind.GRADIENT):
         raise InputError(f"design.certificates: a {design.law} design records its lifted gain's parameters")
     return None
+
+
+@dataclass(frozen=True, eq=False)
+class _SameModel:
+    """A model as a cache key: equal when the lifted plant ``G`` is (its ``A``, ``B``, measured output, delay)."""
+
+    model: DiscreteModel
+
+    def _key(self) -> tuple[object, ...]:
+        m = self.model
+        arrays = (m.A, m.B, m.measured_output)
+        return (m.input_delay, *((a.shape, a.tobytes()) for a in arrays))
+
+    def __hash__(self) -> int:
+        return hash(self._key())
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, _SameModel) and self._key() == other._key()
+
+
+@functools.lru_cache(maxsize=4)
+def _shared_gain(model: _SameModel, parameters: NoilcWeights | GradientStep, n_samples: int) -> np.ndarray:
+    if isinstance(parameters, NoilcWeights):
+        gain = noilc_gain(model.model, parameters, n_samples)
+    else:
+        gain = gradient_gain(model.model, parameters, n_samples)
+    gain.flags.writeable = False
+    return gain

@@ -20,15 +20,19 @@ import numpy as np
 from foilc_hil.config import Config, LawKind
 from foilc_hil.design.certificates import (
     CONTRACTION_LIMIT,
+    UNIT_ROUNDOFF,
     LawStructure,
     LoopPlant,
+    block_toeplitz_product,
+    bounded_matrix_certificate,
     map_certificate,
-    matrix_certificate,
+    markov_blocks,
 )
 from foilc_hil.design.gradient import lifted_gain
+from foilc_hil.design.models import DiscreteModel
 from foilc_hil.design.noilc import trial_map
 from foilc_hil.design.pipeline import law_structure
-from foilc_hil.design.record import Design
+from foilc_hil.design.record import Design, PlantCertificate
 
 __all__ = ["DrawCertificate", "Perturbation", "certify_draws", "running_law"]
 
@@ -71,15 +75,19 @@ class DrawCertificate:
 
 
 def certify_draws(design: Design, law: LawStructure, draws: Sequence[Perturbation]) -> list[DrawCertificate]:
-    """Certify ``design``'s law (as it runs: ``law``) on each drawn plant; one Dask task runs this on a chunk."""
+    """Certify ``design``'s law (as it runs: ``law``) on each drawn plant; one Dask task runs this on a chunk.
+
+    A lifted law (NOILC, gradient) is certified by :func:`_lifted_certificate`: its dense map, formed by FFT,
+    bounded by a Cholesky test (``docs/robustness.md``); the others by the Toeplitz path of
+    :func:`~foilc_hil.design.certificates.map_certificate`.
+    """
     model = design.model
     gain = lifted_gain(design, law.n_samples)  # NOILC, gradient: their dense map; the others: per sample
     results = []
     for draw in draws:
         A, B = model.A + draw.delta_a, model.B + draw.delta_b
         if gain is not None:
-            matrix, kind = trial_map(A, B, model, gain, law)
-            certificate = matrix_certificate(matrix, kind)
+            certificate = _lifted_certificate(A, B, model, gain, law)
         else:
             certificate = map_certificate(LoopPlant(A, B, model.measured_output, design.p1, design.p2), law)
         results.append(
@@ -88,6 +96,24 @@ def certify_draws(design: Design, law: LawStructure, draws: Sequence[Perturbatio
             )
         )
     return results
+
+
+def _lifted_certificate(
+    A: np.ndarray, B: np.ndarray, model: DiscreteModel, gain: np.ndarray, law: LawStructure
+) -> PlantCertificate:
+    """The certificate of a lifted law's map at plant ``(A, B)``: :func:`~foilc_hil.design.noilc.trial_map`'s map,
+    the error map ``T = I - G L`` formed by FFT (``G`` lower block-Toeplitz: no dense ``G`` and no ``O(L^3)``
+    product) with its rounding bound; with a Q-filter, the input map as ``trial_map`` forms it."""
+    if law.q_filter is not None:
+        matrix, kind = trial_map(A, B, model, gain, law)
+        return bounded_matrix_certificate(matrix, kind)
+    blocks = markov_blocks(A, B, model.measured_output, law.lead, law.n_samples - law.lead)
+    product, error = block_toeplitz_product(blocks, gain)
+    product *= -1.0
+    diagonal = np.arange(product.shape[0])
+    product[diagonal, diagonal] += 1.0  # T = I - G L, in place; the subtraction rounds by at most u |T| entrywise
+    error += UNIT_ROUNDOFF * float(np.linalg.norm(product))
+    return bounded_matrix_certificate(product, "error", error)
 
 
 def running_law(config: Config, design: Design, n_samples: int) -> LawStructure:
