@@ -47,14 +47,15 @@ import numpy as np
 
 from benchmarks import host_floor
 from benchmarks.output import emit
-from drivers.cia301 import SYNC_COB_ID, TPDO_BASES, cob_id
+from drivers.cia301 import SYNC_COB_ID, FunctionCode, cob_id
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "realtime_1khz.yaml"
 GROUP = "239.74.163.7"
 BUS = f"udp_multicast:{GROUP}"
 PERIOD = 0.001
-SYNC_ID, TPDO1_ID = SYNC_COB_ID, cob_id(TPDO_BASES[0], 1)  # node 1 of configs/realtime_1khz.yaml
+NODE = 1  # configs/realtime_1khz.yaml
+SYNC_ID, TPDO1_ID = SYNC_COB_ID, cob_id(FunctionCode.TPDO1, NODE)
 NETNS_SETUP = ["ip link set lo up", "ip link set lo multicast on", "ip route add 224.0.0.0/4 dev lo"]
 PEER_FIFO = 50
 HOPS = 3  # process wake-ups in series in one bench cycle (see _floor_lines)
@@ -147,14 +148,15 @@ def _lateness(times: np.ndarray, period: float) -> np.ndarray:
     return (phase - earliest.min(axis=1)) * period
 
 
-def answer_times(frames: np.ndarray) -> np.ndarray:
-    """Seconds from each SYNC to the TPDO1 that answers it (the first TPDO1 before the next SYNC)."""
+def answer_times(frames: np.ndarray, node: int = NODE) -> np.ndarray:
+    """Seconds from each SYNC to node ``node``'s TPDO1 answering it (the first one before the next SYNC)."""
+    tpdo1 = cob_id(FunctionCode.TPDO1, node)
     answers: list[float] = []
     last_sync: float | None = None
     for can_id, stamp in frames:
         if can_id == SYNC_ID:
             last_sync = stamp
-        elif can_id == TPDO1_ID and last_sync is not None:
+        elif can_id == tpdo1 and last_sync is not None:
             answers.append(stamp - last_sync)
             last_sync = None
     return np.array(answers)

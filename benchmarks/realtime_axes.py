@@ -41,27 +41,22 @@ from typing import Any
 import numpy as np
 
 from benchmarks.output import emit
-from benchmarks.realtime import BUS, NETNS_SETUP, ROOT, _quantiles, _start_receiver, _stop_receiver, sync_statistics
+from benchmarks.realtime import (
+    BUS,
+    NETNS_SETUP,
+    ROOT,
+    _quantiles,
+    _start_receiver,
+    _stop_receiver,
+    answer_times,
+    sync_statistics,
+)
 from drivers.cia301 import SYNC_COB_ID, FunctionCode, cob_id
 
 SCARA = ROOT / "configs" / "scara_4axis.yaml"
 REALTIME = ROOT / "configs" / "realtime_1khz.yaml"  # the shipped realtime settings, taken over as a user would
 TOPOLOGIES = ("one", "four")
 TRIALS = 4  # 4 x 200 cycles at 2.5 ms: 2 s of loop per topology, a few seconds with commissioning
-
-
-def answer_times(frames: np.ndarray, node: int) -> np.ndarray:
-    """Seconds from each SYNC to node ``node``'s TPDO1 answering it (the first one before the next SYNC)."""
-    tpdo1 = cob_id(FunctionCode.TPDO1, node)
-    answers: list[float] = []
-    last_sync: float | None = None
-    for can_id, stamp in frames:
-        if can_id == SYNC_COB_ID:
-            last_sync = stamp
-        elif can_id == tpdo1 and last_sync is not None:
-            answers.append(stamp - last_sync)
-            last_sync = None
-    return np.array(answers)
 
 
 def _unanswered_periods(frames: list[dict[str, Any]], node: int) -> int:
