@@ -34,7 +34,6 @@ import os
 import struct
 import threading
 import time
-import zlib
 from abc import abstractmethod
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -49,7 +48,7 @@ import orjson
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, Footer, Message, Metadata
-from mcap.stream_reader import CRCValidationError, StreamReader, breakup_chunk
+from mcap.stream_reader import StreamReader, breakup_chunk, get_chunk_data_stream
 
 from foilc_hil.errors import FoilcHilError, LogFormatError
 from foilc_hil.io.mcap_chunks import MCAP_MAGIC, ChunkedMcapWriter
@@ -908,7 +907,6 @@ class McapLogReader:
         self.close()
 
 
-
 class _ChunkMessage(NamedTuple):
     """A message record as :func:`_chunk_records` splits it off a chunk (the fields of ``mcap.records.Message`` the
     reader uses, without the dataclass)."""
@@ -919,26 +917,17 @@ class _ChunkMessage(NamedTuple):
     data: bytes
 
 
-# opcode, record length, channel id, sequence, log time, publish time: a Message record's head (MCAP op 0x05)
+# opcode, record length, channel id, sequence, log time, publish time: a Message record's head
 _MESSAGE_HEAD: Final = struct.Struct("<BQHIQQ")
-_MESSAGE_OPCODE: Final = 0x05
 
 
 def _chunk_bytes(chunk: Chunk) -> bytes:
-    """The chunk's records, decompressed and checked against its CRC (what ``mcap.stream_reader`` does)."""
-    if chunk.compression == "zstd":
-        data: bytes = zstandard.decompress(chunk.data, chunk.uncompressed_size)
-    elif chunk.compression == "lz4":
-        import lz4.frame
-
-        data = lz4.frame.decompress(chunk.data)
-    elif chunk.compression == "":
-        data = bytes(chunk.data)
-    else:
+    """The chunk's records, decompressed and checked against its CRC by mcap (``get_chunk_data_stream``)."""
+    # mcap passes a compression it does not know through as if uncompressed: here it is the file's damage
+    if chunk.compression not in ("zstd", "lz4", ""):
         raise McapError(f"chunk compression {chunk.compression!r} is not supported")
-    if chunk.uncompressed_crc != 0 and zlib.crc32(data) != chunk.uncompressed_crc:
-        raise CRCValidationError(expected=chunk.uncompressed_crc, actual=zlib.crc32(data), record=chunk)
-    return data
+    stream, length = get_chunk_data_stream(chunk, validate_crc=True)
+    return stream.read(length)
 
 
 def _chunk_records(chunk: Chunk) -> Sequence[Any]:
@@ -955,7 +944,7 @@ def _chunk_records(chunk: Chunk) -> Sequence[Any]:
     messages: list[_ChunkMessage] = []
     offset = 0
     while offset < end:
-        if data[offset] != _MESSAGE_OPCODE:
+        if data[offset] != Opcode.MESSAGE:
             return breakup_chunk(chunk, validate_crc=True)
         if offset + head > end:
             raise McapError(f"chunk record at {offset} is cut short")
