@@ -201,11 +201,9 @@ class HeartbeatMonitor:
     def check(self) -> None:
         """Raise :class:`HeartbeatLostError` when armed and the heartbeat is overdue."""
         with self._lock:
-            armed, last = self._armed_at, self._last_time
-            if armed is None:
+            if self._armed_at is None:
                 return
-            # _silence_locked inlined (the master checks every cycle): time since the later of arming and the last beat
-            silence = self._clock() - (last if last is not None and last > armed else armed)
+            silence = self._silence_locked()
             if silence > self._timeout:
                 raise HeartbeatLostError(
                     f"heartbeat of node {self.node_id} lost: none for {silence:.3f} s "
