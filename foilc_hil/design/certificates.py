@@ -123,6 +123,7 @@ __all__ = [
     "markov_blocks",
     "matrix_certificate",
     "matrix_norm_bound",
+    "power_norm",
 ]
 
 #: Up to this many rows, norms and spectra are computed densely (exact, LAPACK).
@@ -795,7 +796,7 @@ def _input_map(loop: LoopPlant, F: _ScalarFilter, Q: np.ndarray, lead: int) -> L
 # --- certificates ---------------------------------------------------------------------------------------------
 
 
-def _power_norm(
+def power_norm(
     size: int,
     matvec: Callable[[np.ndarray], np.ndarray],
     rmatvec: Callable[[np.ndarray], np.ndarray],
@@ -849,7 +850,7 @@ def _operator_norm(
             operator, k=1, which="LM", tol=1e-8, return_singular_vectors=False, random_state=0, maxiter=ARPACK_RESTARTS
         )
     except ArpackNoConvergence:
-        lower = _power_norm(size, matvec, rmatvec)
+        lower = power_norm(size, matvec, rmatvec)
         if lower >= 1.0:  # enough for the verdict: no monotonic certificate
             return lower, "lower bound (power iteration; ARPACK did not converge)"
         if size <= DENSE_FALLBACK_LIMIT:
@@ -873,14 +874,14 @@ def _error_map_certificate(loop: LoopPlant, law: LawStructure) -> PlantCertifica
     radius = T.spectral_radius()
     bound = T.symbol_upper_bound() if radius < 1.0 and T.size > DENSE_LIMIT and T.F is not None else math.inf
     if radius >= 1.0:
-        norm = max(radius, _power_norm(T.size, T.matvec, T.rmatvec))
+        norm = max(radius, power_norm(T.size, T.matvec, T.rmatvec))
         method = "lower bound (spectral radius >= 1; power iteration)"
     elif bound < 1.0:  # conclusive: monotonic, and no iterative or dense SVD is needed
         norm, method = bound, "upper bound (truncated Toeplitz symbol)"
     else:
         # a cheap lower bound first: above one it settles the verdict (not monotonic) without ARPACK, which the
         # rescale search would otherwise run at every scale past the admissible interval (seconds each at N = 6000)
-        lower = _power_norm(T.size, T.matvec, T.rmatvec, enough=1.0) if T.size > DENSE_LIMIT else 0.0
+        lower = power_norm(T.size, T.matvec, T.rmatvec, enough=1.0) if T.size > DENSE_LIMIT else 0.0
         if lower >= 1.0:
             norm, method = lower, "lower bound (power iteration; the symbol bound is not below 1)"
         else:
@@ -1161,7 +1162,7 @@ class _ScaledErrorMap:
                 "", "error", radius, bound, "upper bound (truncated Toeplitz symbol)", norm_2_symbol=symbol
             )
         T = lifted_error_map(loop.scaled(scale), law)
-        lower = _power_norm(T.size, T.matvec, T.rmatvec, enough=1.0)
+        lower = power_norm(T.size, T.matvec, T.rmatvec, enough=1.0)
         if lower < 1.0:  # inconclusive: the exact norm decides (map_certificate)
             return None
         method = "lower bound (power iteration; the symbol bound is not below 1)"

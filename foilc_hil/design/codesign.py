@@ -61,7 +61,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from foilc_hil.config import CodesignConfig, DivergentFilterPolicy, FractionalMemory, LawKind
-from foilc_hil.design.certificates import LawStructure, LoopPlant, certify, map_certificate
+from foilc_hil.design.certificates import LawStructure, LoopPlant, certify, map_certificate, power_norm
 from foilc_hil.design.fractional import gl_weights
 from foilc_hil.design.lmi import LmiSolution
 from foilc_hil.design.models import DiscreteModel, Uncertainty, uncertainty_vertices
@@ -391,17 +391,10 @@ def _time_varying_draws(
 
 
 def _lower_norm(T: np.ndarray) -> float:
-    """A lower bound on ``||T||_2``: ``||T v|| / ||v||`` after :data:`POWER_STEPS` power iterations on ``T^T T``
-    from a fixed start (any ``v`` gives a lower bound; the iterations make it tight)."""
-    v: np.ndarray = np.random.default_rng(0).standard_normal(size=(T.shape[1],))
-    v /= np.linalg.norm(v)
-    for _ in range(POWER_STEPS):
-        w = T.T @ (T @ v)
-        size = float(np.linalg.norm(w))
-        if size == 0.0:  # T v = 0: the bound so far (zero) is all this start gives
-            return 0.0
-        v = w / size
-    return float(np.linalg.norm(T @ v))
+    """A lower bound on ``||T||_2``: :func:`~foilc_hil.design.certificates.power_norm` with :data:`POWER_STEPS`
+    power iterations on ``T^T T`` from its fixed start (any ``v`` gives a lower bound; the iterations make it
+    tight)."""
+    return power_norm(T.shape[1], T.__matmul__, T.T.__matmul__, iterations=POWER_STEPS + 1)
 
 
 def _time_varying_norm(
