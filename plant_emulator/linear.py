@@ -9,7 +9,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import signal
 
 from foilc_hil.errors import ConfigError
 from foilc_hil.schema import as_array
@@ -45,6 +44,8 @@ class ContinuousModel:
                 f"{self.n_outputs}x{self.n_inputs}",
                 key="plant",
             )
+        from scipy import signal  # here, not at the top: scipy.signal costs a process ~1 s to import (scipy.stats)
+
         num, den = signal.ss2tf(self.a, self.b, self.c, np.zeros((1, 1)))
         num_row = np.trim_zeros(np.asarray(num[0], dtype=float), "f")
         return [float(x) for x in (num_row if num_row.size else [0.0])], [float(x) for x in den]
@@ -96,6 +97,8 @@ def _from_transfer_function(plant: PlantConfig) -> ContinuousModel:
         raise ConfigError("must be non-zero", key="plant.num")
     if num.size >= den.size:
         raise ConfigError("the plant must be strictly proper (deg num < deg den)", key="plant.num")
+    from scipy import signal  # see transfer_function
+
     a, b, c, _ = signal.tf2ss(num, den)
     return ContinuousModel(np.asarray(a, float), np.asarray(b, float), np.asarray(c, float), plant.delay)
 

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from drivers.cia301 import SYNC_COB_ID, FunctionCode, cob_id
 from foilc_hil.cli import main
@@ -120,8 +121,13 @@ def test_replay_verify_and_report_handle_every_axis(scara_run: tuple[int, dict, 
                                               ("emcy-over-current@1+20:axis=3", 3)])
 def test_a_fault_on_one_axis_stops_all_four_confirmed_per_drive(spec: str, faulted: int, tmp_path: Path,
                                                                 capsys: pytest.CaptureFixture[str]) -> None:
-    out = tmp_path / "fault.mcap"
-    code = main(["run", "--config", str(SCARA), "--trials", "2", "--inject", spec, "--json", "--out", str(out)])
+    out, config = tmp_path / "fault.mcap", tmp_path / "scara.yaml"
+    document = yaml.safe_load(SCARA.read_text(encoding="utf-8"))
+    # the injected fault is under test, not the heartbeats: the threaded emulator's 100 ms beats came 0.32 s apart
+    # on a loaded host, past the default 3 x 0x1017, and that loss was reported first
+    document["drive"]["heartbeat_timeout_factor"] = 30.0
+    config.write_text(yaml.safe_dump(document), encoding="utf-8")
+    code = main(["run", "--config", str(config), "--trials", "2", "--inject", spec, "--json", "--out", str(out)])
     document = json.loads(capsys.readouterr().out)
     assert code == 1 and "EMCY 0x2310" in document["error"]["message"]
     stops = {axis["node_id"]: axis["drive_stop"] for axis in document["axes"]}
