@@ -162,6 +162,10 @@ class EmergencyError(DriveFaultError):
         self.text = text
         super().__init__(f"EMCY 0x{code:04X} ({text}), error register 0x{register:02X}")
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        # pickled across processes (the demo's runs): rebuilt from its fields, with what was added (``partial``)
+        return type(self), (self.code, self.register, self.text), self.__dict__
+
 
 class SdoError(DriveError):
     """An SDO transfer failed.
@@ -182,6 +186,9 @@ class SdoError(DriveError):
         self.abort_code = abort_code
         self.text = text
         super().__init__(f"SDO 0x{index:04X}:{subindex:02X} aborted with 0x{abort_code:08X}: {text}")
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return type(self), (self.index, self.subindex, self.abort_code, self.text), self.__dict__
 
 
 class LearningDivergedError(FoilcHilError, ArithmeticError):

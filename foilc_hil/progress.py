@@ -15,6 +15,7 @@ runs, then one line ``done: NAME (S s)``; steps nest.
 from __future__ import annotations
 
 import contextlib
+import enum
 import functools
 import sys
 import time
@@ -25,8 +26,11 @@ from typing import Any, ParamSpec, Protocol, TypeVar
 
 __all__ = [
     "NullProgress",
+    "ProgressEvent",
     "ProgressView",
+    "QueueProgress",
     "RichProgress",
+    "RichRunsProgress",
     "RichSteps",
     "as_step",
     "make_progress",
@@ -126,6 +130,94 @@ class RichProgress:
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
         self.close()
+
+
+@enum.unique
+class ProgressEvent(enum.Enum):
+    """What :class:`QueueProgress` sends: one per :class:`ProgressView` method."""
+
+    BEGIN_TRIAL = "begin_trial"
+    ADVANCE = "advance"
+    END_TRIAL = "end_trial"
+    NOTE = "note"
+
+
+class EventQueue(Protocol):
+    """Where :class:`QueueProgress` puts its events (a ``multiprocessing`` queue)."""
+
+    def put(self, item: tuple[str, ProgressEvent, tuple[Any, ...]]) -> None: ...
+
+
+class QueueProgress:
+    """A :class:`ProgressView` in a worker process: every call goes to the parent's :class:`RichRunsProgress`
+    through ``events``, tagged with the run's ``name`` (the demo runs its laws in two processes, one view shows
+    both). Closing it closes nothing: the parent's view outlives the run."""
+
+    def __init__(self, events: EventQueue, name: str) -> None:
+        self._events = events
+        self._name = name
+
+    def begin_trial(self, trial: int, total_trials: int, samples: int) -> None:
+        self._events.put((self._name, ProgressEvent.BEGIN_TRIAL, (trial, total_trials, samples)))
+
+    def advance(self, samples_done: int) -> None:
+        self._events.put((self._name, ProgressEvent.ADVANCE, (samples_done,)))
+
+    def end_trial(self, trial: int, sse: float, rmse: float, max_abs_error: float) -> None:
+        self._events.put((self._name, ProgressEvent.END_TRIAL, (trial, sse, rmse, max_abs_error)))
+
+    def note(self, message: str) -> None:
+        self._events.put((self._name, ProgressEvent.NOTE, (message,)))
+
+    def close(self) -> None:
+        return None
+
+
+class RichRunsProgress:
+    """``rich`` live view of several runs at once: a bar per run (its current trial) above one table of finished
+    trials, a row per trial and run.
+
+    Parameters
+    ----------
+    names
+        The runs, in the order of their bars.
+    title
+        Shown above the table.
+    """
+
+    def __init__(self, names: list[str], title: str) -> None:
+        from rich.console import Console, Group
+        from rich.live import Live
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+        from rich.table import Table
+
+        self._console = Console(stderr=True)
+        self._progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                                  TimeElapsedColumn(), console=self._console)
+        self._tasks = {name: self._progress.add_task(f"{name}: starting", total=None) for name in names}
+        self._table = Table(title=title, expand=False)
+        for column in ("run", "trial", "SSE", "RMSE", "max |e|"):
+            self._table.add_column(column, justify="right")
+        self._live = Live(Group(self._table, self._progress), console=self._console, refresh_per_second=8)
+        self._live.start()
+
+    def handle(self, name: str, event: ProgressEvent, args: tuple[Any, ...]) -> None:
+        """One event of a :class:`QueueProgress` of the run ``name``."""
+        task = self._tasks[name]
+        if event is ProgressEvent.BEGIN_TRIAL:
+            trial, total_trials, samples = args
+            self._progress.update(task, description=f"{name}: trial {trial}/{total_trials}", total=samples,
+                                  completed=0)
+        elif event is ProgressEvent.ADVANCE:
+            self._progress.update(task, completed=args[0])
+        elif event is ProgressEvent.END_TRIAL:
+            trial, sse, rmse, max_abs_error = args
+            self._table.add_row(name, str(trial), f"{sse:.6g}", f"{rmse:.6g}", f"{max_abs_error:.6g}")
+        else:
+            self._console.print(f"{name}: {args[0]}")
+
+    def close(self) -> None:
+        self._live.stop()
 
 
 def make_progress(title: str, *, quiet: bool) -> ProgressView:

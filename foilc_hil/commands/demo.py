@@ -6,7 +6,7 @@ CiA 402 virtual drive on a python-can ``virtual`` bus; the bench commissions it 
 experiment profile (eq. 52, 400 -> 600 rpm over 6 s) for 30 trials with each law, in lockstep -- the CAN path, not
 the offline simulator. Each run writes an MCAP log and a report (PNG plots + summary,
 :mod:`foilc_hil.logtools.report`) and the command prints a side-by-side table at the end. The designs of both
-laws are computed first, in parallel.
+laws are computed first, then both laws run at once, each in its own worker process (:func:`run_laws`).
 
 After the runs it draws ``comparison.png`` (:func:`foilc_hil.logtools.report.write_comparison`: the laws side by
 side) and ends with a one-line verdict (:func:`verdict`) pointing to ``docs/paper-reproduction.md``.
@@ -30,7 +30,10 @@ limits stop the windup) -- the early swing the reports' notes explain.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+from concurrent.futures import Executor
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -67,11 +70,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def execute(args: argparse.Namespace) -> CommandResult:
-    from drivers.config import BusConfig
     from foilc_hil.config import load_config
     from foilc_hil.errors import InputError
-    from foilc_hil.loop.bench import RunRequest, run_bench
-    from plant_emulator.device import TimingMode
 
     if args.trials is not None and args.trials < 1:
         raise InputError(f"--trials: must be >= 1, got {args.trials}")
@@ -81,39 +81,15 @@ def execute(args: argparse.Namespace) -> CommandResult:
     config = load_config(config_path)
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
-    runs: dict[str, dict[str, Any]] = {}
-    logs: dict[str, LogContents] = {}  # per law, what comparison.png needs of its log (read once, for its report)
-    failures: list[str] = []
     started = time.perf_counter()
-    designs = design_all(config, DEMO_LAWS)
-    design_seconds = time.perf_counter() - started
-    for law in DEMO_LAWS:
-        log_path = out_dir / f"demo-{law}.mcap"
-        law_started = time.perf_counter()
-        report = run_bench(
-            RunRequest(
-                config=config,
-                out=log_path,
-                law=law,
-                trials=args.trials,
-                mode=TimingMode.LOCKSTEP,
-                bus=BusConfig(interface="embedded", channel=f"foilc-hil-demo-{law}"),
-                quiet=bool(args.quiet or args.json),
-                title=f"demo: {law.upper()} over CAN (embedded emulator)",
-                design=designs[law],
-            )
-        )
-        document = report.to_json()
-        document["elapsed_s"] = time.perf_counter() - law_started
-        if report.outcome.diverged:
-            failures.append(f"{law}: {report.outcome.stopped}")
-        if not args.no_report:
-            document["report"], logs[law] = _write_report(log_path, out_dir / f"report-{law}")
-        runs[law] = document
+    results, design_seconds = run_laws(config, out_dir, args)
+    runs = {law: result.document for law, result in results.items()}
+    failures = [f"{law}: {result.diverged}" for law, result in results.items() if result.diverged]
     if not args.no_report:  # the laws side by side (the paper's Figs. 2, 5, 6 compare them)
         from foilc_hil.logtools.report import draw_comparison
 
-        comparison = draw_comparison(logs, out_dir / "comparison.png")
+        comparison = draw_comparison({law: result.contents for law, result in results.items()
+                                      if result.contents is not None}, out_dir / "comparison.png")
     total = time.perf_counter() - started
     line = verdict(runs, config.drive.velocity_unit)
     summary = {
@@ -131,6 +107,117 @@ def execute(args: argparse.Namespace) -> CommandResult:
     return CommandResult(summary, text)
 
 
+@dataclass(frozen=True)
+class LawRun:
+    """One law's run as a worker process returns it.
+
+    Attributes
+    ----------
+    document
+        The ``foilc-hil run --json`` document, with ``elapsed_s`` (and ``report``, the directory, when written).
+    diverged
+        Why the run stopped when learning diverged, else ``""``.
+    contents
+        What ``comparison.png`` needs of the log (no frames, no timing); ``None`` without reports.
+    """
+
+    document: dict[str, Any]
+    diverged: str
+    contents: LogContents | None
+
+
+#: the queue a worker's runs report their progress to (set by the pool's initializer; None: no progress view)
+_EVENTS: Any = None
+
+
+def _set_events(events: Any) -> None:
+    global _EVENTS
+    _EVENTS = events
+
+
+def run_laws(config: Any, out_dir: Path, args: argparse.Namespace) -> tuple[dict[str, LawRun], float]:
+    """Design, then run and report every law of :data:`DEMO_LAWS`, each in its own worker process at once (the
+    machine has two cores, and each run is one busy thread: the lockstep loop with its emulator); returns the runs
+    and the seconds the designs took. The progress of both runs is shown by one view in this process."""
+    import multiprocessing
+    import threading
+    from concurrent.futures import ProcessPoolExecutor
+
+    from foilc_hil.progress import RichRunsProgress
+
+    quiet = bool(args.quiet or args.json) or not sys.stderr.isatty()
+    context = multiprocessing.get_context()
+    events = None if quiet else context.Queue()
+    view: RichRunsProgress | None = None
+    pump: threading.Thread | None = None
+    try:
+        with ProcessPoolExecutor(max_workers=len(DEMO_LAWS), mp_context=context, initializer=_set_events,
+                                 initargs=(events,)) as pool:
+            started = time.perf_counter()
+            designs = design_all(pool, config, DEMO_LAWS)  # starts both workers: no thread of ours runs yet
+            design_seconds = time.perf_counter() - started
+            if events is not None:  # the view's and the pump's threads start after the fork of the workers
+                view = RichRunsProgress([law.upper() for law in DEMO_LAWS], "demo over CAN (embedded emulator)")
+                pump = threading.Thread(target=_pump, args=(events, view), daemon=True)
+                pump.start()
+            futures = {law: pool.submit(_run_law, config, law, args.trials, out_dir, designs[law], args.no_report)
+                       for law in DEMO_LAWS}
+            return {law: future.result() for law, future in futures.items()}, design_seconds
+    finally:
+        if pump is not None and events is not None:
+            events.put(None)
+            pump.join()
+        if view is not None:
+            view.close()
+
+
+def _pump(events: Any, view: Any) -> None:
+    """The parent's side of the progress: every worker's event to the one view, until ``None``."""
+    for item in iter(events.get, None):
+        view.handle(*item)
+
+
+def _run_law(config: Any, law: str, trials: int | None, out_dir: Path, design: dict[str, Any],
+             no_report: bool) -> LawRun:
+    """One law over CAN on its own embedded emulator, then its report (runs in a worker process)."""
+    from foilc_hil.design.record import Design
+    from foilc_hil.progress import steps
+
+    with steps(quiet=True):  # the parent's view owns the terminal now: no step spinner of this process
+        return _run_and_report(config, law, trials, out_dir, Design.from_json(design), no_report)
+
+
+def _run_and_report(config: Any, law: str, trials: int | None, out_dir: Path, design: Any,
+                    no_report: bool) -> LawRun:
+    from drivers.config import BusConfig
+    from foilc_hil.loop.bench import RunRequest, run_bench
+    from foilc_hil.progress import QueueProgress
+    from plant_emulator.device import TimingMode
+
+    log_path = out_dir / f"demo-{law}.mcap"
+    started = time.perf_counter()
+    report = run_bench(
+        RunRequest(
+            config=config,
+            out=log_path,
+            law=law,
+            trials=trials,
+            mode=TimingMode.LOCKSTEP,
+            bus=BusConfig(interface="embedded", channel=f"foilc-hil-demo-{law}"),
+            quiet=True,
+            title=f"demo: {law.upper()} over CAN (embedded emulator)",
+            design=design,
+            progress=None if _EVENTS is None else QueueProgress(_EVENTS, law.upper()),
+        )
+    )
+    document = report.to_json()
+    document["elapsed_s"] = time.perf_counter() - started
+    contents = None
+    if not no_report:
+        document["report"], contents = _write_report(log_path, out_dir / f"report-{law}")
+    return LawRun(document, (report.outcome.stopped or "diverged") if report.outcome.diverged else "", contents)
+
+
 def _design_one(config: Any, law: str, n_samples: int) -> dict[str, Any]:
     """One law's design as JSON (runs in a worker process): the bench's own design for its CAN loop."""
     from foilc_hil.loop.bench import build_design
@@ -138,18 +225,14 @@ def _design_one(config: Any, law: str, n_samples: int) -> dict[str, Any]:
     return dict(build_design(config, law, n_samples).to_json())
 
 
-def design_all(config: Any, laws: tuple[str, ...]) -> dict[str, Any]:
-    """The designs of every law, synthesised in parallel worker processes (the certificates of a 600-sample
-    trial are the slow part of the demo's start-up; the machine has two cores)."""
-    from concurrent.futures import ProcessPoolExecutor
-
-    from foilc_hil.design.record import Design
+def design_all(pool: Executor, config: Any, laws: tuple[str, ...]) -> dict[str, dict[str, Any]]:
+    """The designs of every law as JSON, synthesised in parallel in ``pool``'s worker processes (the certificates
+    of a 6000-sample trial are the slow part of the demo's start-up; the machine has two cores)."""
     from foilc_hil.references import trial_samples
 
     n_samples = trial_samples(config.reference, config.sample_time)
-    with ProcessPoolExecutor(max_workers=min(2, len(laws))) as pool:
-        futures = {law: pool.submit(_design_one, config, law, n_samples) for law in laws}
-        return {law: Design.from_json(future.result()) for law, future in futures.items()}
+    futures = {law: pool.submit(_design_one, config, law, n_samples) for law in laws}
+    return {law: future.result() for law, future in futures.items()}
 
 
 def _write_report(log_path: Path, report_dir: Path) -> tuple[str, LogContents]:

@@ -847,6 +847,9 @@ class RunRequest:
     design
         A precomputed :class:`foilc_hil.design.record.Design` (the demo reuses one); ``None``: tune if needed and
         synthesize with ``input_delay = 1`` (the CAN loop's one-cycle transport delay).
+    progress
+        The view to report to instead of the stderr one ``quiet`` decides (the demo's runs, in worker processes,
+        forward to the parent's view).
     """
 
     config: Any
@@ -858,6 +861,7 @@ class RunRequest:
     quiet: bool = True
     design: Any = None
     title: str = ""
+    progress: ProgressView | None = None
 
 
 @dataclass(frozen=True)
@@ -1160,7 +1164,7 @@ def run_bench(request: RunRequest) -> RunReport:
             # all) takes a tenth of a second, which must not pass between the loop's last SYNC and the stop
             session = _realtime_session(stack, plan.settings)
             drive, faulty = _open_drive(stack, config, bus_cfg, sink, stops, emulator)
-            progress = make_progress(plan.title, quiet=request.quiet)
+            progress = request.progress or make_progress(plan.title, quiet=request.quiet)
             stack.callback(progress.close)
             stop = stack.enter_context(StopRequest())
             # the loop and the host setup before the drive is enabled: from its first SYNC in OPERATIONAL the drive

@@ -1,0 +1,33 @@
+"""Every error of :mod:`foilc_hil.errors` survives a pickle round trip (the demo's runs and Dask tasks raise them in
+worker processes): same class, message, fields and the ``partial`` a failed run attaches."""
+
+from __future__ import annotations
+
+import inspect
+import pickle
+
+import pytest
+
+import foilc_hil.errors as errors
+from foilc_hil.io.mcap_log import LogWriteError
+
+#: the errors whose constructor takes more than a message, with arguments
+FIELDS: dict[type[BaseException], tuple[object, ...]] = {
+    errors.EmergencyError: (0x2310, 0x03, "over-current"),
+    errors.SdoError: (0x6060, 0, 0x06090030, "value range exceeded"),
+}
+CLASSES = [
+    *sorted((cls for cls in vars(errors).values()
+             if inspect.isclass(cls) and issubclass(cls, errors.FoilcHilError) and cls.__module__ == errors.__name__),
+            key=lambda cls: cls.__name__),
+    LogWriteError,
+]
+
+
+@pytest.mark.parametrize("cls", CLASSES, ids=lambda cls: cls.__name__)
+def test_an_error_round_trips_through_pickle(cls: type[errors.FoilcHilError]) -> None:
+    error = cls(*FIELDS.get(cls, ("the message",)))
+    error.partial = {"trials": [1, 2]}
+    copy = pickle.loads(pickle.dumps(error))
+    assert type(copy) is cls and str(copy) == str(error) and copy.partial == {"trials": [1, 2]}
+    assert vars(copy) == vars(error)
