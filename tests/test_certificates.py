@@ -12,6 +12,7 @@ from foilc_hil.design.certificates import (
     CHOLESKY_METHOD,
     CONTRACTION_LIMIT,
     DENSE_LIMIT,
+    FftOperand,
     LawStructure,
     LoopPlant,
     block_toeplitz_product,
@@ -399,3 +400,10 @@ def test_block_toeplitz_product_matches_the_dense_product_within_its_bound() -> 
         dense = dense_block_toeplitz(blocks) @ X
         assert product.shape == dense.shape
         assert np.linalg.norm(product - dense) <= error and 0 < error < 1e-10
+        # X transformed once, for many left factors: the same product and bound
+        operand = FftOperand.of(X, 50)
+        for scale in (1.0, -0.5):
+            again, bound = block_toeplitz_product(blocks * scale, operand)
+            assert np.linalg.norm(again - dense * scale) <= bound and bound == pytest.approx(error * abs(scale))
+        with pytest.raises(ValueError, match="blocks"):
+            block_toeplitz_product(blocks[:40], operand)

@@ -105,6 +105,7 @@ from foilc_hil.progress import as_step
 __all__ = [
     "DENSE_LIMIT",
     "Certification",
+    "FftOperand",
     "LawStructure",
     "LiftedErrorMap",
     "LoopPlant",
@@ -631,31 +632,66 @@ def _gamma(k: int) -> float:
     return k * UNIT_ROUNDOFF / (1.0 - k * UNIT_ROUNDOFF)
 
 
-def block_toeplitz_product(blocks: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, float]:
+@dataclass(frozen=True)
+class FftOperand:
+    """A right-hand side ``X`` of :func:`block_toeplitz_product`, transformed once for many left factors: the
+    per-draw NOILC maps of a robustness chunk all multiply the same gain, and its FFT was a third of each product.
+
+    Attributes
+    ----------
+    spectrum
+        ``rfft`` of ``X`` as ``(length, cols, K)`` blocks, ``nfft`` points along the blocks.
+    length, cols
+        The block rows of ``X`` and the columns of each block (the blocks' input channels).
+    nfft
+        The FFT length: ``next_fast_len(2 length)``, room for the full linear convolution.
+    norm
+        ``||X||_F``, for the rounding bound.
+    """
+
+    spectrum: np.ndarray
+    length: int
+    cols: int
+    nfft: int
+    norm: float
+
+    @classmethod
+    def of(cls, X: np.ndarray, length: int) -> FftOperand:
+        """``X`` (``length * cols`` rows) transformed."""
+        from scipy.fft import next_fast_len, rfft
+
+        cols = X.shape[0] // length
+        nfft = next_fast_len(2 * length, real=True)
+        spectrum = rfft(X.reshape(length, cols, X.shape[1]), n=nfft, axis=0)
+        return cls(spectrum, length, cols, nfft, float(np.linalg.norm(X)))
+
+
+def block_toeplitz_product(blocks: np.ndarray, X: np.ndarray | FftOperand) -> tuple[np.ndarray, float]:
     """``dense_block_toeplitz(blocks) @ X`` by FFT, and a rigorous bound on the Frobenius norm of its rounding error.
 
     ``O(L^2 log L)`` for an ``(L m) x K`` right-hand side instead of the ``O(L^2 K)`` of a dense product (the per-draw
-    NOILC map: ``K = L`` columns). The bound: every column is a convolution done with :data:`FFT_TRANSFORMS` FFTs of
-    ``M`` points, each accurate to ``FFT_LEVEL_CONSTANT log2(M) u`` relative in 2-norm, and ``||h * x||_2 <=
-    sum_j ||h_j||_F ||x||_2``; so ``||error||_F <= (FFT_TRANSFORMS FFT_LEVEL_CONSTANT log2 M + m + 2) u sum_j
-    ||h_j||_F ||X||_F`` (``m + 2``: the per-frequency products and sums).
+    NOILC map: ``K = L`` columns); ``X`` may come transformed already (:class:`FftOperand`). The bound: every column
+    is a convolution done with :data:`FFT_TRANSFORMS` FFTs of ``M`` points, each accurate to ``FFT_LEVEL_CONSTANT
+    log2(M) u`` relative in 2-norm, and ``||h * x||_2 <= sum_j ||h_j||_F ||x||_2``; so ``||error||_F <=
+    (FFT_TRANSFORMS FFT_LEVEL_CONSTANT log2 M + m + 2) u sum_j ||h_j||_F ||X||_F`` (``m + 2``: the per-frequency
+    products and sums).
     """
-    from scipy.fft import irfft, next_fast_len, rfft
+    from scipy.fft import irfft, rfft
 
     length, rows, cols = blocks.shape
-    width = X.shape[1]
-    nfft = next_fast_len(2 * length, real=True)
+    operand = X if isinstance(X, FftOperand) else FftOperand.of(X, length)
+    if (operand.length, operand.cols) != (length, cols):
+        raise ValueError(f"X has {operand.length} blocks of {operand.cols} columns; the blocks are {length} x {cols}")
+    nfft = operand.nfft
     spectrum = rfft(blocks, n=nfft, axis=0)  # (F, rows, cols)
-    columns = rfft(X.reshape(length, cols, width), n=nfft, axis=0)  # (F, cols, K)
     if rows == cols == 1:  # single channel: a broadcast product, no einsum dispatch over a (F, 1, K) array
-        columns *= spectrum[:, :, :1]
-        mixed = columns
+        mixed = operand.spectrum * spectrum[:, :, :1]
     else:
-        mixed = np.einsum("frc,fck->frk", spectrum, columns)
-    product = np.asarray(irfft(mixed, n=nfft, axis=0)[:length]).reshape(length * rows, width)
+        mixed = np.einsum("frc,fck->frk", spectrum, operand.spectrum)
+    product = np.asarray(irfft(mixed, n=nfft, axis=0)[:length]).reshape(length * rows, -1)
     relative = (FFT_TRANSFORMS * FFT_LEVEL_CONSTANT * math.log2(nfft) + cols + 2) * UNIT_ROUNDOFF
     h_norm = float(np.sum(np.linalg.norm(blocks.reshape(length, -1), axis=1)))
-    return product, relative * h_norm * float(np.linalg.norm(X))
+    return product, relative * h_norm * operand.norm
 
 
 # --- dense reference maps (tests, small trials) ---------------------------------------------------------------

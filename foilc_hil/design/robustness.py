@@ -21,6 +21,7 @@ from foilc_hil.config import Config, LawKind
 from foilc_hil.design.certificates import (
     CONTRACTION_LIMIT,
     UNIT_ROUNDOFF,
+    FftOperand,
     LawStructure,
     LoopPlant,
     block_toeplitz_product,
@@ -83,11 +84,13 @@ def certify_draws(design: Design, law: LawStructure, draws: Sequence[Perturbatio
     """
     model = design.model
     gain = lifted_gain(design, law.n_samples)  # NOILC, gradient: their dense map; the others: per sample
+    # the gain's FFT, once for the chunk (the Q-filter's input map is formed densely: no FFT)
+    transformed = None if gain is None or law.q_filter is not None else FftOperand.of(gain, law.n_samples - law.lead)
     results = []
     for draw in draws:
         A, B = model.A + draw.delta_a, model.B + draw.delta_b
         if gain is not None:
-            certificate = _lifted_certificate(A, B, model, gain, law)
+            certificate = _lifted_certificate(A, B, model, gain, law, transformed)
         else:
             certificate = map_certificate(LoopPlant(A, B, model.measured_output, design.p1, design.p2), law)
         results.append(
@@ -99,16 +102,18 @@ def certify_draws(design: Design, law: LawStructure, draws: Sequence[Perturbatio
 
 
 def _lifted_certificate(
-    A: np.ndarray, B: np.ndarray, model: DiscreteModel, gain: np.ndarray, law: LawStructure
+    A: np.ndarray, B: np.ndarray, model: DiscreteModel, gain: np.ndarray, law: LawStructure,
+    transformed: FftOperand | None,
 ) -> PlantCertificate:
     """The certificate of a lifted law's map at plant ``(A, B)``: :func:`~foilc_hil.design.noilc.trial_map`'s map,
     the error map ``T = I - G L`` formed by FFT (``G`` lower block-Toeplitz: no dense ``G`` and no ``O(L^3)``
-    product) with its rounding bound; with a Q-filter, the input map as ``trial_map`` forms it."""
-    if law.q_filter is not None:
+    product; ``transformed``: ``L`` transformed already) with its rounding bound; with a Q-filter, the input map as
+    ``trial_map`` forms it."""
+    if transformed is None:  # a Q-filter: certify_draws transforms no gain then
         matrix, kind = trial_map(A, B, model, gain, law)
         return bounded_matrix_certificate(matrix, kind)
     blocks = markov_blocks(A, B, model.measured_output, law.lead, law.n_samples - law.lead)
-    product, error = block_toeplitz_product(blocks, gain)
+    product, error = block_toeplitz_product(blocks, transformed)
     product *= -1.0
     diagonal = np.arange(product.shape[0])
     product[diagonal, diagonal] += 1.0  # T = I - G L, in place; the subtraction rounds by at most u |T| entrywise
