@@ -131,7 +131,37 @@ def test_second_order_uncertainty_shapes_fit_the_synthesis() -> None:
     num, den = fit.num, fit.den
     assert num[-1] / den[-1] == pytest.approx(1.5, rel=0.01)
     assert sorted(np.roots(den).real) == pytest.approx([-30.0, -3.0], rel=0.05)
+    assert fit.converged and all(step.converged for step in fit.steps)
     assert fit.r2 > 0.999
+
+
+def test_a_fit_stopped_at_the_evaluation_limit_is_flagged_and_warned(monkeypatch: pytest.MonkeyPatch) -> None:
+    import scipy.optimize
+
+    from foilc_hil.commands.commission import _render_identify
+
+    real = scipy.optimize.least_squares
+
+    def starved(*args: object, **kwargs: object) -> object:  # two evaluations: no fit can converge in them
+        return real(*args, **{**kwargs, "max_nfev": 2})
+
+    record = _synthetic_record(-3.0, 4.5, noise=0.5)
+    assert identify.fit_model(record, "first-order").converged  # the unstarved fit, for contrast
+    monkeypatch.setattr(scipy.optimize, "least_squares", starved)
+    fit = identify.fit_model(record, "first-order")
+    assert not fit.converged and not any(step.converged for step in fit.steps)
+    steps = [step.to_json(fit.kind) for step in fit.steps]
+    assert [step["converged"] for step in steps] == [False] * 16
+    document = {
+        "fit": {"model": fit.kind, "parameters": {"a": -3.0, "b": 4.5}, "standard_errors": {"a": 0.1, "b": 0.1},
+                "r2": fit.r2, "residual_std": fit.residual_std, "steps": steps, "converged": fit.converged},
+        "plant": {"num": [4.5], "den": [1.0, 3.0], "delay": 0.0},
+        "uncertainty": {"rho_A": 0.1, "observed_max_dA": 0.1, "rho_B": 0.1, "observed_max_dB": 0.1},
+        "campaign": {"sample_time": TS},
+    }
+    text = _render_identify(document)
+    assert text.count("(not converged)") == 16
+    assert "warning: the joint fit and 16 of 16 single-step fits stopped at the solver's evaluation limit" in text
 
 
 def test_campaign_rejects_steps_beyond_the_limit() -> None:

@@ -496,7 +496,15 @@ def _render_identify(document: dict[str, Any]) -> str:
     for number, step in enumerate(fit["steps"]):
         params = ", ".join(f"{k} {v:.5g}" for k, v in step["parameters"].items())
         lines.append(f"{number:>4} {step['from']:>10.4g} {step['to']:>10.4g} {step['r2']:>8.4f} "
-                     f"{step['nrmse']:>8.4f}  {params}")
+                     f"{step['nrmse']:>8.4f}  {params}" + ("" if step["converged"] else "  (not converged)"))
+    unsettled = sum(1 for step in fit["steps"] if not step["converged"])
+    if unsettled or not fit["converged"]:
+        lines.append(
+            f"warning: {'the joint fit and ' if not fit['converged'] else ''}{unsettled} of {len(fit['steps'])} "
+            "single-step fits stopped at the solver's evaluation limit: their parameters, and the uncertainty "
+            "built from them, are not reliable (a model with more poles than the data shows? try --model "
+            "first-order)"
+        )
     lines.append(
         f"uncertainty (discrete, Ts = {document['campaign']['sample_time']}): rho_A = {unc['rho_A']:.3g} "
         f"(observed {unc['observed_max_dA']:.3g}), rho_B = {unc['rho_B']:.3g} (observed {unc['observed_max_dB']:.3g})"

@@ -381,9 +381,11 @@ class StepFit:
     theta: np.ndarray
     r2: float
     nrmse: float
+    converged: bool = True  # False: least_squares stopped at its evaluation limit (the parameters are not a fit)
 
     def to_json(self, kind: ModelKind) -> dict[str, Any]:
-        return {**self.window.to_json(), "parameters": _named(kind, self.theta), "r2": self.r2, "nrmse": self.nrmse}
+        return {**self.window.to_json(), "parameters": _named(kind, self.theta), "r2": self.r2, "nrmse": self.nrmse,
+                "converged": self.converged}
 
 
 @dataclass(frozen=True)
@@ -399,6 +401,7 @@ class FitResult:
     sample_time: float
     predictions: tuple[np.ndarray, ...] = field(repr=False)
     errors: ErrorModel = field(repr=False)
+    converged: bool = True  # the joint fit; each step's is in ``steps``
 
     @property
     def num(self) -> np.ndarray:
@@ -458,8 +461,9 @@ def _bounds(kind: ModelKind, sample_time: float) -> tuple[list[float], list[floa
 def _least_squares(
     kind: ModelKind, windows: list[StepWindow], record: StepRecord, start: np.ndarray, level: float,
     fixed_delay: float | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Fit the residuals inside ``windows``; returns ``theta``, the residuals and the Jacobian."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+    """Fit the residuals inside ``windows``; returns ``theta``, the residuals, the Jacobian and whether the solver
+    converged (``False``: it stopped at its evaluation limit)."""
     from scipy.optimize import least_squares
 
     mask = np.zeros(record.output.shape[0], dtype=bool)
@@ -486,7 +490,7 @@ def _least_squares(
                              x_scale="jac", method="trf")
     jacobian = np.zeros((solution.fun.shape[0], start.shape[0]))
     jacobian[:, free] = solution.jac
-    return full(solution.x), solution.fun, jacobian
+    return full(solution.x), solution.fun, jacobian, bool(solution.status > 0)
 
 
 def _quality(predicted: np.ndarray, measured: np.ndarray) -> tuple[float, float]:
@@ -587,7 +591,7 @@ def fit_model(record: StepRecord, kind: ModelKind = "first-order") -> FitResult:
         raise DriveError("the campaign produced no step of at least five samples to fit")
     start = _initial_guess(kind, windows, record)
     level = _rest_level(record, windows)
-    theta, residual, jacobian = _least_squares(kind, windows, record, start, level)
+    theta, residual, jacobian, converged = _least_squares(kind, windows, record, start, level)
     errors = error_model(jacobian, residual)
     fixed_delay = float(theta[2]) if kind == "first-order-delay" else None
     steps: list[StepFit] = []
@@ -600,14 +604,14 @@ def fit_model(record: StepRecord, kind: ModelKind = "first-order") -> FitResult:
         predictions.append(predicted)
         measured_all.append(measured)
         r2, nrmse = _quality(predicted, measured)
-        alone, _, _ = _least_squares(kind, [window], record, theta.copy(), level, fixed_delay=fixed_delay)
-        steps.append(StepFit(window, alone, r2, nrmse))
+        alone, _, _, settled = _least_squares(kind, [window], record, theta.copy(), level, fixed_delay=fixed_delay)
+        steps.append(StepFit(window, alone, r2, nrmse, settled))
     all_measured = np.concatenate(measured_all)
     r2_total, _ = _quality(np.concatenate(predictions), all_measured)
     if not np.all(np.isfinite(theta)):
         raise DriveError("the fit diverged (non-finite parameters): did the axis respond to the steps?")
     return FitResult(kind, theta, errors.covariance, tuple(steps), float(np.std(residual)), r2_total,
-                     record.sample_time, tuple(predictions), errors)
+                     record.sample_time, tuple(predictions), errors, converged)
 
 
 # --- uncertainty ------------------------------------------------------------------------------------------------
@@ -763,6 +767,7 @@ def identification_document(
         "r2": fit.r2,
         "residual_std": fit.residual_std,
         "steps": [step.to_json(fit.kind) for step in fit.steps],
+        "converged": fit.converged,
         "discrete": {"A": a_d.tolist(), "B": b_d.tolist(), "sample_time": fit.sample_time},
     }
     return {"plant": plant, "uncertainty": uncertainty.to_json(), "fit": fit_doc, "campaign": campaign.to_json()}
