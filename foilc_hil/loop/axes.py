@@ -400,7 +400,7 @@ def run_axes(request: RunRequest) -> AxesRunReport:
     :class:`~foilc_hil.errors.FoilcHilError` with one ``drive_stops`` entry per axis in their facts.
     """
     from foilc_hil.config import dump_config
-    from foilc_hil.io.mcap_log import QueuedLogWriter
+    from foilc_hil.io.log_process import ProcessLogWriter
     from foilc_hil.progress import make_progress
 
     config = request.config
@@ -411,8 +411,10 @@ def run_axes(request: RunRequest) -> AxesRunReport:
         with _confirmed_stops(stops, plan.node_ids), contextlib.ExitStack() as stack:
             sink = None
             if request.out is not None:
-                writer = QueuedLogWriter.open(request.out, config_yaml=dump_config(config),
-                                              design=plan.designs[0].to_json())
+                # a child process writes, as for one axis (bench._open_log): a writer thread here would take the
+                # loop's GIL for every frame it encodes, and a realtime loop waits for it at its deadlines
+                writer = ProcessLogWriter.open(request.out, config_yaml=dump_config(config),
+                                               design=plan.designs[0].to_json())
                 stack.callback(writer.close)
                 _log_axes(writer, plan)
                 sink = McapSink(writer, None)
