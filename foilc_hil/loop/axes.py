@@ -23,6 +23,7 @@ it is one axis's design, and each axis is designed on its own model.
 from __future__ import annotations
 
 import contextlib
+import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any, cast
@@ -73,12 +74,15 @@ class AxisGroup:
     drives
         Connected, configured and enabled :class:`~drivers.cia402_master.Cia402Drive` objects sharing one network
         (``Cia402Drive.on_network``), in axis order.
+    clock
+        Seconds, monotonic: the clock of :meth:`wait_feedback`'s one deadline (the drives' own wait clock).
     """
 
-    def __init__(self, drives: Sequence[Any]) -> None:
+    def __init__(self, drives: Sequence[Any], clock: Callable[[], float] = time.monotonic) -> None:
         if not drives:
             raise ValueError("an axis group needs at least one drive")
         self.drives = tuple(drives)
+        self._clock = clock
         self._velocity = np.zeros(len(self.drives))
         self._applied = np.zeros(len(self.drives))
 
@@ -87,15 +91,23 @@ class AxisGroup:
         return cast(int, self.drives[0].sync())
 
     def wait_feedback(self, timeout: float) -> AxesFeedback:
-        """Every axis's TPDO set answering the last SYNC (each wait bounded by ``timeout``).
+        """Every axis's TPDO set answering the last SYNC, all within ``timeout`` from now.
 
-        Raises what a drive raises (its own stop commanded), and :class:`~foilc_hil.errors.DriveFaultError` naming
+        One deadline for the group, not ``timeout`` per axis: a realtime loop hands in the time left until its next
+        deadline, and an axis whose answer is late must not let the next axis's wait run past it (an axis whose
+        answer is in returns it at once, whatever time is left).
+
+        Raises what a drive raises (its own stop commanded; a timeout as the drive's
+        :class:`~foilc_hil.errors.FeedbackTimeoutError`), and :class:`~foilc_hil.errors.DriveFaultError` naming
         the node for an axis that left OPERATION ENABLED.
         """
         velocity = self._velocity
         cycle = 0
+        clock = self._clock
+        deadline = clock() + timeout
         for k, drive in enumerate(self.drives):
-            feedback = drive.wait_feedback(timeout)
+            left = deadline - clock() if k else timeout
+            feedback = drive.wait_feedback(left if left > 0.0 else 0.0)
             if feedback.state is not State402.OPERATION_ENABLED:
                 raise DriveFaultError(f"node {drive.node_id} left OPERATION ENABLED (now {feedback.state.name}) at "
                                       f"SYNC {feedback.cycle}")
@@ -105,10 +117,11 @@ class AxisGroup:
 
     def set_target(self, value: Any) -> np.ndarray:
         """Send every axis's RPDO (``value``: ``(m,)``, or one number for all); returns what each drive sent."""
-        targets = np.broadcast_to(np.asarray(value, dtype=float), self._applied.shape)
         applied = self._applied
-        for k, drive in enumerate(self.drives):
-            applied[k] = drive.set_target(float(targets[k]))
+        if type(value) is not np.ndarray or value.shape != applied.shape:  # the loop's own (m,) array: as it is
+            value = np.broadcast_to(np.asarray(value, dtype=float), applied.shape)
+        for k, (drive, target) in enumerate(zip(self.drives, value.tolist(), strict=True)):  # floats, one call
+            applied[k] = drive.set_target(target)
         return applied.copy()
 
     def quick_stop(self) -> None:
