@@ -4,6 +4,8 @@ having no axes (they keep reading as before)."""
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
+from typing import Any, cast
 
 import numpy as np
 import pytest
@@ -13,7 +15,7 @@ from drivers.drive import Feedback
 from foilc_hil.errors import DriveError, FeedbackTimeoutError
 from foilc_hil.io.mcap_log import read_log
 from foilc_hil.logtools.axes import log_axes
-from foilc_hil.loop.axes import AxisGroup, AxisLimiter
+from foilc_hil.loop.axes import AxisGroup, AxisLimiter, _commission_axes
 from foilc_hil.loop.safety import CommandLimiter
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -101,3 +103,37 @@ def test_the_limiter_clamps_each_axis_to_its_own_limits_and_counts_them() -> Non
 def test_a_single_axis_log_has_no_axes() -> None:
     contents = read_log(DATA / "run_layout1.mcap")
     assert contents.samples and log_axes(contents) == ()
+
+
+class _CommissionedDrive:
+    def __init__(self, node_id: int, calls: list[str]) -> None:
+        self.node_id, self.calls = node_id, calls
+
+    def connect(self) -> None:
+        self.calls.append(f"connect {self.node_id}")
+
+    def configure(self, mode: object, sample_time: float) -> None:
+        self.calls.append(f"configure {self.node_id}")
+
+    def enable(self) -> None:
+        self.calls.append(f"enable {self.node_id}")
+
+
+class _Session:
+    def __init__(self, calls: list[str]) -> None:
+        self.calls = calls
+
+    def __enter__(self) -> None:
+        self.calls.append("realtime host setup")
+
+
+def test_a_realtime_axes_run_enters_the_host_setup_once_every_receive_path_exists() -> None:
+    """As for one axis: after every drive is connected (the network's CAN receive thread exists to be raised), and
+    before any is configured (the drives supervise SYNC from then on: nothing slow may follow)."""
+    calls: list[str] = []
+    drives = [_CommissionedDrive(node, calls) for node in (1, 2)]
+    axis = SimpleNamespace(drive=SimpleNamespace(operation_mode="csv"), sample_time=0.0025)
+    plan = cast(Any, SimpleNamespace(configs=[axis, axis]))
+    _commission_axes(AxisGroup(drives), plan, None, cast(Any, _Session(calls)))
+    assert calls == ["connect 1", "connect 2", "realtime host setup", "configure 1", "configure 2", "enable 1",
+                     "enable 2"]

@@ -33,6 +33,7 @@ import numpy as np
 from drivers.cia402 import State402
 from drivers.drive import StopReport
 from drivers.faults import FaultyBus, Injection, InjectionReport, require_actions, split_by_axis
+from drivers.realtime import RealtimeSession
 from foilc_hil.errors import DriveFaultError, FoilcHilError
 from foilc_hil.laws.learning import TrialUpdate
 from foilc_hil.loop.bench import (
@@ -46,6 +47,7 @@ from foilc_hil.loop.bench import (
     build_design,
     command_limiter,
     loop_settings,
+    realtime_session,
     stop_error,
     trial_hook,
 )
@@ -386,14 +388,19 @@ def _record_stop(stops: dict[int, StopReport], drive: Any) -> None:
     stops[drive.node_id] = drive.safe_stop()
 
 
-def _commission_axes(group: AxisGroup, plan: _AxesPlan, sink: McapSink | None) -> None:
-    """Connect and configure every axis, log each axis's mapping (the first's also as the single-axis record), then
-    enable every axis."""
+def _commission_axes(
+    group: AxisGroup, plan: _AxesPlan, sink: McapSink | None, session: RealtimeSession | None
+) -> None:
+    """Connect every axis, enter the realtime ``session`` (if any), configure every axis, log each axis's mapping
+    (the first's also as the single-axis record), then enable every axis."""
     from drivers.cia402_master import pdo_plan
     from foilc_hil.io.schemas import METADATA_AXIS_PREFIX, METADATA_PDO_MAPPING, encode_pdo_mapping
 
-    for drive, axis in zip(group.drives, plan.configs, strict=True):
+    for drive in group.drives:
         drive.connect()
+    if session is not None:  # as bench._commission: after connect, so the one CAN receive thread exists to be raised
+        session.__enter__()
+    for drive, axis in zip(group.drives, plan.configs, strict=True):
         drive.configure(axis.drive.operation_mode, axis.sample_time)
     if sink is not None:
         for k, (drive, axis) in enumerate(zip(group.drives, plan.configs, strict=True)):
@@ -432,6 +439,9 @@ def run_axes(request: RunRequest) -> AxesRunReport:
                 _log_axes(writer, plan)
                 sink = McapSink(writer, None)
             bus_cfg, emulators = _start_emulators(stack, plan, threaded=bool(config.inject))
+            # the host setup of bench.realtime, as for one axis (bench.run_bench): undone after every axis's
+            # confirmed stop (LIFO); without it the loop ran at normal priority behind the emulators' FIFO threads
+            session = realtime_session(stack, plan.settings)
             group, faulty = _open_axes(stack, plan, config, bus_cfg, sink, stops, emulators)
             progress = make_progress(request.title or f"{plan.law_kind.upper()} on {len(plan.configs)} axes",
                                      quiet=request.quiet)
@@ -441,8 +451,10 @@ def run_axes(request: RunRequest) -> AxesRunReport:
             loop = TrialLoop(group, plan.laws, plan.reference, plan.limiter, plan.settings, log=log,
                              progress=progress, stop=stop, before_trial=trial_hook([*emulators, *faulty], None))
             loops.append(loop)
-            _commission_axes(group, plan, sink)
+            _commission_axes(group, plan, sink, session)
             outcome = loop.run(plan.trials)
+            if session is not None and outcome.timing is not None:
+                outcome.timing = replace(outcome.timing, realtime=session.report)
     except FoilcHilError as exc:
         done = loops[0].outcome.trials if loops else []
         exc.partial = {"law": plan.law_kind, "trials": [metrics.to_json() for metrics in done],
