@@ -1,14 +1,14 @@
 """Realtime jitter of four axes across processes: ``foilc-hil run --mode realtime`` on configs/scara_4axis.yaml.
 
-``python -m benchmarks.realtime_axes [--trials N] [--emulators one four] [--out FILE]`` (as root: it needs
-``unshare --net``). Its own module, so the lead can run it alone (it imports :mod:`benchmarks.realtime`'s receiver
-and SYNC statistics; that module does not import this one).
+``python -m benchmarks.realtime_axes [--trials N] [--emulators one four] [--period S] [--out FILE]`` (as root: it
+needs ``unshare --net``). Its own module, so the lead can run it alone (it imports :mod:`benchmarks.realtime`'s
+receiver and SYNC statistics; that module does not import this one).
 
 Everything runs inside one private network namespace this module creates (``unshare --net``, multicast routed over
 its own loopback), so no frame leaves it. The bench runs the shipped four-axis config (one SYNC for four CSV drives
-at its 2.5 ms period: 57.7 % of 1 Mbit/s; the bus-load limit of 70 % allows 2.055 ms at the shortest, see the
-config's header) in realtime mode, with the realtime sections of configs/realtime_1khz.yaml
-(:func:`realtime_config`), against, in turn:
+at its 2.5 ms period: 57.7 % of 1 Mbit/s; ``--period`` runs it at another, e.g. :data:`SHORTEST_PERIOD`, the
+shortest the bus-load limit of 70 % and the config's 0.5 s trial allow, see the config's header) in realtime mode,
+with the realtime sections of configs/realtime_1khz.yaml (:func:`realtime_config`), against, in turn:
 
 - ``one``: ONE ``plant-emulator --mode realtime --node-id 1,2,3,4`` process answering each SYNC for all four nodes
   (every node with the config's base plant: the emulator's ``--node-id`` list shares one plant section);
@@ -57,6 +57,7 @@ SCARA = ROOT / "configs" / "scara_4axis.yaml"
 REALTIME = ROOT / "configs" / "realtime_1khz.yaml"  # the shipped realtime settings, taken over as a user would
 TOPOLOGIES = ("one", "four")
 TRIALS = 4  # 4 x 200 cycles at 2.5 ms: 2 s of loop per topology, a few seconds with commissioning
+SHORTEST_PERIOD = 0.5 / 242  # s: 69.8 % of 1 Mbit/s; 2.06 ms would fit the bus but not 0.5 s in whole samples
 
 
 def _unanswered_periods(frames: list[dict[str, Any]], node: int) -> int:
@@ -88,10 +89,11 @@ def _axis_figures(frames: np.ndarray, logged: list[dict[str, Any]], node: int) -
     }
 
 
-def realtime_config(work: Path) -> Path:
+def realtime_config(work: Path, period: float | None = None) -> Path:
     """configs/scara_4axis.yaml as shipped (axes, period, laws) with the realtime sections of
     configs/realtime_1khz.yaml: ``bench.mode``, ``bench.faults``, ``bench.realtime`` and ``emulator`` (the host setup
-    of both processes, the fault tolerances and the emulator's SYNC supervision for a busy 2-core host)."""
+    of both processes, the fault tolerances and the emulator's SYNC supervision for a busy 2-core host); ``period``
+    replaces ``sample_time`` (the SYNC period; every axis is designed for it)."""
     import yaml
 
     document = yaml.safe_load(SCARA.read_text(encoding="utf-8"))
@@ -99,6 +101,8 @@ def realtime_config(work: Path) -> Path:
     document["bench"] = {**document.get("bench", {}), "mode": "realtime", "faults": realtime["bench"]["faults"],
                          "realtime": realtime["bench"]["realtime"]}
     document["emulator"] = realtime["emulator"]
+    if period is not None:
+        document["sample_time"] = period
     path = work / "scara_realtime.yaml"
     path.write_text(yaml.safe_dump(document), encoding="utf-8")
     return path
@@ -118,13 +122,13 @@ def _emulator_commands(topology: str, config: Path, work: Path) -> list[list[str
     return commands
 
 
-def _run(topology: str, trials: int, work: Path, law: str | None) -> dict[str, Any]:
+def _run(topology: str, trials: int, work: Path, law: str | None, period: float | None) -> dict[str, Any]:
     """One bench run against ``topology``'s emulators, seen by the receiver."""
     from foilc_hil.config import axis_configs, load_config
     from foilc_hil.io.mcap_log import read_log
 
     out, log = work / f"axes-{topology}.npy", work / f"axes-{topology}.mcap"
-    config = realtime_config(work)
+    config = realtime_config(work, period)
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     emulators, logs = [], []
     try:
@@ -176,19 +180,22 @@ def _run(topology: str, trials: int, work: Path, law: str | None) -> dict[str, A
     }
 
 
-def _inside(trials: int, topologies: Sequence[str], law: str | None = None) -> dict[str, Any]:
+def _inside(trials: int, topologies: Sequence[str], law: str | None = None,
+            period: float | None = None) -> dict[str, Any]:
     """The whole measurement (run inside the private namespace)."""
     for step in NETNS_SETUP:
         subprocess.run(shlex.split(step), check=True)
     with tempfile.TemporaryDirectory(prefix="foilc-realtime-axes-") as directory:
-        runs = [_run(topology, trials, Path(directory), law) for topology in topologies]
+        runs = [_run(topology, trials, Path(directory), law, period) for topology in topologies]
     return {"config": str(SCARA.relative_to(ROOT)), "trials": trials, "cpus": os.cpu_count(), "runs": runs}
 
 
-def collect(trials: int = TRIALS, topologies: Sequence[str] = TOPOLOGIES, law: str | None = None) -> dict[str, Any]:
+def collect(trials: int = TRIALS, topologies: Sequence[str] = TOPOLOGIES, law: str | None = None,
+            period: float | None = None) -> dict[str, Any]:
     """Run the measurement in a private network namespace (``unshare --net``); the results document."""
     command = [sys.executable, "-m", "benchmarks.realtime_axes", "--inside", "--trials", str(trials),
-               "--emulators", *topologies, *(["--law", law] if law else [])]
+               "--emulators", *topologies, *(["--law", law] if law else []),
+               *(["--period", repr(period)] if period is not None else [])]
     result = subprocess.run(["unshare", "--net", "--", *command], capture_output=True, text=True, cwd=ROOT,
                             env={**os.environ, "PYTHONPATH": str(ROOT)}, check=True)
     document: dict[str, Any] = json.loads(result.stdout)
@@ -230,6 +237,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--emulators", nargs="+", choices=TOPOLOGIES, default=list(TOPOLOGIES),
                         help="one process for the four nodes, four processes, or both (default)")
     parser.add_argument("--law", help="the run's --law (default: the config's, IOILC)")
+    parser.add_argument("--period", type=float,
+                        help=f"SYNC period in s (default: the config's 2.5 ms; shortest allowed {SHORTEST_PERIOD!r})")
     parser.add_argument("--summary", metavar="JSON", help="print the text summary of a results file and exit")
     parser.add_argument("--inside", action="store_true", help=argparse.SUPPRESS)  # already in the namespace
     args = parser.parse_args(argv)
@@ -237,9 +246,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stdout.write(summary(json.loads(Path(args.summary).read_text(encoding="utf-8"))))
         return 0
     if args.inside:
-        sys.stdout.write(json.dumps(_inside(args.trials, args.emulators, args.law)))
+        sys.stdout.write(json.dumps(_inside(args.trials, args.emulators, args.law, args.period)))
         return 0
-    emit(collect(args.trials, args.emulators, args.law), args.out)
+    emit(collect(args.trials, args.emulators, args.law, args.period), args.out)
     return 0
 
 

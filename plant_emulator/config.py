@@ -112,6 +112,9 @@ class PmsmConfig(Section):
     coulomb_velocity_scale: float = Field(default=1.0, gt=0)  # rpm, tanh smoothing of the Coulomb term
     cogging_amplitude: float = Field(default=0.01, ge=0)  # N m
     cogging_periods: int = Field(default=24, ge=1)  # cogging periods per mechanical revolution
+    # Without a brake an unpowered axis under a load (plant.disturbance) accelerates, and enabling its drive past
+    # speed_limit trips over-speed; a real loaded joint has a brake the drive closes while its power stage is off.
+    brake_torque: float = Field(default=0.0, ge=0)  # N m, holding brake (0: none): holds a load up to it, brakes motion
     # ratings and limits
     rated_torque: float = Field(default=1.27, gt=0)  # N m; 0x6071/0x6077 are per mille of this
     torque_limit: float = Field(default=3.8, gt=0)  # N m, peak torque the drive allows

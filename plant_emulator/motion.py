@@ -3,7 +3,8 @@
 Each cycle the power stage turns the 402 state and the mode's target into one plant input (velocity or torque),
 advances the plant from :mod:`plant_emulator.physics` by one cycle period, and writes the feedback (0x606C,
 0x6077, 0x6064) back to the store. Torque limiting held too long and the plant's over-speed flag are faults; the
-quick stop ramp ends when the axis is at rest.
+quick stop ramp ends when the axis is at rest. While the power stage is off the drive keeps the axis's holding
+brake closed (``plant.pmsm.brake_torque``; a plant without one coasts, under its load if it has one).
 
 In lockstep mode the device calls :meth:`AxisPhysics.tick` at each SYNC; in realtime mode
 :meth:`AxisPhysics.run_realtime` calls it on the wall clock, one cycle period per tick, SYNC or not: absolute
@@ -93,6 +94,8 @@ class AxisPhysics:
         self.units: Units = application.units
         self._default_cycle_period = default_cycle_period
         self._is_pmsm = hasattr(plant, "set_input_kind")
+        self._has_brake = hasattr(plant, "set_brake")
+        self._brake_closed = False  # a plant starts with its brake open (set_brake is called on a change only)
         # the object dictionary never changes while the drive runs: whether it has 0x1006 is asked once
         self._has_cycle_period = node.has(Obj.COMMUNICATION_CYCLE_PERIOD)
 
@@ -112,6 +115,10 @@ class AxisPhysics:
             plant.set_input_kind(kind)  # type: ignore[attr-defined]  # a bumpless switch, when it changes
         elif motion is MotionKind.TORQUE_OFF:
             u = 0.0
+        brake_closed = motion is MotionKind.TORQUE_OFF  # the drive closes the holding brake with its power stage
+        if self._has_brake and brake_closed is not self._brake_closed:
+            plant.set_brake(brake_closed)  # type: ignore[attr-defined]
+            self._brake_closed = brake_closed
         out = plant.step(np.array([u]), dt)
         # a 1-d float array (every plant here) is read as it is; anything else is converted first
         y = float(out[0]) if type(out) is np.ndarray and out.ndim == 1 else float(

@@ -3,6 +3,7 @@ master (``drivers.cia402_master.Cia402Drive``) turning each into a typed error w
 
 from __future__ import annotations
 
+import math
 import struct
 import time
 from collections.abc import Iterator
@@ -12,6 +13,7 @@ import pytest
 
 from drivers.bus import open_bus
 from drivers.cia301 import (
+    SYNC_COB_ID,
     EmcyCode,
     ErrorRegister,
     FunctionCode,
@@ -383,3 +385,46 @@ def test_master_stop_of_a_silent_drive_is_reported_unconfirmed() -> None:
             assert "NOT confirmed disabled" in report.describe(2)
         finally:
             master.close()
+
+
+def _loaded_z_axis(brake_torque: float) -> PlantConfig:
+    """The SCARA z axis of configs/scara_4axis.yaml: 0.2 N m of load on 6e-4 kg m^2, in the emulator's hands."""
+    pmsm = PmsmConfig(inertia=6.0e-4, velocity_kp=0.05, velocity_ki=0.25, velocity_setpoint_weight=1.0,
+                      brake_torque=brake_torque)
+    return PlantConfig.model_validate({"model": "pmsm", "pmsm": pmsm.model_dump(),
+                                       "disturbance": {"kind": "constant", "amplitude": 0.2}})
+
+
+def _power_up_then_enable(h: Harness, idle_cycles: int) -> None:
+    """``idle_cycles`` SYNCs of physics while the drive waits disabled (the realtime emulator's ticks before the
+    master enables it, on the lockstep clock here), then enable CSV and hold target 0 for 40 cycles."""
+    h.sync()
+    assert h.drive.state is State402.SWITCH_ON_DISABLED
+    for _ in range(idle_cycles):
+        h.send(SYNC_COB_ID, b"")
+    h.sync()  # settles: every SYNC above has been handled
+    h.start()
+    for controlword in (0x06, 0x07, 0x0F):
+        h.send(h.rpdo1, struct.pack("<Hi", controlword, 0))
+        h.sync(wait_for=h.tpdo1)
+    _run(h, 40, 0)
+
+
+def test_a_disabled_axis_under_load_is_held_by_its_brake_and_enables_without_over_speed() -> None:
+    """Two seconds disabled under a load that would take the free axis past its speed limit in 1.3 s: the closed
+    holding brake keeps it at rest, and the drive enables and holds it at 0 rpm without a fault."""
+    with Harness(_loaded_z_axis(brake_torque=0.5), cycle_period=0.0025) as h:
+        _power_up_then_enable(h, idle_cycles=800)
+        assert h.drive.state is State402.OPERATION_ENABLED
+        assert h.drive.emcy_log == []
+        assert abs(h.drive.plant.output()[0]) < 100.0  # rpm: the velocity loop took the load over from the brake
+
+
+def test_without_a_brake_the_load_runs_the_disabled_axis_away_and_enable_trips_over_speed() -> None:
+    """The cause of the realtime four-axis run's over-speed EMCY: with no brake the unpowered axis accelerates
+    under its load before the master enables it, and enabling a drive on an axis past its speed limit trips."""
+    with Harness(_loaded_z_axis(brake_torque=0.0), cycle_period=0.0025) as h:
+        _power_up_then_enable(h, idle_cycles=800)
+        assert h.drive.plant.state()[1] > 3600.0 * 2 * math.pi / 60  # rad/s: past the speed limit, disabled
+        _check_latched(h, EmcyCode.OVER_SPEED, ErrorRegister.DEVICE_PROFILE)
+        assert h.drive.state is State402.FAULT

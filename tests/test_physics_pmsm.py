@@ -241,3 +241,53 @@ def test_default_pmsm_design_model_is_its_nominal_first_order() -> None:
     assert -1.0 / a == pytest.approx((c.velocity_kp + c.viscous) / c.velocity_ki)
     given = continuous_model(PlantConfig(model="pmsm", a=-2.0, b=3.0))
     assert (given.a[0, 0], given.b[0, 0]) == (-2.0, 3.0)
+
+
+LOADED_AXIS: dict[str, Any] = {**FRICTIONLESS, "input_kind": "torque", "inertia": 6.0e-4}
+BRAKE_DT = 2.5e-3
+
+
+def _held_for(plant: PmsmPlant, steps: int) -> list[float]:
+    """The true speed (rad/s) after each of ``steps`` unpowered steps (zero torque command)."""
+    speeds = []
+    for _ in range(steps):
+        plant.step(np.zeros(1), BRAKE_DT)
+        speeds.append(float(plant.state()[1]))
+    return speeds
+
+
+def test_closed_brake_holds_a_load_within_its_torque_and_releases_it_when_opened() -> None:
+    plant = _pmsm({**LOADED_AXIS, "brake_torque": 0.5}, disturbance={"kind": "constant", "amplitude": 0.2})
+    plant.set_brake(True)
+    assert _held_for(plant, 400) == [0.0] * 400  # one second: not a count of motion
+    assert plant.state()[0] == 0.0 and not plant.over_speed
+    plant.set_brake(False)
+    speeds = _held_for(plant, 40)  # released: the load accelerates the axis at d / J
+    assert speeds[-1] == pytest.approx(0.2 / 6.0e-4 * 40 * BRAKE_DT, rel=1e-2)
+
+
+def test_a_load_beyond_the_brake_slips_at_the_torque_difference() -> None:
+    plant = _pmsm({**LOADED_AXIS, "brake_torque": 0.1}, disturbance={"kind": "constant", "amplitude": -0.3})
+    plant.set_brake(True)
+    speeds = _held_for(plant, 40)
+    assert speeds[-1] == pytest.approx(-(0.3 - 0.1) / 6.0e-4 * 40 * BRAKE_DT, rel=1e-2)
+
+
+def test_closed_brake_stops_a_moving_axis_at_its_deceleration_and_does_not_reverse_it() -> None:
+    brake, speed = 0.5, 1000.0 * RAD_PER_S_PER_RPM
+    plant = _pmsm({**LOADED_AXIS, "brake_torque": brake}, x0=[1000.0])
+    plant.set_brake(True)
+    speeds = np.array(_held_for(plant, 100))
+    stop_time = 6.0e-4 * speed / brake  # J w0 / Tb = 0.126 s
+    moving = int(np.count_nonzero(speeds))
+    assert abs(moving * BRAKE_DT - stop_time) <= BRAKE_DT
+    assert np.all(np.diff(speeds) <= 0) and np.all(speeds >= 0.0)  # braked down to rest, never back up
+    mid = round(0.5 * stop_time / BRAKE_DT)
+    assert speeds[mid - 1] == pytest.approx(speed - brake / 6.0e-4 * mid * BRAKE_DT, rel=1e-3)
+
+
+def test_without_a_brake_set_brake_changes_nothing() -> None:
+    free, braked = (_pmsm(LOADED_AXIS, disturbance={"kind": "constant", "amplitude": 0.2}) for _ in range(2))
+    braked.set_brake(True)  # brake_torque 0: no brake to close
+    assert _held_for(free, 20) == _held_for(braked, 20)
+    assert free.state()[1] > 0.0  # the unbraked axis falls under its load

@@ -3,10 +3,16 @@ construction (no process, no bus: the analysis alone)."""
 
 from __future__ import annotations
 
-import numpy as np
+from pathlib import Path
 
-from benchmarks.realtime_axes import _axis_figures, _unanswered_periods, answer_times
+import numpy as np
+import pytest
+
+from benchmarks.realtime_axes import SHORTEST_PERIOD, _axis_figures, _unanswered_periods, answer_times, realtime_config
 from drivers.cia301 import SYNC_COB_ID, FunctionCode, cob_id
+from foilc_hil.commands.run import check_bus_load
+from foilc_hil.config import load_config
+from foilc_hil.errors import ConfigError
 
 PERIOD = 0.0025
 NODES = (1, 2, 3, 4)
@@ -51,3 +57,13 @@ def test_losses_are_counted_on_the_right_axis_and_direction() -> None:
     # node 3 unanswered at SYNC 4, node 2 unlogged at SYNC 7; the last period is cut by the run's end (not counted)
     assert [_unanswered_periods(logged, n) for n in NODES] == [0, 1, 1, 0]
     assert abs(figures[4]["emulator_answer_us"]["p50"] - 400.0) < 1e-6
+
+
+def test_the_shortest_period_is_the_shortest_the_run_accepts(tmp_path: Path) -> None:
+    """``--period`` at :data:`SHORTEST_PERIOD`: under the bus-load limit with a whole-sample trial; the next shorter
+    whole-sample period (one sample more per trial) is refused by the bus-load check."""
+    config = load_config(realtime_config(tmp_path, SHORTEST_PERIOD))
+    assert config.sample_time == SHORTEST_PERIOD and config.bench.mode == "realtime"
+    assert check_bus_load(config, config.bus).load == pytest.approx(0.6977, abs=1e-4)
+    with pytest.raises(ConfigError, match=r"bus\.load_limit: refused"):
+        check_bus_load(load_config(realtime_config(tmp_path, 0.5 / 243)), config.bus)

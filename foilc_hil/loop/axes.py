@@ -23,6 +23,7 @@ it is one axis's design, and each axis is designed on its own model.
 from __future__ import annotations
 
 import contextlib
+import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any, cast
@@ -32,6 +33,7 @@ import numpy as np
 from drivers.cia402 import State402
 from drivers.drive import StopReport
 from drivers.faults import FaultyBus, Injection, InjectionReport, require_actions, split_by_axis
+from drivers.realtime import RealtimeSession
 from foilc_hil.errors import DriveFaultError, FoilcHilError
 from foilc_hil.laws.learning import TrialUpdate
 from foilc_hil.loop.bench import (
@@ -45,6 +47,7 @@ from foilc_hil.loop.bench import (
     build_design,
     command_limiter,
     loop_settings,
+    realtime_session,
     stop_error,
     trial_hook,
 )
@@ -73,12 +76,15 @@ class AxisGroup:
     drives
         Connected, configured and enabled :class:`~drivers.cia402_master.Cia402Drive` objects sharing one network
         (``Cia402Drive.on_network``), in axis order.
+    clock
+        Seconds, monotonic: the clock of :meth:`wait_feedback`'s one deadline (the drives' own wait clock).
     """
 
-    def __init__(self, drives: Sequence[Any]) -> None:
+    def __init__(self, drives: Sequence[Any], clock: Callable[[], float] = time.monotonic) -> None:
         if not drives:
             raise ValueError("an axis group needs at least one drive")
         self.drives = tuple(drives)
+        self._clock = clock
         self._velocity = np.zeros(len(self.drives))
         self._applied = np.zeros(len(self.drives))
 
@@ -87,15 +93,23 @@ class AxisGroup:
         return cast(int, self.drives[0].sync())
 
     def wait_feedback(self, timeout: float) -> AxesFeedback:
-        """Every axis's TPDO set answering the last SYNC (each wait bounded by ``timeout``).
+        """Every axis's TPDO set answering the last SYNC, all within ``timeout`` from now.
 
-        Raises what a drive raises (its own stop commanded), and :class:`~foilc_hil.errors.DriveFaultError` naming
+        One deadline for the group, not ``timeout`` per axis: a realtime loop hands in the time left until its next
+        deadline, and an axis whose answer is late must not let the next axis's wait run past it (an axis whose
+        answer is in returns it at once, whatever time is left).
+
+        Raises what a drive raises (its own stop commanded; a timeout as the drive's
+        :class:`~foilc_hil.errors.FeedbackTimeoutError`), and :class:`~foilc_hil.errors.DriveFaultError` naming
         the node for an axis that left OPERATION ENABLED.
         """
         velocity = self._velocity
         cycle = 0
+        clock = self._clock
+        deadline = clock() + timeout
         for k, drive in enumerate(self.drives):
-            feedback = drive.wait_feedback(timeout)
+            left = deadline - clock() if k else timeout
+            feedback = drive.wait_feedback(left if left > 0.0 else 0.0)
             if feedback.state is not State402.OPERATION_ENABLED:
                 raise DriveFaultError(f"node {drive.node_id} left OPERATION ENABLED (now {feedback.state.name}) at "
                                       f"SYNC {feedback.cycle}")
@@ -105,10 +119,11 @@ class AxisGroup:
 
     def set_target(self, value: Any) -> np.ndarray:
         """Send every axis's RPDO (``value``: ``(m,)``, or one number for all); returns what each drive sent."""
-        targets = np.broadcast_to(np.asarray(value, dtype=float), self._applied.shape)
         applied = self._applied
-        for k, drive in enumerate(self.drives):
-            applied[k] = drive.set_target(float(targets[k]))
+        if type(value) is not np.ndarray or value.shape != applied.shape:  # the loop's own (m,) array: as it is
+            value = np.broadcast_to(np.asarray(value, dtype=float), applied.shape)
+        for k, (drive, target) in enumerate(zip(self.drives, value.tolist(), strict=True)):  # floats, one call
+            applied[k] = drive.set_target(target)
         return applied.copy()
 
     def quick_stop(self) -> None:
@@ -373,14 +388,19 @@ def _record_stop(stops: dict[int, StopReport], drive: Any) -> None:
     stops[drive.node_id] = drive.safe_stop()
 
 
-def _commission_axes(group: AxisGroup, plan: _AxesPlan, sink: McapSink | None) -> None:
-    """Connect and configure every axis, log each axis's mapping (the first's also as the single-axis record), then
-    enable every axis."""
+def _commission_axes(
+    group: AxisGroup, plan: _AxesPlan, sink: McapSink | None, session: RealtimeSession | None
+) -> None:
+    """Connect every axis, enter the realtime ``session`` (if any), configure every axis, log each axis's mapping
+    (the first's also as the single-axis record), then enable every axis."""
     from drivers.cia402_master import pdo_plan
     from foilc_hil.io.schemas import METADATA_AXIS_PREFIX, METADATA_PDO_MAPPING, encode_pdo_mapping
 
-    for drive, axis in zip(group.drives, plan.configs, strict=True):
+    for drive in group.drives:
         drive.connect()
+    if session is not None:  # as bench._commission: after connect, so the one CAN receive thread exists to be raised
+        session.__enter__()
+    for drive, axis in zip(group.drives, plan.configs, strict=True):
         drive.configure(axis.drive.operation_mode, axis.sample_time)
     if sink is not None:
         for k, (drive, axis) in enumerate(zip(group.drives, plan.configs, strict=True)):
@@ -400,7 +420,7 @@ def run_axes(request: RunRequest) -> AxesRunReport:
     :class:`~foilc_hil.errors.FoilcHilError` with one ``drive_stops`` entry per axis in their facts.
     """
     from foilc_hil.config import dump_config
-    from foilc_hil.io.mcap_log import QueuedLogWriter
+    from foilc_hil.io.log_process import ProcessLogWriter
     from foilc_hil.progress import make_progress
 
     config = request.config
@@ -411,12 +431,17 @@ def run_axes(request: RunRequest) -> AxesRunReport:
         with _confirmed_stops(stops, plan.node_ids), contextlib.ExitStack() as stack:
             sink = None
             if request.out is not None:
-                writer = QueuedLogWriter.open(request.out, config_yaml=dump_config(config),
-                                              design=plan.designs[0].to_json())
+                # a child process writes, as for one axis (bench._open_log): a writer thread here would take the
+                # loop's GIL for every frame it encodes, and a realtime loop waits for it at its deadlines
+                writer = ProcessLogWriter.open(request.out, config_yaml=dump_config(config),
+                                               design=plan.designs[0].to_json())
                 stack.callback(writer.close)
                 _log_axes(writer, plan)
                 sink = McapSink(writer, None)
             bus_cfg, emulators = _start_emulators(stack, plan, threaded=bool(config.inject))
+            # the host setup of bench.realtime, as for one axis (bench.run_bench): undone after every axis's
+            # confirmed stop (LIFO); without it the loop ran at normal priority behind the emulators' FIFO threads
+            session = realtime_session(stack, plan.settings)
             group, faulty = _open_axes(stack, plan, config, bus_cfg, sink, stops, emulators)
             progress = make_progress(request.title or f"{plan.law_kind.upper()} on {len(plan.configs)} axes",
                                      quiet=request.quiet)
@@ -426,8 +451,10 @@ def run_axes(request: RunRequest) -> AxesRunReport:
             loop = TrialLoop(group, plan.laws, plan.reference, plan.limiter, plan.settings, log=log,
                              progress=progress, stop=stop, before_trial=trial_hook([*emulators, *faulty], None))
             loops.append(loop)
-            _commission_axes(group, plan, sink)
+            _commission_axes(group, plan, sink, session)
             outcome = loop.run(plan.trials)
+            if session is not None and outcome.timing is not None:
+                outcome.timing = replace(outcome.timing, realtime=session.report)
     except FoilcHilError as exc:
         done = loops[0].outcome.trials if loops else []
         exc.partial = {"law": plan.law_kind, "trials": [metrics.to_json() for metrics in done],

@@ -1162,7 +1162,7 @@ def run_bench(request: RunRequest) -> RunReport:
             bus_cfg, emulator = _start_emulator(stack, config, plan.bus)
             # undone only after the confirmed stop below (LIFO): restoring the host (the garbage collector first of
             # all) takes a tenth of a second, which must not pass between the loop's last SYNC and the stop
-            session = _realtime_session(stack, plan.settings)
+            session = realtime_session(stack, plan.settings)
             drive, faulty = _open_drive(stack, config, bus_cfg, sink, stops, emulator)
             progress = request.progress or make_progress(plan.title, quiet=request.quiet)
             stack.callback(progress.close)
@@ -1208,7 +1208,7 @@ def run_bench(request: RunRequest) -> RunReport:
     )
 
 
-def _realtime_session(stack: contextlib.ExitStack, settings: LoopSettings) -> RealtimeSession | None:
+def realtime_session(stack: contextlib.ExitStack, settings: LoopSettings) -> RealtimeSession | None:
     """Realtime runs: the host setup ``bench.realtime`` (drivers.realtime), its exit registered on ``stack`` now;
     the caller enters it (exiting a session never entered changes nothing)."""
     if settings.mode is not TimingMode.REALTIME:

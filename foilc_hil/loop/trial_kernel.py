@@ -11,7 +11,10 @@ here: the trial loop stays :class:`~foilc_hil.loop.bench.TrialLoop`, which asks 
 (:meth:`~foilc_hil.loop.simulated_drive.SimulatedDrive.run_whole_trial`) and keeps the trial's last cycle, the
 settle phases, the update between trials, the divergence rule and the log.
 
-Compiled like the law's and the plant's kernels (``cache=True``, warmed at import, no ``fastmath``).
+Compiled like the law's and the plant's kernels (``cache=True``, warmed at import, no ``fastmath``). The cached
+machine code of :func:`run_trial` includes the kernels it calls and their constants (the slots of
+:mod:`plant_emulator.physics.trial` and :mod:`~plant_emulator.physics.kernels`, as of the PMSM's holding brake), but
+numba invalidates it only when THIS file changes: a change there needs a change here (this note is one).
 """
 
 from __future__ import annotations

@@ -126,6 +126,7 @@ class PmsmParam(enum.IntEnum):
     DISTURBANCE_AMPLITUDE = 31
     DISTURBANCE_FREQUENCY = 32
     DISTURBANCE_START = 33
+    HOLDING_TORQUE = 34  # the holding brake's torque while it is closed, N m; 0.0 while it is open (or absent)
 
 
 PMSM_STATE_SIZE = len(PmsmState)
@@ -334,11 +335,41 @@ def _mechanics(
     if p[_P.DRIFT_AMPLITUDE] > 0:
         phase = p[_P.DRIFT_FREQUENCY] * (t + 0.5 * h) + p[_P.DRIFT_PHASE_PER_TRIAL] * (trial - 1)
         inertia *= 1.0 + p[_P.DRIFT_AMPLITUDE] * math.sin(phase)
+    if p[_P.HOLDING_TORQUE] > 0:
+        return _braked_mechanics(p, theta, omega, drive, inertia, h)
     accel0 = (drive - _losses(p, theta, omega)) / inertia
     omega_pred = omega + h * accel0
     theta_pred = theta + h * omega
     accel1 = (drive - _losses(p, theta_pred, omega_pred)) / inertia
     omega_new = omega + 0.5 * h * (accel0 + accel1)
+    return theta + 0.5 * h * (omega + omega_new), omega_new
+
+
+@njit(cache=True)
+def _braked_mechanics(
+    p: np.ndarray, theta: float, omega: float, drive: float, inertia: float, h: float
+) -> tuple[float, float]:
+    """The mechanics with the holding brake closed: a dry friction of up to ``HOLDING_TORQUE``.
+
+    At rest the brake holds the axis while the net torque (``Te + d - losses``) is within its torque, as a real
+    holding brake holds a vertical load; a moving axis is braked by the full torque against the motion (Heun's
+    method with the brake's direction fixed over the step) and stops, rather than reverses, where the speed would
+    cross zero.
+    """
+    holding = p[_P.HOLDING_TORQUE]
+    net0 = drive - _losses(p, theta, omega)
+    if omega == 0.0:
+        if abs(net0) <= holding:
+            return theta, 0.0
+        direction = 1.0 if net0 > 0 else -1.0  # breaks away in the direction of the net torque
+    else:
+        direction = 1.0 if omega > 0 else -1.0
+    accel0 = (net0 - direction * holding) / inertia
+    omega_pred = omega + h * accel0
+    accel1 = (drive - _losses(p, theta + h * omega, omega_pred) - direction * holding) / inertia
+    omega_new = omega + 0.5 * h * (accel0 + accel1)
+    if omega_new * direction < 0:
+        omega_new = 0.0  # the brake stopped the axis within the step
     return theta + 0.5 * h * (omega + omega_new), omega_new
 
 

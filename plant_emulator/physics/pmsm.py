@@ -25,6 +25,9 @@ Model (all internal quantities SI; the interface speaks rpm and N m):
   time constant of about 0.19 s plus a 10.5 ms lag, i.e. roughly first order with mean delay
   ``(kp (1 - beta) + B) / ki`` = 0.2 s -- see :meth:`PmsmPlant.nominal_first_order`.
 - **Torque mode (CST).** ``T* = u`` clamped to ``torque_limit``.
+- **Holding brake** (``brake_torque`` > 0). The drive closes it (:meth:`PmsmPlant.set_brake`) while its power stage
+  is off: a dry friction of up to ``brake_torque`` that holds the axis at rest against a load within it and brakes
+  a moving axis to rest. Without a brake an unpowered axis under ``d(t)`` accelerates, as a real one would.
 
 Limits: velocity commands are clamped to ``+-rated_speed``; ``torque_limited`` is set when the torque command
 was clipped during the last step, ``over_speed`` when ``|w|`` exceeded ``speed_limit`` during it, so the
@@ -177,6 +180,10 @@ class PmsmPlant:
             )
         self._input_kind = kind
         self._velocity_mode = kind == "velocity"
+
+    def set_brake(self, closed: bool) -> None:
+        """Close or open the holding brake (``plant.pmsm.brake_torque``; without one this changes nothing)."""
+        self._params[PmsmParam.HOLDING_TORQUE] = self._config.brake_torque if closed else 0.0
 
     @property
     def torque(self) -> float:

@@ -159,6 +159,8 @@ class CompiledPlant(Protocol):
         ...
 
 
+# The cached machine code of plant_trial_step includes pmsm_step and the PmsmParam slots of kernels.py (up to the
+# holding brake's), but numba invalidates it only when THIS file changes: a change of kernels.py needs one here.
 @njit(cache=True)
 def plant_trial_step(kind: int, state: np.ndarray, params: np.ndarray, row: np.ndarray, command: float) -> float:
     """Step ``k`` of a :class:`TrialProgram` (``row = inputs[k]``) with ``command`` held (before the plant's
