@@ -123,3 +123,32 @@ def test_a_bad_single_input_is_refused_as_check_input_refuses_it(u: object) -> N
 
     with pytest.raises((InputError, ValueError)):
         check_scalar_input(u)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("voltages", "v_max"),
+    [
+        ((3.0, 4.0), 5.0 * (1.0 - 1e-12)),  # just past the limit: inside the squared pre-check's band
+        ((3.0, 4.0), 5.0 * (1.0 + 1e-12)),  # just inside it
+        ((3.0, 4.0), 5.0),  # on it: hypot(3, 4) == 5 is not past the limit
+        ((3.0, 4.0), 10.0),  # far inside (the pre-check alone decides)
+        ((30.0, -40.0), 5.0),  # far past
+    ],
+)
+def test_the_voltage_limit_is_hypots_decision_near_and_far_from_it(
+    voltages: tuple[float, float], v_max: float
+) -> None:
+    """The current loop skips ``hypot`` far inside the voltage limit (a squared-magnitude pre-check); whether the
+    vector is scaled back must still be exactly ``hypot(vd, vq) > v_max``. At rest with zero currents and no torque
+    command the PI's output is its integrators, so they set ``(vd, vq)``."""
+    from plant_emulator.physics.kernels import PMSM_PARAM_SIZE, PmsmParam, _current_loop, _motor
+
+    params = np.ones(PMSM_PARAM_SIZE)
+    params[PmsmParam.V_MAX] = v_max
+    vd, vq, int_d, int_q = _current_loop(_motor(params), 0.0, 0.0, (0.0, 0.0), voltages, 5e-5)
+    magnitude = math.hypot(*voltages)
+    if magnitude > v_max:
+        assert (vd, vq) == (voltages[0] * (v_max / magnitude), voltages[1] * (v_max / magnitude))
+    else:
+        assert (vd, vq) == voltages
+    assert (int_d, int_q) == voltages  # zero errors: the integrators hold, limited or not
