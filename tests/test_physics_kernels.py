@@ -50,6 +50,22 @@ def test_disturbance_kernel_shapes(code: DisturbanceCode, t: float, expected: fl
     assert disturbance_value(int(code), 2.0, 4.0, 1.0, t) == pytest.approx(expected, abs=1e-12)
 
 
+def test_the_square_disturbance_is_the_sign_of_its_sine_at_and_near_every_switch() -> None:
+    """The square wave decides its sign from the half period without calling sin away from the switches; it must
+    be ``amplitude`` exactly where ``sin(frequency (t - start)) >= 0``: checked at random times, at the doubles
+    around each switch of 200 periods, and for arguments beyond the shortcut's range."""
+    amplitude, frequency, start = 0.15, 3.14159, 1.0
+    rng = np.random.default_rng(4)
+    times = [start + t for t in rng.uniform(0.0, 400.0, 20000)]
+    for k in range(400):  # the doubles around t where frequency (t - start) = k pi
+        switch = start + k * math.pi / frequency
+        times += [switch, *np.nextafter(switch, [-math.inf, math.inf]), switch - 1e-9, switch + 1e-9]
+    times += [start + 1e9, start + 1e300, start - 0.5]  # beyond 1e6 periods, sin's own reduction; before start
+    for t in times:
+        expected = 0.0 if t < start else amplitude if math.sin(frequency * (t - start)) >= 0 else -amplitude
+        assert disturbance_value(int(DisturbanceCode.SQUARE), amplitude, frequency, start, t) == expected, t
+
+
 def test_pmsm_with_nonlinear_friction_and_cogging_matches_solve_ivp() -> None:
     """Torque mode, nominal motor, Coulomb friction, cogging and viscous friction on: the kernel against solve_ivp
     of ``J w' = Kt iq - B w - Tc tanh(w / ws) - Tcog sin(N theta)``, ``theta' = w`` with the closed current loop

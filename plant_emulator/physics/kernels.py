@@ -149,10 +149,19 @@ def disturbance_value(code: int, amplitude: float, frequency: float, start_time:
         return 0.0
     if code == _D.STEP:
         return amplitude
-    phase = math.sin(frequency * elapsed)
+    x = frequency * elapsed
     if code == _D.SINE:
-        return amplitude * phase
-    return amplitude if phase >= 0 else -amplitude  # square
+        return amplitude * math.sin(x)
+    # The square wave is the sign of sin(x). Away from its zeros (beyond 1e-6 of a period) the half period that x
+    # falls in decides that sign for certain (x / 2 pi is off by under 1e-9 periods for |x / 2 pi| < 1e6), and a
+    # libm call less per PMSM internal step; near a zero, or for a huge or non-finite x, sin itself decides.
+    turns = x * (0.5 / math.pi)
+    fraction = turns - math.floor(turns)
+    if abs(turns) < 1e6 and 1e-6 < fraction < 0.5 - 1e-6:
+        return amplitude
+    if abs(turns) < 1e6 and 0.5 + 1e-6 < fraction < 1.0 - 1e-6:
+        return -amplitude
+    return amplitude if math.sin(x) >= 0 else -amplitude  # square
 
 
 @njit(cache=True)
@@ -328,15 +337,51 @@ def _motor(p: np.ndarray) -> _Motor:
 # so the results are the same bit for bit.
 
 
+class _StepStart(NamedTuple):
+    """What an internal step's mechanics need that does not wait for the step's torque (:func:`_step_start`)."""
+
+    load: float  # the disturbance torque held over the step, N m
+    inertia: float  # J at the step's midpoint (with the drift)
+    losses: float  # friction and cogging at the step's start, N m
+    cogging_predicted: float  # cogging at Heun's predicted angle theta + h w, N m (0.0 without cogging)
+
+
 @njit(cache=True, inline="always")
-def _losses(m: _Motor, theta: float, omega: float) -> float:
-    """Friction and cogging torque (N m) opposing the motion at (theta, omega)."""
+def _friction(m: _Motor, omega: float) -> float:
+    """Viscous and Coulomb friction torque (N m) opposing the motion at ``omega``."""
     losses = m.viscous * omega
     if m.coulomb > 0:
         losses += m.coulomb * math.tanh(omega / m.coulomb_scale)
-    if m.cogging_amplitude > 0:
-        losses += m.cogging_amplitude * math.sin(m.cogging_periods * theta)
     return losses
+
+
+@njit(cache=True, inline="always")
+def _cogging(m: _Motor, theta: float) -> float:
+    """Cogging torque (N m) at the angle ``theta``."""
+    return m.cogging_amplitude * math.sin(m.cogging_periods * theta)
+
+
+@njit(cache=True, inline="always")
+def _step_start(m: _Motor, theta: float, omega: float, t: float, h: float, trial: int) -> _StepStart:
+    """The mechanics' terms that depend only on the step's start ``(theta, w, t)``.
+
+    Why apart: they are libm calls (the load's and the drift's sines, tanh, the two cogging sines), and each call
+    spills the loop's registers. Made first, they do not wait for the current loop and the electrical step, and the
+    processor runs them alongside that chain; the sums are the same, in the same order.
+    """
+    load = disturbance_value(
+        int(m.disturbance_code), m.disturbance_amplitude, m.disturbance_frequency, m.disturbance_start, t + 0.5 * h
+    )
+    inertia = m.inertia
+    if m.drift_amplitude > 0:
+        phase = m.drift_frequency * (t + 0.5 * h) + m.drift_phase_per_trial * (trial - 1)
+        inertia *= 1.0 + m.drift_amplitude * math.sin(phase)
+    losses = _friction(m, omega)
+    cogging_predicted = 0.0
+    if m.cogging_amplitude > 0:
+        losses += _cogging(m, theta)
+        cogging_predicted = _cogging(m, theta + h * omega)
+    return _StepStart(load, inertia, losses, cogging_predicted)
 
 
 @njit(cache=True, inline="always")
@@ -417,22 +462,17 @@ def _electrical(
 
 @njit(cache=True, inline="always")
 def _mechanics(
-    m: _Motor, theta: float, omega: float, torque: float, t: float, h: float, trial: int
+    m: _Motor, theta: float, omega: float, torque: float, h: float, start: _StepStart
 ) -> tuple[float, float]:
     """Heun's method on ``J(t) w' = Te + d - losses``, ``theta' = w``, with ``Te`` and the load held over ``h``:
-    ``(theta, w)`` at ``t + h``."""
-    load = disturbance_value(
-        int(m.disturbance_code), m.disturbance_amplitude, m.disturbance_frequency, m.disturbance_start, t + 0.5 * h
-    )
-    drive = torque + load
-    inertia = m.inertia
-    if m.drift_amplitude > 0:
-        phase = m.drift_frequency * (t + 0.5 * h) + m.drift_phase_per_trial * (trial - 1)
-        inertia *= 1.0 + m.drift_amplitude * math.sin(phase)
-    accel0 = (drive - _losses(m, theta, omega)) / inertia
+    ``(theta, w)`` at ``t + h`` (``start``: the step's terms that :func:`_step_start` made)."""
+    drive = torque + start.load
+    accel0 = (drive - start.losses) / start.inertia
     omega_pred = omega + h * accel0
-    theta_pred = theta + h * omega
-    accel1 = (drive - _losses(m, theta_pred, omega_pred)) / inertia
+    losses_predicted = _friction(m, omega_pred)  # at Heun's predicted state (theta + h w, omega_pred)
+    if m.cogging_amplitude > 0:
+        losses_predicted += start.cogging_predicted
+    accel1 = (drive - losses_predicted) / start.inertia
     omega_new = omega + 0.5 * h * (accel0 + accel1)
     return theta + 0.5 * h * (omega + omega_new), omega_new
 
@@ -475,6 +515,7 @@ def pmsm_advance(
     smoothing = 1.0 - math.exp(-h / m.velocity_loop_filter) if m.velocity_loop_filter > 0 else 1.0
     reference = min(max(command * _RAD_PER_S_PER_RPM, -m.speed_cap), m.speed_cap)
     for _ in range(steps):
+        start = _step_start(m, theta, omega, t, h, trial)
         torque_command, int_velocity, clipped = _torque_command(
             m, reference, command, omega_est, int_velocity, h, velocity_mode
         )
@@ -483,7 +524,7 @@ def pmsm_advance(
         integrals = (int_d, int_q)
         i_d, i_q, torque = _electrical(m, omega, currents, (vd, vq), decays)
         currents = (i_d, i_q)
-        theta, omega = _mechanics(m, theta, omega, torque, t, h, trial)
+        theta, omega = _mechanics(m, theta, omega, torque, h, start)
         t += h
         count, omega_est = _sense(m, theta, count, omega_est, h, smoothing)
         over_speed = over_speed or abs(omega) > m.speed_limit
