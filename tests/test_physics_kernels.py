@@ -50,6 +50,22 @@ def test_disturbance_kernel_shapes(code: DisturbanceCode, t: float, expected: fl
     assert disturbance_value(int(code), 2.0, 4.0, 1.0, t) == pytest.approx(expected, abs=1e-12)
 
 
+def test_the_square_disturbance_is_the_sign_of_its_sine_at_and_near_every_switch() -> None:
+    """The square wave decides its sign from the half period without calling sin away from the switches; it must
+    be ``amplitude`` exactly where ``sin(frequency (t - start)) >= 0``: checked at random times, at the doubles
+    around each switch of 200 periods, and for arguments beyond the shortcut's range."""
+    amplitude, frequency, start = 0.15, 3.14159, 1.0
+    rng = np.random.default_rng(4)
+    times = [start + t for t in rng.uniform(0.0, 400.0, 20000)]
+    for k in range(400):  # the doubles around t where frequency (t - start) = k pi
+        switch = start + k * math.pi / frequency
+        times += [switch, *np.nextafter(switch, [-math.inf, math.inf]), switch - 1e-9, switch + 1e-9]
+    times += [start + 1e9, start + 1e300, start - 0.5]  # beyond 1e6 periods, sin's own reduction; before start
+    for t in times:
+        expected = 0.0 if t < start else amplitude if math.sin(frequency * (t - start)) >= 0 else -amplitude
+        assert disturbance_value(int(DisturbanceCode.SQUARE), amplitude, frequency, start, t) == expected, t
+
+
 def test_pmsm_with_nonlinear_friction_and_cogging_matches_solve_ivp() -> None:
     """Torque mode, nominal motor, Coulomb friction, cogging and viscous friction on: the kernel against solve_ivp
     of ``J w' = Kt iq - B w - Tc tanh(w / ws) - Tcog sin(N theta)``, ``theta' = w`` with the closed current loop
@@ -123,3 +139,32 @@ def test_a_bad_single_input_is_refused_as_check_input_refuses_it(u: object) -> N
 
     with pytest.raises((InputError, ValueError)):
         check_scalar_input(u)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("voltages", "v_max"),
+    [
+        ((3.0, 4.0), 5.0 * (1.0 - 1e-12)),  # just past the limit: inside the squared pre-check's band
+        ((3.0, 4.0), 5.0 * (1.0 + 1e-12)),  # just inside it
+        ((3.0, 4.0), 5.0),  # on it: hypot(3, 4) == 5 is not past the limit
+        ((3.0, 4.0), 10.0),  # far inside (the pre-check alone decides)
+        ((30.0, -40.0), 5.0),  # far past
+    ],
+)
+def test_the_voltage_limit_is_hypots_decision_near_and_far_from_it(
+    voltages: tuple[float, float], v_max: float
+) -> None:
+    """The current loop skips ``hypot`` far inside the voltage limit (a squared-magnitude pre-check); whether the
+    vector is scaled back must still be exactly ``hypot(vd, vq) > v_max``. At rest with zero currents and no torque
+    command the PI's output is its integrators, so they set ``(vd, vq)``."""
+    from plant_emulator.physics.kernels import PMSM_PARAM_SIZE, PmsmParam, _current_loop, _motor
+
+    params = np.ones(PMSM_PARAM_SIZE)
+    params[PmsmParam.V_MAX] = v_max
+    vd, vq, int_d, int_q = _current_loop(_motor(params), 0.0, 0.0, (0.0, 0.0), voltages, 5e-5)
+    magnitude = math.hypot(*voltages)
+    if magnitude > v_max:
+        assert (vd, vq) == (voltages[0] * (v_max / magnitude), voltages[1] * (v_max / magnitude))
+    else:
+        assert (vd, vq) == voltages
+    assert (int_d, int_q) == voltages  # zero errors: the integrators hold, limited or not

@@ -25,6 +25,7 @@ from __future__ import annotations
 import enum
 import math
 from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit, types
@@ -149,10 +150,19 @@ def disturbance_value(code: int, amplitude: float, frequency: float, start_time:
         return 0.0
     if code == _D.STEP:
         return amplitude
-    phase = math.sin(frequency * elapsed)
+    x = frequency * elapsed
     if code == _D.SINE:
-        return amplitude * phase
-    return amplitude if phase >= 0 else -amplitude  # square
+        return amplitude * math.sin(x)
+    # The square wave is the sign of sin(x). Away from its zeros (beyond 1e-6 of a period) the half period that x
+    # falls in decides that sign for certain (x / 2 pi is off by under 1e-9 periods for |x / 2 pi| < 1e6), and a
+    # libm call less per PMSM internal step; near a zero, or for a huge or non-finite x, sin itself decides.
+    turns = x * (0.5 / math.pi)
+    fraction = turns - math.floor(turns)
+    if abs(turns) < 1e6 and 1e-6 < fraction < 0.5 - 1e-6:
+        return amplitude
+    if abs(turns) < 1e6 and 0.5 + 1e-6 < fraction < 1.0 - 1e-6:
+        return -amplitude
+    return amplitude if math.sin(x) >= 0 else -amplitude  # square
 
 
 @njit(cache=True)
@@ -233,46 +243,187 @@ def scalar_zoh_step(x: float, a: float, bu: float, d: float, h: float) -> float:
     return math.exp(z) * x + integral * (bu + d)
 
 
-@njit(cache=True)
-def _losses(p: np.ndarray, theta: float, omega: float) -> float:
-    """Friction and cogging torque (N m) opposing the motion at (theta, omega)."""
-    losses = p[_P.VISCOUS] * omega
-    if p[_P.COULOMB] > 0:
-        losses += p[_P.COULOMB] * math.tanh(omega / p[_P.COULOMB_SCALE])
-    if p[_P.COGGING_AMPLITUDE] > 0:
-        losses += p[_P.COGGING_AMPLITUDE] * math.sin(p[_P.COGGING_PERIODS] * theta)
+class _Motor(NamedTuple):
+    """The :class:`PmsmParam` vector as one immutable record, a field per slot, then the reciprocals the loop
+    multiplies by (:func:`_motor`).
+
+    Why a record and not the array: :func:`pmsm_advance` unpacks the vector once per call, and the per-step helpers
+    take this record, which numba passes by value. Handed the array instead, every helper call counted a reference
+    to it (an atomic increment and decrement per call, several per internal step) and numba did not inline the
+    larger helpers, so the loop's state went through memory between them.
+    """
+
+    pole_pairs: float
+    speed_cap: float
+    velocity_kp: float
+    velocity_ki: float
+    setpoint_weight: float
+    torque_limit: float
+    torque_constant: float
+    inductance_d_nominal: float
+    inductance_q_nominal: float
+    psi_nominal: float
+    kp_d: float
+    kp_q: float
+    ki_current: float
+    v_max: float
+    psi: float
+    resistance: float
+    inductance_d: float
+    inductance_q: float
+    inertia: float
+    viscous: float
+    coulomb: float
+    coulomb_scale: float
+    cogging_amplitude: float
+    cogging_periods: float
+    drift_amplitude: float
+    drift_frequency: float
+    drift_phase_per_trial: float
+    count_angle: float
+    velocity_loop_filter: float
+    speed_limit: float
+    disturbance_code: float
+    disturbance_amplitude: float
+    disturbance_frequency: float
+    disturbance_start: float
+    holding_torque: float
+    # Reciprocals: a division on the loop's critical path costs about four multiplications (13 cycles against 3)
+    torque_constant_inverse: float
+    coulomb_scale_inverse: float
+    count_angle_inverse: float
+
+
+@njit(cache=True, inline="always")
+def _motor(p: np.ndarray) -> _Motor:
+    """The parameter vector ``p`` as a :class:`_Motor`.
+
+    Element by element: numba's ``to_fixed_tuple`` builds the tuple through memory, and the compiled loop then kept
+    more of it on the stack.
+    """
+    return _Motor(
+        pole_pairs=p[_P.POLE_PAIRS],
+        speed_cap=p[_P.SPEED_CAP],
+        velocity_kp=p[_P.VELOCITY_KP],
+        velocity_ki=p[_P.VELOCITY_KI],
+        setpoint_weight=p[_P.SETPOINT_WEIGHT],
+        torque_limit=p[_P.TORQUE_LIMIT],
+        torque_constant=p[_P.TORQUE_CONSTANT],
+        inductance_d_nominal=p[_P.INDUCTANCE_D_NOMINAL],
+        inductance_q_nominal=p[_P.INDUCTANCE_Q_NOMINAL],
+        psi_nominal=p[_P.PSI_NOMINAL],
+        kp_d=p[_P.KP_D],
+        kp_q=p[_P.KP_Q],
+        ki_current=p[_P.KI_CURRENT],
+        v_max=p[_P.V_MAX],
+        psi=p[_P.PSI],
+        resistance=p[_P.RESISTANCE],
+        inductance_d=p[_P.INDUCTANCE_D],
+        inductance_q=p[_P.INDUCTANCE_Q],
+        inertia=p[_P.INERTIA],
+        viscous=p[_P.VISCOUS],
+        coulomb=p[_P.COULOMB],
+        coulomb_scale=p[_P.COULOMB_SCALE],
+        cogging_amplitude=p[_P.COGGING_AMPLITUDE],
+        cogging_periods=p[_P.COGGING_PERIODS],
+        drift_amplitude=p[_P.DRIFT_AMPLITUDE],
+        drift_frequency=p[_P.DRIFT_FREQUENCY],
+        drift_phase_per_trial=p[_P.DRIFT_PHASE_PER_TRIAL],
+        count_angle=p[_P.COUNT_ANGLE],
+        velocity_loop_filter=p[_P.VELOCITY_LOOP_FILTER],
+        speed_limit=p[_P.SPEED_LIMIT],
+        disturbance_code=p[_P.DISTURBANCE_CODE],
+        disturbance_amplitude=p[_P.DISTURBANCE_AMPLITUDE],
+        disturbance_frequency=p[_P.DISTURBANCE_FREQUENCY],
+        disturbance_start=p[_P.DISTURBANCE_START],
+        holding_torque=p[_P.HOLDING_TORQUE],
+        torque_constant_inverse=1.0 / p[_P.TORQUE_CONSTANT],
+        coulomb_scale_inverse=1.0 / p[_P.COULOMB_SCALE],
+        count_angle_inverse=1.0 / p[_P.COUNT_ANGLE],
+    )
+
+
+# The per-step helpers below are inlined into pmsm_advance's loop by numba (inline="always"), so the compiler sees
+# one loop body and keeps the state in registers; their arithmetic is written out in the same order as before,
+# so the results are the same bit for bit.
+
+
+class _StepStart(NamedTuple):
+    """What an internal step's mechanics need that does not wait for the step's torque (:func:`_step_start`)."""
+
+    load: float  # the disturbance torque held over the step, N m
+    inertia_inverse: float  # 1 / J at the step's midpoint (with the drift)
+    losses: float  # friction and cogging at the step's start, N m
+    cogging_predicted: float  # cogging at Heun's predicted angle theta + h w, N m (0.0 without cogging)
+
+
+@njit(cache=True, inline="always")
+def _friction(m: _Motor, omega: float) -> float:
+    """Viscous and Coulomb friction torque (N m) opposing the motion at ``omega``."""
+    losses = m.viscous * omega
+    if m.coulomb > 0:
+        losses += m.coulomb * math.tanh(omega * m.coulomb_scale_inverse)
     return losses
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
+def _cogging(m: _Motor, theta: float) -> float:
+    """Cogging torque (N m) at the angle ``theta``."""
+    return m.cogging_amplitude * math.sin(m.cogging_periods * theta)
+
+
+@njit(cache=True, inline="always")
+def _step_start(m: _Motor, theta: float, omega: float, t: float, h: float, trial: int) -> _StepStart:
+    """The mechanics' terms that depend only on the step's start ``(theta, w, t)``.
+
+    Why apart: they are libm calls (the load's and the drift's sines, tanh, the two cogging sines), and each call
+    spills the loop's registers. Made first, they do not wait for the current loop and the electrical step, and the
+    processor runs them alongside that chain; the sums are the same, in the same order.
+    """
+    load = disturbance_value(
+        int(m.disturbance_code), m.disturbance_amplitude, m.disturbance_frequency, m.disturbance_start, t + 0.5 * h
+    )
+    inertia = m.inertia
+    if m.drift_amplitude > 0:
+        phase = m.drift_frequency * (t + 0.5 * h) + m.drift_phase_per_trial * (trial - 1)
+        inertia *= 1.0 + m.drift_amplitude * math.sin(phase)
+    losses = _friction(m, omega)
+    cogging_predicted = 0.0
+    if m.cogging_amplitude > 0:
+        losses += _cogging(m, theta)
+        cogging_predicted = _cogging(m, theta + h * omega)
+    return _StepStart(load, 1.0 / inertia, losses, cogging_predicted)
+
+
+@njit(cache=True, inline="always")
 def _torque_command(
-    p: np.ndarray, command: float, omega_est: float, integral: float, h: float, velocity_mode: bool
+    m: _Motor, reference: float, command: float, omega_est: float, integral: float, h: float, velocity_mode: bool
 ) -> tuple[float, float, bool]:
     """The drive's torque command after the limit, the velocity integrator, and whether the limit clipped it.
 
     Velocity mode (CSV): ``T* = kp (beta w* - w_est) + ki integral(w* - w_est)`` with conditional-integration
-    anti-windup; torque mode (CST): ``T* = command``.
+    anti-windup, ``reference`` = ``w*`` (the command in rad/s, capped at the rated speed); torque mode (CST):
+    ``T* = command``.
     """
-    limit = p[_P.TORQUE_LIMIT]
+    limit = m.torque_limit
     if velocity_mode:
-        kp = p[_P.VELOCITY_KP]
-        reference = min(max(command * _RAD_PER_S_PER_RPM, -p[_P.SPEED_CAP]), p[_P.SPEED_CAP])
+        kp = m.velocity_kp
         error = reference - omega_est
-        wanted = kp * (p[_P.SETPOINT_WEIGHT] * reference - omega_est) + integral
+        wanted = kp * (m.setpoint_weight * reference - omega_est) + integral
         torque = min(max(wanted, -limit), limit)
         # Conditional integration: stop integrating into the limit (anti-windup).
         if torque == wanted or (error > 0) != (wanted > 0):
             bound = limit + kp * abs(omega_est)
-            integral = min(max(integral + p[_P.VELOCITY_KI] * error * h, -bound), bound)
+            integral = min(max(integral + m.velocity_ki * error * h, -bound), bound)
     else:
         wanted = command
         torque = min(max(wanted, -limit), limit)
     return torque, integral, torque != wanted
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _current_loop(
-    p: np.ndarray,
+    m: _Motor,
     torque_command: float,
     omega_est: float,
     currents: tuple[float, float],
@@ -283,21 +434,24 @@ def _current_loop(
     limited): ``(vd, vq, int_d, int_q)``."""
     i_d, i_q = currents
     int_d, int_q = integrals
-    we_est = p[_P.POLE_PAIRS] * omega_est
+    we_est = m.pole_pairs * omega_est
     error_d = -i_d
-    error_q = torque_command / p[_P.TORQUE_CONSTANT] - i_q
-    vd = p[_P.KP_D] * error_d + int_d - we_est * p[_P.INDUCTANCE_Q_NOMINAL] * i_q
-    vq = p[_P.KP_Q] * error_q + int_q + we_est * (p[_P.INDUCTANCE_D_NOMINAL] * i_d + p[_P.PSI_NOMINAL])
-    magnitude = math.hypot(vd, vq)
-    if magnitude > p[_P.V_MAX]:
-        scale = p[_P.V_MAX] / magnitude
-        return vd * scale, vq * scale, int_d, int_q
-    return vd, vq, int_d + p[_P.KI_CURRENT] * error_d * h, int_q + p[_P.KI_CURRENT] * error_q * h
+    error_q = torque_command * m.torque_constant_inverse - i_q
+    vd = m.kp_d * error_d + int_d - we_est * m.inductance_q_nominal * i_q
+    vq = m.kp_q * error_q + int_q + we_est * (m.inductance_d_nominal * i_d + m.psi_nominal)
+    # hypot is a libm call (and every call spills the loop's registers); the squared magnitude settles the usual
+    # case, far inside the limit, and hypot still decides within 1e-9 of it, so the outcome is hypot's own.
+    if not vd * vd + vq * vq < m.v_max * m.v_max * (1.0 - 1e-9):
+        magnitude = math.hypot(vd, vq)
+        if magnitude > m.v_max:
+            scale = m.v_max / magnitude
+            return vd * scale, vq * scale, int_d, int_q
+    return vd, vq, int_d + m.ki_current * error_d * h, int_q + m.ki_current * error_q * h
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _electrical(
-    p: np.ndarray,
+    m: _Motor,
     omega: float,
     currents: tuple[float, float],
     voltages: tuple[float, float],
@@ -305,83 +459,78 @@ def _electrical(
 ) -> tuple[float, float, float]:
     """Each dq axis exact over the step with the voltages and cross-coupling held (``decays`` are
     ``exp(-R h / L)`` per axis): ``(id, iq, mean torque over the step)``."""
-    r, ld, lq, psi = p[_P.RESISTANCE], p[_P.INDUCTANCE_D], p[_P.INDUCTANCE_Q], p[_P.PSI]
+    r, ld, lq, psi = m.resistance, m.inductance_d, m.inductance_q, m.psi
     i_d, i_q = currents
     vd, vq = voltages
     decay_d, decay_q = decays
-    we = p[_P.POLE_PAIRS] * omega
+    we = m.pole_pairs * omega
     id_new = decay_d * i_d + (1.0 - decay_d) / r * (vd + we * lq * i_q)
     iq_new = decay_q * i_q + (1.0 - decay_q) / r * (vq - we * (ld * i_d + psi))
     id_mean = 0.5 * (i_d + id_new)
     iq_mean = 0.5 * (i_q + iq_new)
-    return id_new, iq_new, 1.5 * p[_P.POLE_PAIRS] * (psi * iq_mean + (ld - lq) * id_mean * iq_mean)
+    return id_new, iq_new, 1.5 * m.pole_pairs * (psi * iq_mean + (ld - lq) * id_mean * iq_mean)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _mechanics(
-    p: np.ndarray, theta: float, omega: float, torque: float, t: float, h: float, trial: int
+    m: _Motor, theta: float, omega: float, torque: float, h: float, start: _StepStart
 ) -> tuple[float, float]:
     """Heun's method on ``J(t) w' = Te + d - losses``, ``theta' = w``, with ``Te`` and the load held over ``h``:
-    ``(theta, w)`` at ``t + h``."""
-    load = disturbance_value(
-        int(p[_P.DISTURBANCE_CODE]),
-        p[_P.DISTURBANCE_AMPLITUDE],
-        p[_P.DISTURBANCE_FREQUENCY],
-        p[_P.DISTURBANCE_START],
-        t + 0.5 * h,
-    )
-    drive = torque + load
-    inertia = p[_P.INERTIA]
-    if p[_P.DRIFT_AMPLITUDE] > 0:
-        phase = p[_P.DRIFT_FREQUENCY] * (t + 0.5 * h) + p[_P.DRIFT_PHASE_PER_TRIAL] * (trial - 1)
-        inertia *= 1.0 + p[_P.DRIFT_AMPLITUDE] * math.sin(phase)
-    if p[_P.HOLDING_TORQUE] > 0:
-        return _braked_mechanics(p, theta, omega, drive, inertia, h)
-    accel0 = (drive - _losses(p, theta, omega)) / inertia
+    ``(theta, w)`` at ``t + h`` (``start``: the step's terms that :func:`_step_start` made)."""
+    drive = torque + start.load
+    if m.holding_torque > 0:
+        return _braked_mechanics(m, theta, omega, drive, h, start)
+    accel0 = (drive - start.losses) * start.inertia_inverse
     omega_pred = omega + h * accel0
-    theta_pred = theta + h * omega
-    accel1 = (drive - _losses(p, theta_pred, omega_pred)) / inertia
+    losses_predicted = _friction(m, omega_pred)  # at Heun's predicted state (theta + h w, omega_pred)
+    if m.cogging_amplitude > 0:
+        losses_predicted += start.cogging_predicted
+    accel1 = (drive - losses_predicted) * start.inertia_inverse
     omega_new = omega + 0.5 * h * (accel0 + accel1)
     return theta + 0.5 * h * (omega + omega_new), omega_new
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _braked_mechanics(
-    p: np.ndarray, theta: float, omega: float, drive: float, inertia: float, h: float
+    m: _Motor, theta: float, omega: float, drive: float, h: float, start: _StepStart
 ) -> tuple[float, float]:
-    """The mechanics with the holding brake closed: a dry friction of up to ``HOLDING_TORQUE``.
+    """The mechanics with the holding brake closed: a dry friction of up to ``holding_torque``.
 
     At rest the brake holds the axis while the net torque (``Te + d - losses``) is within its torque, as a real
     holding brake holds a vertical load; a moving axis is braked by the full torque against the motion (Heun's
     method with the brake's direction fixed over the step) and stops, rather than reverses, where the speed would
     cross zero.
     """
-    holding = p[_P.HOLDING_TORQUE]
-    net0 = drive - _losses(p, theta, omega)
+    holding = m.holding_torque
+    net0 = drive - start.losses
     if omega == 0.0:
         if abs(net0) <= holding:
             return theta, 0.0
         direction = 1.0 if net0 > 0 else -1.0  # breaks away in the direction of the net torque
     else:
         direction = 1.0 if omega > 0 else -1.0
-    accel0 = (net0 - direction * holding) / inertia
+    accel0 = (net0 - direction * holding) * start.inertia_inverse
     omega_pred = omega + h * accel0
-    accel1 = (drive - _losses(p, theta + h * omega, omega_pred) - direction * holding) / inertia
+    losses_predicted = _friction(m, omega_pred)  # at Heun's predicted state (theta + h w, omega_pred)
+    if m.cogging_amplitude > 0:
+        losses_predicted += start.cogging_predicted
+    accel1 = (drive - losses_predicted - direction * holding) * start.inertia_inverse
     omega_new = omega + 0.5 * h * (accel0 + accel1)
     if omega_new * direction < 0:
         omega_new = 0.0  # the brake stopped the axis within the step
     return theta + 0.5 * h * (omega + omega_new), omega_new
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _sense(
-    p: np.ndarray, theta: float, count: float, omega_est: float, h: float, smoothing: float
+    m: _Motor, theta: float, count: float, omega_est: float, count_rate: float, smoothing: float
 ) -> tuple[float, float]:
-    """The quantised angle, differentiated over ``h`` and low-passed (``smoothing = 1 - exp(-h / filter)``): the
-    drive's own velocity estimate. Returns ``(count, w_est)``."""
-    new_count = math.floor(theta / p[_P.COUNT_ANGLE])
-    raw = (new_count - count) * p[_P.COUNT_ANGLE] / h
-    if p[_P.VELOCITY_LOOP_FILTER] > 0:
+    """The quantised angle, differentiated over the step and low-passed (``count_rate = count_angle / h``,
+    ``smoothing = 1 - exp(-h / filter)``): the drive's own velocity estimate. Returns ``(count, w_est)``."""
+    # np.floor stays a float (math.floor gives an int: two conversions more on the loop's critical path)
+    new_count = np.floor(theta * m.count_angle_inverse)
+    raw = (new_count - count) * count_rate
+    if m.velocity_loop_filter > 0:
         return new_count, omega_est + smoothing * (raw - omega_est)
     return new_count, raw
 
@@ -394,9 +543,10 @@ def pmsm_advance(
 
     Each internal step: the torque command (velocity loop or direct), the current loop, the electrical plant
     (exact per axis), the mechanics (Heun), then sensing. ``TORQUE_LIMITED`` and ``OVER_SPEED`` say whether a
-    limit was hit during these steps. The state lives in locals during the loop (so the compiler keeps it in
-    registers) and is written back once.
+    limit was hit during these steps. The parameters are read once into a :class:`_Motor` and the state lives in
+    locals during the loop (so the compiler keeps both in registers); the state is written back once.
     """
+    m = _motor(p)
     theta, omega, t = s[_S.THETA], s[_S.OMEGA], s[_S.TIME]
     currents = (s[_S.ID], s[_S.IQ])
     integrals = (s[_S.INT_D], s[_S.INT_Q])
@@ -404,23 +554,25 @@ def pmsm_advance(
     torque_command = s[_S.TORQUE_COMMAND]
     limited = False
     over_speed = False
-    # Constant over the call (h is): computed once, not per internal step.
-    decays = (
-        math.exp(-p[_P.RESISTANCE] * h / p[_P.INDUCTANCE_D]),
-        math.exp(-p[_P.RESISTANCE] * h / p[_P.INDUCTANCE_Q]),
-    )
-    smoothing = 1.0 - math.exp(-h / p[_P.VELOCITY_LOOP_FILTER]) if p[_P.VELOCITY_LOOP_FILTER] > 0 else 1.0
+    # Constant over the call (h and the command are): computed once, not per internal step.
+    decays = (math.exp(-m.resistance * h / m.inductance_d), math.exp(-m.resistance * h / m.inductance_q))
+    smoothing = 1.0 - math.exp(-h / m.velocity_loop_filter) if m.velocity_loop_filter > 0 else 1.0
+    reference = min(max(command * _RAD_PER_S_PER_RPM, -m.speed_cap), m.speed_cap)
+    count_rate = m.count_angle / h
     for _ in range(steps):
-        torque_command, int_velocity, clipped = _torque_command(p, command, omega_est, int_velocity, h, velocity_mode)
+        start = _step_start(m, theta, omega, t, h, trial)
+        torque_command, int_velocity, clipped = _torque_command(
+            m, reference, command, omega_est, int_velocity, h, velocity_mode
+        )
         limited = limited or clipped
-        vd, vq, int_d, int_q = _current_loop(p, torque_command, omega_est, currents, integrals, h)
+        vd, vq, int_d, int_q = _current_loop(m, torque_command, omega_est, currents, integrals, h)
         integrals = (int_d, int_q)
-        i_d, i_q, torque = _electrical(p, omega, currents, (vd, vq), decays)
+        i_d, i_q, torque = _electrical(m, omega, currents, (vd, vq), decays)
         currents = (i_d, i_q)
-        theta, omega = _mechanics(p, theta, omega, torque, t, h, trial)
+        theta, omega = _mechanics(m, theta, omega, torque, h, start)
         t += h
-        count, omega_est = _sense(p, theta, count, omega_est, h, smoothing)
-        over_speed = over_speed or abs(omega) > p[_P.SPEED_LIMIT]
+        count, omega_est = _sense(m, theta, count, omega_est, count_rate, smoothing)
+        over_speed = over_speed or abs(omega) > m.speed_limit
     _store(s, p, (theta, omega, t), currents, integrals, (int_velocity, omega_est, count, torque_command))
     s[_S.TORQUE_LIMITED] = 1.0 if limited else 0.0
     s[_S.OVER_SPEED] = 1.0 if over_speed else 0.0
