@@ -537,5 +537,18 @@ def serve(data_fd: int, reply_fd: int, file_fd: int) -> None:
                     _reply(replies, ReplyKind.ERROR, str(exc))
 
 
+def _stand_back() -> None:
+    """Put this process in ``SCHED_BATCH`` (Linux; elsewhere nothing): its fair share of the CPU, but it never
+    preempts the loop when it wakes.
+
+    Why: on a host with no idle core (two cores, other work) the writer's wake-ups took the loop's CPU mid-cycle:
+    a logged lockstep run had 100 to 170 involuntary context switches of the loop's thread against 25 without the
+    log, 55 to 63 with this.
+    """
+    with contextlib.suppress(AttributeError, OSError):
+        os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
+
+
 if __name__ == "__main__":
+    _stand_back()
     serve(*(int(argument) for argument in sys.argv[1:4]))

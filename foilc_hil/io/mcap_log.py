@@ -1059,17 +1059,24 @@ def classic_frames_records(
 def frame_json(fields: FrameFields, timestamp: float, direction: Direction) -> bytes:
     """The ``/can`` JSON document of one frame (``fields`` from :func:`frame_fields`, ``timestamp`` resolved).
 
-    A classic data frame (the cyclic traffic) is formatted from a template; ``repr`` of a float is its shortest
-    round-trip form, as orjson writes it, except for exponents and non-finite values, which go to orjson. Any
-    other frame (remote, error, FD, with a channel) is a dict encoded by orjson with its optional fields.
+    A classic data frame (the cyclic traffic), with or without a text channel, is formatted from a template;
+    ``repr`` of a float is its shortest round-trip form, as orjson writes it, except for exponents and non-finite
+    values, which go to orjson. Any other frame (remote, error, FD, a channel that is not text) is a dict encoded by
+    orjson with its optional fields.
     """
     template = _FRAME_TEMPLATES.get(direction)
-    if template is not None and not any(fields[5:10]) and fields[10] is None:
+    channel = fields[10]
+    if template is not None and not any(fields[5:10]) and (channel is None or type(channel) is str):
         text = repr(timestamp)
         if "e" in text or "n" in text:  # 1e-05, 1e+16, inf, nan: orjson's spelling (null for non-finite)
             text = orjson.dumps(timestamp).decode()
         data = binascii.b2a_base64(fields[4], newline=False).decode("ascii")
-        return (template % (text, fields[1], _JSON_BOOL[bool(fields[2])], fields[3], data)).encode()
+        classic = (template % (text, fields[1], _JSON_BOOL[bool(fields[2])], fields[3], data)).encode()
+        if channel is None:
+            return classic
+        # a received frame of a named channel (every frame of the in-process bus): the optional field orjson's
+        # document puts last, spelled by orjson (its escapes)
+        return b"%s,\"channel\":%s}" % (classic[:-1], orjson.dumps(channel))
     document = {
         "timestamp": timestamp,
         "id": fields[1],
