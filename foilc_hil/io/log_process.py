@@ -2,10 +2,13 @@
 
 :class:`ProcessLogWriter` has the logging methods of :class:`~foilc_hil.io.mcap_log.QueuedLogWriter`. Each call
 appends one plain tuple (an opcode, the log time, the values; a frame as its
-:func:`~foilc_hil.io.mcap_log.frame_fields`) to a deque; every :data:`BATCH` items, at every trial's end and at
+:func:`~foilc_hil.io.mcap_log.frame_fields`, a trial's samples as the float64 columns of its
+:class:`~foilc_hil.io.records.TrialSamples`) to a deque; every :data:`BATCH` items, at every trial's end and at
 :meth:`~ProcessLogWriter.sync` the deque goes to the child as one ``marshal`` payload (C code, about 0.3 us an item)
 through a pipe. The child (``python -m foilc_hil.io.log_process``, started by the writer) runs the one
 :class:`~foilc_hil.io.mcap_log.McapLogWriter`: the file, layout and JSON are the same as in-process logging.
+The child reads the pipe on its own clock (every :data:`READ_PAUSE` once drained) and runs in ``SCHED_BATCH``: the
+loop's writes never wake it, and its wake-ups never preempt the loop.
 
 Why a process: a writer thread in the loop's process takes the GIL for every JSON document it encodes, and the loop
 waits for it at its thread hand-offs (lockstep) or its deadline (realtime). Here the loop's process pays only the
