@@ -44,9 +44,10 @@ def _lockstep(repeats: int) -> tuple[dict[str, Any], Comparison]:
         peer_name="the same loop without logging",
         min_ratio=0.9,
         note="goal: under 10 % lost to logging (ratio >= 0.9). The log is written by a child process "
-        "(foilc_hil.io.log_process): the loop's process packs one tuple per message and one marshal batch per 128 "
-        "(about 1 us a message); the JSON and the file are the child's, on the other core. On a loaded 2-core "
-        "machine there is no idle core for the child, and the spread is wide",
+        "(foilc_hil.io.log_process): the loop's process packs one tuple per frame, one item of float64 columns per "
+        "trial for the samples, and one marshal batch per 128 items; the JSON and the file are the child's "
+        "(SCHED_BATCH, reading the pipe on its own clock: the loop's writes never wake it), on the other core. On a "
+        "loaded 2-core machine there is no idle core for the child, and the spread is wide",
     )
     return {"without_logging": _median_run(no_log), "with_logging": _median_run(logged)}, row
 

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import can
 import orjson
+import pytest
 
 from foilc_hil.io.mcap_log import Direction, McapLogWriter, classic_frames_records, frame_fields, frame_json, read_log
 
@@ -92,3 +93,12 @@ def test_frames_the_kernel_does_not_cover_are_written_one_by_one(tmp_path: Path)
     # one by one, each is orjson's text of its document (non-finite as null, the optional fields added)
     assert frame_json(frame_fields(odd[3]), 1e-05, "rx") == _document(odd[3], 1e-05, "rx")
     assert frame_json(frame_fields(odd[4]), float("inf"), "rx") == _document(odd[4], float("inf"), "rx")
+
+
+@pytest.mark.parametrize("channel", ["vcan0", "foilc-hil-bench", 'a "quoted" \\ name', "k\u00e4nal\n", ""])
+@pytest.mark.parametrize("timestamp", [1.0, 1700000000.123456, 1e-05, float("nan")])
+def test_a_classic_frame_of_a_named_channel_is_orjsons_text(channel: str, timestamp: float) -> None:
+    msg = can.Message(arbitration_id=0x181, data=b"\x37\x02", is_extended_id=False, channel=channel)
+    expected = orjson.loads(_document(msg, timestamp, "rx"))
+    expected["channel"] = channel
+    assert frame_json(frame_fields(msg), timestamp, "rx") == orjson.dumps(expected)

@@ -19,7 +19,7 @@ from foilc_hil.errors import LogFormatError
 from foilc_hil.io import log_process
 from foilc_hil.io.log_process import ProcessLogWriter
 from foilc_hil.io.mcap_log import LogWriteError, McapLogWriter, read_log
-from foilc_hil.io.records import SampleRecord, TimingRecord
+from foilc_hil.io.records import SampleRecord, TimingRecord, TrialSamples
 
 DESIGN = {"gain": np.array([[0.5, -1.25]]), "rho": np.float64(0.75), "name": "foilc"}
 
@@ -64,6 +64,31 @@ def test_the_child_writes_what_the_in_process_writer_writes(tmp_path: Path) -> N
     assert expected["truncated"] is False and len(expected["samples"]) == 600  # type: ignore[arg-type]
     assert read_log(child).design == {"gain": [[0.5, -1.25]], "rho": 0.75, "name": "foilc"}
     assert read_log(child).samples[5]["error"] is None  # NaN is null, as in the in-process file
+
+
+def test_a_trial_sent_as_columns_is_written_as_its_rows(tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    grid = rng.standard_normal((250, 2))  # a run of two axes: each axis's columns are strided views
+    error = grid[:, 0] - grid[:, 1]
+    error[7] = np.nan
+    trials = [
+        TrialSamples(1, 0.001, grid[:, 0], grid[:, 1], rng.standard_normal(250), error, error * 0.5),
+        TrialSamples(2, 0.001, grid[:, 1], grid[:, 0], np.arange(250), error, error, axis=3),  # ints: floats
+    ]
+    direct, child = tmp_path / "direct.mcap", tmp_path / "child.mcap"
+    with McapLogWriter(direct, config_yaml=None, fsync=False) as writer:
+        for record in (record for samples in trials for record in samples.records()):
+            writer.write_sample(record)
+    with ProcessLogWriter(child, config_yaml=None, fsync=False) as process_writer:
+        for samples in trials:
+            process_writer.write_trial_samples(samples)
+            assert process_writer.pending() == trials.index(samples) + 1  # one item a trial, not one a row
+    rows = read_log(child).samples
+    assert rows == read_log(direct).samples
+    assert len(rows) == 500 and rows[7]["error"] is None and rows[250]["axis"] == 3 and "axis" not in rows[0]
+    assert [row["t"] for row in rows[:3]] == [0.001, 2 * 0.001, 3 * 0.001]
+    assert rows[251]["control"] == 1.0 and type(rows[251]["control"]) is float
+    assert rows[1]["reference"] == float(grid[1, 0]) and rows[1]["output"] == float(grid[1, 1])
 
 
 def test_sync_waits_for_the_child_and_end_trial_makes_the_trial_durable(tmp_path: Path) -> None:

@@ -12,11 +12,12 @@ and per cycle.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from typing import Any, NamedTuple
 
 import numpy as np
 
-__all__ = ["SampleRecord", "Signal", "TimingRecord"]
+__all__ = ["SampleRecord", "Signal", "TimingRecord", "TrialSamples"]
 
 #: a signal value: a float for a single-output axis, a sequence/array (one entry per output or input) otherwise
 Signal = Any
@@ -80,6 +81,52 @@ class SampleRecord(NamedTuple):
         if self.axis is not None:
             document["axis"] = self.axis
         return document
+
+
+class TrialSamples(NamedTuple):
+    """The ``/ilc/sample`` messages of one trial as its columns (layout 2 of
+    :data:`foilc_hil.io.schemas.SAMPLE_LAYOUT`): row ``i`` describes the instant ``(i + 1) Ts``.
+
+    One object per trial instead of one :class:`SampleRecord` per sample: a writer in another process is sent the
+    columns (:class:`~foilc_hil.io.log_process.ProcessLogWriter`) and builds the records there, with
+    :meth:`records`, the one definition of a trial's rows.
+
+    Attributes
+    ----------
+    trial
+        The trial (from 1).
+    sample_time
+        ``Ts`` in seconds.
+    reference, output, control, error, E
+        ``(N,)`` columns (``control`` sets ``N``): ``output[i] = y((i + 1) Ts)``, ``error == reference - output``,
+        ``control[i] = u_i``, applied from ``(i + 1) Ts``.
+    axis
+        The axis's node id in a run of several axes; ``None``: the only axis.
+    """
+
+    trial: int
+    sample_time: float
+    reference: np.ndarray
+    output: np.ndarray
+    control: np.ndarray
+    error: np.ndarray
+    E: np.ndarray
+    axis: int | None = None
+
+    def columns(self) -> tuple[np.ndarray, ...]:
+        """``reference, output, control, error, E`` as ``N`` contiguous float64 values each."""
+        n = len(self.control)
+        return tuple(
+            np.ascontiguousarray(np.asarray(column, dtype=np.float64)[:n])
+            for column in (self.reference, self.output, self.control, self.error, self.E)
+        )
+
+    def records(self) -> Iterator[SampleRecord]:
+        """The trial's :class:`SampleRecord` messages, in sample order (each value the Python float of its row)."""
+        trial, sample_time, axis = self.trial, self.sample_time, self.axis
+        rows = zip(*(column.tolist() for column in self.columns()), strict=True)
+        for i, (reference, output, control, error, big_e) in enumerate(rows):
+            yield SampleRecord(trial, (i + 1) * sample_time, reference, output, control, error, big_e, i, axis)
 
 
 class TimingRecord(NamedTuple):

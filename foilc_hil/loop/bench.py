@@ -89,7 +89,7 @@ from foilc_hil.errors import (
     LearningDivergedError,
     RunInterruptedError,
 )
-from foilc_hil.io.records import SampleRecord
+from foilc_hil.io.records import TrialSamples
 from foilc_hil.laws.learning import TrialUpdate
 from foilc_hil.loop.safety import (
     CommandLimiter,
@@ -266,22 +266,13 @@ class TrialRecord:
     axis: int | None = None  # the axis's node id in a run of several axes (``axes:``); None: the only axis
     command_limits: tuple[float, float] | None = None  # this axis's limits when they are not the sink's
 
-    def sample_records(self) -> Iterator[SampleRecord]:
-        """The ``/ilc/sample`` messages of this trial, layout :data:`~foilc_hil.io.schemas.SAMPLE_LAYOUT` (module
-        docstring): row ``i`` describes the instant ``(i + 1) Ts``."""
-        E = self.E
-        for i in range(self.control.shape[0]):
-            yield SampleRecord(
-                trial=self.trial,
-                t=(i + 1) * self.sample_time,  # the instant of output, reference, error and E
-                reference=float(self.reference[i]),
-                output=float(self.output[i]),  # y((i + 1) Ts): error[i] = reference[i] - output[i] exactly
-                control=float(self.control[i]),  # u_i: sent after SYNC i, applied by the drive from SYNC i + 1
-                error=float(self.error[i]),
-                E=float(E[i]),
-                sample=i,
-                axis=self.axis,
-            )
+    def samples(self) -> TrialSamples:
+        """The ``/ilc/sample`` messages of this trial as columns, layout :data:`~foilc_hil.io.schemas.SAMPLE_LAYOUT`
+        (module docstring): row ``i`` describes the instant ``(i + 1) Ts``, ``output[i] = y((i + 1) Ts)`` (so
+        ``error[i] = reference[i] - output[i]`` exactly) and ``control[i] = u_i``, sent after SYNC ``i`` and applied
+        by the drive from SYNC ``i + 1``."""
+        return TrialSamples(int(self.trial), float(self.sample_time), self.reference, self.output, self.control,
+                            self.error, self.E, self.axis)
 
 
 @dataclass
@@ -957,9 +948,7 @@ class McapSink:
         self._previous_sync: float | None = None  # across blocks: a settle phase's first period_us is a real one
 
     def trial_finished(self, record: TrialRecord) -> None:
-        write_sample = self.writer.write_sample
-        for sample in record.sample_records():
-            write_sample(sample)
+        self.writer.write_trial_samples(record.samples())  # one call a trial: the rows are built by the writer
         # initial_output = y(0): the law's input at sample 0, which no row holds (replay --verify);
         # final_output = y(N Ts), also the last row's output (kept: the interface names it)
         ends = {"initial_output": float(record.seen[0]), "final_output": float(record.seen[-1])}
