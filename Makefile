@@ -39,7 +39,7 @@ typecheck: $(STAMP)
 pytest: $(STAMP)
 	$(BIN)/python -c "import foilc_hil.design.fractional, foilc_hil.io.frame_kernel, foilc_hil.laws.kernels, \
 	foilc_hil.loop.trial_kernel, plant_emulator.physics.kernels, plant_emulator.physics.trial"
-	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/pytest -n auto --dist worksteal
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/pytest -n auto --dist worksteal --durations=15
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks.run --out benchmarks/results.json --doc docs/benchmarks.md
