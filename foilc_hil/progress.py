@@ -34,6 +34,7 @@ __all__ = [
     "RichSteps",
     "as_step",
     "make_progress",
+    "shows_progress",
     "step",
     "steps",
 ]
@@ -75,6 +76,30 @@ class NullProgress:
         return None
 
 
+def _live_table(title: str, columns: tuple[str, ...]) -> tuple[Any, Any, Any, Any]:
+    """The bench's live view on stderr, started: ``(console, progress, table, live)``, a table of finished trials
+    with ``columns`` above the bars of ``progress``."""
+    from rich.console import Console, Group
+    from rich.live import Live
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.table import Table
+
+    console = Console(stderr=True)
+    progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                        console=console)
+    table = Table(title=title, expand=False)
+    for column in columns:
+        table.add_column(column, justify="right")
+    live = Live(Group(table, progress), console=console, refresh_per_second=8)
+    live.start()
+    return console, progress, table, live
+
+
+def shows_progress(*, quiet: bool) -> bool:
+    """Whether progress is shown: stderr is a terminal and the command is not ``quiet`` (``--quiet``, ``--json``)."""
+    return not quiet and sys.stderr.isatty()
+
+
 class RichProgress:
     """``rich`` live view on stderr: the current trial's bar above a table of finished trials.
 
@@ -85,25 +110,8 @@ class RichProgress:
     """
 
     def __init__(self, title: str) -> None:
-        from rich.console import Console, Group
-        from rich.live import Live
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-        from rich.table import Table
-
-        self._console = Console(stderr=True)
-        self._progress = Progress(
-            TextColumn("{task.description}"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TimeElapsedColumn(),
-            console=self._console,
-        )
-        self._table = Table(title=title, expand=False)
-        for column in ("trial", "SSE", "RMSE", "max |e|"):
-            self._table.add_column(column, justify="right")
+        self._console, self._progress, self._table, self._live = _live_table(title, ("trial", "SSE", "RMSE", "max |e|"))
         self._task: Any = None
-        self._live = Live(Group(self._table, self._progress), console=self._console, refresh_per_second=8)
-        self._live.start()
 
     def begin_trial(self, trial: int, total_trials: int, samples: int) -> None:
         if self._task is not None:
@@ -186,20 +194,10 @@ class RichRunsProgress:
     """
 
     def __init__(self, names: list[str], title: str) -> None:
-        from rich.console import Console, Group
-        from rich.live import Live
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-        from rich.table import Table
-
-        self._console = Console(stderr=True)
-        self._progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                                  TimeElapsedColumn(), console=self._console)
+        self._console, self._progress, self._table, self._live = _live_table(
+            title, ("run", "trial", "SSE", "RMSE", "max |e|")
+        )
         self._tasks = {name: self._progress.add_task(f"{name}: starting", total=None) for name in names}
-        self._table = Table(title=title, expand=False)
-        for column in ("run", "trial", "SSE", "RMSE", "max |e|"):
-            self._table.add_column(column, justify="right")
-        self._live = Live(Group(self._table, self._progress), console=self._console, refresh_per_second=8)
-        self._live.start()
 
     def handle(self, name: str, event: ProgressEvent, args: tuple[Any, ...]) -> None:
         """One event of a :class:`QueueProgress` of the run ``name``."""
@@ -222,7 +220,7 @@ class RichRunsProgress:
 
 def make_progress(title: str, *, quiet: bool) -> ProgressView:
     """A rich view when stderr is a terminal and not ``quiet``, else :class:`NullProgress`."""
-    if quiet or not sys.stderr.isatty():
+    if not shows_progress(quiet=quiet):
         return NullProgress()
     return RichProgress(title)
 
@@ -272,7 +270,7 @@ _STEPS: ContextVar[RichSteps | None] = ContextVar("foilc_hil_steps", default=Non
 @contextlib.contextmanager
 def steps(*, quiet: bool) -> Iterator[None]:
     """Show the :func:`step` progress of the code run inside, on a terminal stderr unless ``quiet``."""
-    view = None if quiet or not sys.stderr.isatty() else RichSteps()
+    view = RichSteps() if shows_progress(quiet=quiet) else None
     token = _STEPS.set(view)
     try:
         yield

@@ -30,7 +30,6 @@ limits stop the windup) -- the early swing the reports' notes explain.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from concurrent.futures import Executor
 from dataclasses import dataclass
@@ -143,11 +142,10 @@ def run_laws(config: Any, out_dir: Path, args: argparse.Namespace) -> tuple[dict
     import threading
     from concurrent.futures import ProcessPoolExecutor
 
-    from foilc_hil.progress import RichRunsProgress
+    from foilc_hil.progress import RichRunsProgress, shows_progress
 
-    quiet = bool(args.quiet or args.json) or not sys.stderr.isatty()
     context = multiprocessing.get_context()
-    events = None if quiet else context.Queue()
+    events = context.Queue() if shows_progress(quiet=bool(args.quiet or args.json)) else None
     view: RichRunsProgress | None = None
     pump: threading.Thread | None = None
     try:
