@@ -168,3 +168,45 @@ def test_the_voltage_limit_is_hypots_decision_near_and_far_from_it(
     else:
         assert (vd, vq) == voltages
     assert (int_d, int_q) == voltages  # zero errors: the integrators hold, limited or not
+
+
+def test_the_drift_phasor_follows_the_phase_of_each_internal_step() -> None:
+    """The inertia drift's sine is turned by ``drift_frequency h`` per internal step instead of recomputed; over a
+    caller step's internal steps it stays within a few ulps of ``sin`` of each step's midpoint phase."""
+    from plant_emulator.physics.kernels import PMSM_PARAM_SIZE, PmsmParam, _derive, _drift_phasor, _drift_turn, _motor
+
+    params = np.ones(PMSM_PARAM_SIZE)
+    frequency, per_trial, h, t0, trial = 2.0, 0.7, 5e-5, 4.321, 3
+    params[PmsmParam.DRIFT_AMPLITUDE] = 0.05
+    params[PmsmParam.DRIFT_FREQUENCY] = frequency
+    params[PmsmParam.DRIFT_PHASE_PER_TRIAL] = per_trial
+    _derive(params, h)
+    motor = _motor(params)
+    phasor = _drift_phasor(motor, t0, h, trial)
+    for k in range(40):  # twice a 1 ms caller step's 20 internal steps
+        phase = frequency * (t0 + k * h + 0.5 * h) + per_trial * (trial - 1)
+        assert phasor[0] == pytest.approx(math.sin(phase), abs=1e-14)
+        assert phasor[1] == pytest.approx(math.cos(phase), abs=1e-14)
+        phasor = _drift_turn(motor, phasor)
+
+
+def test_the_derived_slots_follow_the_internal_step() -> None:
+    """``pmsm_advance`` keeps the slots derived from ``h`` in the parameter vector; a call with another ``h``
+    derives them again, so a vector used at one step length and then another advances as a fresh one."""
+    from plant_emulator.physics.kernels import PmsmParam, pmsm_advance
+
+    config = {"model": "pmsm", "seed": 5, "pmsm": {"drift": {"amplitude": 0.05}}}
+    plant = build_plant(PlantConfig.model_validate(config))
+    assert isinstance(plant, PmsmPlant)
+    used, fresh = plant._params.copy(), plant._params.copy()
+    assert used[PmsmParam.DERIVED_STEP] != 1e-4
+    pmsm_advance(plant._state.copy(), used, 300.0, 5e-5, 20, True, 1)
+    assert used[PmsmParam.DERIVED_STEP] == 5e-5
+    after_used, after_fresh = plant._state.copy(), plant._state.copy()
+    pmsm_advance(after_used, used, 300.0, 1e-4, 10, True, 1)
+    pmsm_advance(after_fresh, fresh, 300.0, 1e-4, 10, True, 1)
+    assert used[PmsmParam.DERIVED_STEP] == 1e-4
+    resistance = used[PmsmParam.RESISTANCE]
+    assert used[PmsmParam.DECAY_D] == math.exp(-resistance * 1e-4 / used[PmsmParam.INDUCTANCE_D])
+    assert after_used.tobytes() == after_fresh.tobytes()
+    assert used.tobytes() == fresh.tobytes()

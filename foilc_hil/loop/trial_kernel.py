@@ -13,7 +13,7 @@ settle phases, the update between trials, the divergence rule and the log.
 
 Compiled like the law's and the plant's kernels (``cache=True``, warmed at import, no ``fastmath``). The cached
 machine code of :func:`run_trial` includes the kernels it calls and their constants (the slots of
-:mod:`plant_emulator.physics.trial` and :mod:`~plant_emulator.physics.kernels`, as of the PMSM's holding brake), but
+:mod:`plant_emulator.physics.trial` and :mod:`~plant_emulator.physics.kernels`, as of the PMSM's derived slots), but
 numba invalidates it only when THIS file changes: a change there needs a change here (this note is one).
 """
 

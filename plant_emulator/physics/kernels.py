@@ -128,6 +128,19 @@ class PmsmParam(enum.IntEnum):
     DISTURBANCE_FREQUENCY = 32
     DISTURBANCE_START = 33
     HOLDING_TORQUE = 34  # the holding brake's torque while it is closed, N m; 0.0 while it is open (or absent)
+    # Derived from the slots above and the internal step h by pmsm_advance itself (_derive), kept for the next call
+    # with the same h: a function of h and of slots that stay fixed once the plant is built (not of the per-trial
+    # disturbance code or the brake's torque)
+    DERIVED_STEP = 35  # the h the slots below hold for; any other value (0.0 in a new vector): not derived yet
+    DECAY_D = 36  # exp(-R h / Ld)
+    DECAY_Q = 37  # exp(-R h / Lq)
+    LOOP_SMOOTHING = 38  # 1 - exp(-h / velocity_loop_filter); 1.0 without the filter
+    COUNT_RATE = 39  # count_angle / h
+    DRIFT_COSINE = 40  # cos(drift_frequency h): the drift's phase turns by drift_frequency h per internal step
+    DRIFT_SINE = 41  # sin(drift_frequency h)
+    TORQUE_CONSTANT_INVERSE = 42  # 1 / torque_constant
+    COULOMB_SCALE_INVERSE = 43  # 1 / coulomb_scale
+    COUNT_ANGLE_INVERSE = 44  # 1 / count_angle
 
 
 PMSM_STATE_SIZE = len(PmsmState)
@@ -244,8 +257,7 @@ def scalar_zoh_step(x: float, a: float, bu: float, d: float, h: float) -> float:
 
 
 class _Motor(NamedTuple):
-    """The :class:`PmsmParam` vector as one immutable record, a field per slot, then the reciprocals the loop
-    multiplies by (:func:`_motor`).
+    """The :class:`PmsmParam` vector as one immutable record, a field per slot (:func:`_motor`).
 
     Why a record and not the array: :func:`pmsm_advance` unpacks the vector once per call, and the per-step helpers
     take this record, which numba passes by value. Handed the array instead, every helper call counted a reference
@@ -288,6 +300,13 @@ class _Motor(NamedTuple):
     disturbance_frequency: float
     disturbance_start: float
     holding_torque: float
+    derived_step: float
+    decay_d: float
+    decay_q: float
+    loop_smoothing: float
+    count_rate: float
+    drift_cosine: float
+    drift_sine: float
     # Reciprocals: a division on the loop's critical path costs about four multiplications (13 cycles against 3)
     torque_constant_inverse: float
     coulomb_scale_inverse: float
@@ -337,10 +356,37 @@ def _motor(p: np.ndarray) -> _Motor:
         disturbance_frequency=p[_P.DISTURBANCE_FREQUENCY],
         disturbance_start=p[_P.DISTURBANCE_START],
         holding_torque=p[_P.HOLDING_TORQUE],
-        torque_constant_inverse=1.0 / p[_P.TORQUE_CONSTANT],
-        coulomb_scale_inverse=1.0 / p[_P.COULOMB_SCALE],
-        count_angle_inverse=1.0 / p[_P.COUNT_ANGLE],
+        derived_step=p[_P.DERIVED_STEP],
+        decay_d=p[_P.DECAY_D],
+        decay_q=p[_P.DECAY_Q],
+        loop_smoothing=p[_P.LOOP_SMOOTHING],
+        count_rate=p[_P.COUNT_RATE],
+        drift_cosine=p[_P.DRIFT_COSINE],
+        drift_sine=p[_P.DRIFT_SINE],
+        torque_constant_inverse=p[_P.TORQUE_CONSTANT_INVERSE],
+        coulomb_scale_inverse=p[_P.COULOMB_SCALE_INVERSE],
+        count_angle_inverse=p[_P.COUNT_ANGLE_INVERSE],
     )
+
+
+@njit(cache=True)
+def _derive(p: np.ndarray, h: float) -> None:
+    """Fill the derived slots of ``p`` (from ``DERIVED_STEP`` on) for the internal step ``h``.
+
+    Why kept in the vector: they were computed on every call, i.e. every caller step (three exp, six divisions), and
+    they change only with ``h``, which is fixed by the caller's period; the same expressions, so the same values.
+    """
+    p[_P.DECAY_D] = math.exp(-p[_P.RESISTANCE] * h / p[_P.INDUCTANCE_D])
+    p[_P.DECAY_Q] = math.exp(-p[_P.RESISTANCE] * h / p[_P.INDUCTANCE_Q])
+    loop_filter = p[_P.VELOCITY_LOOP_FILTER]
+    p[_P.LOOP_SMOOTHING] = 1.0 - math.exp(-h / loop_filter) if loop_filter > 0 else 1.0
+    p[_P.COUNT_RATE] = p[_P.COUNT_ANGLE] / h
+    p[_P.DRIFT_COSINE] = math.cos(p[_P.DRIFT_FREQUENCY] * h)
+    p[_P.DRIFT_SINE] = math.sin(p[_P.DRIFT_FREQUENCY] * h)
+    p[_P.TORQUE_CONSTANT_INVERSE] = 1.0 / p[_P.TORQUE_CONSTANT]
+    p[_P.COULOMB_SCALE_INVERSE] = 1.0 / p[_P.COULOMB_SCALE]
+    p[_P.COUNT_ANGLE_INVERSE] = 1.0 / p[_P.COUNT_ANGLE]
+    p[_P.DERIVED_STEP] = h
 
 
 # The per-step helpers below are inlined into pmsm_advance's loop by numba (inline="always"), so the compiler sees
@@ -373,8 +419,32 @@ def _cogging(m: _Motor, theta: float) -> float:
 
 
 @njit(cache=True, inline="always")
-def _step_start(m: _Motor, theta: float, omega: float, t: float, h: float, trial: int) -> _StepStart:
-    """The mechanics' terms that depend only on the step's start ``(theta, w, t)``.
+def _drift_phasor(m: _Motor, t: float, h: float, trial: int) -> tuple[float, float]:
+    """``(sin, cos)`` of the inertia drift's phase at the midpoint of the internal step that starts at ``t``."""
+    if m.drift_amplitude > 0:
+        phase = m.drift_frequency * (t + 0.5 * h) + m.drift_phase_per_trial * (trial - 1)
+        return math.sin(phase), math.cos(phase)
+    return 0.0, 1.0
+
+
+@njit(cache=True, inline="always")
+def _drift_turn(m: _Motor, phasor: tuple[float, float]) -> tuple[float, float]:
+    """The drift's phasor one internal step later: turned by ``drift_frequency h`` (the angle-sum identities).
+
+    Why not ``sin`` of the phase each step: a libm call per internal step, against four multiplications; the phasor
+    starts from the exact phase at every call of :func:`pmsm_advance` (every caller step), so its rounding does not
+    build up over a trial (a few ulps after a caller step's internal steps).
+    """
+    if m.drift_amplitude > 0:
+        sine, cosine = phasor
+        return sine * m.drift_cosine + cosine * m.drift_sine, cosine * m.drift_cosine - sine * m.drift_sine
+    return phasor
+
+
+@njit(cache=True, inline="always")
+def _step_start(m: _Motor, theta: float, omega: float, t: float, h: float, drift_sine: float) -> _StepStart:
+    """The mechanics' terms that depend only on the step's start ``(theta, w, t)`` (``drift_sine``: the sine of
+    the drift's phase at the step's midpoint, :func:`_drift_phasor`).
 
     Why apart: they are libm calls (the load's and the drift's sines, tanh, the two cogging sines), and each call
     spills the loop's registers. Made first, they do not wait for the current loop and the electrical step, and the
@@ -385,8 +455,7 @@ def _step_start(m: _Motor, theta: float, omega: float, t: float, h: float, trial
     )
     inertia = m.inertia
     if m.drift_amplitude > 0:
-        phase = m.drift_frequency * (t + 0.5 * h) + m.drift_phase_per_trial * (trial - 1)
-        inertia *= 1.0 + m.drift_amplitude * math.sin(phase)
+        inertia *= 1.0 + m.drift_amplitude * drift_sine
     losses = _friction(m, omega)
     cogging_predicted = 0.0
     if m.cogging_amplitude > 0:
@@ -522,16 +591,14 @@ def _braked_mechanics(
 
 
 @njit(cache=True, inline="always")
-def _sense(
-    m: _Motor, theta: float, count: float, omega_est: float, count_rate: float, smoothing: float
-) -> tuple[float, float]:
-    """The quantised angle, differentiated over the step and low-passed (``count_rate = count_angle / h``,
-    ``smoothing = 1 - exp(-h / filter)``): the drive's own velocity estimate. Returns ``(count, w_est)``."""
+def _sense(m: _Motor, theta: float, count: float, omega_est: float) -> tuple[float, float]:
+    """The quantised angle, differentiated over the step (``count_rate = count_angle / h``) and low-passed
+    (``loop_smoothing = 1 - exp(-h / filter)``): the drive's own velocity estimate. Returns ``(count, w_est)``."""
     # np.floor stays a float (math.floor gives an int: two conversions more on the loop's critical path)
     new_count = np.floor(theta * m.count_angle_inverse)
-    raw = (new_count - count) * count_rate
+    raw = (new_count - count) * m.count_rate
     if m.velocity_loop_filter > 0:
-        return new_count, omega_est + smoothing * (raw - omega_est)
+        return new_count, omega_est + m.loop_smoothing * (raw - omega_est)
     return new_count, raw
 
 
@@ -544,8 +611,11 @@ def pmsm_advance(
     Each internal step: the torque command (velocity loop or direct), the current loop, the electrical plant
     (exact per axis), the mechanics (Heun), then sensing. ``TORQUE_LIMITED`` and ``OVER_SPEED`` say whether a
     limit was hit during these steps. The parameters are read once into a :class:`_Motor` and the state lives in
-    locals during the loop (so the compiler keeps both in registers); the state is written back once.
+    locals during the loop (so the compiler keeps both in registers); the state is written back once. The first
+    call with a new ``h`` writes the derived slots of ``p`` (:func:`_derive`).
     """
+    if p[_P.DERIVED_STEP] != h:
+        _derive(p, h)
     m = _motor(p)
     theta, omega, t = s[_S.THETA], s[_S.OMEGA], s[_S.TIME]
     currents = (s[_S.ID], s[_S.IQ])
@@ -554,13 +624,12 @@ def pmsm_advance(
     torque_command = s[_S.TORQUE_COMMAND]
     limited = False
     over_speed = False
-    # Constant over the call (h and the command are): computed once, not per internal step.
-    decays = (math.exp(-m.resistance * h / m.inductance_d), math.exp(-m.resistance * h / m.inductance_q))
-    smoothing = 1.0 - math.exp(-h / m.velocity_loop_filter) if m.velocity_loop_filter > 0 else 1.0
-    reference = min(max(command * _RAD_PER_S_PER_RPM, -m.speed_cap), m.speed_cap)
-    count_rate = m.count_angle / h
+    decays = (m.decay_d, m.decay_q)
+    reference = min(max(command * _RAD_PER_S_PER_RPM, -m.speed_cap), m.speed_cap)  # constant over the call
+    drift = _drift_phasor(m, t, h, trial)
     for _ in range(steps):
-        start = _step_start(m, theta, omega, t, h, trial)
+        start = _step_start(m, theta, omega, t, h, drift[0])
+        drift = _drift_turn(m, drift)
         torque_command, int_velocity, clipped = _torque_command(
             m, reference, command, omega_est, int_velocity, h, velocity_mode
         )
@@ -571,7 +640,7 @@ def pmsm_advance(
         currents = (i_d, i_q)
         theta, omega = _mechanics(m, theta, omega, torque, h, start)
         t += h
-        count, omega_est = _sense(m, theta, count, omega_est, count_rate, smoothing)
+        count, omega_est = _sense(m, theta, count, omega_est)
         over_speed = over_speed or abs(omega) > m.speed_limit
     _store(s, p, (theta, omega, t), currents, integrals, (int_velocity, omega_est, count, torque_command))
     s[_S.TORQUE_LIMITED] = 1.0 if limited else 0.0

@@ -122,7 +122,8 @@ class TrialProgram:
     state
         The state it starts from, advanced in place by :func:`plant_trial_step`.
     params
-        Parameters and per-trial settings (read only).
+        Parameters and per-trial settings (read only, but for the PMSM's derived slots, which its first step
+        writes: :data:`~plant_emulator.physics.kernels.PmsmParam.DERIVED_STEP`).
     inputs
         ``(steps, k)``: row ``i`` holds over step ``i`` (and its noise is that of the output after step ``i``).
     delay_steps
@@ -160,7 +161,8 @@ class CompiledPlant(Protocol):
 
 
 # The cached machine code of plant_trial_step includes pmsm_step and the PmsmParam slots of kernels.py (up to the
-# holding brake's), but numba invalidates it only when THIS file changes: a change of kernels.py needs one here.
+# derived slots written by pmsm_advance itself), but numba invalidates it only when THIS file changes: a change of
+# kernels.py needs one here.
 @njit(cache=True)
 def plant_trial_step(kind: int, state: np.ndarray, params: np.ndarray, row: np.ndarray, command: float) -> float:
     """Step ``k`` of a :class:`TrialProgram` (``row = inputs[k]``) with ``command`` held (before the plant's
