@@ -119,10 +119,15 @@ class AxisPhysics:
         if self._has_brake and brake_closed is not self._brake_closed:
             plant.set_brake(brake_closed)  # type: ignore[attr-defined]
             self._brake_closed = brake_closed
-        out = plant.step(np.array([u]), dt)
-        # a 1-d float array (every plant here) is read as it is; anything else is converted first
-        y = float(out[0]) if type(out) is np.ndarray and out.ndim == 1 else float(
-            np.asarray(out, dtype=float).reshape(-1)[0])
+        # On the plant's class, not the instance: a wrapper that delegates attributes keeps its own step (ScalarPlant)
+        step_scalar: Callable[[Plant, float, float], float] | None = getattr(type(plant), "step_scalar", None)
+        if step_scalar is not None:
+            y = step_scalar(plant, u, dt)
+        else:
+            out = plant.step(np.array([u]), dt)
+            # a 1-d float array (every plant here) is read as it is; anything else is converted first
+            y = float(out[0]) if type(out) is np.ndarray and out.ndim == 1 else float(
+                np.asarray(out, dtype=float).reshape(-1)[0])
         axis = self.axis
         axis.cycles += 1
         axis.velocity = units.counts(y)

@@ -291,3 +291,37 @@ def test_without_a_brake_set_brake_changes_nothing() -> None:
     braked.set_brake(True)  # brake_torque 0: no brake to close
     assert _held_for(free, 20) == _held_for(braked, 20)
     assert free.state()[1] > 0.0  # the unbraked axis falls under its load
+
+
+def test_the_scalar_step_is_the_array_step_bit_for_bit() -> None:
+    """``step_scalar`` (the virtual drive's per-cycle call) and ``step`` run the same step: from the same seed and
+    commands, the same outputs and state; a non-finite input is refused as ``step`` refuses it."""
+    from foilc_hil.errors import InputError
+
+    by_array, by_float = _pmsm(seed=4, output_noise=0.3), _pmsm(seed=4, output_noise=0.3)
+    for u in 250.0 * np.sin(np.linspace(0.0, 3.0, 200)):
+        y = by_array.step(np.array([u]), 1e-3)
+        assert np.float64(by_float.step_scalar(float(u), 1e-3)).tobytes() == y[0].tobytes()
+    assert by_array.state().tobytes() == by_float.state().tobytes()
+    with pytest.raises(InputError, match="finite"):
+        by_float.step_scalar(math.nan, 1e-3)
+
+
+def test_the_drive_steps_a_wrapped_plant_through_the_wrappers_step() -> None:
+    """The virtual drive takes ``step_scalar`` from the plant's class: a wrapper that delegates attributes
+    (the input-gain drift of fault injection) is stepped through its own ``step``, so its gain applies."""
+    from plant_emulator.device import VirtualDrive
+    from plant_emulator.faults import InputGainDrift
+
+    calls: list[float] = []
+
+    class Recording(InputGainDrift):
+        def step(self, u: np.ndarray, dt: float) -> np.ndarray:
+            calls.append(float(np.asarray(u)[0]))
+            return super().step(u, dt)
+
+    drive = VirtualDrive(_pmsm(seed=1), node_id=5, cycle_period=1e-3)
+    assert getattr(drive.physics.plant, "step_scalar", None) is not None  # the instance delegates it
+    drive.physics.plant = Recording(drive.physics.plant, 3.0)
+    drive.physics.tick(1e-3)
+    assert len(calls) == 1

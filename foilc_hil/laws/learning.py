@@ -87,7 +87,7 @@ from foilc_hil.design.ptype import p_type_gain
 from foilc_hil.design.qfilter import QFilter
 from foilc_hil.design.record import Design
 from foilc_hil.errors import ConfigError, InputError, LearningDivergedError
-from foilc_hil.laws.kernels import law_step
+from foilc_hil.laws.kernels import law_step, law_step_for
 from foilc_hil.metrics import TrialMetrics, trial_metrics
 
 __all__ = [
@@ -219,6 +219,7 @@ class LearningLaw(ABC):
         self._c_pinv = np.zeros((0, p))
         self._p1 = np.zeros((m, 0))
         self._arguments = self._step_arguments()  # law_step's arguments, rebuilt by begin_trial for each trial
+        self._step: Callable[..., None] = law_step  # command's law_step: its machine code once begin_trial ran
         self._next_sample = 0
         self._in_trial = False
 
@@ -242,6 +243,7 @@ class LearningLaw(ABC):
         self._y.fill(0.0)
         self._x.fill(0.0)
         self._arguments = self._step_arguments()  # fixed for the trial: built once, not per sample
+        self._step = law_step_for(self._arguments)  # and law_step's machine code for their types
         self._next_sample = 0
         self._in_trial = True
 
@@ -324,7 +326,7 @@ class LearningLaw(ABC):
         y[:] = output  # raises if the shape does not fit (p,)
         if not all(map(math.isfinite, y.tolist())):  # no temporary array, no numpy reduction: a few outputs a cycle
             raise LearningDivergedError(f"trial {self.trial + 1}, sample {t}: the measured output is not finite")
-        law_step(t, *self._arguments)  # clamps to the limits: learn from what is applied (module notes)
+        self._step(t, *self._arguments)  # law_step; clamps to the limits: learn from what is applied (module notes)
         self._next_sample = t + 1
         return self._u_readonly[t]
 

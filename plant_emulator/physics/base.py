@@ -15,7 +15,7 @@ import numpy as np
 
 from foilc_hil.errors import ConfigError, InputError
 
-__all__ = ["Plant", "check_input", "check_scalar_input", "check_step", "check_trial", "trial_rng"]
+__all__ = ["Plant", "ScalarPlant", "check_input", "check_scalar_input", "check_step", "check_trial", "trial_rng"]
 
 
 @runtime_checkable
@@ -45,6 +45,16 @@ class Plant(Protocol):
     @property
     def time(self) -> float:
         """Seconds since the last :meth:`reset`."""
+        ...
+
+
+class ScalarPlant(Protocol):
+    """A single-input plant that also steps with floats: ``step_scalar(u, dt)`` is ``step(array([u]), dt)[0]``,
+    without the two arrays. The virtual drive looks it up on the plant's class (``type(plant).step_scalar``), so a
+    wrapper that delegates attributes (``plant_emulator.faults.InputGainDrift``) keeps its own ``step``."""
+
+    def step_scalar(self, u: float, dt: float) -> float:
+        """Hold ``u`` over ``dt`` seconds; return the measured output."""
         ...
 
 

@@ -49,7 +49,7 @@ from typing import Literal
 
 import numpy as np
 
-from foilc_hil.errors import ConfigError
+from foilc_hil.errors import ConfigError, InputError
 from plant_emulator.config import DisturbanceConfig, PlantConfig, PmsmConfig
 from plant_emulator.physics.base import check_scalar_input, check_step, check_trial, trial_rng
 from plant_emulator.physics.disturbance import Disturbance
@@ -137,7 +137,18 @@ class PmsmPlant:
 
     def step(self, u: np.ndarray, dt: float) -> np.ndarray:
         """Hold ``u`` (rpm in velocity mode, N m in torque mode) over ``dt`` seconds; return the measured rpm."""
-        command = check_scalar_input(u)
+        return np.array([self._advance(check_scalar_input(u), dt)])
+
+    def step_scalar(self, u: float, dt: float) -> float:
+        """:meth:`step` with the input and the output as floats: the virtual drive's call once a cycle, which then
+        builds no array for the input and none for the output (:class:`~plant_emulator.physics.base.ScalarPlant`)."""
+        command = float(u)
+        if not math.isfinite(command):
+            raise InputError("u must be finite")
+        return self._advance(command, dt)
+
+    def _advance(self, command: float, dt: float) -> float:
+        """The step of a checked input (:meth:`step`, :meth:`step_scalar`): the measured rpm."""
         applied = min(max(command, self._u_min), self._u_max)
         self.saturated = applied != command
         steps, smoothing = self._per_step_of(dt)
@@ -146,7 +157,7 @@ class PmsmPlant:
             self._reported_rpm,
         )
         self._y = self._reported_rpm + self._noise()
-        return np.array([self._y])
+        return self._y
 
     def output(self) -> np.ndarray:
         """The measured velocity in rpm (quantisation, filter and noise included)."""
