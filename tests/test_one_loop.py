@@ -133,7 +133,7 @@ def test_simulate_logs_what_the_trial_loop_on_a_simulated_drive_logs(tmp_path: P
         settings = loop_settings(config, TimingMode.LOCKSTEP, settle_between_trials=False)
         reference = reference_profile(config.reference, TS)
         loop = TrialLoop(
-            drive, law, reference, None, settings, log=McapSink(writer, None), before_trial=drive.begin_trial
+            drive, law, reference, None, settings, log=McapSink(writer, law.limits), before_trial=drive.begin_trial
         )
         outcome = loop.run(3)
     ours, theirs = read_log(simulated), read_log(by_hand)
@@ -185,3 +185,23 @@ def test_one_divergence_rule_offline_and_on_the_bench(tmp_path: Path) -> None:
         assert stopped is not None
         assert f"trial 4 SSE {sse[3]:.6g} > 2 x best SSE {best:.6g} (trial 3)" in stopped
     assert report.outcome.diverged
+
+
+def test_simulate_clamps_to_the_bench_command_limits(tmp_path: Path) -> None:
+    """A step reference from rest asks the first samples for an output no command reaches by then: unclamped, the
+    law integrates that error trial after trial (the demo's first command grew ~3,000 rpm a trial). Offline, as on
+    the bench, the law clamps to ``drive.velocity_limit`` and the log records the limits."""
+    limit = 2.0  # the step's steady state needs u = 1.23 / 1.68 = 0.73; the first samples ask for far more
+    path = tmp_path / "one_loop.yaml"
+    _config(tmp_path)  # writes one_loop.yaml, edited below
+    document = yaml.safe_load(path.read_text(encoding="utf-8"))
+    document["drive"]["velocity_limit"] = limit
+    path.write_text(yaml.safe_dump(document), encoding="utf-8")
+    config = load_config(path)
+    out = tmp_path / "clamped.mcap"
+    result = simulate(config, law="foilc", trials=8, design=_design(), input_delay=1, out=out)
+    controls = np.asarray(result.controls)
+    assert np.max(np.abs(controls)) == pytest.approx(limit)  # reached, never passed
+    again = simulate(config, law="foilc", trials=8, design=_design(), input_delay=1).controls
+    assert np.array_equal(np.asarray(again), controls)  # deterministic: the clamp is the law's, not chance
+    assert all(trial["command_limits"] == [-limit, limit] for trial in read_log(out).trials)

@@ -116,9 +116,17 @@ class SimulationResult:
 def build_law(
     config: Config, law: str, n_samples: int, *, design: Design | None = None, input_delay: int = 0
 ) -> tuple[LearningLaw, Design | None, dict[str, Any]]:
-    """The law ``law`` for ``config`` with its design and certificates (:mod:`foilc_hil.design.pipeline`)."""
+    """The law ``law`` for ``config`` with its design and certificates (:mod:`foilc_hil.design.pipeline`), clamping
+    to the bench's command limits (:func:`~foilc_hil.loop.bench.command_limiter`) as ``run`` builds it.
+
+    Why the limits offline too: a sample whose error no command can remove (the demo's first samples: the reference
+    asks for more acceleration than the torque limit gives) is integrated trial after trial. Unclamped, the learned
+    command there grew by about 3,000 rpm a trial (93,700 rpm at trial 30 on the demo axis), a command the bench
+    would never send; clamped, the law learns from what is applied, as on the bench.
+    """
     from foilc_hil.design.pipeline import build_design, model_delay_samples
     from foilc_hil.laws.learning import make_law
+    from foilc_hil.loop.bench import command_limiter
 
     if design is None:
         design = build_design(config, law, n_samples, input_delay=input_delay)
@@ -134,7 +142,8 @@ def build_law(
             key="plant.delay",
         )
     certificates = {} if design.certificates is None else design.certificates.to_json()
-    return make_law(design, config.law, n_samples), design, certificates
+    limiter = command_limiter(config)
+    return make_law(design, config.law, n_samples, limits=(limiter.lower, limiter.upper)), design, certificates
 
 
 # --- the trial loop: the bench's, on a simulated drive ----------------------------------------------------------
@@ -153,8 +162,8 @@ def simulate(
 
     The trials run in the bench's :class:`~foilc_hil.loop.bench.TrialLoop`, in lockstep, on a
     :class:`~foilc_hil.loop.simulated_drive.SimulatedDrive` whose transport delay is the law's input delay; the
-    drive resets the plant before each trial, so there is no settle phase, and it has no command limits of its own
-    (the plant's ``saturation`` acts inside the plant).
+    drive resets the plant before each trial, so there is no settle phase. The law clamps to the bench's command
+    limits (:func:`build_law`); the drive has none of its own (the plant's ``saturation`` acts inside the plant).
 
     Parameters
     ----------
@@ -191,7 +200,9 @@ def simulate(
         )
     started = time.perf_counter()
     with contextlib.ExitStack() as stack:
-        collector = _TrialCollector(_open_log(stack, out, config, used_design) if out is not None else None)
+        limits = learning_law.limits
+        log = _open_log(stack, out, config, used_design, limits) if out is not None else None
+        collector = _TrialCollector(log)
         stopped = _run_trials(config, learning_law, trials, collector)
     return _result(config, law, collector.records, certificates, used_design, stopped, time.perf_counter() - started)
 
@@ -278,7 +289,10 @@ def _result(
     )
 
 
-def _open_log(stack: contextlib.ExitStack, out: str | Path, config: Config, design: Design | None) -> McapSink:
+def _open_log(
+    stack: contextlib.ExitStack, out: str | Path, config: Config, design: Design | None,
+    limits: tuple[float, float] | None,
+) -> McapSink:
     from foilc_hil.config import dump_config
     from foilc_hil.io.mcap_log import McapLogWriter
     from foilc_hil.loop.bench import McapSink
@@ -290,7 +304,7 @@ def _open_log(stack: contextlib.ExitStack, out: str | Path, config: Config, desi
         fsync=False,
     )
     stack.callback(writer.close)
-    return McapSink(writer, None)  # no limiter offline: /ilc/trial without clamped / command_limits
+    return McapSink(writer, limits)  # /ilc/trial records the limits the law clamped to (replay --verify uses them)
 
 
 # --- plots ------------------------------------------------------------------------------------------------------
