@@ -4,10 +4,12 @@ A bus's Notifier thread receives every frame and hands a TPDO to the loop thread
 wake-ups in series (the Notifier woken by the kernel, then the loop woken by the Notifier), each late by the host's
 wake-up latency and by the wait for the GIL. In a realtime run the bench instead receives the cyclic TPDOs on its
 loop thread itself: a second python-can bus object on the same interface and channel (python-can gives every bus
-object its own copy of each frame on ``socketcan``, ``udp_multicast`` and ``virtual``), filtered to the drives' TPDO
+object its own copy of each frame on ``socketcan``, ``udp_multicast`` and ``virtual``) keeping the drives' TPDO
 COB-IDs, polled with ``recv`` between SYNC and the feedback deadline. The Notifier keeps receiving every frame on
 the first bus object (the frame tap, so the log is unchanged; EMCY, heartbeat, SDO), but no longer dispatches the
-TPDOs: :class:`~drivers.network.DriveNetwork` routes them here instead.
+TPDOs: :class:`~drivers.network.DriveNetwork` routes them here instead. The COB-IDs are picked here, not by the
+bus's ``can_filters``: on interfaces that filter in software (``udp_multicast``, ``virtual``) a non-blocking
+``recv`` returns nothing when the first queued frame is filtered out, so a drain would stop at it.
 
 Polling: ``recv`` is called non-blocking for the first ``spin`` seconds of a wait (the thread stays on the CPU, so a
 frame arriving then costs no wake-up), then blocking for the rest (the kernel wakes the thread: one wake-up instead
@@ -33,8 +35,6 @@ from drivers.inprocess import INTERFACE as INPROCESS_INTERFACE
 __all__ = ["CyclicReceive", "CyclicReceiver", "open_cyclic_receiver"]
 
 Callback = Callable[[int, bytearray, float], None]
-_STANDARD_MASK = 0x7FF
-_NOTHING: can.typechecking.CanFilter = {"can_id": 0, "can_mask": 0x1FFF_FFFF, "extended": True}
 
 
 class CyclicReceive(StrEnum):
@@ -64,28 +64,20 @@ class CyclicReceiver:
         self.frames = 0  # routed frames dispatched
 
     def route(self, can_id: int, callback: Callback) -> None:
-        """Dispatch frames with ``can_id`` to ``callback`` from now on (the bus filters to the routed COB-IDs)."""
+        """Dispatch frames with ``can_id`` to ``callback`` from now on (other frames are dropped)."""
         self._routes[can_id] = callback
-        self._filter()
 
     def unroute(self, can_id: int) -> None:
         """Stop dispatching ``can_id`` (idempotent)."""
-        if self._routes.pop(can_id, None) is not None:
-            self._filter()
+        self._routes.pop(can_id, None)
 
     @property
     def routes(self) -> frozenset[int]:
         """The COB-IDs received here."""
         return frozenset(self._routes)
 
-    def _filter(self) -> None:
-        filters: list[can.typechecking.CanFilter] = [
-            {"can_id": can_id, "can_mask": _STANDARD_MASK, "extended": False} for can_id in self._routes]
-        # no route: a filter no CANopen frame matches (an empty list would let everything through)
-        self.bus.set_filters(filters or [_NOTHING])
-
     def poll(self, timeout: float) -> bool:
-        """Receive and dispatch one routed frame within ``timeout`` seconds; False when none came."""
+        """Receive one frame within ``timeout`` seconds and dispatch it; False when none came or it is not routed."""
         recv = self.bus.recv
         if self.spin > 0.0:
             now = time.monotonic()
@@ -112,7 +104,7 @@ class CyclicReceiver:
     def _dispatch(self, msg: can.Message) -> bool:
         callback = self._routes.get(msg.arbitration_id)
         if callback is None or msg.is_error_frame or msg.is_remote_frame:
-            return False  # a software-filtered interface lets nothing else through; a kernel filter neither
+            return False  # the bench's own SYNC and RPDO, heartbeats, other nodes' frames: the Notifier has them
         self.frames += 1
         callback(msg.arbitration_id, msg.data, msg.timestamp)
         return True

@@ -20,10 +20,21 @@ from collections.abc import Callable, Iterable
 
 import can
 
-__all__ = ["LOST_PERIODS", "SyncAnticipatingNotifier"]
+__all__ = ["LOST_PERIODS", "SyncAnticipatingNotifier", "sync_wait"]
 
 LOST_PERIODS = 10
 """Periods without SYNC after which the thread stops anticipating and blocks until the next one."""
+
+
+def sync_wait(now: float, last: float, period: float, margin: float) -> float | None:
+    """How long the receive thread may block at ``now`` after a SYNC at ``last``: 0 inside the window around the
+    next SYNC due (``margin`` either side), the time until the window opens before it, None once no SYNC came for
+    :data:`LOST_PERIODS` periods."""
+    # the SYNC due next: the first of last + k periods (k >= 1) whose window has not closed yet
+    periods = max(1, int((now - last - margin) // period) + 1)
+    if periods > LOST_PERIODS:
+        return None
+    return max(0.0, last + periods * period - margin - now)
 
 
 class SyncAnticipatingNotifier(can.Notifier):
@@ -71,25 +82,14 @@ class SyncAnticipatingNotifier(can.Notifier):
 
     def _receive(self, bus: can.BusABC) -> can.Message | None:
         """One ``recv``: without blocking inside the window around the next SYNC, else blocking until it opens."""
-        last = self._last_sync
-        spinning = False
-        if last is None:
+        wait = None if self._last_sync is None else sync_wait(time.perf_counter(), self._last_sync, self._period(),
+                                                               self.margin)
+        if wait is None:
+            self._last_sync = None  # no SYNC yet, or they stopped: wait for the next one as the kernel wakes us
             msg = bus.recv(self.timeout)
         else:
-            period, margin = self._period(), self.margin
-            now = time.perf_counter()
-            # the SYNC due next: the first of last + k periods (k >= 1) whose window has not closed yet
-            periods = max(1, int((now - last - margin) // period) + 1)
-            if periods > LOST_PERIODS:
-                self._last_sync = None  # SYNCs stopped: wait for the next one as the kernel wakes us
-                msg = bus.recv(self.timeout)
-            else:
-                opens = last + periods * period - margin
-                if now < opens:
-                    msg = bus.recv(min(opens - now, self.timeout))  # other frames (the RPDO) may come meanwhile
-                else:
-                    spinning = True
-                    msg = bus.recv(0.0)
+            msg = bus.recv(min(wait, self.timeout))  # before the window: other frames (the RPDO) may come meanwhile
+        spinning = wait == 0.0
         if msg is not None and msg.arbitration_id == self._sync_id() and not msg.is_error_frame:
             # when it arrived, not when this thread got it: a late wake-up must not shift the next window late;
             # the bus's receive time stamp is wall-clock (python-can), so only its age is used, and bounded
