@@ -60,7 +60,8 @@ ignores RPDOs, so the cyclic path no longer reaches it. The master's own NMT com
 Thread safety
 -------------
 - Public methods are called from ONE control thread (the bench's). canopen's SDO client is not re-entrant.
-- The Notifier thread runs the receive callbacks (TPDO, EMCY, heartbeat). They touch only the state guarded by
+- The Notifier thread runs the receive callbacks (TPDO, EMCY, heartbeat; with a cyclic receiver the TPDO callback
+  runs on the control thread instead, inside ``wait_feedback`` and ``sync``). They touch only the state guarded by
   ``self._cv`` (a ``threading.Condition``): the current cycle's partial TPDO set, the latest feedback and the
   queue of pending errors. The control thread reads that state only under the same lock.
 - The heartbeat watchdog thread only posts a pending error under ``self._cv``.
@@ -937,7 +938,9 @@ class Cia402Drive(Drive):
         The lock is taken only to look at the shared state, never across a ``recv``: the Notifier thread posts its
         errors (EMCY, heartbeat) meanwhile, and they are seen after at most :data:`RECEIVE_POLL`.
         """
-        deadline = time.monotonic() + timeout
+        start = time.monotonic()
+        deadline = start + timeout
+        spin_until = start + receiver.spin
         cycle = self._cycle  # only this thread changes it
         while True:
             with self._lock:
@@ -948,7 +951,7 @@ class Cia402Drive(Drive):
             if remaining <= 0:
                 with self._lock:
                     raise self._no_answer(cycle, f"within {timeout:.3f} s")
-            receiver.poll(min(remaining, RECEIVE_POLL))
+            receiver.poll(min(remaining, RECEIVE_POLL), spin_until)
 
     def _answer(self, cycle: int, *, raise_on_fault: bool, raise_errors: bool) -> Feedback | None:
         """This cycle's feedback if it is in, after raising what is pending (caller holds self._cv)."""

@@ -11,10 +11,12 @@ TPDOs: :class:`~drivers.network.DriveNetwork` routes them here instead. The COB-
 bus's ``can_filters``: on interfaces that filter in software (``udp_multicast``, ``virtual``) a non-blocking
 ``recv`` returns nothing when the first queued frame is filtered out, so a drain would stop at it.
 
-Polling: ``recv`` is called non-blocking for the first ``spin`` seconds of a wait (the thread stays on the CPU, so a
-frame arriving then costs no wake-up), then blocking for the rest (the kernel wakes the thread: one wake-up instead
-of two). Frames still queued when the next SYNC is sent (they arrived after their wait gave up) are dispatched
-first by :meth:`CyclicReceiver.drain`, so they answer the cycle they belong to, never the next one.
+Polling: ``recv`` is called non-blocking for the first ``spin`` seconds of a wait (the thread stays on the CPU and
+keeps the GIL, so a frame arriving then costs no wake-up), then blocking for the rest (the kernel wakes the thread,
+and it may then wait for the GIL the Notifier took to show the same frame to the tap: measured no faster than the
+Notifier's hand-off, so a realtime bench spins). Frames still queued when the next SYNC is sent (they arrived after
+their wait gave up) are dispatched first by :meth:`CyclicReceiver.drain`, so they answer the cycle they belong to,
+never the next one.
 
 Thread safety: :meth:`route`, :meth:`poll`, :meth:`drain` and :meth:`close` run on the one control thread; the
 callbacks run there too, and take their drive's lock as they do on the Notifier thread.
@@ -52,7 +54,7 @@ class CyclicReceiver:
     bus
         A second bus object on the network's interface and channel; owned: :meth:`close` shuts it down.
     spin
-        Seconds of each :meth:`poll` spent in non-blocking ``recv`` calls before a blocking one.
+        Seconds from the start of each wait for feedback spent in non-blocking ``recv`` calls before blocking ones.
     """
 
     def __init__(self, bus: can.BusABC, spin: float = 0.0) -> None:
@@ -76,20 +78,22 @@ class CyclicReceiver:
         """The COB-IDs received here."""
         return frozenset(self._routes)
 
-    def poll(self, timeout: float) -> bool:
-        """Receive one frame within ``timeout`` seconds and dispatch it; False when none came or it is not routed."""
+    def poll(self, timeout: float, spin_until: float = 0.0) -> bool:
+        """Receive one frame within ``timeout`` seconds and dispatch it; False when none came or it is not routed.
+
+        Until ``spin_until`` (``time.monotonic()``; a wait sets it to its start plus :attr:`spin`) ``recv`` does not
+        block.
+        """
         recv = self.bus.recv
-        if self.spin > 0.0:
-            now = time.monotonic()
-            end = now + min(self.spin, timeout)
-            while True:
+        now = time.monotonic()
+        if now < spin_until:
+            end = now + timeout
+            while now < spin_until:
                 msg = recv(0.0)
                 if msg is not None:
                     return self._dispatch(msg)
                 now = time.monotonic()
-                if now >= end:
-                    break
-            timeout -= self.spin
+            timeout = end - now
             if timeout <= 0.0:
                 return False
         msg = recv(timeout)

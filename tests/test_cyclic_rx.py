@@ -8,6 +8,7 @@ masters against a realtime emulator with and without it (same feedback, counters
 from __future__ import annotations
 
 import itertools
+import time
 from collections.abc import Iterator
 
 import can
@@ -46,9 +47,10 @@ def test_the_receiver_dispatches_only_its_routes(channel: str, spin: float) -> N
         receiver.route(0x181, lambda can_id, data, _: got.append((can_id, bytes(data))))
         for can_id in (0x080, 0x201, 0x181, 0x701):
             sender.send(_frame(can_id))
-        assert [receiver.poll(1.0) for _ in range(4)] == [False, False, True, False]  # the others are dropped
+        spin_until = time.monotonic() + spin
+        assert [receiver.poll(1.0, spin_until) for _ in range(4)] == [False, False, True, False]  # others dropped
         assert got == [(0x181, b"\x01\x02")]
-        assert not receiver.poll(0.001)  # nothing left
+        assert not receiver.poll(0.001, spin_until)  # nothing left
         assert receiver.frames == 1
         receiver.unroute(0x181)
         sender.send(_frame(0x181))
