@@ -233,11 +233,12 @@ class VirtualDrive:
 
     def _connect(self, network: canopen.Network) -> None:
         """Start the receive path: realtime on a python-can bus with ``emulator.realtime.sync_anticipation``, a
-        thread that is awake when SYNC is due (:mod:`plant_emulator.sync_rx`); else canopen's (or the in-process
-        transport's) own."""
+        thread that is awake when SYNC is due (:mod:`plant_emulator.sync_rx`; the first drive of the process only);
+        else canopen's (or the in-process transport's) own."""
         margin = self.settings.realtime.sync_anticipation
         bus = network.bus
-        if self.timing is not TimingMode.REALTIME or not margin or bus is None or isinstance(bus, InProcessBus):
+        if (self.timing is not TimingMode.REALTIME or not margin or bus is None or isinstance(bus, InProcessBus)
+                or SyncAnticipatingNotifier.running()):  # one per process: see plant_emulator.sync_rx
             connect_network(network)
             return
         network.notifier = SyncAnticipatingNotifier(

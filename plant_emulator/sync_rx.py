@@ -8,6 +8,10 @@ the next SYNC is due until ``margin`` after, so a SYNC arriving then finds it ru
 once SYNCs stop coming (start-up, between runs, a stalled master: :data:`LOST_PERIODS` periods without one), it
 blocks in ``recv`` as python-can's thread does. Every received frame goes to the listeners as with the Notifier.
 
+One per process (:meth:`SyncAnticipatingNotifier.running`): the drives of a multi-node emulator process
+(``--node-id 1,2,3,4``) each have a receive thread, and several threads polling without blocking would take the GIL
+from each other; the first drive's anticipates, the others block.
+
 Thread safety: the thread is python-can's (named as python-can names its own, so the realtime host setup gives it
 the cyclic priority, :mod:`drivers.realtime`); ``period`` and ``sync_id`` are called on it.
 """
@@ -52,6 +56,15 @@ class SyncAnticipatingNotifier(can.Notifier):
         The SYNC COB-ID now (the drive's 0x1005).
     """
 
+    _running = 0  # instances started and not stopped, in this process
+    _count_lock = threading.Lock()
+
+    @classmethod
+    def running(cls) -> int:
+        """How many are running in this process."""
+        with cls._count_lock:
+            return cls._running
+
     def __init__(self, bus: can.BusABC, listeners: Iterable[can.Listener], timeout: float, *, margin: float,
                  period: Callable[[], float], sync_id: Callable[[], int]) -> None:
         if not margin > 0:
@@ -62,10 +75,21 @@ class SyncAnticipatingNotifier(can.Notifier):
         self._last_sync: float | None = None  # time.perf_counter() when the last SYNC was received
         #: SYNCs received while polling without blocking (the anticipated ones)
         self.anticipated = 0
+        with SyncAnticipatingNotifier._count_lock:
+            SyncAnticipatingNotifier._running += 1
+        self._counted = True
         super().__init__(bus, list(listeners), timeout)
         for reader in self._readers:
             if isinstance(reader, threading.Thread):  # python-can names it after the class: the name it gives its own
                 reader.name = f'Notifier for bus "{bus.channel_info}"'
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """python-can's ``stop``; the process may start another one afterwards."""
+        with SyncAnticipatingNotifier._count_lock:
+            if self._counted:
+                SyncAnticipatingNotifier._running -= 1
+                self._counted = False
+        super().stop(timeout)
 
     def _rx_thread(self, bus: can.BusABC) -> None:
         """python-can's receive loop, with :meth:`_receive` for ``bus.recv``."""

@@ -82,7 +82,8 @@ def test_the_anticipating_thread_delivers_every_frame_and_catches_syncs_awake() 
 def test_a_realtime_drive_anticipates_sync_only_when_asked(margin: float) -> None:
     settings = EmulatorConfig(timing="realtime", realtime=EmulatorRealtimeConfig(sync_anticipation=margin))
     plant = PlantConfig(model="first_order", a=-1.23, b=1.68)
-    with EmbeddedEmulator(plant, settings, node_id=3, sample_time=0.01) as emulator:
-        link = emulator.drive.node.link
-        assert link is not None
-        assert isinstance(link.notifier, SyncAnticipatingNotifier) is (margin > 0)
+    with EmbeddedEmulator(plant, settings, node_id=(3, 4), sample_time=0.01) as emulator:
+        notifiers = [drive.node.link.notifier for drive in emulator.drives if drive.node.link is not None]
+        anticipating = [isinstance(notifier, SyncAnticipatingNotifier) for notifier in notifiers]
+        assert anticipating == ([True, False] if margin else [False, False])  # one per process
+    assert SyncAnticipatingNotifier.running() == 0
