@@ -949,6 +949,8 @@ class Cia402Drive(Drive):
                 return feedback
             remaining = deadline - time.monotonic()
             if remaining <= 0:
+                if receiver.drain():  # frames already received count, as the Notifier would have dispatched them
+                    continue
                 with self._lock:
                     raise self._no_answer(cycle, f"within {timeout:.3f} s")
             receiver.poll(min(remaining, RECEIVE_POLL), spin_until)

@@ -99,11 +99,14 @@ class CyclicReceiver:
         msg = recv(timeout)
         return msg is not None and self._dispatch(msg)
 
-    def drain(self) -> None:
-        """Dispatch every routed frame already received (before a new cycle begins: they answer the old one)."""
+    def drain(self) -> bool:
+        """Dispatch every frame already received (before a new cycle begins they answer the old one; at the end of
+        a wait, e.g. one given no time at all, they may complete it); True when any was routed."""
         recv = self.bus.recv
+        routed = False
         while (msg := recv(0.0)) is not None:
-            self._dispatch(msg)
+            routed = self._dispatch(msg) or routed
+        return routed
 
     def _dispatch(self, msg: can.Message) -> bool:
         callback = self._routes.get(msg.arbitration_id)
