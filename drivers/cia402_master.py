@@ -322,7 +322,6 @@ class Cia402Drive(Drive):
         self.sample_time = sample_time
         self.od = od
         self._bus = bus
-
         if network is not None and network.bus is not bus:
             raise DriveError(f"node {cfg.node_id}: the shared network is on another bus")
         if network is not None and receiver is not None:
