@@ -22,7 +22,9 @@ Start-up follows what real CANopen masters do, using only standard objects, so a
 Cyclic path (never SDO): ``set_target`` encodes the RPDO with a precomputed :class:`~drivers.pdo.PdoCodec` and
 sends it; ``sync`` sends a prebuilt SYNC (DLC 0: no counter, so no drive needs 0x1019) and advances the master's
 cycle counter; TPDOs are decoded on the Notifier thread and handed to ``wait_feedback`` through a condition
-variable.
+variable, or, with a :class:`~drivers.cyclic_rx.CyclicReceiver` (the realtime bench), received and decoded by
+``wait_feedback`` itself on the control thread (same decoding, counters and errors; the Notifier still shows them
+to the frame tap).
 
 Waiting: every wait of the master (feedback, heartbeats, state changes, pacing) runs on the bus's timebase
 (:func:`drivers.inprocess.timebase_of`). On a lockstep in-process bus (the embedded emulator) frames are delivered
@@ -58,7 +60,8 @@ ignores RPDOs, so the cyclic path no longer reaches it. The master's own NMT com
 Thread safety
 -------------
 - Public methods are called from ONE control thread (the bench's). canopen's SDO client is not re-entrant.
-- The Notifier thread runs the receive callbacks (TPDO, EMCY, heartbeat). They touch only the state guarded by
+- The Notifier thread runs the receive callbacks (TPDO, EMCY, heartbeat; with a cyclic receiver the TPDO callback
+  runs on the control thread instead, inside ``wait_feedback`` and ``sync``). They touch only the state guarded by
   ``self._cv`` (a ``threading.Condition``): the current cycle's partial TPDO set, the latest feedback and the
   queue of pending errors. The control thread reads that state only under the same lock.
 - The heartbeat watchdog thread only posts a pending error under ``self._cv``.
@@ -113,6 +116,7 @@ from drivers.cia402 import (
     decode_state,
 )
 from drivers.config import DriveConfig
+from drivers.cyclic_rx import CyclicReceiver
 from drivers.drive import DISABLED_STATES, DeviceInfo, Drive, Feedback, StopPath, StopReport
 from drivers.emcy import decode_emcy
 from drivers.heartbeat import HeartbeatMonitor
@@ -145,6 +149,10 @@ CIA402_PROFILE = 402
 MASTER_HEARTBEATS_PER_CONSUMER_TIME = 4
 """The master beats this many times per drive consumer time (0x1016), so one lost or late frame never trips it."""
 HEARTBEAT_WATCHDOG_POLL = 0.05  # s between checks of the drive's heartbeat deadline
+FEEDBACK_POLL = 0.05  # s: a wait for feedback looks at the heartbeat deadline at least this often
+#: s: with a cyclic receiver, a wait for feedback sees the Notifier's errors (EMCY, heartbeat) at least this often
+#: (it blocks in recv, not on the condition they notify); short against the drive's reaction, long against 1 cycle
+RECEIVE_POLL = 0.005
 
 _REQUIRED_FEEDBACK = (Obj.STATUSWORD, Obj.VELOCITY_ACTUAL_VALUE)
 """Feedback every mode needs: the 402 state and the axis output."""
@@ -302,6 +310,7 @@ class Cia402Drive(Drive):
         sample_time: float,
         od: ObjectDictionary,
         network: DriveNetwork | None = None,
+        receiver: CyclicReceiver | None = None,
     ) -> None:
         if not (sample_time > 0 and math.isfinite(sample_time)):
             raise ConfigError(f"must be a positive number of seconds, got {sample_time}", key="sample_time")
@@ -313,12 +322,13 @@ class Cia402Drive(Drive):
         self.sample_time = sample_time
         self.od = od
         self._bus = bus
-
         if network is not None and network.bus is not bus:
             raise DriveError(f"node {cfg.node_id}: the shared network is on another bus")
+        if network is not None and receiver is not None:
+            raise DriveError(f"node {cfg.node_id}: a shared network has its own cyclic receiver (DriveNetwork)")
         self._owns_network = network is None
         # the tap and the Notifier start with listen(): construction starts nothing
-        self._net = DriveNetwork(bus) if network is None else network
+        self._net = DriveNetwork(bus, receiver) if network is None else network
         self.network = self._net.network
         if self.node_id in self.network:
             raise ConfigError(f"node {self.node_id} is already on this bus's network", key="drive.node_id")
@@ -384,13 +394,16 @@ class Cia402Drive(Drive):
     # --- construction -----------------------------------------------------------------------------------------
 
     @classmethod
-    def open(cls, bus: can.BusABC, cfg: DriveConfig, *, sample_time: float) -> Cia402Drive:
+    def open(cls, bus: can.BusABC, cfg: DriveConfig, *, sample_time: float,
+             receiver: CyclicReceiver | None = None) -> Cia402Drive:
         """A master for drive ``cfg.node_id`` on ``bus`` with the EDS ``cfg.eds`` (default: the shipped one).
 
-        Raises :class:`~foilc_hil.errors.EdsError` for a bad EDS. Nothing is sent until :meth:`connect`.
+        ``receiver``: the TPDOs are received on the thread that waits for them (:mod:`drivers.cyclic_rx`; it
+        stays the caller's, as the bus does). Raises :class:`~foilc_hil.errors.EdsError` for a bad EDS. Nothing
+        is sent until :meth:`connect`.
         """
         od = load_od(cfg.eds, cfg.node_id)
-        return cls(bus, cfg, sample_time=sample_time, od=od)
+        return cls(bus, cfg, sample_time=sample_time, od=od, receiver=receiver)
 
     @classmethod
     def on_network(cls, network: DriveNetwork, cfg: DriveConfig, *, sample_time: float) -> Cia402Drive:
@@ -901,35 +914,71 @@ class Cia402Drive(Drive):
     # --- cyclic helpers ---------------------------------------------------------------------------------------
 
     def _await_feedback(self, timeout: float, *, raise_on_fault: bool, raise_errors: bool = True) -> Feedback:
+        receiver = self._net.receiver
+        if receiver is not None:
+            return self._receive_feedback(receiver, timeout, raise_on_fault=raise_on_fault, raise_errors=raise_errors)
         synchronous = self._timebase.synchronous
         deadline = time.monotonic() + timeout
-        poll = 0.05
         with self._lock:
             cycle = self._cycle
             while True:
-                if self._errors and raise_errors:
-                    raise self._errors.popleft()
-                try:
-                    self.heartbeat.check()
-                except HeartbeatLostError:
-                    self._heartbeat_fault = True
-                    raise
-                feedback = self._feedback
-                if feedback is not None and feedback.cycle == cycle:
-                    if raise_on_fault and feedback.statusword & _FAULT_BIT:
-                        raise DriveFaultError(
-                            f"node {self.node_id} reports a fault: statusword 0x{feedback.statusword:04X} "
-                            f"({feedback.state.name})"
-                        )
+                feedback = self._answer(cycle, raise_on_fault=raise_on_fault, raise_errors=raise_errors)
+                if feedback is not None:
                     return feedback
                 remaining = deadline - time.monotonic()
                 if remaining <= 0 or synchronous:
-                    notifier = self.network.notifier
-                    if notifier is not None and notifier.exception is not None:
-                        raise DriveError(f"the CAN receive thread stopped: {notifier.exception}")
-                    waited = "on the synchronous bus" if synchronous else f"within {timeout:.3f} s"
-                    raise FeedbackTimeoutError(f"no TPDO set from node {self.node_id} answered SYNC {cycle} {waited}")
-                self._cv.wait(min(remaining, poll))
+                    raise self._no_answer(cycle, "on the synchronous bus" if synchronous else f"within {timeout:.3f} s")
+                self._cv.wait(min(remaining, FEEDBACK_POLL))
+
+    def _receive_feedback(self, receiver: CyclicReceiver, timeout: float, *, raise_on_fault: bool,
+                          raise_errors: bool) -> Feedback:
+        """:meth:`_await_feedback` with the TPDOs received on this thread (:mod:`drivers.cyclic_rx`).
+
+        The lock is taken only to look at the shared state, never across a ``recv``: the Notifier thread posts its
+        errors (EMCY, heartbeat) meanwhile, and they are seen after at most :data:`RECEIVE_POLL`.
+        """
+        start = time.monotonic()
+        deadline = start + timeout
+        spin_until = start + receiver.spin
+        cycle = self._cycle  # only this thread changes it
+        while True:
+            with self._lock:
+                feedback = self._answer(cycle, raise_on_fault=raise_on_fault, raise_errors=raise_errors)
+            if feedback is not None:
+                return feedback
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                if receiver.drain():  # frames already received count, as the Notifier would have dispatched them
+                    continue
+                with self._lock:
+                    raise self._no_answer(cycle, f"within {timeout:.3f} s")
+            receiver.poll(min(remaining, RECEIVE_POLL), spin_until)
+
+    def _answer(self, cycle: int, *, raise_on_fault: bool, raise_errors: bool) -> Feedback | None:
+        """This cycle's feedback if it is in, after raising what is pending (caller holds self._cv)."""
+        if self._errors and raise_errors:
+            raise self._errors.popleft()
+        try:
+            self.heartbeat.check()
+        except HeartbeatLostError:
+            self._heartbeat_fault = True
+            raise
+        feedback = self._feedback
+        if feedback is not None and feedback.cycle == cycle:
+            if raise_on_fault and feedback.statusword & _FAULT_BIT:
+                raise DriveFaultError(
+                    f"node {self.node_id} reports a fault: statusword 0x{feedback.statusword:04X} "
+                    f"({feedback.state.name})"
+                )
+            return feedback
+        return None
+
+    def _no_answer(self, cycle: int, waited: str) -> DriveError:
+        """The error of an unanswered SYNC: the receive thread's own failure if it stopped, else a timeout."""
+        notifier = self.network.notifier
+        if notifier is not None and notifier.exception is not None:
+            return DriveError(f"the CAN receive thread stopped: {notifier.exception}")
+        return FeedbackTimeoutError(f"no TPDO set from node {self.node_id} answered SYNC {cycle} {waited}")
 
     def _exchange_timeout(self) -> float:
         return min(self.cfg.state_timeout, max(0.2, 10 * self._cycle_period))
@@ -1198,7 +1247,7 @@ class Cia402Drive(Drive):
 
     def _install_codecs(self, mode: OperationMode, rpdos: Iterable[PdoLayout], tpdos: Iterable[PdoLayout]) -> None:
         for cob in list(self._tpdo_codecs):
-            self.network.unsubscribe(cob, self._on_tpdo)
+            self._net.unsubscribe_cyclic(cob, self._on_tpdo)
         rpdo = next(iter(rpdos))
         codec = rpdo.codec()
         target = codec.variables[1]

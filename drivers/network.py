@@ -8,6 +8,11 @@ frames nobody subscribed to, one SYNC and one :class:`~drivers.heartbeat.Heartbe
 :meth:`drivers.cia402_master.Cia402Drive.on_network`; a drive built alone (``Cia402Drive.open``) gets a private one,
 so the single-drive path is the one-member case of the same code.
 
+Cyclic receiver (realtime bench): with a :class:`~drivers.cyclic_rx.CyclicReceiver` the members' TPDOs are received
+on the control thread that waits for them (see :mod:`drivers.cyclic_rx`) instead of being dispatched by the
+Notifier, which still shows them to the frame tap; their COB-IDs stay subscribed (to :func:`received_elsewhere`) so
+the count of unknown frames is unchanged.
+
 SYNC: :meth:`DriveNetwork.sync` first starts a new cycle on every member (each drive's TPDO set from then on answers
 it), then sends one SYNC frame. On a synchronous (lockstep) bus one cycle period of simulated time passes since the
 previous SYNC first, as for a single drive.
@@ -26,13 +31,19 @@ import canopen
 
 from drivers.bus import FrameTap
 from drivers.cia301 import SYNC_COB_ID
+from drivers.cyclic_rx import CyclicReceiver
 from drivers.heartbeat import HeartbeatProducer
 from drivers.inprocess import connect_network, subscribe_cyclic, timebase_of
 from foilc_hil.errors import ConfigError, DriveError
 
-__all__ = ["DriveNetwork", "UnknownFrameCounter"]
+__all__ = ["DriveNetwork", "UnknownFrameCounter", "received_elsewhere"]
 
 NOTIFIER_CYCLE = 0.1  # s the Notifier blocks in recv(): bounds how long close() waits for its thread
+
+
+def received_elsewhere(can_id: int, data: bytearray, timestamp: float) -> None:
+    """The Notifier's subscriber of a COB-ID the cyclic receiver owns: the frame is known (not counted as
+    unknown) and handled on the control thread, not here."""
 
 
 class UnknownFrameCounter(can.Listener):
@@ -57,10 +68,14 @@ class DriveNetwork:
     ----------
     bus
         The python-can bus every member drive is on.
+    receiver
+        Receives the members' TPDOs on the control thread (realtime bench); None: the Notifier dispatches them.
+        It belongs to the caller, as the bus does.
     """
 
-    def __init__(self, bus: can.BusABC) -> None:
+    def __init__(self, bus: can.BusABC, receiver: CyclicReceiver | None = None) -> None:
         self.bus = bus
+        self.receiver = receiver
         self.network = canopen.Network(bus)
         self.network.NOTIFIER_CYCLE = NOTIFIER_CYCLE
         self.tap = FrameTap()
@@ -83,8 +98,21 @@ class DriveNetwork:
 
     def subscribe_cyclic(self, can_id: int, callback: Callable[[int, bytearray, float], None]) -> None:
         """``network.subscribe`` for a cyclic COB-ID (a member's TPDO): on a listening in-process bus its frames
-        take a direct route to the frame tap and the subscribers (:func:`drivers.inprocess.subscribe_cyclic`)."""
+        take a direct route to the frame tap and the subscribers (:func:`drivers.inprocess.subscribe_cyclic`); with
+        a cyclic receiver they are received on the control thread (the Notifier only shows them to the tap)."""
+        if self.receiver is not None:
+            self.receiver.route(can_id, callback)
+            self.network.subscribe(can_id, received_elsewhere)
+            return
         subscribe_cyclic(self.network, can_id, callback, observer=self.tap.on_message_received)
+
+    def unsubscribe_cyclic(self, can_id: int, callback: Callable[[int, bytearray, float], None]) -> None:
+        """Undo :meth:`subscribe_cyclic` (the frames with ``can_id`` no longer reach ``callback``)."""
+        if self.receiver is not None and can_id in self.receiver.routes:
+            self.receiver.unroute(can_id)
+            self.network.unsubscribe(can_id, received_elsewhere)
+        else:
+            self.network.unsubscribe(can_id, callback)
 
     def join(self, begin_cycle: Callable[[], None]) -> None:
         """Register a member: ``begin_cycle()`` runs before every SYNC (the member's new cycle starts)."""
@@ -134,6 +162,8 @@ class DriveNetwork:
         if timebase.synchronous:
             timebase.sleep(self._sync_at + cycle_period - timebase.now())
             self._sync_at = timebase.now()
+        if self.receiver is not None:  # late answers of the old cycle are its own, not the new one's
+            self.receiver.drain()
         for begin_cycle in self._members:
             begin_cycle()
         # sent outside any drive's lock: on a synchronous bus the answers are delivered inside send, possibly by

@@ -17,7 +17,7 @@ from pydantic import Field, model_validator
 
 from drivers.config import BusConfig, DriveConfig
 from drivers.faults import Injection
-from drivers.realtime import RealtimeConfig
+from drivers.realtime import BenchRealtimeConfig
 from foilc_hil.schema import Section, apply_overrides, load_document, validate
 from plant_emulator.config import PlantConfig
 from plant_emulator.settings import EmulatorConfig
@@ -194,7 +194,7 @@ class BenchConfig(Section):
     settle_time: float = Field(default=0.5, ge=0)  # initial-condition reset between trials, seconds
     settle_tolerance: float = Field(default=1.0, ge=0)  # |y| below this counts as at rest
     faults: FaultPolicyConfig = FaultPolicyConfig()
-    realtime: RealtimeConfig = RealtimeConfig()  # host settings of a realtime run (drivers.realtime)
+    realtime: BenchRealtimeConfig = BenchRealtimeConfig()  # host settings of a realtime run (drivers.realtime)
 
 
 class AxisConfig(Section):

@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -63,7 +64,7 @@ from canopen import objectdictionary as cod
 
 from drivers.cia301 import SYNC_COB_ID, CobIdEntry, FunctionCode, NmtCommand, NmtState, check_node_id
 from drivers.cia402 import Obj, State402
-from drivers.inprocess import LockstepClock, connect_network, subscribe_cyclic, timebase_of
+from drivers.inprocess import InProcessBus, LockstepClock, connect_network, subscribe_cyclic, timebase_of
 from drivers.od import DEFAULT_EDS
 from foilc_hil.errors import InputError
 from plant_emulator.application import APPLICATION_OBJECTS, Cia402Application, FaultKind
@@ -76,6 +77,7 @@ from plant_emulator.sdo_guard import SdoGuard
 from plant_emulator.settings import EmulatorConfig
 from plant_emulator.state_machine import PowerStateMachine
 from plant_emulator.supervision import MONITOR_PERIOD, Supervisor
+from plant_emulator.sync_rx import SyncAnticipatingNotifier
 
 __all__ = [
     "DEFAULT_EDS",
@@ -184,6 +186,7 @@ class VirtualDrive:
         )
         self.node.after_write = self._after_write
         self._sync_cob_id = SYNC_COB_ID
+        self._sync_at: float | None = None  # time.perf_counter() of the last SYNC (realtime)
         self._running = False
         self._threads: list[threading.Thread] = []
         self._poll_timer: Callable[[], None] | None = None  # cancels the supervision timer (lockstep bus)
@@ -205,7 +208,7 @@ class VirtualDrive:
         self.supervisor.clock = clock.now
         network = canopen.Network(bus)
         network.NOTIFIER_CYCLE = NOTIFIER_CYCLE
-        connect_network(network)
+        self._connect(network)
         self.node.link = network
         network[self.node_id] = self.node
         # Replace canopen's SDO and NMT subscriptions with gated ones (no SDO in stopped, NMT resets handled).
@@ -225,8 +228,23 @@ class VirtualDrive:
         else:
             self._start_thread(lambda: self.supervisor.run(self._stop_event), "drive-supervision")
         if self.timing is TimingMode.REALTIME:
-            self._start_thread(lambda: self.physics.run_realtime(self._stop_event, self._lock, self._emit_trace),
-                               "drive-physics")
+            self._start_thread(lambda: self.physics.run_realtime(self._stop_event, self._lock, self._emit_trace,
+                                                                 lambda: self._sync_at), "drive-physics")
+
+    def _connect(self, network: canopen.Network) -> None:
+        """Start the receive path: realtime on a python-can bus with ``emulator.realtime.sync_anticipation``, a
+        thread that is awake when SYNC is due (:mod:`plant_emulator.sync_rx`; the first drive of the process only);
+        else canopen's (or the in-process transport's) own."""
+        margin = self.settings.realtime.sync_anticipation
+        bus = network.bus
+        if (self.timing is not TimingMode.REALTIME or not margin or bus is None or isinstance(bus, InProcessBus)
+                or SyncAnticipatingNotifier.running()):  # one per process: see plant_emulator.sync_rx
+            connect_network(network)
+            return
+        network.notifier = SyncAnticipatingNotifier(
+            bus, network.listeners, NOTIFIER_CYCLE, margin=margin,
+            period=lambda: self.physics.cycle_period, sync_id=lambda: self._sync_cob_id,
+        )
 
     def stop(self) -> None:
         """Stop the threads, the heartbeat and the network (the bus is shut down)."""
@@ -408,6 +426,8 @@ class VirtualDrive:
         if not self.node.alive:
             return
         lockstep = self.timing is TimingMode.LOCKSTEP
+        if not lockstep:
+            self._sync_at = time.perf_counter()  # the realtime physics keeps its ticks away from this (tick_phase)
         with self._lock:
             self.sync_count += 1
             self.supervisor.sync_received()

@@ -34,11 +34,12 @@ from plant_emulator.physics.base import Plant
 from plant_emulator.settings import EmulatorConfig
 from plant_emulator.state_machine import MotionKind
 
-__all__ = ["AxisPhysics", "default_units"]
+__all__ = ["PHASE_MEMORY", "AxisPhysics", "default_units", "phased_tick"]
 
 VELOCITY_RESOLUTION_INDEX = 0x2000  # manufacturer object of the shipped EDS: counts of 0x606C per rpm
 RAMP_SETTLE_TIME = 3.0  # s a finished quick-stop ramp waits at most for the axis to come to rest
 REALTIME_MAX_LAG = 10  # periods behind the wall clock after which the clock restarts instead of catching up
+PHASE_MEMORY = 10  # periods after the last SYNC during which the realtime ticks stay phased to the SYNCs
 GC_EVERY_TICKS = 1000  # realtime: collect the young generations this often (automatic gc is off, drivers.realtime)
 _SLOW_QUICK_STOP = (QuickStopOption.SLOW_DOWN_RAMP_THEN_DISABLE, QuickStopOption.SLOW_DOWN_RAMP_STAY)
 
@@ -212,14 +213,22 @@ class AxisPhysics:
         self.node.produce(Obj.VELOCITY_ACTUAL_VALUE, axis.velocity)
         self.node.produce(Obj.POSITION_ACTUAL_VALUE, axis.position)
 
-    def run_realtime(self, stop: threading.Event, lock: threading.RLock, after_tick: Callable[[], None]) -> None:
-        """Tick on the wall clock until ``stop`` is set (the drive's physics thread), ``after_tick`` each time."""
+    def run_realtime(self, stop: threading.Event, lock: threading.RLock, after_tick: Callable[[], None],
+                     last_sync: Callable[[], float | None] | None = None) -> None:
+        """Tick on the wall clock until ``stop`` is set (the drive's physics thread), ``after_tick`` each time.
+
+        ``last_sync()``: the ``time.perf_counter()`` of the last SYNC, if any; with ``emulator.realtime.tick_phase``
+        the ticks are kept that fraction of a period after the SYNCs (:func:`phased_tick`).
+        """
+        phase = self.settings.realtime.tick_phase
         with RealtimeSession(self.settings.realtime):
             next_tick = time.perf_counter()
             ticks = 0
             while not stop.is_set():
                 period = self.cycle_period
                 next_tick += period
+                if phase is not None and last_sync is not None:
+                    next_tick = phased_tick(next_tick, last_sync(), period, phase)
                 delay = next_tick - time.perf_counter()
                 if delay > 0:
                     time.sleep(delay)  # not stop.wait(): a sleep honours the 1 ns timer slack; stop is seen next tick
@@ -232,3 +241,17 @@ class AxisPhysics:
                 ticks += 1
                 if ticks % GC_EVERY_TICKS == 0:
                     collect_young()
+
+
+def phased_tick(tick: float, sync: float | None, period: float, phase: float) -> float:
+    """The tick time nearest to ``tick`` that lies ``phase`` periods after a SYNC grid through ``sync``.
+
+    The SYNC handler and the physics tick both need the GIL and the drive's lock; a tick that falls on a SYNC delays
+    its answer by a whole tick. Keeping the ticks mid-cycle moves them out of its way. The shift is at most half a
+    period (one tick interval between 0.5 and 1.5 periods; the physics still advances one period per tick), and none
+    without a SYNC in the last :data:`PHASE_MEMORY` periods: then the physics keeps its own grid.
+    """
+    if sync is None or tick - sync > PHASE_MEMORY * period:
+        return tick
+    target = sync + phase * period
+    return target + round((tick - target) / period) * period

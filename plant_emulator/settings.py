@@ -10,6 +10,18 @@ from drivers.realtime import RealtimeConfig
 from foilc_hil.schema import Section
 
 
+class EmulatorRealtimeConfig(RealtimeConfig):
+    """``emulator.realtime``: the host settings of the realtime clock plus its SYNC timing
+    (:mod:`plant_emulator.sync_rx`, :meth:`plant_emulator.motion.AxisPhysics.run_realtime`)."""
+
+    # seconds before (and after) the next SYNC is due during which the receive thread polls without blocking, so
+    # a SYNC on time finds it awake; 0: it blocks in recv and the kernel wakes it (python-can's Notifier)
+    sync_anticipation: float = Field(default=0.0002, ge=0, le=0.01)
+    # the physics ticks this fraction of a period after the last SYNC, away from the SYNC's own handling (both take
+    # the GIL and the drive's lock); None: on its own free-running grid
+    tick_phase: float | None = Field(default=0.5, ge=0, lt=1)
+
+
 class EmulatorConfig(Section):
     """Virtual drive settings.
 
@@ -27,4 +39,4 @@ class EmulatorConfig(Section):
     torque_limit_fault_cycles: int = Field(default=200, ge=0)  # torque limited this long -> over-current; 0: never
     velocity_window: float = Field(default=10.0, ge=0)  # target reached window (drive velocity units), PV mode
     standstill_velocity: float = Field(default=1.0, ge=0)  # |v| below this ends a quick stop ramp (drive units)
-    realtime: RealtimeConfig = RealtimeConfig()  # host settings of the realtime clock (drivers.realtime)
+    realtime: EmulatorRealtimeConfig = EmulatorRealtimeConfig()  # host settings and SYNC timing of the realtime clock

@@ -46,6 +46,7 @@ from foilc_hil.loop.bench import (
     TrialRecord,
     build_design,
     command_limiter,
+    cyclic_receiver,
     loop_settings,
     realtime_session,
     stop_error,
@@ -367,7 +368,8 @@ def _open_axes(stack: contextlib.ExitStack, plan: _AxesPlan, config: Any, bus_cf
         bus = FaultyBus(bus, injections, node_id=node, actions=actions)
         stack.callback(bus.shutdown)
         faulty.append(bus)
-    network = DriveNetwork(bus)
+    # one receiver for every axis: one socket, one poll (the drives' waits share one deadline)
+    network = DriveNetwork(bus, cyclic_receiver(stack, plan.settings, bus_cfg) if not faulty else None)
     stack.callback(network.close)
     if sink is not None:
         network.tap.add_listener(cast("Callable[[Any, str], None]", sink.writer.log_frame))

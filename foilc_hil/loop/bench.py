@@ -77,9 +77,10 @@ from typing import TYPE_CHECKING, Any, Protocol, cast
 import numpy as np
 
 from drivers.cia402 import State402
+from drivers.cyclic_rx import CyclicReceive, CyclicReceiver, open_cyclic_receiver
 from drivers.drive import StopReport
 from drivers.faults import FaultyBus, InjectionReport, require_actions, split_by_axis
-from drivers.realtime import RealtimeConfig, RealtimeSession, collect_young, demote_current_thread
+from drivers.realtime import BenchRealtimeConfig, RealtimeSession, collect_young, demote_current_thread
 from foilc_hil.errors import (
     DriveError,
     DriveFaultError,
@@ -306,7 +307,7 @@ class LoopSettings:
     #: ``before_trial``): no settle phase between trials
     settle_between_trials: bool = True
     #: ``bench.realtime``: the host setup of a realtime run (its ``spin_margin`` is the scheduler's)
-    realtime: RealtimeConfig = field(default_factory=RealtimeConfig)
+    realtime: BenchRealtimeConfig = field(default_factory=BenchRealtimeConfig)
 
     @property
     def settle_cycles(self) -> int:
@@ -1062,7 +1063,7 @@ def _start_emulator(stack: contextlib.ExitStack, config: Any, bus: Any) -> tuple
 
 def _open_drive(
     stack: contextlib.ExitStack, config: Any, bus_cfg: Any, sink: McapSink | None, stops: list[StopReport],
-    emulator: Any,
+    emulator: Any, settings: LoopSettings,
 ) -> tuple[Any, FaultyBus | None]:
     """Open the bus (wrapped in the ``inject:`` faults, if any) and the CiA 402 master (safe-stopped on exit)."""
     from drivers.bus import open_bus
@@ -1075,7 +1076,8 @@ def _open_drive(
     if faulty is not None:
         stack.callback(faulty.shutdown)  # before the inner bus's: frames still held back go out first
         bus = faulty
-    drive = Cia402Drive.open(bus, config.drive, sample_time=config.sample_time)
+    receiver = cyclic_receiver(stack, settings, bus_cfg) if faulty is None else None
+    drive = Cia402Drive.open(bus, config.drive, sample_time=config.sample_time, receiver=receiver)
     drive.fatal_bad_frames = config.bench.faults.bad_frame is BadFramePolicy.ABORT
     stack.callback(drive.close)
     if sink is not None:  # the master passes "tx" or "rx", the writer's Direction
@@ -1083,6 +1085,19 @@ def _open_drive(
     # LIFO: safe_stop runs before the drive is closed and before the log is closed, so its frames are logged
     stack.callback(lambda: stops.append(drive.safe_stop()))
     return drive, faulty
+
+
+def cyclic_receiver(stack: contextlib.ExitStack, settings: LoopSettings, bus_cfg: Any) -> CyclicReceiver | None:
+    """Realtime with ``bench.realtime.cyclic_receive: loop``: the loop thread receives the TPDOs itself
+    (:mod:`drivers.cyclic_rx`; closed on ``stack``). The caller leaves it out under injected faults: they act on the
+    master's bus object, which a second one would bypass."""
+    realtime = settings.realtime
+    if settings.mode is not TimingMode.REALTIME or realtime.cyclic_receive is not CyclicReceive.LOOP:
+        return None
+    receiver = open_cyclic_receiver(bus_cfg, realtime.receive_spin)
+    if receiver is not None:
+        stack.callback(receiver.close)
+    return receiver
 
 
 def _inject_faults(bus: Any, config: Any, emulator: Any) -> FaultyBus | None:
@@ -1152,7 +1167,7 @@ def run_bench(request: RunRequest) -> RunReport:
             # undone only after the confirmed stop below (LIFO): restoring the host (the garbage collector first of
             # all) takes a tenth of a second, which must not pass between the loop's last SYNC and the stop
             session = realtime_session(stack, plan.settings)
-            drive, faulty = _open_drive(stack, config, bus_cfg, sink, stops, emulator)
+            drive, faulty = _open_drive(stack, config, bus_cfg, sink, stops, emulator, plan.settings)
             progress = request.progress or make_progress(plan.title, quiet=request.quiet)
             stack.callback(progress.close)
             stop = stack.enter_context(StopRequest())
