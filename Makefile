@@ -11,10 +11,16 @@ STAMP  := $(VENV)/.installed-stamp
 # and every pytest worker re-rewrote every test module (about 3 s of CPU for each of them)
 unexport PYTHONDONTWRITEBYTECODE
 
+# The .venv by uv (from PyPI, into the .venv by the system's pip): about 5 s with uv's cache warm and 15 s cold,
+# against about a minute for pip, most of it spent byte-compiling every module of every package (here a module is
+# compiled when it is first imported, and most never are). Where uv cannot be had (an old pip without --python, no
+# PyPI), pip installs it all as before.
 $(STAMP): pyproject.toml
-	$(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	$(PYTHON) -m venv --without-pip $(VENV)
+	if $(PYTHON) -m pip --python $(BIN)/python install --quiet 'uv>=0.4' \
+	    && $(BIN)/uv pip install --quiet --python $(BIN)/python pip -e '.[dev]'; then :; else \
+	    $(BIN)/python -m ensurepip --upgrade && $(BIN)/python -m pip install --quiet --upgrade pip \
+	    && $(BIN)/python -m pip install --quiet -e '.[dev]'; fi
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -34,11 +40,11 @@ typecheck: $(STAMP)
 # one worker per core (pytest-xdist; worksteal evens out the long tests): each test stays independent of the others
 # and of wall-clock speed. One BLAS thread per worker: the workers already fill the cores, and OpenBLAS threads
 # that spin-wait for a core a loaded host does not give them made a 3x3 expm take 14 ms instead of 20 us
-# The compiled kernels first, once: numba caches them on disk (cache=True), and on a fresh clone each worker and
-# each emulator process a test starts would otherwise compile them again (several seconds of CPU each)
+# The shared caches first, once (tests/warm_caches.py): numba's compiled kernels, the packages' byte code and the
+# rewritten test modules; on a fresh clone each worker and each emulator process a test starts would otherwise
+# fill them again, at the same time (several seconds of CPU each)
 pytest: $(STAMP)
-	$(BIN)/python -c "import foilc_hil.design.fractional, foilc_hil.io.frame_kernel, foilc_hil.laws.kernels, \
-	foilc_hil.loop.trial_kernel, plant_emulator.physics.kernels, plant_emulator.physics.trial"
+	$(BIN)/python -m tests.warm_caches
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/pytest -n auto --dist worksteal --durations=15
 
 bench: $(STAMP)
