@@ -170,12 +170,13 @@ def bench_document(policy: dict[str, Any], drive: dict[str, Any] | None = None, 
             "mode": "csv",
             "velocity_scale": 1000.0,
             "velocity_limit": 500.0,
-            # 1.5 s: a stalled test machine is not a lost heartbeat, and a silent bus trips the feedback watchdog
-            # (2 x 0.4 s) first
-            "heartbeat_timeout_factor": 15.0,
-            # the drive's watch on the master: 1 s outlasts a one-cycle silence (0.4 s) on a stalled machine, and
-            # trips during a dead bus's stop attempts (about 2 s)
-            "heartbeat_consumer_ms": 1000,
+            # 3 s: a stalled test machine is not a lost heartbeat (at load 8-10 a row lost it after 1.67 s with
+            # 1.5 s here, and the drive's consumer tripped alike), and a silent bus trips the feedback watchdog
+            # (2 x 0.4 s) first; the heartbeat row sets its own
+            "heartbeat_timeout_factor": 30.0,
+            # the drive's watch on the master: 3 s outlasts such a stall; the dead-bus row, where the drive must
+            # disable itself during the run's stop attempts (about 2 s), sets 0.4 s
+            "heartbeat_consumer_ms": 3000,
             # the defaults for SDO (0.5 s) and the state transitions, bounded to 1 s: commissioning on a loaded
             # machine needs the time, and a dead drive's last stop step waits this long for a boot-up
             "state_timeout": 1.0,
