@@ -117,6 +117,7 @@ __all__ = [
     "dense_block_toeplitz",
     "dense_error_map",
     "dense_input_map",
+    "gram_norm_bound",
     "law_filter_matrix",
     "lifted_error_map",
     "lifted_input_map",
@@ -1023,32 +1024,40 @@ def matrix_certificate(matrix: np.ndarray, kind: str) -> PlantCertificate:
 CHOLESKY_METHOD = "upper bound (Cholesky of rho^2 I - T^T T)"
 
 
-def _norm_estimate(T: np.ndarray, gram: np.ndarray) -> tuple[float, np.ndarray | None]:
+def _norm_estimate(gram: np.ndarray, column: np.ndarray | None) -> tuple[float, np.ndarray | None]:
     """An estimate of ``||T||_2^2`` to try the Cholesky test at (neither bound nor certificate: the test decides),
     and a start vector for :func:`_power_lower` (``None``: a random one).
 
-    Up to :data:`DENSE_LIMIT` columns the largest eigenvalue of the Gram matrix (LAPACK). Beyond, the squared sup of
-    the symbol of ``T``'s middle column (its two-sided impulse response there, by FFT): the trial maps certified
-    here are Toeplitz-like away from the trial's ends, and their top singular values cluster within about 1e-6 of
-    that sup (Krylov methods stall on such clusters: ARPACK needed seconds and did not converge on NOILC's maps).
-    The top right singular vectors of such a map are close to a sinusoid at the sup's frequency, the start vector:
+    Up to :data:`DENSE_LIMIT` columns (or without ``column``) the largest eigenvalue of the Gram matrix (LAPACK).
+    Beyond, the squared sup of the symbol of ``T``'s middle ``column`` (its two-sided impulse response there, by
+    FFT): the trial maps certified here are Toeplitz-like away from the trial's ends, and their top singular values
+    cluster within about 1e-6 of that sup (Krylov methods stall on such clusters: ARPACK needed seconds and did not
+    converge on NOILC's maps). The top singular vectors of such a map (left and right) are close to a sinusoid at
+    the sup's frequency, the start vector:
     from it one power step reached within 3e-4 of the top eigenvalue on paper_sim's NOILC draws, where ten steps
     from a random vector stayed 2.5 % below.
     """
-    from scipy.fft import next_fast_len
     from scipy.linalg import eigh
 
     size = gram.shape[0]
-    if size <= DENSE_LIMIT or T.shape[0] != size:
+    if size <= DENSE_LIMIT or column is None:
         return float(eigh(gram, eigvals_only=True, subset_by_index=[size - 1, size - 1])[0]), None
+    return _column_estimate(column)
+
+
+def _column_estimate(column: np.ndarray) -> tuple[float, np.ndarray]:
+    """The squared sup of the symbol of a Toeplitz-like map's middle ``column`` (its two-sided impulse response
+    there, by FFT) and a sinusoid at the sup's frequency (:func:`_norm_estimate`)."""
+    from scipy.fft import next_fast_len
+
+    size = column.shape[0]
     middle = size // 2
     response = np.zeros(next_fast_len(4 * size))
-    response[: size - middle] = T[middle:, middle]  # lags 0, 1, ...
-    response[response.shape[0] - middle :] = T[:middle, middle]  # lags -middle .. -1, wrapped
+    response[: size - middle] = column[middle:]  # lags 0, 1, ...
+    response[response.shape[0] - middle :] = column[:middle]  # lags -middle .. -1, wrapped
     magnitude = np.abs(np.fft.fft(response))
     peak = int(np.argmax(magnitude))
-    start = np.cos(2.0 * math.pi * peak / response.shape[0] * np.arange(size))
-    return float(magnitude[peak]) ** 2, start
+    return float(magnitude[peak]) ** 2, np.cos(2.0 * math.pi * peak / response.shape[0] * np.arange(size))
 
 
 def _power_lower(gram: np.ndarray, start: np.ndarray | None = None) -> float:
@@ -1112,11 +1121,20 @@ def matrix_norm_bound(matrix: np.ndarray, error: float = 0.0) -> float | None:
     if not np.all(np.isfinite(T)):
         return None
     gram = T.T @ T  # numpy computes a product with its own transpose by a symmetric rank-k update (syrk)
-    estimate, start = _norm_estimate(T, gram)
+    column = T[:, T.shape[1] // 2] if T.shape[0] == T.shape[1] else None
+    frobenius2 = float(np.einsum("ij,ij->", T, T)) * (1.0 + _gamma(T.shape[0] * T.shape[1]))
+    bound = gram_norm_bound(gram, _gamma(T.shape[0]) * frobenius2, column)
+    return None if bound is None else bound + error
+
+
+def gram_norm_bound(gram: np.ndarray, gram_error: float, column: np.ndarray | None = None) -> float | None:
+    """A RIGOROUS upper bound on ``sqrt(lambda_max(S))`` for a symmetric ``S`` within ``gram_error`` (2-norm) of the
+    computed ``gram`` (its upper triangle is read): :func:`matrix_norm_bound`'s Cholesky tests from the estimate of
+    :func:`_norm_estimate` (``column``: the middle column of the square map ``T``, if any); ``None`` when every gap
+    of :data:`CHOLESKY_GAPS` fails. ``S`` is ``T^T T`` or ``T T^T`` (the same largest eigenvalue, ``||T||_2^2``).
+    """
+    estimate, start = _norm_estimate(gram, column)
     estimate = max(estimate, 0.0)
-    rows = T.shape[0]
-    frobenius2 = float(np.einsum("ij,ij->", T, T)) * (1.0 + _gamma(rows * T.shape[1]))
-    gram_error = _gamma(rows) * frobenius2
     diagonal_max = float(np.max(np.diag(gram))) if gram.size else 0.0
     failed, passed = 0.0, math.nan
     for gap in CHOLESKY_GAPS:
@@ -1141,7 +1159,7 @@ def matrix_norm_bound(matrix: np.ndarray, error: float = 0.0) -> float | None:
         else:
             failed = middle
     bound2 = (passed + UNIT_ROUNDOFF * (passed + diagonal_max) + gram_error) * (1.0 + 4.0 * UNIT_ROUNDOFF)
-    return math.nextafter(math.sqrt(bound2) * (1.0 + 2.0 * UNIT_ROUNDOFF), math.inf) + error
+    return math.nextafter(math.sqrt(bound2) * (1.0 + 2.0 * UNIT_ROUNDOFF), math.inf)
 
 
 def bounded_matrix_certificate(matrix: np.ndarray, kind: str, error: float = 0.0) -> PlantCertificate:
