@@ -33,6 +33,7 @@ from foilc_hil.design.gradient import lifted_gain
 from foilc_hil.design.models import DiscreteModel
 from foilc_hil.design.noilc import trial_map
 from foilc_hil.design.pipeline import law_structure
+from foilc_hil.design.rational_map import RATIONAL_METHOD, GainGram, rational_norm_bound
 from foilc_hil.design.record import Design, PlantCertificate
 
 __all__ = ["DrawCertificate", "Perturbation", "certify_draws", "running_law"]
@@ -78,19 +79,19 @@ class DrawCertificate:
 def certify_draws(design: Design, law: LawStructure, draws: Sequence[Perturbation]) -> list[DrawCertificate]:
     """Certify ``design``'s law (as it runs: ``law``) on each drawn plant; one Dask task runs this on a chunk.
 
-    A lifted law (NOILC, gradient) is certified by :func:`_lifted_certificate`: its dense map, formed by FFT,
-    bounded by a Cholesky test (``docs/robustness.md``); the others by the Toeplitz path of
+    A lifted law (NOILC, gradient) is certified by :func:`_lifted_certificate`: its dense map bounded by a Cholesky
+    test (``docs/robustness.md``); the others by the Toeplitz path of
     :func:`~foilc_hil.design.certificates.map_certificate`.
     """
     model = design.model
     gain = lifted_gain(design, law.n_samples)  # NOILC, gradient: their dense map; the others: per sample
-    # the gain's FFT, once for the chunk (the Q-filter's input map is formed densely: no FFT)
-    transformed = None if gain is None or law.q_filter is not None else FftOperand.of(gain, law.n_samples - law.lead)
+    # the gain's Gram matrix, once per process (the Q-filter's input map is formed densely: no Gram)
+    gram = None if gain is None or law.q_filter is not None else GainGram.shared(gain)
     results = []
     for draw in draws:
         A, B = model.A + draw.delta_a, model.B + draw.delta_b
         if gain is not None:
-            certificate = _lifted_certificate(A, B, model, gain, law, transformed)
+            certificate = _lifted_certificate(A, B, model, gain, law, gram)
         else:
             certificate = map_certificate(LoopPlant(A, B, model.measured_output, design.p1, design.p2), law)
         results.append(
@@ -102,18 +103,24 @@ def certify_draws(design: Design, law: LawStructure, draws: Sequence[Perturbatio
 
 
 def _lifted_certificate(
-    A: np.ndarray, B: np.ndarray, model: DiscreteModel, gain: np.ndarray, law: LawStructure,
-    transformed: FftOperand | None,
+    A: np.ndarray, B: np.ndarray, model: DiscreteModel, gain: np.ndarray, law: LawStructure, gram: GainGram | None
 ) -> PlantCertificate:
-    """The certificate of a lifted law's map at plant ``(A, B)``: :func:`~foilc_hil.design.noilc.trial_map`'s map,
-    the error map ``T = I - G L`` formed by FFT (``G`` lower block-Toeplitz: no dense ``G`` and no ``O(L^3)``
-    product; ``transformed``: ``L`` transformed already) with its rounding bound; with a Q-filter, the input map as
-    ``trial_map`` forms it."""
-    if transformed is None:  # a Q-filter: certify_draws transforms no gain then
+    """The certificate of a lifted law's map at plant ``(A, B)``: :func:`~foilc_hil.design.noilc.trial_map`'s map.
+
+    The error map ``T = I - G L`` (``G`` lower block-Toeplitz) is bounded first through the plant's transfer
+    function (:func:`~foilc_hil.design.rational_map.rational_norm_bound`: ``T T^T`` from the gain's ``gram`` in
+    ``O(k L^2)``, one Cholesky test); where that is not a certificate, ``T`` is formed by FFT (no dense ``G`` and no
+    ``O(L^3)`` product) with its rounding bound, for :func:`~foilc_hil.design.certificates.
+    bounded_matrix_certificate`. With a Q-filter (``gram`` is ``None``), the input map as ``trial_map`` forms it."""
+    if gram is None:
         matrix, kind = trial_map(A, B, model, gain, law)
         return bounded_matrix_certificate(matrix, kind)
-    blocks = markov_blocks(A, B, model.measured_output, law.lead, law.n_samples - law.lead)
-    product, error = block_toeplitz_product(blocks, transformed)
+    bound = rational_norm_bound(A, B, model.measured_output, law.lead, gram)
+    if bound is not None and bound <= CONTRACTION_LIMIT:
+        return PlantCertificate("", "error", bound, bound, RATIONAL_METHOD, "upper bound: the induced 2-norm")
+    length = law.n_samples - law.lead
+    blocks = markov_blocks(A, B, model.measured_output, law.lead, length)
+    product, error = block_toeplitz_product(blocks, FftOperand.of(gain, length))
     product *= -1.0
     diagonal = np.arange(product.shape[0])
     product[diagonal, diagonal] += 1.0  # T = I - G L, in place; the subtraction rounds by at most u |T| entrywise
