@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+from typing import Any
 
 import numpy as np
 import pytest
@@ -421,3 +422,24 @@ def test_law_refuses_a_design_certified_for_another_fractional_memory() -> None:
         Foilc(_design(A2, B2, C2, P2), 10, fractional_memory="whole")
     # IOILC has no fractional operator: any recorded memory is fine
     assert Ioilc(design, 10).kp == 0.0
+
+
+@pytest.mark.parametrize("law", ["foilc", "ioilc", "p-type"])
+def test_make_law_compiles_the_step_for_its_own_argument_types(law: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The law's step overload is resolved when the law is built, for the types it passes (a design's gain is a
+    read-only array, which kernels.warm_up's arguments are not): a realtime run's first trial compiled it (0.6 s
+    without SYNC on a fresh install)."""
+    from foilc_hil.laws import learning
+
+    resolved: list[tuple[str, ...]] = []
+
+    def recording(arguments: Any) -> Any:
+        resolved.append(tuple(str(learning.law_step.typeof_pyval(value)) for value in arguments))
+        return law_step_for(arguments)
+
+    law_step_for = learning.law_step_for
+    monkeypatch.setattr(learning, "law_step_for", recording)
+    built = make_law(_design(A2, B2, C2, P2, law=law), LawConfig(), 10)
+    assert len(resolved) == 1  # before any trial
+    built.begin_trial()
+    assert resolved[1] == resolved[0]  # the trial's types are those resolved at construction

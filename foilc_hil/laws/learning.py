@@ -357,6 +357,13 @@ class LearningLaw(ABC):
             self._y, self._base, self._u, self._x, self._x_prev, self._c_pinv, self._p1, self._has_record, lower, upper
         )
 
+    def compile_step(self) -> None:
+        """Compile (or load from numba's cache) :func:`~foilc_hil.laws.kernels.law_step` for this law's argument
+        types, now. Why: :func:`~foilc_hil.laws.kernels.warm_up` covers the types of its own arguments at import, but
+        a law passes its own (a design's gain is a read-only array), and the first :meth:`begin_trial` compiled that
+        overload: 0.6 s on a fresh install, inside the first trial of a realtime run (the drive's SYNC-loss EMCY)."""
+        self._step = law_step_for(self._step_arguments())
+
     @property
     def control(self) -> np.ndarray:
         """The commands issued so far in the current (or last) trial, ``(N, m)``, read-only."""
@@ -624,7 +631,16 @@ def make_law(
     ``law_cfg.q_filter`` adds a Q-filter; ``law_cfg.fractional_memory`` picks the fractional operator's memory
     (FOILC). ``limits``: the command limits the law clamps to and learns from (module notes; the bench passes its
     limiter's).
+
+    The law's compiled step is ready when this returns (:meth:`LearningLaw.compile_step`): never compiled in a
+    control loop's first cycle.
     """
+    law = _new_law(design, law_cfg, n_samples, limits)
+    law.compile_step()
+    return law
+
+
+def _new_law(design: Design, law_cfg: LawConfig, n_samples: int, limits: tuple[float, float] | None) -> LearningLaw:
     q_filter = None
     if law_cfg.q_filter is not None:
         q_filter = QFilter(law_cfg.q_filter.cutoff, law_cfg.q_filter.order, design.sample_time)
