@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 from foilc_hil.config import axis_configs, dump_config, load_config
 from tests.test_bench_crossprocess import NETNS_SETUP
@@ -31,7 +32,13 @@ def test_four_axes_against_four_emulator_processes_in_a_private_netns(tmp_path: 
     reason = _namespaces_allowed()
     if reason is not None:
         pytest.skip(reason)
-    axes = axis_configs(load_config(SCARA))
+    # The shipped config with the heartbeats loosened for a loaded test machine (at load 8 node 4's heartbeat came
+    # 0.398 s apart against the shipped 0.3 s): what is tested here is four axes learning across processes
+    document = yaml.safe_load(SCARA.read_text(encoding="utf-8"))
+    document["drive"].update(heartbeat_timeout_factor=20.0, heartbeat_consumer_ms=3000)
+    scara = tmp_path / "scara_4axis.yaml"
+    scara.write_text(yaml.safe_dump(document), encoding="utf-8")
+    axes = axis_configs(load_config(scara))
     python = shlex.quote(sys.executable)
     bus = f"udp_multicast:{GROUP}"
     starts, logs = [], []
@@ -50,7 +57,7 @@ def test_four_axes_against_four_emulator_processes_in_a_private_netns(tmp_path: 
         NETNS_SETUP,
         *starts,
         f"for i in $(seq 600); do {ready} && break; sleep 0.1; done",
-        f"{python} -m foilc_hil.cli run --config {shlex.quote(str(SCARA))} --bus {bus} --mode lockstep "
+        f"{python} -m foilc_hil.cli run --config {shlex.quote(str(scara))} --bus {bus} --mode lockstep "
         f"--trials {TRIALS} --out {shlex.quote(str(out))} --json --quiet; RC=$?",
         f"kill -INT {pids}; wait {pids}",
         "exit $RC",
