@@ -11,7 +11,8 @@ Module order: after :mod:`foilc_hil.design.pipeline` (it certifies the designs t
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import functools
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -87,11 +88,13 @@ def certify_draws(design: Design, law: LawStructure, draws: Sequence[Perturbatio
     gain = lifted_gain(design, law.n_samples)  # NOILC, gradient: their dense map; the others: per sample
     # the gain's Gram matrix, once per process (the Q-filter's input map is formed densely: no Gram)
     gram = None if gain is None or law.q_filter is not None else GainGram.shared(gain)
+    # the gain's FFT for the fallback of _lifted_certificate: once for the chunk, and only if a draw needs it
+    operand = None if gain is None else functools.cache(lambda: FftOperand.of(gain, law.n_samples - law.lead))
     results = []
     for draw in draws:
         A, B = model.A + draw.delta_a, model.B + draw.delta_b
-        if gain is not None:
-            certificate = _lifted_certificate(A, B, model, gain, law, gram)
+        if gain is not None and operand is not None:
+            certificate = _lifted_certificate(A, B, model, gain, law, gram, operand)
         else:
             certificate = map_certificate(LoopPlant(A, B, model.measured_output, design.p1, design.p2), law)
         results.append(
@@ -103,15 +106,17 @@ def certify_draws(design: Design, law: LawStructure, draws: Sequence[Perturbatio
 
 
 def _lifted_certificate(
-    A: np.ndarray, B: np.ndarray, model: DiscreteModel, gain: np.ndarray, law: LawStructure, gram: GainGram | None
+    A: np.ndarray, B: np.ndarray, model: DiscreteModel, gain: np.ndarray, law: LawStructure, gram: GainGram | None,
+    operand: Callable[[], FftOperand],
 ) -> PlantCertificate:
     """The certificate of a lifted law's map at plant ``(A, B)``: :func:`~foilc_hil.design.noilc.trial_map`'s map.
 
     The error map ``T = I - G L`` (``G`` lower block-Toeplitz) is bounded first through the plant's transfer
     function (:func:`~foilc_hil.design.rational_map.rational_norm_bound`: ``T T^T`` from the gain's ``gram`` in
     ``O(k L^2)``, one Cholesky test); where that is not a certificate, ``T`` is formed by FFT (no dense ``G`` and no
-    ``O(L^3)`` product) with its rounding bound, for :func:`~foilc_hil.design.certificates.
-    bounded_matrix_certificate`. With a Q-filter (``gram`` is ``None``), the input map as ``trial_map`` forms it."""
+    ``O(L^3)`` product; ``operand()``: ``L`` transformed, once per chunk) with its rounding bound, for
+    :func:`~foilc_hil.design.certificates.bounded_matrix_certificate`. With a Q-filter (``gram`` is ``None``), the
+    input map as ``trial_map`` forms it."""
     if gram is None:
         matrix, kind = trial_map(A, B, model, gain, law)
         return bounded_matrix_certificate(matrix, kind)
@@ -120,7 +125,7 @@ def _lifted_certificate(
         return PlantCertificate("", "error", bound, bound, RATIONAL_METHOD, "upper bound: the induced 2-norm")
     length = law.n_samples - law.lead
     blocks = markov_blocks(A, B, model.measured_output, law.lead, length)
-    product, error = block_toeplitz_product(blocks, FftOperand.of(gain, length))
+    product, error = block_toeplitz_product(blocks, operand())
     product *= -1.0
     diagonal = np.arange(product.shape[0])
     product[diagonal, diagonal] += 1.0  # T = I - G L, in place; the subtraction rounds by at most u |T| entrywise
