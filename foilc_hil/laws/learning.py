@@ -242,8 +242,7 @@ class LearningLaw(ABC):
         self._u.fill(0.0)
         self._y.fill(0.0)
         self._x.fill(0.0)
-        self._arguments = self._step_arguments()  # fixed for the trial: built once, not per sample
-        self._step = law_step_for(self._arguments)  # and law_step's machine code for their types
+        self.compile_step()  # the arguments fixed for the trial (built once, not per sample) and their machine code
         self._next_sample = 0
         self._in_trial = True
 
@@ -361,8 +360,10 @@ class LearningLaw(ABC):
         """Compile (or load from numba's cache) :func:`~foilc_hil.laws.kernels.law_step` for this law's argument
         types, now. Why: :func:`~foilc_hil.laws.kernels.warm_up` covers the types of its own arguments at import, but
         a law passes its own (a design's gain is a read-only array), and the first :meth:`begin_trial` compiled that
-        overload: 0.6 s on a fresh install, inside the first trial of a realtime run (the drive's SYNC-loss EMCY)."""
-        self._step = law_step_for(self._step_arguments())
+        overload: 0.6 s on a fresh install, inside the first trial of a realtime run (the drive's SYNC-loss EMCY).
+        :meth:`begin_trial` calls it again for the trial's arguments (the same types: found, not compiled)."""
+        self._arguments = self._step_arguments()
+        self._step = law_step_for(self._arguments)
 
     @property
     def control(self) -> np.ndarray:
