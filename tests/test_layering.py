@@ -129,7 +129,8 @@ def test_every_module_has_a_rank() -> None:
 def test_imports_point_down(module: str) -> None:
     own = rank(module)
     assert own is not None
-    upward = sorted(f"{target} (rank {rank(target)})" for target in project_graph()[module] if (rank(target) or 0) > own)
+    graph = project_graph()
+    upward = sorted(f"{target} (rank {rank(target)})" for target in graph[module] if (rank(target) or 0) > own)
     assert not upward, f"{module} (rank {own}) imports up: {upward}"
 
 
