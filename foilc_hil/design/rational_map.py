@@ -112,7 +112,10 @@ def _assemble(Q: np.ndarray, Z: np.ndarray) -> np.ndarray:
 
 
 # At import, compiled or loaded from numba's cache (C-contiguous float64, as the callers pass): not inside a draw.
+# Both kinds of X: a gain's Gram matrix that came through dask's serialisation is a read-only array (its own
+# machine code), and left to the first draw that overload was compiled in every worker process of a fresh install.
 _filter_rows(np.ones(1), np.ones(1), np.ones((2, 2)))
+_filter_rows(np.ones(1), np.ones(1), np.lib.stride_tricks.as_strided(np.ones((2, 2)), writeable=False))
 _assemble(np.ones((2, 2)), np.ones((2, 2)))
 
 

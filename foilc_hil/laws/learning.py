@@ -358,9 +358,10 @@ class LearningLaw(ABC):
 
     def compile_step(self) -> None:
         """Compile (or load from numba's cache) :func:`~foilc_hil.laws.kernels.law_step` for this law's argument
-        types, now. Why: :func:`~foilc_hil.laws.kernels.warm_up` covers the types of its own arguments at import, but
-        a law passes its own (a design's gain is a read-only array), and the first :meth:`begin_trial` compiled that
-        overload: 0.6 s on a fresh install, inside the first trial of a realtime run (the drive's SYNC-loss EMCY).
+        types, now. Why: :func:`~foilc_hil.laws.kernels.warm_up` covers the types of its own arguments at import, and
+        a law whose arguments differ (a design's read-only gain did, before the 2D law copied it) had that overload
+        compiled by the first :meth:`begin_trial`: 0.6 s on a fresh install, inside the first trial of a realtime run
+        (the drive's SYNC-loss EMCY).
         :meth:`begin_trial` calls it again for the trial's arguments (the same types: found, not compiled)."""
         self._arguments = self._step_arguments()
         self._step = law_step_for(self._arguments)
@@ -458,7 +459,9 @@ class Foilc(LearningLaw):
             )
         self.n_plant_states = n_plant
         self._c_pinv = np.ascontiguousarray(np.linalg.pinv(c_plant))
-        self._p1 = np.ascontiguousarray(design.p1, dtype=float)
+        # a writable copy: a design's gains are read-only arrays, and law_step's machine code for a read-only p1 is
+        # a second overload to compile (seconds on a fresh install, in each process) for the same arithmetic
+        self._p1 = np.array(design.p1, dtype=float, order="C")
         self._x = np.zeros((n_samples, n))
         self._x_prev = np.zeros((n_samples, n))
 
