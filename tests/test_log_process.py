@@ -176,6 +176,27 @@ def test_a_writer_process_that_cannot_start_is_said_at_once(tmp_path: Path, monk
         ProcessLogWriter(tmp_path / "never.mcap", config_yaml=None)
 
 
+def test_opened_without_waiting_a_writer_says_at_started_whether_its_child_runs(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``wait=False`` (``run``: the child imports while the drive is commissioned): the constructor returns with the
+    header not yet written, :meth:`started` waits for it; a child that cannot start is said there, and the writer is
+    closed."""
+    path = tmp_path / "later.mcap"
+    with ProcessLogWriter(path, config_yaml="x: 1\n", fsync=False, wait=False) as writer:
+        assert path.stat().st_size == 0  # nothing written by this process: the child writes the header
+        writer.log_trial({"trial": 1, "sse": 1.0, "rmse": 1.0, "max_abs_error": 1.0})  # queued meanwhile
+        writer.started()
+        assert path.stat().st_size > 0
+        writer.started()  # at once, the second time
+    assert read_log(path).completed_trials == [1]
+    monkeypatch.setattr(log_process.sys, "executable", "/bin/false")
+    broken = ProcessLogWriter(tmp_path / "never.mcap", config_yaml=None, wait=False)
+    with pytest.raises(LogWriteError, match=r"the log writer process (stopped|did not start)"):
+        broken.started()
+    assert broken.closed
+
+
 def test_a_missing_trial_field_is_refused_at_the_call(tmp_path: Path) -> None:
     with ProcessLogWriter(tmp_path / "t.mcap", config_yaml=None, fsync=False) as writer:
         with pytest.raises(LogFormatError, match="lacks rmse, max_abs_error"):

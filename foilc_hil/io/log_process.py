@@ -123,7 +123,7 @@ _PLAIN_TYPES: Final = frozenset({float, int, bool, type(None)})
 class ProcessLogWriter(_ClosingListener):
     """MCAP logging in a child process (see the module's docstring); same logging methods as
     :class:`~foilc_hil.io.mcap_log.QueuedLogWriter`, same parameters as
-    :class:`~foilc_hil.io.mcap_log.McapLogWriter` (``output`` is a path here).
+    :class:`~foilc_hil.io.mcap_log.McapLogWriter` (``output`` is a path here), and ``wait`` (see :meth:`started`).
 
     Values are referenced until their batch is sent: pass floats, or arrays the caller does not mutate afterwards.
     """
@@ -137,6 +137,7 @@ class ProcessLogWriter(_ClosingListener):
         design: Mapping[str, Any] | None = None,
         chunk_size: int = 4 * 1024 * 1024,
         fsync: bool = True,
+        wait: bool = True,
     ) -> None:
         if compression not in _COMPRESSION:
             raise LogFormatError(f"compression must be one of {', '.join(_COMPRESSION)}, not {compression!r}")
@@ -163,10 +164,22 @@ class ProcessLogWriter(_ClosingListener):
         plain_design = None if design is None else _json_values(design)
         opened = (self.path, compression, config_yaml, plain_design, chunk_size, fsync)
         self._items.append((int(WireOp.OPEN), *opened))
+        self._started = False
+        if wait:
+            self.started()
+
+    def started(self) -> None:
+        """Block until the child has written the file's header (at once once it has); a child that did not start
+        raises :class:`LogWriteError`, and the writer is closed.
+
+        Call it before the first trial: from then on the child reads as fast as the loop logs. Without this wait a
+        child still importing (a second on a loaded machine) let the pipe fill during the first trial, and the loop's
+        thread blocked on it (a 0.56 s SYNC gap, the emulator's SYNC-loss EMCY). Opened with ``wait=False``, the
+        child starts (half a second of imports) while the bench commissions the drive, and this wait is then short.
+        """
+        if self._started:
+            return
         try:
-            # Wait for the child to have written the header: from here on it reads as fast as the loop logs. Without
-            # this a child still importing (a second on a loaded machine) let the pipe fill during the first trial,
-            # and the loop's thread blocked on it (a 0.56 s SYNC gap, the emulator's SYNC-loss EMCY).
             if not self.sync():
                 status = self._process.wait()
                 raise LogWriteError(f"{self.path}: the log writer process did not start (exit status {status})")
@@ -174,6 +187,7 @@ class ProcessLogWriter(_ClosingListener):
             with contextlib.suppress(LogWriteError):  # the error being raised says it; the child is reaped
                 self.close()
             raise
+        self._started = True
 
     @classmethod
     def open(
@@ -184,9 +198,11 @@ class ProcessLogWriter(_ClosingListener):
         config_yaml: str | None,
         design: Mapping[str, Any] | None = None,
         fsync: bool = True,
+        wait: bool = True,
     ) -> ProcessLogWriter:
-        """Create the file and start the writer process (the spelling of ``QueuedLogWriter.open``)."""
-        return cls(output, compression=compression, config_yaml=config_yaml, design=design, fsync=fsync)
+        """Create the file and start the writer process (the spelling of ``QueuedLogWriter.open``); ``wait=False``:
+        return while the child starts, and call :meth:`started` before the first trial."""
+        return cls(output, compression=compression, config_yaml=config_yaml, design=design, fsync=fsync, wait=wait)
 
     # -- hot path: one tuple each --------------------------------------------------------------------------------
 
@@ -331,8 +347,12 @@ class ProcessLogWriter(_ClosingListener):
     def _finish_child(self) -> None:
         """End the pipe (the child writes the rest and the footer), wait for it, collect its last replies."""
         self._close_data()
+        deadline = time.monotonic() + CLOSE_TIMEOUT
+        # its replies until their pipe ends, which is the child exiting: woken at once, where Popen.wait(timeout)
+        # polls in sleeps of up to 50 ms (a tenth of a second at the end of every run, measured)
+        self._wait_reply(None, deadline)
         try:
-            self._process.wait(timeout=CLOSE_TIMEOUT)
+            self._process.wait(timeout=max(0.0, deadline - time.monotonic()))
         except subprocess.TimeoutExpired:
             self._process.kill()
             self._process.wait()

@@ -195,6 +195,10 @@ class _ClosingListener(can.Listener):
             TimingRecord(cycle, trial, sample, lateness_us, period_us, feedback_latency_us, missed, lost_feedback)
         )
 
+    def started(self) -> None:
+        """Return when the writer keeps pace with the loop: at once for a writer in this process (a writer process
+        waits for its child here, :meth:`foilc_hil.io.log_process.ProcessLogWriter.started`)."""
+
     def stop(self) -> None:
         """python-can listener hook: same as :meth:`close`."""
         self.close()

@@ -411,6 +411,7 @@ def _commission_axes(
             sink.writer.add_metadata(f"{METADATA_AXIS_PREFIX}.{drive.node_id}.pdo_mapping", record)
             if k == 0:  # readers of one axis (older tools) find the first axis's where they always did
                 sink.writer.add_metadata(METADATA_PDO_MAPPING, record)
+        sink.ready()  # the writer process, started while the drives were commissioned (bench.run_bench's order)
     for drive in group.drives:
         drive.enable()
 
@@ -436,7 +437,7 @@ def run_axes(request: RunRequest) -> AxesRunReport:
                 # a child process writes, as for one axis (bench._open_log): a writer thread here would take the
                 # loop's GIL for every frame it encodes, and a realtime loop waits for it at its deadlines
                 writer = ProcessLogWriter.open(request.out, config_yaml=dump_config(config),
-                                               design=plan.designs[0].to_json())
+                                               design=plan.designs[0].to_json(), wait=False)
                 stack.callback(writer.close)
                 _log_axes(writer, plan)
                 sink = McapSink(writer, None)

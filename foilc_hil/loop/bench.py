@@ -948,6 +948,10 @@ class McapSink:
         writer.add_metadata(METADATA_LAYOUT, {"ilc_sample": str(SAMPLE_LAYOUT)})  # replay --verify reads rows by it
         self._previous_sync: float | None = None  # across blocks: a settle phase's first period_us is a real one
 
+    def ready(self) -> None:
+        """Block until the writer keeps pace with the loop (a writer process has started): before the enable."""
+        self.writer.started()
+
     def trial_finished(self, record: TrialRecord) -> None:
         self.writer.write_trial_samples(record.samples())  # one call a trial: the rows are built by the writer
         # initial_output = y(0): the law's input at sample 0, which no row holds (replay --verify);
@@ -1044,7 +1048,9 @@ def _open_log(stack: contextlib.ExitStack, request: RunRequest, plan: _RunPlan) 
 
     if request.out is None:
         return None
-    writer = ProcessLogWriter.open(request.out, config_yaml=dump_config(request.config), design=plan.design.to_json())
+    # not waited for here: the child imports while the drive is commissioned (McapSink.ready before the enable)
+    writer = ProcessLogWriter.open(request.out, config_yaml=dump_config(request.config), design=plan.design.to_json(),
+                                   wait=False)
     stack.callback(writer.close)
     return McapSink(writer, (plan.limiter.lower, plan.limiter.upper))
 
@@ -1178,6 +1184,8 @@ def run_bench(request: RunRequest) -> RunReport:
             loops.append(loop)
             _commission(drive, config, session)
             _log_mapping(sink, drive, config)
+            if sink is not None:
+                sink.ready()
             drive.enable()  # walks the 402 state machine over SYNCs; the loop's first SYNC follows at once
             outcome = loop.run(plan.trials)
             if session is not None and outcome.timing is not None:
