@@ -34,7 +34,8 @@ import numpy as np
 from benchmarks.comparison import Comparison, comparisons_json, repeat, seconds
 from benchmarks.output import emit, json_parser
 from foilc_hil.io.log_process import ProcessLogWriter
-from foilc_hil.io.mcap_log import FRAME_BATCH, McapLogWriter, QueuedLogWriter, read_log
+from foilc_hil.io.mcap_log import McapLogWriter, QueuedLogWriter, read_log
+from foilc_hil.io.mcap_writer import FRAME_BATCH
 from foilc_hil.io.records import SampleRecord, TimingRecord
 
 CONFIG_YAML = "sample_time: 0.001\n"

@@ -13,7 +13,8 @@ import can
 import orjson
 import pytest
 
-from foilc_hil.io.mcap_log import Direction, McapLogWriter, classic_frames_records, frame_fields, frame_json, read_log
+from foilc_hil.io.mcap_log import McapLogWriter, frame_fields, read_log
+from foilc_hil.io.mcap_writer import Direction, classic_frames_records, frame_json
 
 
 def _document(msg: can.Message, timestamp: float, direction: str) -> bytes:

@@ -21,7 +21,7 @@ import sys
 
 import pytest
 
-from foilc_hil.io.mcap_log import classic_frames_records
+from foilc_hil.io.mcap_writer import classic_frames_records
 
 #: the modules whose kernels are compiled (or loaded from numba's cache) when they are imported
 KERNEL_MODULES = ("foilc_hil.design.fractional", "foilc_hil.laws.kernels", "foilc_hil.loop.trial_kernel",

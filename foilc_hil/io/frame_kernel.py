@@ -1,6 +1,6 @@
 """A compiled kernel that writes a batch of classic CAN frames as MCAP ``Message`` records with their ``/can`` JSON.
 
-What :func:`foilc_hil.io.mcap_log.frame_json` and ``ChunkedMcapWriter.add_message`` do per frame in Python (about
+What :func:`foilc_hil.io.mcap_writer.frame_json` and ``ChunkedMcapWriter.add_message`` do per frame in Python (about
 30 operations), done for a whole batch in one numba loop: the JSON text of each frame (its timestamp as the text
 Python's ``repr`` gives, computed by the caller; the identifier and DLC in decimal; the payload in base64), then the
 record's header (opcode 0x05, record length, channel, sequence, log and publish times; MCAP specification,

@@ -5,8 +5,8 @@ appends one plain tuple (an opcode, the log time, the values; a frame as its
 :func:`~foilc_hil.io.mcap_log.frame_fields`, a trial's samples as the float64 columns of its
 :class:`~foilc_hil.io.records.TrialSamples`) to a deque; every :data:`BATCH` items, at every trial's end and at
 :meth:`~ProcessLogWriter.sync` the deque goes to the child as one ``marshal`` payload (C code, about 0.3 us an item)
-through a pipe. The child (``python -m foilc_hil.io.log_process``, started by the writer) runs the one
-:class:`~foilc_hil.io.mcap_log.McapLogWriter`: the file, layout and JSON are the same as in-process logging.
+through a pipe. The child (``python -m foilc_hil.io.log_child``, started by the writer) runs the one
+:class:`~foilc_hil.io.mcap_writer.McapFileWriter`: the file, layout and JSON are the same as in-process logging.
 The child reads the pipe on its own clock (every :data:`READ_PAUSE` once drained) and runs in ``SCHED_BATCH``: the
 loop's writes never wake it, and its wake-ups never preempt the loop.
 
@@ -31,13 +31,10 @@ Lifetime and safety
 from __future__ import annotations
 
 import contextlib
-import enum
 import fcntl
-import itertools
 import marshal
 import os
 import select
-import struct
 import subprocess
 import sys
 import threading
@@ -45,70 +42,29 @@ import time
 from collections import deque
 from collections.abc import Iterator, Mapping
 from pathlib import Path
-from typing import IO, Any, Final
+from typing import Any, Final
 
 import can
-import numpy as np
 import orjson
 
 from foilc_hil.errors import LogFormatError
+from foilc_hil.io.log_child import _LENGTH, PIPE_BYTES, READ_PAUSE, ReplyKind, WireOp
 from foilc_hil.io.mcap_chunks import compressor
-from foilc_hil.io.mcap_log import (
-    _COMPRESSION,
-    Compression,
-    Direction,
-    LogWriteError,
-    McapLogWriter,
-    _ClosingListener,
-    _encode,
-    encode_design,
-    frame_fields,
-)
+from foilc_hil.io.mcap_log import _ClosingListener, frame_fields
+from foilc_hil.io.mcap_writer import _COMPRESSION, Compression, Direction, LogWriteError, _encode, encode_design
 from foilc_hil.io.records import SampleRecord, TimingRecord, TrialSamples
 from foilc_hil.io.schemas import METADATA_DESIGN
 
-__all__ = ["BATCH", "MAX_BACKLOG", "PIPE_BYTES", "ProcessLogWriter", "WireOp"]
-
-
-@enum.unique
-class WireOp(enum.IntEnum):
-    """Opcode of an item on the pipe to the writer process (the first element of its tuple)."""
-
-    OPEN = 0
-    FRAME = 1
-    SAMPLE = 2
-    TRIAL = 3
-    TIMING = 4
-    END_TRIAL = 5
-    METADATA = 6
-    SYNC = 7
-    TRIAL_SAMPLES = 8
-
-
-@enum.unique
-class ReplyKind(enum.IntEnum):
-    """What the writer process says back: a :meth:`ProcessLogWriter.sync` reached it, or an error."""
-
-    SYNCED = 0
-    ERROR = 1
+__all__ = ["BATCH", "MAX_BACKLOG", "PIPE_BYTES", "READ_PAUSE", "ProcessLogWriter", "WireOp"]
 
 
 BATCH: Final = 128
 """Items per payload: a few tens of microseconds of ``marshal`` on whichever thread fills the batch."""
 MAX_BACKLOG: Final = 8192
 """Items the deque may hold while another thread's write is blocked on a full pipe, before a producer waits too."""
-PIPE_BYTES: Final = 1 << 20
-"""Pipe capacity asked for (Linux ``F_SETPIPE_SZ``; the default 64 KiB where refused): about a second of a 1 kHz
-loop's items, which the loop's process may run ahead of the writer."""
-READ_PAUSE: Final = 0.002
-"""Seconds the writer process sleeps after it has drained the pipe (a lockstep loop fills about one batch in that
-time; a 1 kHz loop two cycles): its sleep is timed, never a wait on the pipe (see ``_payloads``)."""
-READ_BYTES: Final = PIPE_BYTES
-"""Bytes the writer process reads at once: the whole pipe."""
 CLOSE_TIMEOUT: Final = 60.0
 """Seconds :meth:`ProcessLogWriter.close` waits for the child to write its backlog and the footer."""
 
-_LENGTH: Final = struct.Struct("<I")  # the length of each marshal payload, before it
 # the opcodes as plain ints: marshal refuses int subclasses
 _FRAME, _SAMPLE, _TRIAL, _TIMING = int(WireOp.FRAME), int(WireOp.SAMPLE), int(WireOp.TRIAL), int(WireOp.TIMING)
 _TRIAL_SAMPLES: Final = int(WireOp.TRIAL_SAMPLES)
@@ -411,7 +367,7 @@ def _spawn(file_fd: int) -> tuple[subprocess.Popen[bytes], int, int]:
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, (root, os.environ.get("PYTHONPATH"))))}
     try:
         process = subprocess.Popen(
-            [sys.executable, "-m", "foilc_hil.io.log_process", str(data_read), str(reply_write), str(file_fd)],
+            [sys.executable, "-m", "foilc_hil.io.log_child", str(data_read), str(reply_write), str(file_fd)],
             pass_fds=(data_read, reply_write, file_fd),
             stdin=subprocess.DEVNULL,
             env=env,
@@ -452,127 +408,3 @@ def _plain_channel(item: tuple[Any, ...]) -> tuple[Any, ...]:
     channel = fields[10]
     plain = channel if channel is None or isinstance(channel, (str, int)) else str(channel)
     return (*item[:3], (*fields[:10], plain))
-
-
-# --- the writer process -------------------------------------------------------------------------------------
-
-
-def _payloads(data_fd: int, pause: float = READ_PAUSE) -> Iterator[list[tuple[Any, ...]]]:
-    """The batches on the data pipe until it ends (a payload cut short by the sender's death is dropped).
-
-    The pipe is read on the child's own clock: take what is there, then sleep ``pause`` unless the read filled its
-    buffer. Why not a blocking read: a reader asleep on the pipe is woken by every write, and that wake-up took the
-    loop's CPU (a pipe wake-up is a synchronous one: Linux favours the writer's CPU for the reader) -- measured, a
-    write of one batch took 0.05 to 3 ms of wall time for 25 us of CPU, 7 to 12 % of a lockstep run; read on a timer,
-    the same writes took their CPU time (median 16 to 26 us). A write then only copies, and the child wakes wherever
-    a CPU is free.
-    """
-    os.set_blocking(data_fd, False)
-    buffer = bytearray()
-    header = _LENGTH.size
-    while True:
-        try:
-            chunk = os.read(data_fd, READ_BYTES)
-        except BlockingIOError:  # nothing written since the last read
-            chunk = None
-        if chunk == b"":  # every write end closed: close(), or the bench's process ended
-            return
-        if chunk:
-            buffer += chunk
-            start = 0
-            while len(buffer) - start >= header:
-                (size,) = _LENGTH.unpack_from(buffer, start)
-                if len(buffer) - start - header < size:
-                    break
-                yield marshal.loads(buffer[start + header : start + header + size])
-                start += header + size
-            del buffer[:start]
-        if chunk is None or len(chunk) < READ_BYTES:  # drained: let the loop's writes pile up for a while
-            time.sleep(pause)
-
-
-def _reply(stream: IO[bytes], kind: ReplyKind, value: Any) -> None:
-    payload = marshal.dumps((int(kind), value))
-    with contextlib.suppress(OSError):  # the bench is gone: nobody to tell, the file is still finished
-        stream.write(_LENGTH.pack(len(payload)) + payload)
-        stream.flush()
-
-
-def _open_writer(item: tuple[Any, ...], file_fd: int) -> McapLogWriter:
-    path, compression, config_yaml, design, chunk_size, fsync = item[1:]
-    stream = os.fdopen(file_fd, "wb")
-    # Python frames, no compiled kernel: numba's import took 1.9 s at the first batch on a loaded machine, and the
-    # bench's loop blocked on the full pipe meanwhile (a SYNC gap, the drive's SYNC-loss EMCY). Here, off the loop's
-    # GIL, a frame's few microseconds in Python cost the loop nothing.
-    writer = McapLogWriter(
-        stream, compression=compression, config_yaml=config_yaml, design=design, chunk_size=chunk_size, fsync=fsync,
-        compiled_frames=False,
-    )
-    writer.path = path
-    return writer
-
-
-def _apply(writer: McapLogWriter, item: tuple[Any, ...]) -> None:
-    """One item on the writer (every op but ``OPEN`` and ``SYNC``)."""
-    op = item[0]
-    if op == WireOp.FRAME:
-        if not isinstance(item[3][0], (int, float)):
-            raise TypeError(f"a frame's timestamp must be a number, not {type(item[3][0]).__name__}")
-        writer.log_frame_fields(item[3], item[2], item[1])
-    elif op == WireOp.SAMPLE:
-        writer.write_sample(SampleRecord(*item[2]), item[1])
-    elif op == WireOp.TRIAL_SAMPLES:
-        reference, output, control, error, big_e = (np.frombuffer(column, dtype=np.float64) for column in item[5:10])
-        samples = TrialSamples(item[2], item[3], reference, output, control, error, big_e, item[4])
-        writer.write_trial_samples(samples, item[1])
-    elif op == WireOp.TIMING:
-        writer.write_timing(TimingRecord(*item[2]), item[1])
-    elif op == WireOp.TRIAL:
-        writer.log_trial_at(item[1], item[2], {})
-    elif op == WireOp.END_TRIAL:
-        writer.end_trial()
-    elif op == WireOp.METADATA:
-        writer.add_metadata(item[1], item[2])
-
-
-def serve(data_fd: int, reply_fd: int, file_fd: int) -> None:
-    """The writer process: apply the batches to one :class:`McapLogWriter`, then close the file (summary, footer)."""
-    writer: McapLogWriter | None = None
-    failed = False
-    with os.fdopen(reply_fd, "wb") as replies:
-        try:
-            for item in itertools.chain.from_iterable(_payloads(data_fd)):
-                if item[0] == WireOp.SYNC:
-                    _reply(replies, ReplyKind.SYNCED, item[1])
-                elif not failed:  # once broken, the log drops the rest (the bench was told), but keeps reading
-                    try:
-                        if item[0] == WireOp.OPEN:
-                            writer = _open_writer(item, file_fd)
-                        elif writer is not None:
-                            _apply(writer, item)
-                    except Exception as exc:
-                        failed = True
-                        _reply(replies, ReplyKind.ERROR, str(exc))
-        finally:  # the pipe ended (close, or the bench died): the file is closed with what it has
-            if writer is not None:
-                try:
-                    writer.close()
-                except Exception as exc:
-                    _reply(replies, ReplyKind.ERROR, str(exc))
-
-
-def _stand_back() -> None:
-    """Put this process in ``SCHED_BATCH`` (Linux; elsewhere nothing): its fair share of the CPU, but it never
-    preempts the loop when it wakes.
-
-    Why: on a host with no idle core (two cores, other work) the writer's wake-ups took the loop's CPU mid-cycle:
-    a logged lockstep run had 100 to 170 involuntary context switches of the loop's thread against 25 without the
-    log, 55 to 92 with this.
-    """
-    with contextlib.suppress(AttributeError, OSError):
-        os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
-
-
-if __name__ == "__main__":
-    _stand_back()
-    serve(*(int(argument) for argument in sys.argv[1:4]))

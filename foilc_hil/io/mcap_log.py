@@ -25,24 +25,20 @@ under the loop's GIL. ``run`` logs through :class:`foilc_hil.io.log_process.Proc
 from __future__ import annotations
 
 import base64
-import binascii
 import enum
 import json
-import math
 import os
 import struct
 import threading
 import time
-from abc import abstractmethod
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from queue import SimpleQueue
 from types import TracebackType
-from typing import IO, Any, Final, Literal, NamedTuple, Self, cast
+from typing import IO, Any, Final, NamedTuple, cast
 
 import can
-import numpy as np
 import orjson
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
@@ -50,20 +46,28 @@ from mcap.records import Channel, Chunk, Footer, Message, Metadata
 from mcap.stream_reader import StreamReader, breakup_chunk, get_chunk_data_stream
 
 from foilc_hil.errors import FoilcHilError, LogFormatError
-from foilc_hil.io.mcap_chunks import MCAP_MAGIC, ChunkedMcapWriter
-from foilc_hil.io.records import SampleRecord, TimingRecord, TrialSamples
+from foilc_hil.io.mcap_chunks import MCAP_MAGIC
+from foilc_hil.io.mcap_writer import (
+    _FRAME_BATCH_VALUES,
+    Compression,
+    Direction,
+    FrameFields,
+    LogWriteError,
+    McapFileWriter,
+    _LogLifecycle,
+    _time_ns,
+    classic_frames_records,
+    encode_design,
+    frame_json,
+)
+from foilc_hil.io.records import SampleRecord, TimingRecord
 from foilc_hil.io.schemas import (
-    MESSAGE_ENCODING,
     METADATA_CONFIG,
     METADATA_DESIGN,
-    SCHEMA_ENCODING,
     TOPIC_CAN,
     TOPIC_SAMPLE,
     TOPIC_TIMING,
     TOPIC_TRIAL,
-    TOPICS,
-    channel_metadata,
-    schema_bytes,
 )
 
 __all__ = [
@@ -76,227 +80,34 @@ __all__ = [
     "McapLogReader",
     "McapLogWriter",
     "QueuedLogWriter",
+    "classic_frames_records",
     "encode_design",
+    "frame_fields",
+    "frame_json",
     "frame_to_message",
     "read_log",
 ]
 
-Compression = Literal["zstd", "lz4", "none"]
-Direction = Literal["tx", "rx"]
-
-#: ``--compression`` value -> the MCAP chunk's compression field
-_COMPRESSION: Final[dict[str, str]] = {"zstd": "zstd", "lz4": "lz4", "none": ""}
-_PROFILE: Final = ""  # no ROS profile: plain JSON messages
-_LIBRARY: Final = "foilc-hil"
-#: frames encoded at once: one loop over them instead of a chain of calls per frame (the batch costs a few hundred
-#: microseconds; a trial's end, any other message and close write a partial batch)
-FRAME_BATCH: Final = 1024
-#: a logged frame waits as one row of values: timestamp, id, extended, dlc, data, direction, log time, and its
-#: :func:`frame_fields` if it is not a classic data frame (else ``None``)
-_FRAME_ROW: Final = 8
-_FRAME_BATCH_VALUES: Final = FRAME_BATCH * _FRAME_ROW
-_time_ns: Final = time.time_ns  # one global lookup per frame instead of two
-#: the rare fields of a classic data frame (not remote, not error, not FD, no channel)
-_CLASSIC: Final = (False, False, False, False, False, None)
-
-
-class LogWriteError(FoilcHilError, OSError):
-    """Writing the log failed at run time (disk full, file gone). Exit 1."""
-
-
-# --- JSON encoding --------------------------------------------------------------------------------------------
-
-
-def _jsonable(value: Any) -> Any:
-    """``value`` with numpy scalars/arrays turned into Python numbers/lists and non-finite floats into ``None``.
-
-    JSON has no NaN or infinity (Foxglove's parser rejects Python's ``NaN`` extension), so a non-finite value is
-    logged as ``null``. Finite floats are written with ``repr``, which round-trips float64 exactly.
-    """
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, (bool, int, str)) or value is None:
-        return value
-    if isinstance(value, np.ndarray):
-        return _jsonable(value.tolist())
-    if isinstance(value, np.generic):
-        return _jsonable(value.item())
-    if isinstance(value, Mapping):
-        return {str(key): _jsonable(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(item) for item in value]
-    if hasattr(value, "to_json"):
-        return _jsonable(value.to_json())
-    raise TypeError(f"cannot log a value of type {type(value).__name__}")
-
-
-def _encode(document: dict[str, Any]) -> bytes:
-    """Compact JSON of ``document`` with orjson (about 20x cheaper than ``json.dumps`` here, and the writer thread
-    holds the GIL while it encodes). orjson writes non-finite floats as ``null``, like :func:`_jsonable`, and
-    floats in their shortest round-trip form, so ``replay --verify`` reads back the exact float64."""
-    try:
-        return orjson.dumps(document, option=orjson.OPT_SERIALIZE_NUMPY)
-    except TypeError:  # orjson.JSONEncodeError: integers beyond 64 bits, objects with to_json(), ...
-        return orjson.dumps(_jsonable(document))
-
-
-# --- writer ---------------------------------------------------------------------------------------------------
-
-
-class _ClosingListener(can.Listener):
-    """What both writers share: the lifecycle (python-can's ``stop()`` and the context manager both mean
-    :meth:`close`), :meth:`log_sample` and :meth:`log_timing`, the positional spellings of :meth:`write_sample` and
-    :meth:`write_timing`."""
-
-    @abstractmethod
-    def close(self) -> None: ...
-
-    @abstractmethod
-    def write_sample(self, record: SampleRecord) -> None: ...
-
-    def log_sample(
-        self,
-        trial: int,
-        t: float,
-        reference: Any,
-        output: Any,
-        control: Any,
-        error: Any,
-        E: Any = None,
-        *,
-        sample: int | None = None,
-    ) -> None:
-        """Log one sample on ``/ilc/sample`` (builds the :class:`~foilc_hil.io.records.SampleRecord`; see there)."""
-        self.write_sample(SampleRecord(trial, t, reference, output, control, error, E, sample))
-
-    def write_trial_samples(self, samples: TrialSamples) -> None:
-        """Log a trial's ``/ilc/sample`` messages, one per row of ``samples``, in sample order."""
-        for record in samples.records():
-            self.write_sample(record)
-
-    @abstractmethod
-    def write_timing(self, record: TimingRecord) -> None: ...
-
-    def log_timing(
-        self,
-        cycle: int,
-        trial: int,
-        sample: int,
-        lateness_us: float,
-        period_us: float,
-        feedback_latency_us: float | None,
-        missed: bool,
-        *,
-        lost_feedback: bool = False,
-    ) -> None:
-        """Log one real-time cycle on ``/timing`` (builds the :class:`~foilc_hil.io.records.TimingRecord`; see
-        there)."""
-        self.write_timing(
-            TimingRecord(cycle, trial, sample, lateness_us, period_us, feedback_latency_us, missed, lost_feedback)
-        )
-
-    def started(self) -> None:
-        """Return when the writer keeps pace with the loop: at once for a writer in this process (a writer process
-        waits for its child here, :meth:`foilc_hil.io.log_process.ProcessLogWriter.started`)."""
+class _ClosingListener(_LogLifecycle, can.Listener):
+    """The lifecycle of a writer that is also a python-can listener: python-can's ``stop()`` means :meth:`close`."""
 
     def stop(self) -> None:
         """python-can listener hook: same as :meth:`close`."""
         self.close()
 
-    def __enter__(self) -> Self:
-        return self
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc_value: BaseException | None,
-        traceback: TracebackType | None,
-    ) -> None:
-        self.close()
-
-
-class McapLogWriter(_ClosingListener):
+class McapLogWriter(McapFileWriter, _ClosingListener):
     """Writes one bench run as MCAP.
 
     A :class:`can.Listener`: attach it to a :class:`can.Notifier` and every received frame is logged with
     ``dir: "rx"``; the bench logs what it sends with :meth:`log_frame`. Thread-safe (one lock), but it encodes
     and writes on the calling thread -- the real-time loop uses :class:`QueuedLogWriter` in front of it.
 
+    Everything but the two frame methods is :class:`~foilc_hil.io.mcap_writer.McapFileWriter`'s (same parameters).
     Lifecycle: construct (writes the header and the metadata, flushed at once) -> log trial 1 ... ->
     :meth:`end_trial` -> ... -> :meth:`close` (summary and footer). Use it as a context manager so an exception
     still closes the file.
-
-    Parameters
-    ----------
-    output
-        File path, or a binary stream the caller owns (it is flushed, not closed).
-    compression
-        Chunk compression: ``"zstd"`` (default), ``"lz4"`` or ``"none"``.
-    config_yaml
-        The resolved config as YAML text (metadata record ``foilc_hil.config``); ``None`` writes no record
-        (e.g. a plain CAN capture through ``can_logger``).
-    design
-        Gains and certificates (metadata record ``foilc_hil.design``, each value JSON-encoded); can also be
-        given later with :meth:`log_design`.
-    chunk_size
-        Chunks are closed at this size (bytes, uncompressed) as well as at every :meth:`end_trial`.
-    fsync
-        ``os.fsync`` the file at every :meth:`end_trial` so a completed trial survives a power cut too.
-    compiled_frames
-        Write batches of classic frames with the compiled kernel (:mod:`foilc_hil.io.frame_kernel`, loaded at the
-        first batch: numba's import); ``False``: frame by frame in Python, the same bytes, for a process that must
-        start fast and not pause at its first batch (the writer process of ``run``).
     """
-
-    def __init__(
-        self,
-        output: str | os.PathLike[str] | IO[bytes],
-        *,
-        compression: Compression = "zstd",
-        config_yaml: str | None,
-        design: Mapping[str, Any] | None = None,
-        chunk_size: int = 4 * 1024 * 1024,
-        fsync: bool = True,
-        compiled_frames: bool = True,
-    ) -> None:
-        if compression not in _COMPRESSION:
-            raise LogFormatError(f"compression must be one of {', '.join(_COMPRESSION)}, not {compression!r}")
-        self.path = str(output) if isinstance(output, (str, os.PathLike)) else str(getattr(output, "name", "<stream>"))
-        if isinstance(output, (str, os.PathLike)):
-            try:
-                self._stream: IO[bytes] = open(output, "wb")  # noqa: SIM115 -- closed in close()
-            except OSError as exc:
-                raise LogFormatError(f"{output}: cannot create: {exc.strerror or exc}") from None
-            self._owns_stream = True
-        else:
-            self._stream = output
-            self._owns_stream = False
-        self._fsync = fsync
-        self._compiled_frames = compiled_frames
-        self._lock = threading.Lock()
-        self._frames: list[Any] = []  # logged, not yet encoded: rows of _FRAME_ROW values, one after the other
-        self._closed = False
-        try:
-            self._writer = ChunkedMcapWriter(self._stream, chunk_size=chunk_size, compression=_COMPRESSION[compression])
-        except LogFormatError as exc:  # lz4 / zstandard not installed
-            self._close_stream()
-            raise LogFormatError(f"{self.path}: {exc}") from None
-        self._writer.start(profile=_PROFILE, library=_LIBRARY)
-        self._channels: dict[str, int] = {}
-        metadata = channel_metadata(config_yaml)  # units of the fields
-        for topic, (name, schema) in TOPICS.items():
-            schema_id = self._writer.register_schema(name=name, encoding=SCHEMA_ENCODING, data=schema_bytes(schema))
-            self._channels[topic] = self._writer.register_channel(
-                topic=topic, message_encoding=MESSAGE_ENCODING, schema_id=schema_id, metadata=metadata[topic]
-            )
-        self._can_channel = self._channels[TOPIC_CAN]
-        if config_yaml is not None:
-            self._writer.add_metadata(METADATA_CONFIG, {"yaml": config_yaml})
-        if design is not None:
-            self._writer.add_metadata(METADATA_DESIGN, encode_design(design))
-        self._stream.flush()  # header and metadata reach the file before the first trial
-
-    # -- logging ---------------------------------------------------------------------------------------------
 
     def on_message_received(self, msg: can.Message) -> None:
         """python-can listener hook: log a received frame (``dir: "rx"``; :meth:`log_frame` inlined: a Python call
@@ -325,169 +136,6 @@ class McapLogWriter(_ClosingListener):
                        _time_ns() if log_time_ns is None else log_time_ns, rare))
         if len(frames) >= _FRAME_BATCH_VALUES:
             self._write_batch()
-
-    def log_frame_fields(self, fields: FrameFields, direction: Direction, log_time_ns: int) -> None:
-        """:meth:`log_frame` of a frame given as its :func:`frame_fields` (what the writer process receives)."""
-        rare = fields if any(fields[5:10]) or fields[10] is not None else None
-        frames = self._frames
-        frames.extend((*fields[:5], direction, log_time_ns, rare))
-        if len(frames) >= _FRAME_BATCH_VALUES:
-            self._write_batch()
-
-    def _write_batch(self) -> None:
-        with self._lock:
-            self._write_frames()  # raises if closed
-
-    def write_sample(self, record: SampleRecord, log_time_ns: int | None = None) -> None:
-        """Log one sample on ``/ilc/sample``: ``output`` is the feedback the law saw, ``control`` its command.
-
-        Scalars for a SISO axis, sequences/arrays for a multi-variable one. Values are encoded exactly (float64
-        ``repr``), so :func:`foilc_hil.logtools.replay.verify_log` can check the law bit for bit.
-        """
-        self._add(TOPIC_SAMPLE, record.to_json(), time.time_ns() if log_time_ns is None else log_time_ns)
-
-    def write_trial_samples(self, samples: TrialSamples, log_time_ns: int | None = None) -> None:
-        """Log a trial's ``/ilc/sample`` messages (:meth:`write_sample` of each row), all at one log time if given."""
-        for record in samples.records():
-            self.write_sample(record, log_time_ns)
-
-    def log_trial(self, metrics: Any, /, **extra: Any) -> None:
-        """Log one trial's metrics on ``/ilc/trial``.
-
-        ``metrics`` is a :class:`foilc_hil.metrics.TrialMetrics` (or a mapping with ``trial``, ``sse``, ``rmse``,
-        ``max_abs_error``); ``extra`` fields are added as they are (e.g. ``final_output``, the output ``y(N Ts)``
-        that closes the trial's output array, which ``replay --verify`` uses).
-        """
-        self.log_trial_at(time.time_ns(), metrics, extra)
-
-    def log_trial_at(self, log_time_ns: int, metrics: Any, extra: Mapping[str, Any]) -> None:
-        """:meth:`log_trial` with an explicit log time (ns)."""
-        base = metrics.to_json() if hasattr(metrics, "to_json") else dict(metrics)
-        missing = [key for key in ("trial", "sse", "rmse", "max_abs_error") if key not in base]
-        if missing:
-            raise LogFormatError(f"/ilc/trial message lacks {', '.join(missing)}")
-        self._add(TOPIC_TRIAL, {**base, **extra}, log_time_ns)
-
-    def write_timing(self, record: TimingRecord, log_time_ns: int | None = None) -> None:
-        """Log one real-time cycle on ``/timing`` (see :data:`foilc_hil.io.schemas.TIMING_SCHEMA`)."""
-        self._add(TOPIC_TIMING, record.to_json(), time.time_ns() if log_time_ns is None else log_time_ns)
-
-    def log_design(self, design: Mapping[str, Any]) -> None:
-        """Write the ``foilc_hil.design`` metadata record (if it was not known at construction)."""
-        with self._lock:
-            self._write_frames()
-            self._writer.add_metadata(METADATA_DESIGN, encode_design(design))
-
-    def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
-        """Write another metadata record (str -> str)."""
-        with self._lock:
-            self._write_frames()
-            self._writer.add_metadata(name, dict(data))
-
-    def end_trial(self) -> None:
-        """Close the chunk in progress and push it to disk: the trial just logged survives a crash."""
-        with self._lock:
-            try:
-                self._write_frames()
-                self._writer.flush()
-                if self._fsync and hasattr(self._stream, "fileno"):
-                    os.fsync(self._stream.fileno())
-            except OSError as exc:
-                raise LogWriteError(f"{self.path}: {exc.strerror or exc}") from None
-
-    def close(self) -> None:
-        """Write the summary and footer and close the file (idempotent)."""
-        with self._lock:
-            if self._closed:
-                return
-            try:
-                self._write_frames()
-                self._closed = True
-                self._frames = _ClosedRows(self.path)
-                self._writer.finish()
-                self._stream.flush()
-            except OSError as exc:
-                raise LogWriteError(f"{self.path}: {exc.strerror or exc}") from None
-            finally:
-                self._closed = True
-                self._frames = _ClosedRows(self.path)
-                self._close_stream()
-
-    @property
-    def closed(self) -> bool:
-        return self._closed
-
-    def message_count(self, topic: str) -> int:
-        """Messages written on ``topic`` so far."""
-        with self._lock:
-            self._write_frames()
-            return self._writer.message_count(self._channels[topic])
-
-    # -- internals -------------------------------------------------------------------------------------------
-
-    def _add(self, topic: str, document: dict[str, Any], log_time_ns: int) -> None:
-        self._append(self._channels[topic], _encode(document), log_time_ns, log_time_ns)
-
-    def _append(self, channel: int, data: bytes, log_time_ns: int, publish_time_ns: int) -> None:
-        with self._lock:
-            self._write_frames()  # the frames logged before this message go first
-            try:
-                self._writer.add_message(channel, log_time_ns, data, publish_time_ns)
-            except OSError as exc:
-                raise LogWriteError(f"{self.path}: {exc.strerror or exc}") from None
-
-    def _write_frames(self) -> None:
-        """Encode and append the frames logged so far (the lock is held)."""
-        self._check_open()
-        frames = self._frames
-        size = len(frames) - len(frames) % _FRAME_ROW  # whole rows: another thread may be extending
-        if not size:
-            return
-        rows = frames[:size]
-        del frames[:size]  # rows added meanwhile are past ``size``: they wait for the next batch
-        stamps, ids, extended, dlcs, datas, directions, log_times, rares = (rows[k::_FRAME_ROW] for k in range(8))
-        channel = self._can_channel
-        encoded = None
-        if self._compiled_frames and rares.count(None) == len(rares):
-            first = self._writer.message_count(channel)
-            encoded = classic_frames_records(stamps, ids, extended, dlcs, datas, directions, log_times, channel, first)
-        try:
-            if encoded is not None:
-                self._writer.add_records(channel, log_times, encoded[1], encoded[0])
-                return
-            # a remote, error or FD frame, a channel, an odd timestamp, no compiled kernel: one by one
-            classic = zip(stamps, ids, extended, dlcs, datas, strict=True)
-            fields = [rare or (*row, *_CLASSIC) for rare, row in zip(rares, classic, strict=True)]
-            timestamps = [field[0] or log_time / 1e9 for field, log_time in zip(fields, log_times, strict=True)]
-            documents = list(map(frame_json, fields, timestamps, directions))
-            publish_times = [round(timestamp * 1e9) for timestamp in timestamps]
-            self._writer.add_messages(channel, log_times, documents, publish_times)
-        except OSError as exc:
-            raise LogWriteError(f"{self.path}: {exc.strerror or exc}") from None
-
-    def _check_open(self) -> None:
-        if self._closed:
-            raise LogWriteError(f"{self.path}: the log is closed")
-
-    def _close_stream(self) -> None:
-        if self._owns_stream:
-            self._stream.close()
-
-
-class _ClosedRows(list[Any]):
-    """The frame rows of a closed writer: logging a frame raises (the hot path checks no flag for that)."""
-
-    def __init__(self, path: str) -> None:
-        super().__init__()
-        self.path = path
-
-    def extend(self, values: Iterable[Any], /) -> None:
-        raise LogWriteError(f"{self.path}: the log is closed")
-
-
-def encode_design(design: Mapping[str, Any]) -> dict[str, str]:
-    """MCAP metadata is str -> str: every value of the design becomes its JSON text."""
-    return {str(key): json.dumps(_jsonable(value), allow_nan=False) for key, value in design.items()}
 
 
 # --- queued writer (the real-time path) -----------------------------------------------------------------------
@@ -992,10 +640,6 @@ def read_log(path: str | os.PathLike[str], topics: Sequence[str] | None = None) 
         return reader.read(topics)
 
 
-FrameFields = tuple[Any, ...]
-"""A frame as :func:`frame_fields` gives it: plain values (``marshal`` ships them to the writer process)."""
-
-
 def frame_fields(msg: can.Message) -> FrameFields:
     """The attributes of a ``can.Message`` a ``/can`` record holds, in this order: timestamp, arbitration_id,
     is_extended_id, dlc, data, then the rarer remote, error, fd, brs, esi and channel.
@@ -1005,103 +649,6 @@ def frame_fields(msg: can.Message) -> FrameFields:
     """
     return (msg.timestamp, msg.arbitration_id, msg.is_extended_id, msg.dlc, msg.data, msg.is_remote_frame,
             msg.is_error_frame, msg.is_fd, msg.bitrate_switch, msg.error_state_indicator, msg.channel)
-
-
-#: the classic data frame's document with its values left open, per direction: what ``orjson.dumps`` of the
-#: document writes (same keys, same order, no spaces), built by formatting instead of a dict per frame
-_FRAME_TEMPLATES: Final = {
-    direction: '{"timestamp":%s,"id":%d,"extended":%s,"dlc":%d,"data":"%s","dir":"' + direction + '"}'
-    for direction in ("tx", "rx")
-}
-_JSON_BOOL: Final = ("false", "true")
-
-
-def classic_frames_records(
-    stamps: Sequence[float],
-    ids: Sequence[int],
-    extended: Sequence[bool],
-    dlcs: Sequence[int],
-    datas: Sequence[bytes | bytearray],
-    directions: Sequence[str],
-    log_times: Sequence[int],
-    channel_id: int,
-    sequence: int,
-) -> tuple[bytes, list[int]] | None:
-    """The MCAP ``Message`` records (and their offsets) of a batch of classic data frames, given as columns, on
-    ``channel_id`` from sequence number ``sequence`` on, with the ``/can`` JSON :func:`frame_json` writes (a frame
-    without a timestamp gets its log time); ``None`` if a timestamp needs orjson's spelling or a direction is odd.
-
-    The columns go to numpy by C loops and one compiled kernel writes the records
-    (:func:`foilc_hil.io.frame_kernel.encode_frames`): no Python bytecode per frame.
-    """
-    from foilc_hil.io.frame_kernel import FIXED_BYTES, encode_frames
-
-    count = len(ids)
-    if not {"tx", "rx"}.issuperset(directions):
-        return None
-    if not all(stamps):  # the bench's own frames: their log time
-        stamps = [stamp or log_time / 1e9 for stamp, log_time in zip(stamps, log_times, strict=True)]
-    texts = list(map(repr, stamps))
-    joined = "".join(texts)
-    if "e" in joined or "n" in joined:  # an exponent or a non-finite value: orjson's spelling, frame by frame
-        return None
-    text = np.frombuffer(joined.encode("ascii"), np.uint8)
-    payload = np.frombuffer(b"".join(datas), np.uint8)
-    out = np.empty(count * FIXED_BYTES + text.size + 2 * payload.size, np.uint8)
-    offsets = np.empty(count, np.int64)
-    size = encode_frames(
-        text, np.cumsum(np.fromiter(map(len, texts), np.int64, count)),
-        np.fromiter(ids, np.int64, count), np.fromiter(extended, np.bool_, count), np.fromiter(dlcs, np.int64, count),
-        payload, np.cumsum(np.fromiter(map(len, datas), np.int64, count)),
-        np.frombuffer("".join(directions).encode("ascii"), np.uint8)[::2] == ord("t"),
-        np.fromiter(log_times, np.int64, count), np.rint(np.fromiter(stamps, np.float64, count) * 1e9).astype(np.int64),
-        channel_id, sequence, out, offsets,
-    )
-    return out[:size].tobytes(), offsets.tolist()
-
-
-def frame_json(fields: FrameFields, timestamp: float, direction: Direction) -> bytes:
-    """The ``/can`` JSON document of one frame (``fields`` from :func:`frame_fields`, ``timestamp`` resolved).
-
-    A classic data frame (the cyclic traffic), with or without a text channel, is formatted from a template;
-    ``repr`` of a float is its shortest round-trip form, as orjson writes it, except for exponents and non-finite
-    values, which go to orjson. Any other frame (remote, error, FD, a channel that is not text) is a dict encoded by
-    orjson with its optional fields.
-    """
-    template = _FRAME_TEMPLATES.get(direction)
-    channel = fields[10]
-    if template is not None and not any(fields[5:10]) and (channel is None or type(channel) is str):
-        text = repr(timestamp)
-        if "e" in text or "n" in text:  # 1e-05, 1e+16, inf, nan: orjson's spelling (null for non-finite)
-            text = orjson.dumps(timestamp).decode()
-        data = binascii.b2a_base64(fields[4], newline=False).decode("ascii")
-        classic = (template % (text, fields[1], _JSON_BOOL[bool(fields[2])], fields[3], data)).encode()
-        if channel is None:
-            return classic
-        # a received frame of a named channel (every frame of the in-process bus): the optional field orjson's
-        # document puts last, spelled by orjson (its escapes)
-        return b"%s,\"channel\":%s}" % (classic[:-1], orjson.dumps(channel))
-    document = {
-        "timestamp": timestamp,
-        "id": fields[1],
-        "extended": bool(fields[2]),
-        "dlc": fields[3],
-        "data": binascii.b2a_base64(fields[4], newline=False).decode("ascii"),
-        "dir": direction,
-    }
-    document.update(_frame_flags(fields))
-    return orjson.dumps(document)
-
-
-def _frame_flags(fields: FrameFields) -> dict[str, Any]:
-    """The optional ``/can`` fields of a frame that is not a classic data frame (schema: ``CAN_FRAME_SCHEMA``)."""
-    flags: dict[str, Any] = {
-        name: True for name, value in zip(("remote", "error", "fd", "brs", "esi"), fields[5:10], strict=True) if value
-    }
-    channel = fields[10]
-    if channel is not None:
-        flags["channel"] = channel if isinstance(channel, (str, int)) else str(channel)
-    return flags
 
 
 def frame_to_message(frame: Mapping[str, Any]) -> can.Message:

@@ -17,8 +17,6 @@ from typing import Any, Final
 
 import yaml
 
-from drivers.pdo import MappedVariable, PdoDirection, PdoLayout, TransmissionType
-
 __all__ = [
     "CAN_FRAME_SCHEMA",
     "DIRECTIONS",
@@ -39,8 +37,6 @@ __all__ = [
     "TOPIC_SAMPLE",
     "TOPIC_TIMING",
     "TOPIC_TRIAL",
-    "decode_pdo_mapping",
-    "encode_pdo_mapping",
     "schema_bytes",
 ]
 
@@ -74,36 +70,10 @@ SAMPLE_LAYOUT: Final = 2
 
 #: metadata record holding the PDO mapping ``run`` installed: ``{"rpdos": <JSON>, "tpdos": <JSON>}``, each a list
 #: of ``{"number", "cob_id", "transmission_type", "variables": [[index, subindex, bits, signed], ...]}``
-#: (:func:`encode_pdo_mapping`); ``export --format dbc`` reads it. Written after the drive is configured.
+#: (:func:`foilc_hil.io.pdo_mapping.encode_pdo_mapping`); ``export --format dbc`` reads it. Written after the drive
+#: is configured.
 METADATA_PDO_MAPPING: Final = "foilc_hil.pdo_mapping"
 
-
-def encode_pdo_mapping(rpdos: tuple[PdoLayout, ...], tpdos: tuple[PdoLayout, ...]) -> dict[str, str]:
-    """The ``foilc_hil.pdo_mapping`` metadata record of a mapping (MCAP metadata is str -> str)."""
-
-    def layouts(group: tuple[PdoLayout, ...]) -> str:
-        return json.dumps([
-            {"number": layout.number, "cob_id": layout.cob_id, "transmission_type": int(layout.transmission_type),
-             "variables": [[v.index, v.subindex, v.bits, v.signed] for v in layout.variables]}
-            for layout in group
-        ])
-
-    return {"rpdos": layouts(rpdos), "tpdos": layouts(tpdos)}
-
-
-def decode_pdo_mapping(record: dict[str, str]) -> tuple[tuple[PdoLayout, ...], tuple[PdoLayout, ...]]:
-    """Inverse of :func:`encode_pdo_mapping`; ``ValueError`` (or ``KeyError``/``TypeError``) when malformed."""
-
-    def layouts(direction: PdoDirection) -> tuple[PdoLayout, ...]:
-        return tuple(
-            PdoLayout(direction, int(item["number"]), int(item["cob_id"]),
-                      tuple(MappedVariable(int(index), int(sub), int(bits), bool(signed))
-                            for index, sub, bits, signed in item["variables"]),
-                      TransmissionType(int(item["transmission_type"])))
-            for item in json.loads(record[direction.name.lower() + "s"])
-        )
-
-    return layouts(PdoDirection.RPDO), layouts(PdoDirection.TPDO)
 
 #: values of ``/can`` ``dir``: sent by the bench, received by the bench
 DIRECTIONS: Final = ("tx", "rx")

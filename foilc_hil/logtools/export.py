@@ -134,7 +134,7 @@ def _logged_mapping(log: str | Path, metadata: dict[str, Any], config_name: str,
     from drivers.cia402_master import PdoPlan, pdo_plan
     from drivers.config import DriveConfig
     from drivers.od import load_od
-    from foilc_hil.io.schemas import decode_pdo_mapping
+    from foilc_hil.io.pdo_mapping import decode_pdo_mapping
     from foilc_hil.schema import load_yaml_text, validate
 
     try:

@@ -396,7 +396,8 @@ def _commission_axes(
     """Connect every axis, enter the realtime ``session`` (if any), configure every axis, log each axis's mapping
     (the first's also as the single-axis record), then enable every axis."""
     from drivers.cia402_master import pdo_plan
-    from foilc_hil.io.schemas import METADATA_AXIS_PREFIX, METADATA_PDO_MAPPING, encode_pdo_mapping
+    from foilc_hil.io.pdo_mapping import encode_pdo_mapping
+    from foilc_hil.io.schemas import METADATA_AXIS_PREFIX, METADATA_PDO_MAPPING
 
     for drive in group.drives:
         drive.connect()

@@ -1146,7 +1146,8 @@ def _log_mapping(sink: McapSink | None, drive: Any, config: Any) -> None:
     if sink is None:
         return
     from drivers.cia402_master import pdo_plan
-    from foilc_hil.io.schemas import METADATA_PDO_MAPPING, encode_pdo_mapping
+    from foilc_hil.io.pdo_mapping import encode_pdo_mapping
+    from foilc_hil.io.schemas import METADATA_PDO_MAPPING
 
     # the layouts of configure's preflight: the same function of the mode, the node and the drive's EDS
     plan = pdo_plan(config.drive.operation_mode, config.drive.node_id, drive.od)
