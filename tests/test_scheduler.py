@@ -103,6 +103,24 @@ def test_recorder_summary_matches_numpy() -> None:
     assert records[0].lateness_us == pytest.approx(lateness[0] * 1e6)
 
 
+def test_cycles_per_second_counts_from_the_loops_start_not_the_recorders_construction(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The bench builds its loop (and recorder) before it commissions and enables the drive: that time is not
+    cycling, so the rate's clock starts at :meth:`TimingRecorder.start`."""
+    clock = FakeClock()
+    monkeypatch.setattr("foilc_hil.loop.scheduler.time.perf_counter", clock)
+    recorder = TimingRecorder(TimingMode.LOCKSTEP, 0.001)
+    clock.sleep(5.0)  # commissioning and the enable
+    recorder.start()
+    recorder.begin_block(100, phase="trial", trial=1)
+    for i in range(100):
+        recorder.record(5.0 + i * 0.002, float("nan"), float("nan"), 1e-4, 1e-5, 0, False, False, False)
+    recorder.finish_block()
+    clock.sleep(0.2)  # 100 cycles in 0.2 s
+    assert recorder.summary().cycles_per_second == pytest.approx(500.0)
+
+
 def test_streaming_distribution_is_exact_then_within_its_precision() -> None:
     rng = np.random.default_rng(11)
     small = rng.uniform(-1e-5, 2e-4, size=1000)

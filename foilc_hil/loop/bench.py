@@ -503,6 +503,7 @@ class TrialLoop:
         """
         if trials < 1:
             raise ValueError(f"trials must be >= 1, got {trials}")
+        self.timing.start()
         if self.scheduler is not None:
             self.scheduler.start()
         update: _TrialUpdateThread | None = None
