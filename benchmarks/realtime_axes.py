@@ -148,7 +148,7 @@ def _run(topology: str, trials: int, work: Path, law: str | None, period: float 
              *(["--law", law] if law else [])],
             capture_output=True, text=True, cwd=ROOT, env=env,
         )
-        frames = _stop_receiver(receiver, out)
+        frames, dropped = _stop_receiver(receiver, out)
     finally:
         for emulator in emulators:  # only the emulators started above, by their own handles
             emulator.send_signal(signal.SIGINT)
@@ -173,7 +173,7 @@ def _run(topology: str, trials: int, work: Path, law: str | None, period: float 
         "timing": timing,
         "missed_deadline_fraction": timing.get("missed_deadlines", 0) / cycles if cycles else None,
         "receiver": {**sync_statistics(syncs, period), "syncs_sent_by_bench": sent_syncs,
-                     "syncs_lost": sent_syncs - int(syncs.size)},
+                     "syncs_lost": sent_syncs - int(syncs.size), "receiver_dropped": dropped},
         "axes": [_axis_figures(frames, logged, axis.drive.node_id) for axis in axis_configs(load_config(config))],
         "emulator_stderr_tail": [path.read_text().splitlines()[-3:] for path in logs],
         "sse": {str(axis["node_id"]): [trial["sse"] for trial in axis["trials"]] for axis in document.get("axes", [])},

@@ -52,3 +52,20 @@ def test_host_floor_steal_share_and_the_estimate_from_half_period_wakeups() -> N
     expected = 100 * (1 - 0.9**HOPS)  # independent hops, each late with probability 0.1
     assert f"about {expected:.1f} % of cycles" in line and "4.00 %" in line
     assert _floor_lines({}) == []
+
+
+@pytest.mark.parametrize(("syncs_lost", "tpdo1_lost", "met"), [(0, 0, True), (20, -20, False), (0, 3, False)])
+def test_no_frame_lost_is_judged_per_kind_never_summed(syncs_lost: int, tpdo1_lost: int, met: bool) -> None:
+    """A receiver that missed 20 cycles (20 SYNCs not seen, 20 TPDO1 fewer than the bench logged) once read as
+    "no frame lost": +20 and -20 summed to 0."""
+    from benchmarks.realtime import targets
+
+    stats = {"lateness_us": {"p99": 100.0}, "interval_deviation_us": {"p99": 100.0}}
+    document = {"conditions": {"quiet": {
+        "bench": {"exit_code": 0, "missed_deadline_fraction": 0.0,
+                  "receiver": {**stats, "syncs_lost": syncs_lost, "tpdo1_lost_to_bench": tpdo1_lost}},
+        "peers": [{"peer": peer, "sched_fifo": False, **stats} for peer in ("canopen", "python-can")],
+    }}}
+    (row,) = [row for row in targets(document) if row["target"].startswith("no frame lost")]
+    assert row["met"] is met
+    assert row["bench"] == f"{syncs_lost}, {tpdo1_lost}"
