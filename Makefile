@@ -3,8 +3,9 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
-# pytest workers: two per core (see the pytest target)
-WORKERS ?= $(shell echo $$((2 * $$(getconf _NPROCESSORS_ONLN 2>/dev/null || echo 1))))
+# pytest workers: two per core (see the pytest target), at most 16 (a worker holds the project's imports, a few
+# hundred MB: 2 per core on a 64-core host would be 128 of them)
+WORKERS ?= $(shell n=$$((2 * $$(getconf _NPROCESSORS_ONLN 2>/dev/null || echo 1))); echo $$((n > 16 ? 16 : n)))
 
 .PHONY: demo test lint typecheck pytest bench bench-realtime soak clean
 
