@@ -128,6 +128,8 @@ class Comparison:
             "peer": None if self.peer is None else self.peer.to_json(),
             "ratio": self.ratio,
             "goal": self.goal,
+            "min_ratio": self.min_ratio,
+            "limit": self.limit,
             "met": self.met,
             "note": self.note,
         }

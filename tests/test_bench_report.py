@@ -55,3 +55,22 @@ def test_table_rows_carry_the_figures_spread_and_verdict() -> None:
     assert lines[-1] == "- *PMSM step*: why."
     missed = Comparison("sim", "s", False, Figure((9.0,)), limit=0.3).to_json()
     assert comparison_table([missed])[2].endswith("| - | <= 0.3 s | **missed** |")
+
+
+def test_the_missed_section_says_by_how_much_and_why_for_every_missed_row(monkeypatch: pytest.MonkeyPatch) -> None:
+    from benchmarks import report
+
+    monkeypatch.setattr(report, "REALTIME_RESULTS", report.REALTIME_RESULTS.with_name("no-such-results.json"))
+    rows = [
+        Comparison("lockstep foilc-hil run, PMSM axis at 1 ms, whole run", "cycles/s", True, Figure((8000.0,)),
+                   Figure((3000.0,)), "peer", 1.5, 10_000.0).to_json(),
+        Comparison("something new", "s", False, Figure((2.0,)), None, "", None, 1.0).to_json(),
+        Comparison("met", "s", False, Figure((0.5,)), None, "", None, 1.0).to_json(),
+    ]
+    lines = report._missed({"comparisons": rows})
+    text = "\n".join(lines)
+    assert "8,000 against 10,000 cycles/s (20 % short)" in text  # the ratio 2.67x meets its 1.5x: not said
+    assert "ratio" not in text.split("**something new**")[0].split("whole run**")[1]
+    assert "**something new**: 2 against 1 s (100 % over). Bounded by not described" in text
+    assert "**met**" not in text
+    assert "`make test` under 3 minutes" in text
