@@ -459,7 +459,8 @@ def _floor_lines(condition: dict[str, Any]) -> list[str]:
     ]
 
 
-def _cell(value: Any) -> str:
+def cell(value: Any) -> str:
+    """A target row's figure as the tables print it (``-`` for none)."""
     if value is None:
         return "-"
     if isinstance(value, float):
@@ -515,8 +516,8 @@ def markdown(document: dict[str, Any]) -> str:
         "| condition | target | bench | peer | ratio | |",
         "|---|---|---|---|---|---|",
         *[
-            f"| {row['condition']} | {row['target']} | {_cell(row['bench'])} | {_cell(row['peer'])} | "
-            f"{_cell(row['ratio'])} | {'met' if row['met'] else 'missed'} |"
+            f"| {row['condition']} | {row['target']} | {cell(row['bench'])} | {cell(row['peer'])} | "
+            f"{cell(row['ratio'])} | {'met' if row['met'] else 'missed'} |"
             for row in targets(document)
         ],
         "",

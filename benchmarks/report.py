@@ -236,23 +236,17 @@ def _missed(results: dict[str, Any]) -> list[str]:
         bound, tried = why or ("not described: add it to benchmarks.report.MISSED_WHY", "-")
         lines.append(f"- **{row['target']}**: {_shortfall(row)}. Bounded by {bound}. Tried: {tried}.")
     if REALTIME_RESULTS.exists():
-        from benchmarks.realtime import targets
+        from benchmarks.realtime import cell, targets
 
         for row in targets(orjson.loads(REALTIME_RESULTS.read_bytes())):
             if not row["met"]:
                 own = row["bench"]
                 unit = " us" if "p99" in row["target"] else ""
-                shown = f"{100 * own:.2f} %" if row["target"].startswith("missed deadlines") else _cell(own) + unit
-                figures = shown + (f" against the peer's {_cell(row['peer'])}{unit}" if row["peer"] else "")
+                shown = f"{100 * own:.2f} %" if row["target"].startswith("missed deadlines") else cell(own) + unit
+                figures = shown + (f" against the peer's {cell(row['peer'])}{unit}" if row["peer"] else "")
                 lines.append(f"- **realtime, {row['condition']}: {row['target']}**: {figures}.")
         lines.append(f"- The realtime targets above are bounded by {REALTIME_WHY[0]}. Tried: {REALTIME_WHY[1]}.")
     return [*lines, *OUTSIDE, ""]
-
-
-def _cell(value: Any) -> str:
-    if isinstance(value, float):
-        return f"{value:.4g}"
-    return str(value)
 
 
 REALTIME_RESULTS = Path(__file__).with_name("realtime.json")
