@@ -49,7 +49,7 @@ from typing import Literal
 
 import numpy as np
 
-from foilc_hil.errors import ConfigError, InputError
+from foilc_hil.errors import ConfigError
 from plant_emulator.config import DisturbanceConfig, PlantConfig, PmsmConfig
 from plant_emulator.physics.base import check_scalar_input, check_step, check_trial, trial_rng
 from plant_emulator.physics.disturbance import Disturbance
@@ -142,10 +142,7 @@ class PmsmPlant:
     def step_scalar(self, u: float, dt: float) -> float:
         """:meth:`step` with the input and the output as floats: the virtual drive's call once a cycle, which then
         builds no array for the input and none for the output (:class:`~plant_emulator.physics.base.ScalarPlant`)."""
-        command = float(u)
-        if not math.isfinite(command):
-            raise InputError("u must be finite")
-        return self._advance(command, dt)
+        return self._advance(check_scalar_input(u), dt)
 
     def _advance(self, command: float, dt: float) -> float:
         """The step of a checked input (:meth:`step`, :meth:`step_scalar`): the measured rpm."""
