@@ -3,6 +3,7 @@ the bench's process, errors raised on the bench's side, and the child never left
 
 from __future__ import annotations
 
+import marshal
 import os
 import signal
 import subprocess
@@ -246,3 +247,16 @@ def test_the_writer_process_imports_no_python_can() -> None:
              "print(sorted(m for m in sys.modules if m == 'can' or m.startswith('can.')))")
     result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, check=True)
     assert result.stdout.strip() == "[]", result.stdout
+
+
+def test_unframed_yields_whole_payloads_and_keeps_the_rest_for_the_next_call() -> None:
+    """Both pipes' framing: a payload cut short stays in the buffer; a consumer that stops early loses nothing."""
+    from foilc_hil.io.log_child import framed, unframed
+
+    whole = framed(marshal.dumps((1, "a"))) + framed(marshal.dumps([2.5, None])) + framed(marshal.dumps("third"))
+    buffer = bytearray(whole[:-3])  # the third payload not yet whole
+    values = unframed(buffer)
+    assert next(values) == (1, "a")  # stop after the first
+    assert list(unframed(buffer)) == [[2.5, None]]
+    buffer += whole[-3:]
+    assert list(unframed(buffer)) == ["third"] and buffer == bytearray()

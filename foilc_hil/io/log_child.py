@@ -25,7 +25,9 @@ import numpy as np
 from foilc_hil.io.mcap_writer import McapFileWriter
 from foilc_hil.io.records import SampleRecord, TimingRecord, TrialSamples
 
-__all__ = ["PIPE_BYTES", "READ_BYTES", "READ_PAUSE", "ReplyKind", "WireOp", "serve"]
+__all__ = [
+    "PAYLOAD_LENGTH", "PIPE_BYTES", "READ_BYTES", "READ_PAUSE", "ReplyKind", "WireOp", "framed", "serve", "unframed",
+]
 
 
 @enum.unique
@@ -58,7 +60,26 @@ READ_PAUSE: Final = 0.002
 time; a 1 kHz loop two cycles): its sleep is timed, never a wait on the pipe (see ``_payloads``)."""
 READ_BYTES: Final = PIPE_BYTES
 """Bytes the writer process reads at once: the whole pipe."""
-_LENGTH: Final = struct.Struct("<I")  # the length of each marshal payload, before it
+PAYLOAD_LENGTH: Final = struct.Struct("<I")
+"""The length of each ``marshal`` payload on either pipe, written before it (:func:`framed`, :func:`unframed`)."""
+
+
+def framed(payload: bytes) -> bytes:
+    """``payload`` as it goes on a pipe: its length, then itself."""
+    return PAYLOAD_LENGTH.pack(len(payload)) + payload
+
+
+def unframed(buffer: bytearray) -> Iterator[Any]:
+    """The values of the whole payloads at the front of ``buffer``, each removed from it as it is yielded (a
+    payload not yet whole stays; a consumer that stops early leaves the rest for the next call)."""
+    header = PAYLOAD_LENGTH.size
+    while len(buffer) >= header:
+        (size,) = PAYLOAD_LENGTH.unpack_from(buffer)
+        if len(buffer) - header < size:
+            return
+        payload = bytes(buffer[header : header + size])
+        del buffer[: header + size]  # from the front of a bytearray: no copy of the rest
+        yield marshal.loads(payload)
 
 
 def _payloads(data_fd: int, pause: float = READ_PAUSE) -> Iterator[list[tuple[Any, ...]]]:
@@ -73,7 +94,6 @@ def _payloads(data_fd: int, pause: float = READ_PAUSE) -> Iterator[list[tuple[An
     """
     os.set_blocking(data_fd, False)
     buffer = bytearray()
-    header = _LENGTH.size
     while True:
         try:
             chunk = os.read(data_fd, READ_BYTES)
@@ -83,14 +103,7 @@ def _payloads(data_fd: int, pause: float = READ_PAUSE) -> Iterator[list[tuple[An
             return
         if chunk:
             buffer += chunk
-            start = 0
-            while len(buffer) - start >= header:
-                (size,) = _LENGTH.unpack_from(buffer, start)
-                if len(buffer) - start - header < size:
-                    break
-                yield marshal.loads(buffer[start + header : start + header + size])
-                start += header + size
-            del buffer[:start]
+            yield from unframed(buffer)
         if chunk is None or len(chunk) < READ_BYTES:  # drained: let the loop's writes pile up for a while
             time.sleep(pause)
 
@@ -98,7 +111,7 @@ def _payloads(data_fd: int, pause: float = READ_PAUSE) -> Iterator[list[tuple[An
 def _reply(stream: IO[bytes], kind: ReplyKind, value: Any) -> None:
     payload = marshal.dumps((int(kind), value))
     with contextlib.suppress(OSError):  # the bench is gone: nobody to tell, the file is still finished
-        stream.write(_LENGTH.pack(len(payload)) + payload)
+        stream.write(framed(payload))
         stream.flush()
 
 

@@ -40,7 +40,7 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Final
 
@@ -48,7 +48,7 @@ import can
 import orjson
 
 from foilc_hil.errors import LogFormatError
-from foilc_hil.io.log_child import _LENGTH, PIPE_BYTES, READ_PAUSE, ReplyKind, WireOp
+from foilc_hil.io.log_child import PIPE_BYTES, READ_PAUSE, ReplyKind, WireOp, framed, unframed
 from foilc_hil.io.mcap_chunks import compressor
 from foilc_hil.io.mcap_log import _ClosingListener, frame_fields
 from foilc_hil.io.mcap_writer import _COMPRESSION, Compression, Direction, LogWriteError, _encode, encode_design
@@ -284,7 +284,7 @@ class ProcessLogWriter(_ClosingListener):
             lock.release()
 
     def _write(self, payload: bytes) -> None:
-        view = memoryview(_LENGTH.pack(len(payload)) + payload)
+        view = memoryview(framed(payload))
         try:
             while view:
                 view = view[os.write(self._data, view) :]
@@ -321,7 +321,7 @@ class ProcessLogWriter(_ClosingListener):
     def _wait_reply(self, token: int | None, deadline: float | None) -> bool:
         """Read replies until ``token``'s ``SYNCED`` (``True``), the deadline or the pipe's end (``False``)."""
         while True:
-            for kind, value in self._parse_replies():
+            for kind, value in unframed(self._replies):
                 if kind == ReplyKind.ERROR:
                     self._error = self._error or str(value)
                 elif value == token:
@@ -336,16 +336,6 @@ class ProcessLogWriter(_ClosingListener):
             if not chunk:
                 return False
             self._replies += chunk
-
-    def _parse_replies(self) -> Iterator[tuple[int, Any]]:
-        buffer = self._replies
-        while len(buffer) >= _LENGTH.size:
-            (size,) = _LENGTH.unpack_from(buffer)
-            if len(buffer) < _LENGTH.size + size:
-                return
-            payload = bytes(buffer[_LENGTH.size : _LENGTH.size + size])
-            del buffer[: _LENGTH.size + size]
-            yield marshal.loads(payload)
 
     def _raise_pending(self) -> None:
         if self._error is None:
