@@ -42,9 +42,10 @@ typecheck: $(STAMP)
 
 # two workers per core (pytest-xdist; worksteal evens out the long tests): a quarter of the suite's test time is
 # spent waiting, not computing (timeouts that are the point of a test, emulator and CLI processes, a drive's
-# heartbeat): on 2 cores, 316 s of test time held 241 CPU-s, and 4 workers took 141-144 s against 156 s for 3, 160-170 s
-# for 2 and 168 s for 6. Each test stays independent of the others and of wall-clock speed. One BLAS thread per worker: the workers already fill the cores, and OpenBLAS threads
-# that spin-wait for a core a loaded host does not give them made a 3x3 expm take 14 ms instead of 20 us
+# heartbeat): on 2 cores, 316 s of test time held 241 CPU-s, and 4 workers took 141-144 s against 156 s for 3,
+# 160-170 s for 2 and 168 s for 6. Each test stays independent of the others and of wall-clock speed. One BLAS thread
+# per worker: the workers already fill the cores, and OpenBLAS threads that spin-wait for a core a loaded host does
+# not give them made a 3x3 expm take 14 ms instead of 20 us
 # The shared caches first, once (tests/warm_caches.py): numba's compiled kernels, the packages' byte code and the
 # rewritten test modules; on a fresh clone each worker and each emulator process a test starts would otherwise
 # fill them again, at the same time (several seconds of CPU each)
