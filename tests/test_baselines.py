@@ -152,3 +152,24 @@ def test_certificates_recomputed_on_the_lifted_map_at_every_vertex(
     # built move them by ~1e-2 on the demo axis); the 2-norms above are well-conditioned and are what certifies.
     np.testing.assert_allclose(sorted(p.spectral_radius for p in certificates.plants), sorted(radii), atol=2e-2)
     assert certificates.monotonic == (max(norms) < 1) and certificates.monotonic
+
+
+@pytest.mark.parametrize(("states", "inputs", "outputs", "delay"), [(1, 1, 1, 0), (3, 1, 1, 2), (4, 2, 2, 1)])
+def test_the_p_type_bound_sees_the_plant_python_control_sees(states: int, inputs: int, outputs: int,
+                                                             delay: int) -> None:
+    """The grid response behind the P-type bound, against python-control's own evaluation of the same discrete
+    system at every grid point, times the shift ``z^(1+d)``."""
+    import control
+
+    from foilc_hil.design.ptype import FREQUENCY_GRID, _shifted_response
+
+    rng = np.random.default_rng(states + 10 * delay)
+    A = 0.3 * rng.standard_normal((states, states))
+    B, C = rng.standard_normal((states, inputs)), rng.standard_normal((outputs, states))
+    z = np.exp(1j * np.linspace(0.0, math.pi, FREQUENCY_GRID))
+    system = control.ss(A, B, C, np.zeros((outputs, inputs)), 1.0)
+    evaluated = np.moveaxis(np.asarray(system(z)).reshape(outputs, inputs, z.size), 2, 0)
+    truth = evaluated * (z ** (1 + delay))[:, None, None]
+    response = _shifted_response(A, B, C, delay)
+    assert response.shape == (FREQUENCY_GRID, outputs, inputs)
+    np.testing.assert_allclose(response, truth, rtol=1e-10, atol=1e-12 * float(np.max(np.abs(truth))))

@@ -112,3 +112,42 @@ def test_truncated_copy_of_the_shipped_eds_is_rejected(tmp_path: Path) -> None:
     truncated.write_text(cut, encoding="utf-8")
     with pytest.raises(EdsError, match="lacks object 0x6040"):
         load_od(truncated)
+
+
+def _described(od: ObjectDictionary) -> list[tuple[object, ...]]:
+    """Every variable of ``od`` as the fields canopen parsed (its parent's index and name in place of the parent)."""
+    rows: list[tuple[object, ...]] = []
+    for index in sorted(od.indices):
+        obj = od[index]
+        variables = [obj] if isinstance(obj, ODVariable) else [obj[sub] for sub in sorted(obj.subindices)]
+        for variable in variables:
+            fields = {key: value for key, value in vars(variable).items() if key != "parent"}
+            parent = variable.parent
+            rows.append((index, variable.subindex, getattr(parent, "index", None), getattr(parent, "name", None),
+                         sorted(fields.items(), key=lambda item: item[0]).__repr__()))
+    return rows
+
+
+def test_a_kept_parse_is_the_parse_and_every_load_is_its_own(tmp_path: Path) -> None:
+    import canopen
+
+    eds = tmp_path / "drive.eds"
+    eds.write_text(DEFAULT_EDS.read_text(encoding="utf-8"), encoding="utf-8")
+    first, second = load_od(eds, 7), load_od(eds, 7)  # the second from the kept parse
+    fresh = canopen.import_od(str(eds), 7)  # canopen's own parse, nothing kept
+    assert _described(second) == _described(fresh) == _described(first)
+    assert (second.node_id, second.bitrate, second.device_information.product_name) == (
+        fresh.node_id, fresh.bitrate, fresh.device_information.product_name)
+    # $NODEID resolved for the node asked, not the one kept
+    rpdo1 = (Obj.RPDO_COMMUNICATION, 1)  # COB-ID $NODEID+0x200
+    assert _default(load_od(eds, 9), *rpdo1) == _default(canopen.import_od(str(eds), 9), *rpdo1) == 0x209
+    assert _default(second, *rpdo1) == 0x207
+    # each load is an object of its own: changing one changes no other
+    _var(first, Obj.CONTROLWORD).default = 0x1234
+    assert _var(second, Obj.CONTROLWORD).default != 0x1234
+    assert _var(load_od(eds, 7), Obj.CONTROLWORD).default != 0x1234
+    # a changed file is parsed again
+    text = eds.read_text(encoding="utf-8")
+    eds.write_text(text[: text.index("[6040]")], encoding="utf-8")
+    with pytest.raises(EdsError, match="lacks object 0x6040"):
+        load_od(eds, 7)

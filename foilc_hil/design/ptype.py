@@ -35,12 +35,11 @@ def _shifted_response(A: np.ndarray, B: np.ndarray, C: np.ndarray, input_delay: 
     """``z^(1+d) C (zI - A)^-1 B`` at ``z = exp(j w)`` on the grid: the plant seen by a law that learns from
     ``e[t + d]``."""
     n = A.shape[0]
-    w = np.linspace(0.0, math.pi, FREQUENCY_GRID)
-    out = np.empty((w.size, C.shape[0], B.shape[1]), dtype=complex)
-    for i, wi in enumerate(w):
-        z = np.exp(1j * wi)
-        out[i] = z ** (1 + input_delay) * (C @ np.linalg.solve(z * np.eye(n) - A, B))
-    return out
+    z = np.exp(1j * np.linspace(0.0, math.pi, FREQUENCY_GRID))
+    # every grid point's resolvent in one stacked solve (LAPACK's gesv per point, as a loop of solves would)
+    resolvent = np.linalg.solve(z[:, None, None] * np.eye(n) - A, np.broadcast_to(B, (z.size, *B.shape)))
+    shift = z ** (1 + input_delay)
+    return np.asarray(shift[:, None, None] * (C @ resolvent), dtype=complex)
 
 
 def _symbol_bound(response: np.ndarray, gamma: np.ndarray) -> float:
