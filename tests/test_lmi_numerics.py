@@ -121,12 +121,16 @@ def _scaled_solution(model: DiscreteModel, uncertainty: Uncertainty) -> tuple[An
     }
 
 
-def _boundary_gamma(scaled: Any, values: dict[str, Any]) -> float:
-    """The gamma at which the scaled LMI matrix at ``values`` stops being negative definite (bisection)."""
+def _boundary_gamma(scaling: Any, roesser: Any, values: dict[str, Any]) -> float:
+    """The gamma at which the LMI matrix at ``values`` stops being negative definite (bisection), as the check sees
+    it: in the coordinates solved (``values``) and in the original ones (a sign at rounding level may differ)."""
+    scaled = scaling.apply(roesser)
 
     def largest(gamma: float) -> float:
-        M = lmi_matrix(scaled, **{**values, "gamma": gamma}, tau=RATE, theta=RATE, bmat=np.block)
-        return float(np.max(np.linalg.eigvalsh(M)))
+        planted = {**values, "gamma": gamma}
+        solved = lmi_matrix(scaled, **planted, tau=RATE, theta=RATE, bmat=np.block)
+        original = lmi_matrix(roesser, **scaling.unscale(planted), tau=RATE, theta=RATE, bmat=np.block)
+        return max(float(np.max(np.linalg.eigvalsh(solved))), float(np.max(np.linalg.eigvalsh(original))))
 
     low, high = 0.0, values["gamma"]
     for _ in range(200):
@@ -144,7 +148,7 @@ def test_a_planted_unconfirmed_gamma_is_refused(monkeypatch: pytest.MonkeyPatch)
     model, uncertainty = _model("paper_sim.yaml", 0)
     scaling, values = _scaled_solution(model, uncertainty)
     scaled = scaling.apply(roesser_model(model, uncertainty))
-    boundary = _boundary_gamma(scaled, values)
+    boundary = _boundary_gamma(scaling, roesser_model(model, uncertainty), values)
     M = lmi_matrix(scaled, **{**values, "gamma": boundary}, tau=RATE, theta=RATE, bmat=np.block)
     spectrum = np.linalg.eigvalsh(M)
     assert 0 < -np.max(spectrum) / np.max(np.abs(spectrum)) < LMI_RELATIVE_MARGIN_MIN  # negative, within rounding
@@ -162,3 +166,28 @@ def test_checks_round_trip_through_json() -> None:
     checks = solve_lmi(*_model("demo.yaml", 1), tau=RATE, theta=RATE).checks
     assert checks.scaling is not None and not checks.within_rounding
     assert jsonable(LmiChecks.from_json(jsonable(checks)).to_json()) == jsonable(checks)
+
+
+@pytest.mark.parametrize(("name", "delay"), [("paper_sim.yaml", 0), ("demo.yaml", 1), ("scara_4axis.yaml", 1)])
+def test_the_standard_form_is_the_lmi_matrix_at_every_point(name: str, delay: int) -> None:
+    """``F0 + sum x_i F_i`` (what cvxpy solves) against :func:`lmi_matrix` of the same values, at random points;
+    ``x`` is packed here from the documented order (upper triangles of Qb and Qt, J by rows, sigmas, gamma)."""
+    model, uncertainty = _model(name, delay)
+    scaled = balance(roesser_model(model, uncertainty)).apply(roesser_model(model, uncertainty))
+    form = lmi.standard_form(scaled, RATE, 0.9)
+    n, p, m, c = scaled.n_states, scaled.n_outputs, scaled.Bbar.shape[1], len(scaled.channels)
+    assert c > 0  # the uncertainty channels are in the matrix
+    rng = np.random.default_rng(delay)
+    for _ in range(5):
+        Qb, Qt = rng.standard_normal((n, n)), rng.standard_normal((p, p))
+        Qb, Qt = Qb + Qb.T, Qt + Qt.T
+        J, sigmas, gamma = rng.standard_normal((m, n + p)), rng.uniform(0.1, 2.0, c), float(rng.uniform(0.5, 3))
+        x = np.concatenate([Qb[np.triu_indices(n)], Qt[np.triu_indices(p)], J.ravel(), sigmas, [gamma]])
+        direct = lmi_matrix(scaled, Qb=Qb, Qt=Qt, J=J, sigmas=list(sigmas), gamma=gamma, tau=RATE, theta=0.9,
+                            bmat=np.block)
+        np.testing.assert_allclose(form.matrix(x), direct, rtol=0, atol=1e-12 * np.max(np.abs(direct)))
+        unpacked = form.unpack(x)
+        np.testing.assert_array_equal(unpacked["Qb"], Qb)
+        np.testing.assert_array_equal(unpacked["Qt"], Qt)
+        np.testing.assert_array_equal(unpacked["J"], J)
+        assert unpacked["sigmas"] == tuple(sigmas) and unpacked["gamma"] == gamma
