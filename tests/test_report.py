@@ -242,3 +242,48 @@ def test_trial_signals_are_the_logged_values_in_sample_order() -> None:
     np.testing.assert_array_equal(signals[2]["control"], [[2.0, 4.0], [1.0, nan]])
     np.testing.assert_array_equal(signals[2]["error"], [[0.25], [nan]])
     np.testing.assert_array_equal(signals[1]["control"], [[9.0]])
+
+
+def test_the_report_counts_the_frames_it_does_not_keep(tmp_path: Path) -> None:
+    """``summary.json``'s frames by direction, from a read that only counts them, against a read that keeps every
+    frame; a frame whose JSON is damaged stops the counting read where it stops the full one."""
+    import can
+
+    from foilc_hil.io.mcap_log import read_log
+    from foilc_hil.io.schemas import TOPIC_CAN
+    from foilc_hil.logtools.report import REPORT_TOPICS
+
+    log = tmp_path / "frames.mcap"
+    with McapLogWriter(log, config_yaml="trials: 1\n", design=DESIGN) as writer:
+        for i in range(N):
+            writer.log_frame(can.Message(arbitration_id=0x201, data=[i, 0]), "tx")
+            for _ in range(1 + i % 3):  # 60 received against 30 sent
+                writer.log_frame(can.Message(arbitration_id=0x181, data=[0, i]), "rx")
+            writer.log_sample(1, i * 0.01, 1.0, 0.5, 0.0, 0.5, 0.5, sample=i)
+        # documents another writer could have made (other key order, another direction): decoded, not matched
+        writer._add(TOPIC_CAN, {"dir": "rx", "timestamp": 1.0, "id": 1, "extended": False, "dlc": 0, "data": ""}, 1)
+        writer._add(TOPIC_CAN, {"timestamp": 1.0, "id": 1, "extended": False, "dlc": 0, "data": "", "dir": "sent"}, 2)
+        writer.log_trial({"trial": 1, "sse": 1.0, "rmse": 1.0, "max_abs_error": 1.0})
+        writer.end_trial()
+    kept = read_log(log)
+    counted = read_log(log, REPORT_TOPICS, count_frames=True)
+    assert counted.frames == [] and len(counted.samples) == len(kept.samples) == N
+    truth = {key: sum(f["dir"] == key for f in kept.frames) for key in ("tx", "rx", "sent")}
+    assert truth == {"tx": N, "rx": 2 * N + 1, "sent": 1} == counted.frame_directions == kept.frame_directions
+    out = tmp_path / "r"
+    assert main(["report", str(log), "--out", str(out)]) == 0
+    assert json.loads((out / "summary.json").read_text())["frames"] == truth
+    # one frame's bytes damaged inside an uncompressed chunk: both reads stop at the same place, saying the same
+    bad = tmp_path / "bad.mcap"
+    with McapLogWriter(bad, config_yaml="trials: 1\n", design=DESIGN, compression="none") as writer:
+        for i in range(N):
+            writer.log_frame(can.Message(arbitration_id=0x181, data=[i]), "rx")
+        writer.end_trial()
+    data = bytearray(bad.read_bytes())
+    where = data.index(b'"dir":"rx"', len(data) // 2)
+    data[where:where + 1] = b"'"  # no longer JSON
+    bad.write_bytes(bytes(data))
+    full = read_log(bad)
+    partial = read_log(bad, REPORT_TOPICS, count_frames=True)
+    assert full.truncated and partial.truncated and partial.damage == full.damage
+    assert partial.frame_directions == full.frame_directions

@@ -235,15 +235,15 @@ def design_all(pool: Executor, config: Any, laws: tuple[str, ...]) -> dict[str, 
 
 def _write_report(log_path: Path, report_dir: Path) -> tuple[str, LogContents]:
     """F's report (plots + summary) for one log; returns the directory written and what the comparison figure
-    needs of the log (its samples, trial metrics and metadata: the frames, most of its memory, are let go)."""
+    needs of the log (its samples, trial metrics and metadata: the frames are counted, never kept)."""
     from dataclasses import replace
 
     from foilc_hil.io.mcap_log import read_log
     from foilc_hil.logtools import report
 
-    contents = read_log(log_path)
+    contents = read_log(log_path, report.REPORT_TOPICS, count_frames=True)
     report.report_of(contents, report_dir)
-    return str(report_dir), replace(contents, frames=[], timing=[])
+    return str(report_dir), replace(contents, timing=[])
 
 
 def converged_by(trials: list[dict[str, Any]]) -> int | None:

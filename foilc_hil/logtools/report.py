@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from foilc_hil.errors import FoilcHilError, InputError
+from foilc_hil.io.schemas import TOPIC_SAMPLE, TOPIC_TIMING, TOPIC_TRIAL
 from foilc_hil.progress import as_step
 
 if TYPE_CHECKING:
@@ -39,11 +40,14 @@ if TYPE_CHECKING:
 
     from foilc_hil.io.mcap_log import LogContents
 
-__all__ = ["MAX_TRIALS_DRAWN", "LogContext", "ReportFiles", "draw_comparison", "log_context", "report_of",
-           "summarize", "write_comparison", "write_report"]
+__all__ = ["MAX_TRIALS_DRAWN", "REPORT_TOPICS", "LogContext", "ReportFiles", "draw_comparison", "frame_directions",
+           "log_context", "report_of", "summarize", "write_comparison", "write_report"]
 
 #: at most this many trials are drawn per plot (evenly spread, first and last always included)
 MAX_TRIALS_DRAWN = 8
+#: what a report decodes into lists
+REPORT_TOPICS = (TOPIC_SAMPLE, TOPIC_TRIAL, TOPIC_TIMING)
+# (the frames are only counted, by direction: read_log's count_frames)
 #: the reference steps at the trial's start when the last trial's first (unlearnable) error exceeds this share of
 #: the reference's peak and this multiple of the RMS of its learnable errors
 STEP_SHARE = 0.1
@@ -175,6 +179,17 @@ def _timing_summary(timing: Sequence[Mapping[str, Any]]) -> dict[str, Any] | Non
     }
 
 
+def frame_directions(contents: LogContents) -> dict[str, int]:
+    """The frames by direction: what the reader counted, else (contents built another way) those in ``frames``."""
+    if contents.frame_directions:
+        return dict(contents.frame_directions)
+    counts: dict[str, int] = {}
+    for frame in contents.frames:
+        direction = str(frame.get("dir"))
+        counts[direction] = counts.get(direction, 0) + 1
+    return counts
+
+
 def summarize(contents: LogContents, signals: Mapping[int, Mapping[str, np.ndarray]] | None = None) -> dict[str, Any]:
     """The summary document: per-trial metrics, design certificates, timing percentiles, truncation. ``signals``:
     :func:`trial_signals` of the log's samples when the caller has them (else computed here)."""
@@ -188,9 +203,7 @@ def summarize(contents: LogContents, signals: Mapping[int, Mapping[str, np.ndarr
         keys = ("law", "kp", "r", "gamma", "tau", "theta", "input_delay", "gain_scale", "sample_time")
         design_summary = {key: design[key] for key in keys if key in design}
         design_summary["certificates"] = design.get("certificates", {})
-    frames_by_dir = {"tx": 0, "rx": 0}
-    for frame in contents.frames:
-        frames_by_dir[str(frame.get("dir"))] = frames_by_dir.get(str(frame.get("dir")), 0) + 1
+    frames_by_dir = {"tx": 0, "rx": 0, **frame_directions(contents)}
     kept = ("trial", "sse", "rmse", "max_abs_error", "rmse_learnable", "max_abs_error_learnable")
     trials = [{key: value for key, value in record.items() if key in kept} for record in contents.trials]
     return {
@@ -334,7 +347,6 @@ def write_comparison(logs: Mapping[str, str | Path], path: str | Path) -> Path:
     input, tracking error (shared scales per row, trial 1 and the unlearnable first samples left out of them) --
     and one panel of every law's learnable RMSE against trial, the disturbance's first trial marked."""
     from foilc_hil.io.mcap_log import read_log
-    from foilc_hil.io.schemas import TOPIC_SAMPLE, TOPIC_TRIAL
 
     # the figure needs the samples and the trial metrics (and the metadata): the frames are not decoded
     return draw_comparison({name: read_log(log, (TOPIC_SAMPLE, TOPIC_TRIAL)) for name, log in logs.items()}, path,
@@ -549,7 +561,7 @@ def write_report(log: str | Path, out_dir: str | Path) -> ReportFiles:
     """
     from foilc_hil.io.mcap_log import read_log
 
-    return report_of(read_log(log), out_dir)
+    return report_of(read_log(log, REPORT_TOPICS, count_frames=True), out_dir)
 
 
 @as_step("report: figures and summary")
