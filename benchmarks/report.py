@@ -72,7 +72,8 @@ def _machine(results: dict[str, Any]) -> list[str]:
         f"- machine: {machine['cpus']} CPUs, {machine['platform']}, Python {machine['python']}",
         f"- load average (1 min) at the start and end of the run: {machine['load_average_1min']:.2f}, "
         f"{results.get('load_average_end', float('nan')):.2f}",
-        f"- repetitions per figure: {results['repeats']}",
+        f"- repetitions per figure: {results['repeats']} (more where a row's n says so: the lockstep rows, whose rate "
+        "moves 10 to 20 % from run to run)",
         f"- command: `{COMMAND}`",
     ]
 
@@ -182,7 +183,9 @@ MISSED_WHY: dict[str, tuple[str, str]] = {
     "lockstep foilc-hil run, PMSM axis at 1 ms": (
         "the Python of a cycle, spread thin: the profile above has no stage over a quarter of the cycle (the "
         "in-process transport's copies, the emulator's SYNC consumer and PDO engine, the master's RPDO and SYNC, the "
-        "receive dispatch, the bench's bookkeeping)",
+        "receive dispatch, the bench's bookkeeping); counted with sys.setprofile over one run, a cycle makes about 248 "
+        "Python and C calls (four frames built, copied, routed and decoded; the object store read 5 times and written "
+        "4; 15 lock round trips): the cost is in their number, not in one of them",
         "a synchronous in-process transport without threads; direct routes for the cyclic COB-IDs past canopen's "
         "listener chain; compiled law step and PMSM physics called without numba's dispatcher; frames built without "
         "Message.__init__; the rate counted from the loop's first cycle, not from before the commissioning",
@@ -209,7 +212,8 @@ OUTSIDE = (
     "collection come before or beside pytest, and many tests are whole bench runs with their processes). Tried: "
     "pytest-xdist with two workers per core (a quarter of the tests' time is waiting), the caches filled once before "
     "the workers start, a uv bootstrap, the log writer's child without python-can, one compiled overload per kernel, "
-    "the dense reference maps by indexing.",
+    "the dense reference maps by indexing; then a parsed EDS kept per process (651 parses of 17 ms), the P-type "
+    "grid response in one stacked solve, the LMI handed to cvxpy in standard form (a solve 134 -> 43 ms).",
 )
 
 
