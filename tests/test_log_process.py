@@ -260,3 +260,44 @@ def test_unframed_yields_whole_payloads_and_keeps_the_rest_for_the_next_call() -
     assert list(unframed(buffer)) == [[2.5, None]]
     buffer += whole[-3:]
     assert list(unframed(buffer)) == ["third"] and buffer == bytearray()
+
+
+def _channel_units(path: Path) -> dict[str, str]:
+    from mcap.reader import make_reader
+
+    with path.open("rb") as stream:
+        summary = make_reader(stream).get_summary()
+    assert summary is not None
+    return {channel.topic: channel.metadata["units"] for channel in summary.channels.values()}
+
+
+def test_the_child_labels_the_channels_with_the_units_the_loop_worked_out(tmp_path: Path) -> None:
+    """The channels' units come from the config's ``drive:`` section; the loop's process works them out and the child
+    writes them as the in-process writer does (the child never loads the config's models: half its start-up)."""
+    config_yaml = "drive:\n  mode: cst\n  velocity_unit: rad/s\n  torque_unit: N m\n"
+    direct, child = tmp_path / "direct.mcap", tmp_path / "child.mcap"
+    with McapLogWriter(direct, config_yaml=config_yaml, fsync=False) as writer:
+        _log_run(writer)
+    with ProcessLogWriter(child, config_yaml=config_yaml, fsync=False) as process_writer:
+        _log_run(process_writer)
+    units = _channel_units(child)
+    assert units == _channel_units(direct)
+    assert '"control": "N m"' in units["/ilc/sample"] and '"output": "rad/s"' in units["/ilc/sample"]
+    # the child's side, as the writer process runs it: an OPEN with the units given, then the end of the pipe
+    probe = textwrap.dedent(f"""
+        import marshal, os, sys
+        from foilc_hil.io.log_child import WireOp, framed, serve
+        from foilc_hil.io.schemas import TOPICS
+        data_r, data_w = os.pipe()
+        reply_r, reply_w = os.pipe()
+        fd = os.open({str(tmp_path / "probe.mcap")!r}, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)
+        units = {{topic: {{"units": "{{}}"}} for topic in TOPICS}}
+        opened = (int(WireOp.OPEN), "probe.mcap", "zstd", {config_yaml!r}, None, 1 << 20, False, units)
+        os.write(data_w, framed(marshal.dumps([opened])))
+        os.close(data_w)
+        serve(data_r, reply_w, fd)
+        print(sorted(m for m in sys.modules if m.split(".")[0] in ("pydantic", "can", "drivers")))
+    """)
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, check=True)
+    assert result.stdout.strip() == "[]", result.stdout
+    assert read_log(tmp_path / "probe.mcap").truncated is False

@@ -53,7 +53,7 @@ from foilc_hil.io.mcap_chunks import compressor
 from foilc_hil.io.mcap_log import _ClosingListener, frame_fields
 from foilc_hil.io.mcap_writer import _COMPRESSION, Compression, Direction, LogWriteError, _encode, encode_design
 from foilc_hil.io.records import SampleRecord, TimingRecord, TrialSamples
-from foilc_hil.io.schemas import METADATA_DESIGN
+from foilc_hil.io.schemas import METADATA_DESIGN, channel_metadata
 
 __all__ = ["BATCH", "MAX_BACKLOG", "PIPE_BYTES", "READ_PAUSE", "ProcessLogWriter", "WireOp"]
 
@@ -118,7 +118,8 @@ class ProcessLogWriter(_ClosingListener):
         finally:
             os.close(file_fd)  # the child has its own copy
         plain_design = None if design is None else _json_values(design)
-        opened = (self.path, compression, config_yaml, plain_design, chunk_size, fsync)
+        # the channels' units worked out here, where the config's models are loaded already (see McapFileWriter)
+        opened = (self.path, compression, config_yaml, plain_design, chunk_size, fsync, channel_metadata(config_yaml))
         self._items.append((int(WireOp.OPEN), *opened))
         self._started = False
         if wait:

@@ -209,6 +209,10 @@ class McapFileWriter(_LogLifecycle):
         Write batches of classic frames with the compiled kernel (:mod:`foilc_hil.io.frame_kernel`, loaded at the
         first batch: numba's import); ``False``: frame by frame in Python, the same bytes, for a process that must
         start fast and not pause at its first batch (the writer process of ``run``).
+    channels_metadata
+        Each topic's channel metadata, as :func:`~foilc_hil.io.schemas.channel_metadata` gives it for
+        ``config_yaml`` (what it is when ``None``). The writer process gets it from the loop's process: working it
+        out loads the config's models (pydantic), half of that process's start-up.
     """
 
     def __init__(
@@ -221,6 +225,7 @@ class McapFileWriter(_LogLifecycle):
         chunk_size: int = 4 * 1024 * 1024,
         fsync: bool = True,
         compiled_frames: bool = True,
+        channels_metadata: Mapping[str, Mapping[str, str]] | None = None,
     ) -> None:
         if compression not in _COMPRESSION:
             raise LogFormatError(f"compression must be one of {', '.join(_COMPRESSION)}, not {compression!r}")
@@ -246,11 +251,12 @@ class McapFileWriter(_LogLifecycle):
             raise LogFormatError(f"{self.path}: {exc}") from None
         self._writer.start(profile=_PROFILE, library=_LIBRARY)
         self._channels: dict[str, int] = {}
-        metadata = channel_metadata(config_yaml)  # units of the fields
+        # units of the fields
+        metadata = channel_metadata(config_yaml) if channels_metadata is None else channels_metadata
         for topic, (name, schema) in TOPICS.items():
             schema_id = self._writer.register_schema(name=name, encoding=SCHEMA_ENCODING, data=schema_bytes(schema))
             self._channels[topic] = self._writer.register_channel(
-                topic=topic, message_encoding=MESSAGE_ENCODING, schema_id=schema_id, metadata=metadata[topic]
+                topic=topic, message_encoding=MESSAGE_ENCODING, schema_id=schema_id, metadata=dict(metadata[topic])
             )
         self._can_channel = self._channels[TOPIC_CAN]
         if config_yaml is not None:
