@@ -31,7 +31,7 @@ import os
 import struct
 import threading
 import time
-from collections.abc import Iterator, Mapping, Sequence, Set
+from collections.abc import Iterable, Iterator, Mapping, Sequence, Set
 from dataclasses import dataclass, field
 from pathlib import Path
 from queue import SimpleQueue
@@ -81,6 +81,7 @@ __all__ = [
     "McapLogWriter",
     "QueuedLogWriter",
     "classic_frames_records",
+    "count_directions",
     "encode_design",
     "frame_fields",
     "frame_json",
@@ -476,7 +477,7 @@ class McapLogReader:
         self, topics: Sequence[str] | None, directions: dict[str, int] | None = None
     ) -> Iterator[tuple[str, int, int, dict[str, Any]]]:
         """:meth:`iter_messages` as plain tuples (:meth:`read` builds no :class:`LogMessage` per message);
-        ``directions``: the ``/can`` messages are decoded (and checked) but only counted there, by direction."""
+        ``directions``: the ``/can`` messages are only counted there, by direction (see :meth:`read`)."""
         if self._spent:
             raise RuntimeError("McapLogReader reads its file once; create another reader")
         self._spent = True
@@ -569,9 +570,7 @@ class McapLogReader:
             if bucket is not None:
                 bucket.append(document)
         if counted is None:
-            for frame in contents.frames:
-                direction = str(frame.get("dir"))
-                directions[direction] = directions.get(direction, 0) + 1
+            directions.update(count_directions(contents.frames))
         contents.metadata = dict(self.metadata)
         contents.truncated = self.truncated
         contents.damage = self.damage
@@ -690,6 +689,15 @@ def _is_cut(exc: BaseException) -> bool:
     from mcap.exceptions import EndOfFile
 
     return isinstance(exc, (EndOfFile, struct.error, EOFError))
+
+
+def count_directions(frames: Iterable[Mapping[str, Any]]) -> dict[str, int]:
+    """``/can`` documents counted by their ``dir`` (``"tx"``, ``"rx"``; anything else as its text)."""
+    counts: dict[str, int] = {}
+    for frame in frames:
+        direction = str(frame.get("dir"))
+        counts[direction] = counts.get(direction, 0) + 1
+    return counts
 
 
 def read_log(

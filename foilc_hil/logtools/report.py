@@ -181,13 +181,9 @@ def _timing_summary(timing: Sequence[Mapping[str, Any]]) -> dict[str, Any] | Non
 
 def frame_directions(contents: LogContents) -> dict[str, int]:
     """The frames by direction: what the reader counted, else (contents built another way) those in ``frames``."""
-    if contents.frame_directions:
-        return dict(contents.frame_directions)
-    counts: dict[str, int] = {}
-    for frame in contents.frames:
-        direction = str(frame.get("dir"))
-        counts[direction] = counts.get(direction, 0) + 1
-    return counts
+    from foilc_hil.io.mcap_log import count_directions
+
+    return dict(contents.frame_directions) if contents.frame_directions else count_directions(contents.frames)
 
 
 def summarize(contents: LogContents, signals: Mapping[int, Mapping[str, np.ndarray]] | None = None) -> dict[str, Any]:
