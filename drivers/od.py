@@ -19,6 +19,7 @@ from __future__ import annotations
 import collections
 import configparser
 import pickle
+import stat
 import threading
 from pathlib import Path
 
@@ -101,12 +102,12 @@ def load_od(path: str | Path | None = None, node_id: int | None = None) -> Objec
         Naming the file: it is missing, unreadable, malformed, or lacks one of :data:`REQUIRED_OBJECTS`.
     """
     source = Path(path) if path is not None else DEFAULT_EDS
-    if not source.is_file():
-        raise EdsError("EDS file not found", source=str(source))
     try:
-        status = source.stat()
-    except OSError as exc:
-        raise EdsError(f"not a valid EDS: {type(exc).__name__}: {exc}", source=str(source)) from exc
+        status = source.stat()  # one stat: whether it is a file, and the kept parse's key
+    except (OSError, ValueError):
+        status = None
+    if status is None or not stat.S_ISREG(status.st_mode):
+        raise EdsError("EDS file not found", source=str(source))
     key = (str(source.resolve()), status.st_mtime_ns, status.st_size, node_id)
     with _parsed_lock:
         parsed = _parsed.get(key)
