@@ -342,8 +342,8 @@ class StandardForm:
 
     The coefficients are :func:`lmi_matrix` evaluated with numpy at ``x = 0`` and at each unit vector (the matrix is
     affine in the decision variables), so cvxpy gets one linear map instead of an expression tree of blocks: its
-    compilation took about 110 ms of a 120 ms solve that way, and the solver 8 ms. ``tests/test_lmi.py`` checks
-    ``M(x)`` against :func:`lmi_matrix` at random ``x``.
+    compilation took about 110 ms of a 120 ms solve that way, and the solver 8 ms. ``tests/test_lmi_numerics.py``
+    checks ``M(x)`` against :func:`lmi_matrix` at random ``x``.
     """
 
     F0: np.ndarray
@@ -362,20 +362,26 @@ class StandardForm:
 
     def unpack(self, x: np.ndarray) -> dict[str, Any]:
         """The decision variables of ``x``: ``Qb``, ``Qt`` (symmetric), ``J``, ``sigmas``, ``gamma``."""
-        n, p, m, c = self.n_states, self.n_outputs, self.n_inputs, self.n_channels
-        upper_n, upper_p = n * (n + 1) // 2, p * (p + 1) // 2
-        x = np.asarray(x, dtype=float)
-        return {
-            "Qb": (self.Qb_map @ x).reshape(n, n),
-            "Qt": (self.Qt_map @ x).reshape(p, p),
-            "J": x[upper_n + upper_p:upper_n + upper_p + m * (n + p)].reshape(m, n + p),
-            "sigmas": tuple(float(v) for v in x[upper_n + upper_p + m * (n + p):][:c]),
-            "gamma": float(x[-1]),
-        }
+        return _unpack(x, self.Qb_map, self.Qt_map, self.n_states, self.n_outputs, self.n_inputs, self.n_channels)
 
     def matrix(self, x: np.ndarray) -> np.ndarray:
         """``M(x)``."""
         return self.F0 + (self.F @ np.asarray(x, dtype=float)).reshape(self.F0.shape)
+
+
+def _unpack(
+    x: np.ndarray, Qb_map: np.ndarray, Qt_map: np.ndarray, n: int, p: int, m: int, c: int
+) -> dict[str, Any]:
+    """:meth:`StandardForm.unpack` (``n`` states, ``p`` outputs, ``m`` inputs, ``c`` channels)."""
+    start = n * (n + 1) // 2 + p * (p + 1) // 2  # J's first entry, after the two upper triangles
+    x = np.asarray(x, dtype=float)
+    return {
+        "Qb": (Qb_map @ x).reshape(n, n),
+        "Qt": (Qt_map @ x).reshape(p, p),
+        "J": x[start:start + m * (n + p)].reshape(m, n + p),
+        "sigmas": tuple(float(v) for v in x[start + m * (n + p):][:c]),
+        "gamma": float(x[-1]),
+    }
 
 
 def _symmetric_map(size: int, offset: int, k: int) -> np.ndarray:
@@ -394,18 +400,17 @@ def standard_form(scaled: RoesserModel, tau: float, theta: float) -> StandardFor
     m, c = scaled.Bbar.shape[1], len(scaled.channels)
     upper_n, upper_p = n * (n + 1) // 2, p * (p + 1) // 2
     k = upper_n + upper_p + m * (n + p) + c + 1
-    shape = StandardForm(np.zeros((0, 0)), np.zeros((0, k)), _symmetric_map(n, 0, k), _symmetric_map(p, upper_n, k),
-                         n, p, m, c)
+    Qb_map, Qt_map = _symmetric_map(n, 0, k), _symmetric_map(p, upper_n, k)
 
     def evaluate(x: np.ndarray) -> np.ndarray:
-        values = shape.unpack(x)
+        values = _unpack(x, Qb_map, Qt_map, n, p, m, c)
         return np.asarray(lmi_matrix(scaled, tau=tau, theta=theta, bmat=np.block, **values), dtype=float)
 
     F0 = evaluate(np.zeros(k))
     F = np.empty((F0.size, k))
     for i, unit in enumerate(np.eye(k)):
         F[:, i] = (evaluate(unit) - F0).ravel()
-    return StandardForm(F0, F, shape.Qb_map, shape.Qt_map, n, p, m, c)
+    return StandardForm(F0, F, Qb_map, Qt_map, n, p, m, c)
 
 
 def _solve_once(
