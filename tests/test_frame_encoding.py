@@ -1,12 +1,15 @@
-"""The /can documents written from templates (one frame) or by the compiled kernel (a batch, as MCAP records) are
-orjson's text of the same document, byte for byte, in records laid out as the MCAP specification says; frames
-neither covers are told apart."""
+"""The /can documents written from templates (one frame, or a batch as columns) or by the compiled kernel (a batch,
+as MCAP records) are orjson's text of the same document, byte for byte, in records laid out as the MCAP specification
+says; frames neither covers are told apart, and frames logged as columns make the same file as frames logged one by
+one."""
 
 from __future__ import annotations
 
 import binascii
+import io
 import random
 import struct
+from collections.abc import Callable
 from pathlib import Path
 
 import can
@@ -14,7 +17,13 @@ import orjson
 import pytest
 
 from foilc_hil.io.mcap_log import McapLogWriter, frame_fields, read_log
-from foilc_hil.io.mcap_writer import Direction, classic_frames_records, frame_json
+from foilc_hil.io.mcap_writer import (
+    Direction,
+    McapFileWriter,
+    classic_frames_documents,
+    classic_frames_records,
+    frame_json,
+)
 
 
 def _document(msg: can.Message, timestamp: float, direction: str) -> bytes:
@@ -103,3 +112,72 @@ def test_a_classic_frame_of_a_named_channel_is_orjsons_text(channel: str, timest
     expected = orjson.loads(_document(msg, timestamp, "rx"))
     expected["channel"] = channel
     assert frame_json(frame_fields(msg), timestamp, "rx") == orjson.dumps(expected)
+
+
+def _frame_columns(frames: list[can.Message]) -> list[tuple[object, ...]]:
+    return list(zip(*(frame_fields(m) for m in frames), strict=True))
+
+
+def test_a_batch_of_documents_is_each_frames_own_text() -> None:
+    frames = _classic_frames(400, seed=11)
+    names = [None, "vcan0", 'a "quoted" \\ name', "k\u00e4nal\n", ""]
+    for i, msg in enumerate(frames):
+        msg.channel = names[i % len(names)]
+        msg.timestamp = msg.timestamp or 1.5 + i  # resolved, as the writer passes them
+    directions: list[Direction] = ["rx" if i % 4 else "tx" for i in range(len(frames))]
+    stamps, ids, extended, dlcs, datas, *_, channels = _frame_columns(frames)
+    documents = classic_frames_documents(stamps, ids, extended, dlcs, datas, channels, directions)  # type: ignore[arg-type]
+    expected = [frame_json(frame_fields(m), m.timestamp, d) for m, d in zip(frames, directions, strict=True)]
+    assert documents == expected
+    # and each is orjson's text of the frame's document
+    for msg, direction, document in zip(frames[:40], directions, expected, strict=False):
+        truth = orjson.loads(_document(msg, msg.timestamp, direction))
+        if msg.channel is not None:
+            truth["channel"] = msg.channel
+        assert document == orjson.dumps(truth)
+    # what the templates cannot spell is refused as a batch (the writer then goes frame by frame)
+    for odd_stamp in (1e-05, 1e16, float("nan"), float("-inf")):
+        assert classic_frames_documents(
+            (*stamps[:3], odd_stamp), ids[:4], extended[:4], dlcs[:4], datas[:4], channels[:4], directions[:4],  # type: ignore[arg-type]
+        ) is None
+    assert classic_frames_documents(stamps[:2], ids[:2], extended[:2], dlcs[:2], datas[:2], channels[:2],  # type: ignore[arg-type]
+                                    ["tx", "up"]) is None
+
+
+def _file_bytes(log: Callable[[McapFileWriter], None]) -> bytes:
+    stream = io.BytesIO()
+    writer = McapFileWriter(stream, config_yaml=None, fsync=False, compiled_frames=False, compression="none")
+    log(writer)
+    writer.close()
+    return stream.getvalue()
+
+
+def test_frames_logged_as_columns_make_the_file_frame_by_frame_logging_makes() -> None:
+    classic = _classic_frames(300, seed=13)
+    for i, msg in enumerate(classic):
+        msg.channel = "foilc-hil-embedded" if i % 2 else None
+    odd = can.Message(arbitration_id=0x181, is_remote_frame=True, dlc=2, is_extended_id=False, channel=0)
+    runs = [classic[:150], [*classic[150:200], odd, *classic[200:]]]  # a run of classic frames, then one with a rare
+    rows = [[(frame_fields(m), "rx" if i % 3 else "tx", 1_000_000 + i) for i, m in enumerate(run)] for run in runs]
+
+    def by_columns(writer: McapFileWriter) -> None:
+        for run in rows:
+            fields, directions, log_times = zip(*run, strict=True)
+            writer.log_frames(fields, directions, log_times)
+
+    def one_by_one(writer: McapFileWriter) -> None:
+        for run in rows:
+            for row in run:
+                writer.log_frame_fields(*row)  # type: ignore[arg-type]
+
+    assert _file_bytes(by_columns) == _file_bytes(one_by_one)
+
+
+@pytest.mark.parametrize("stamp", ["1.0", None, True, b"\x00"])
+def test_a_frame_whose_timestamp_is_not_a_number_is_refused(stamp: object) -> None:
+    fields = (stamp, 0x181, False, 1, b"\x01",
+              False, False, False, False, False, None)
+    writer = McapFileWriter(io.BytesIO(), config_yaml=None, fsync=False, compiled_frames=False)
+    with pytest.raises(TypeError, match=f"timestamp must be a number, not {type(stamp).__name__}"):
+        writer.log_frames([fields], ["tx"], [1])
+    writer.close()

@@ -13,11 +13,12 @@ import contextlib
 import enum
 import itertools
 import marshal
+import operator
 import os
 import struct
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from typing import IO, Any, Final
 
 import numpy as np
@@ -60,6 +61,7 @@ READ_PAUSE: Final = 0.002
 time; a 1 kHz loop two cycles): its sleep is timed, never a wait on the pipe (see ``_payloads``)."""
 READ_BYTES: Final = PIPE_BYTES
 """Bytes the writer process reads at once: the whole pipe."""
+_OPCODE: Final = operator.itemgetter(0)
 PAYLOAD_LENGTH: Final = struct.Struct("<I")
 """The length of each ``marshal`` payload on either pipe, written before it (:func:`framed`, :func:`unframed`)."""
 
@@ -108,6 +110,11 @@ def _payloads(data_fd: int, pause: float = READ_PAUSE) -> Iterator[list[tuple[An
             time.sleep(pause)
 
 
+def _runs(batch: list[tuple[Any, ...]]) -> Iterator[tuple[int, Iterator[tuple[Any, ...]]]]:
+    """A batch's items grouped in runs of one opcode, in order (``itertools.groupby``: a C loop)."""
+    return itertools.groupby(batch, key=_OPCODE)
+
+
 def _reply(stream: IO[bytes], kind: ReplyKind, value: Any) -> None:
     payload = marshal.dumps((int(kind), value))
     with contextlib.suppress(OSError):  # the bench is gone: nobody to tell, the file is still finished
@@ -129,14 +136,21 @@ def _open_writer(item: tuple[Any, ...], file_fd: int) -> McapFileWriter:
     return writer
 
 
-def _apply(writer: McapFileWriter, item: tuple[Any, ...]) -> None:
-    """One item on the writer (every op but ``OPEN`` and ``SYNC``)."""
-    op = item[0]
+def _apply_run(writer: McapFileWriter, op: int, run: Iterable[tuple[Any, ...]]) -> None:
+    """A run of items of one opcode (every op but ``OPEN`` and ``SYNC``) on the writer: frames all at once (their
+    columns: see :meth:`McapFileWriter.log_frames`), anything else one by one."""
     if op == WireOp.FRAME:
-        if not isinstance(item[3][0], (int, float)):
-            raise TypeError(f"a frame's timestamp must be a number, not {type(item[3][0]).__name__}")
-        writer.log_frame_fields(item[3], item[2], item[1])
-    elif op == WireOp.SAMPLE:
+        _, log_times, directions, fields = zip(*run, strict=True)
+        writer.log_frames(fields, directions, log_times)
+    else:
+        for item in run:
+            _apply(writer, item)
+
+
+def _apply(writer: McapFileWriter, item: tuple[Any, ...]) -> None:
+    """One item on the writer (neither a frame, ``OPEN`` nor ``SYNC``)."""
+    op = item[0]
+    if op == WireOp.SAMPLE:
         writer.write_sample(SampleRecord(*item[2]), item[1])
     elif op == WireOp.TRIAL_SAMPLES:
         reference, output, control, error, big_e = (np.frombuffer(column, dtype=np.float64) for column in item[5:10])
@@ -158,15 +172,18 @@ def serve(data_fd: int, reply_fd: int, file_fd: int) -> None:
     failed = False
     with os.fdopen(reply_fd, "wb") as replies:
         try:
-            for item in itertools.chain.from_iterable(_payloads(data_fd)):
-                if item[0] == WireOp.SYNC:
-                    _reply(replies, ReplyKind.SYNCED, item[1])
+            # each batch in runs of one opcode (a lockstep batch is mostly one run of frames)
+            for op, run in itertools.chain.from_iterable(map(_runs, _payloads(data_fd))):
+                if op == WireOp.SYNC:
+                    for item in run:
+                        _reply(replies, ReplyKind.SYNCED, item[1])
                 elif not failed:  # once broken, the log drops the rest (the bench was told), but keeps reading
                     try:
-                        if item[0] == WireOp.OPEN:
-                            writer = _open_writer(item, file_fd)
+                        if op == WireOp.OPEN:
+                            for item in run:
+                                writer = _open_writer(item, file_fd)
                         elif writer is not None:
-                            _apply(writer, item)
+                            _apply_run(writer, op, run)
                     except Exception as exc:
                         failed = True
                         _reply(replies, ReplyKind.ERROR, str(exc))

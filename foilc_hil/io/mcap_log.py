@@ -49,6 +49,7 @@ from foilc_hil.errors import FoilcHilError, LogFormatError
 from foilc_hil.io.mcap_chunks import MCAP_MAGIC
 from foilc_hil.io.mcap_writer import (
     _FRAME_BATCH_VALUES,
+    _ROW_CHANNEL_TYPES,
     Compression,
     Direction,
     FrameFields,
@@ -113,11 +114,12 @@ class McapLogWriter(McapFileWriter, _ClosingListener):
     def on_message_received(self, msg: can.Message) -> None:
         """python-can listener hook: log a received frame (``dir: "rx"``; :meth:`log_frame` inlined: a Python call
         is a tenth of a frame's cost)."""
-        odd = msg.is_remote_frame or msg.is_error_frame or msg.is_fd or msg.channel is not None
+        channel = msg.channel
+        odd = msg.is_remote_frame or msg.is_error_frame or msg.is_fd or type(channel) not in _ROW_CHANNEL_TYPES
         rare = frame_fields(msg) if odd else None
         frames = self._frames
         frames.extend(
-            (msg.timestamp, msg.arbitration_id, msg.is_extended_id, msg.dlc, msg.data, "rx", _time_ns(), rare)
+            (msg.timestamp, msg.arbitration_id, msg.is_extended_id, msg.dlc, msg.data, channel, "rx", _time_ns(), rare)
         )
         if len(frames) >= _FRAME_BATCH_VALUES:
             self._write_batch()
@@ -129,11 +131,12 @@ class McapLogWriter(McapFileWriter, _ClosingListener):
         its log time. Frames are encoded in batches (:data:`FRAME_BATCH`, and before any other message, so the file
         keeps the calls' order): the payload is referenced until then, so do not change ``msg.data`` in place.
         """
-        odd = msg.is_remote_frame or msg.is_error_frame or msg.is_fd or msg.channel is not None
+        channel = msg.channel
+        odd = msg.is_remote_frame or msg.is_error_frame or msg.is_fd or type(channel) not in _ROW_CHANNEL_TYPES
         rare = frame_fields(msg) if odd else None
         frames = self._frames
         # one row of _FRAME_ROW values; list.extend is one C call, atomic under the GIL, whatever thread logs
-        frames.extend((msg.timestamp, msg.arbitration_id, msg.is_extended_id, msg.dlc, msg.data, direction,
+        frames.extend((msg.timestamp, msg.arbitration_id, msg.is_extended_id, msg.dlc, msg.data, channel, direction,
                        _time_ns() if log_time_ns is None else log_time_ns, rare))
         if len(frames) >= _FRAME_BATCH_VALUES:
             self._write_batch()
