@@ -240,3 +240,37 @@ def test_mimo_time_varying_integration_matches_a_fine_reference() -> None:
         x = solve_ivp(rhs, (t0, t0 + dt), x, rtol=1e-11, atol=1e-13, method="DOP853").y[:, -1]
         worst = max(worst, float(np.max(np.abs(plant.step(u, dt) - x))))
     assert worst < 5e-5, worst
+
+
+@pytest.mark.parametrize("fields", [
+    {},
+    {"c": -2.0},  # at rest, c x is -0.0: measured +0.0, as c @ x sums it
+    {
+        "output_noise": 0.05,
+        "saturation": {"u_min": -0.5, "u_max": 0.8},
+        "variation": {"a": {"kind": "random_walk", "amplitude": 0.5, "frequency": 1.0},
+                      "b": {"kind": "random_walk", "amplitude": 0.2, "frequency": 3.0}},
+        "disturbance": {"kind": "constant", "amplitude": 0.3, "start_trial": 2},
+    },
+])
+def test_the_papers_plant_steps_in_floats_as_the_general_path_does_bit_for_bit(fields: dict[str, object]) -> None:
+    """The scalar plant's float step (``step_scalar``, the virtual drive's call, and ``step``) against the array
+    path every other plant takes, forced on a twin: the same outputs, state, saturation flag and draws."""
+    by_floats, general = FirstOrderPlant(_scalar(**fields), seed=7), FirstOrderPlant(_scalar(**fields), seed=7)
+    general._floats = False
+    rng = np.random.default_rng(1)
+    for trial in (1, 2):
+        by_floats.reset(trial)
+        general.reset(trial)
+        for k in range(300):
+            u = 0.0 if k < 5 else float(rng.uniform(-2.0, 2.0))
+            dt = 0.013 if k % 7 == 0 else 0.01
+            expected = general.step(np.array([u]), dt)[0]
+            got = by_floats.step_scalar(u, dt) if k % 2 else by_floats.step(np.array([u]), dt)[0]
+            assert np.float64(got).tobytes() == expected.tobytes(), (trial, k)
+            assert by_floats.saturated == general.saturated
+        assert by_floats.state().tobytes() == general.state().tobytes()
+        assert by_floats.output().tobytes() == general.output().tobytes()
+        assert by_floats.time == general.time
+    with pytest.raises(InputError, match="finite"):
+        by_floats.step_scalar(math.nan, 0.01)

@@ -26,7 +26,7 @@ from scipy.linalg import expm
 from foilc_hil.errors import ConfigError
 from plant_emulator.config import PlantConfig
 from plant_emulator.linear import continuous_model
-from plant_emulator.physics.base import check_input, check_step, check_trial
+from plant_emulator.physics.base import check_input, check_scalar_input, check_step, check_trial
 from plant_emulator.physics.disturbance import Disturbance
 from plant_emulator.physics.kernels import scalar_plant_step
 from plant_emulator.physics.noise import SensorNoise
@@ -71,6 +71,10 @@ class FirstOrderPlant:
         self._a_scalar = float(self._a[0, 0])
         self._b_row = np.ascontiguousarray(self._b[0])
         self._on_row = np.ascontiguousarray(self._b_pattern[0])
+        # The paper's plant (one state, one input, one output, no transport delay) steps in floats (_step_floats)
+        self._floats = (n, self.n_inputs, self.n_outputs) == (1, 1, 1) and self._delay == 0.0
+        self._c_scalar = float(self._c[0, 0])
+        self._applied = np.zeros(1)  # the compiled step's input vector, refilled every step
         self._delta_a = VariationSignal(plant.variation.a, seed, stream=1)
         self._delta_b = VariationSignal(plant.variation.b, seed, stream=2)
         self._disturbance = Disturbance(plant.disturbance)
@@ -104,6 +108,8 @@ class FirstOrderPlant:
 
     def step(self, u: np.ndarray, dt: float) -> np.ndarray:
         """Hold ``u`` (saturated) over ``dt`` seconds and return the measured output."""
+        if self._floats:
+            return np.array([self._step_floats(check_scalar_input(u), check_step(dt))])
         command = check_input(u, self.n_inputs)
         dt = check_step(dt)
         # Clipped element by element in Python: for the few inputs of a plant this is ~10x cheaper than np.clip.
@@ -126,6 +132,38 @@ class FirstOrderPlant:
         self._t = t0 + dt
         self._y = self._measure()
         return self._y.copy()
+
+    def step_scalar(self, u: float, dt: float) -> float:
+        """:meth:`step` with the input and the output as floats: the virtual drive's call once a cycle (output 0;
+        :class:`~plant_emulator.physics.base.ScalarPlant`)."""
+        if self._floats:
+            return self._step_floats(check_scalar_input(u), check_step(dt))
+        return float(self.step(np.array([u]), dt)[0])
+
+    def _step_floats(self, command: float, dt: float) -> float:
+        """The step of the paper's plant, in floats: the draws, the compiled closed form and the measurement of the
+        general path (:meth:`_advance`, :meth:`_measure`), without its arrays but the state's and the output's,
+        updated in place.
+
+        Why: the virtual drive steps its plant once a cycle, and the general path's arrays (the clipped input, the
+        state, ``c @ x``, the output and its copy) were most of the step: 11.7 us against 4.9 us (best of 5 x 20,000
+        steps).
+        """
+        applied = min(max(command, self._u_min), self._u_max)
+        self.saturated = applied != command
+        t0 = self._t
+        variation = (self._delta_a.over_step(t0, dt), self._delta_b.over_step(t0, dt))
+        d = self._disturbance.over_step(t0, dt)
+        self._applied[0] = applied
+        x = scalar_plant_step(float(self._x[0]), self._a_scalar, self._b_row, self._on_row, self._applied, variation,
+                              d, dt)
+        self._x[0] = x
+        self._t = t0 + dt
+        y = 0.0 + self._c_scalar * x  # as c @ x sums it: from +0.0, so a product of -0.0 measures +0.0
+        if self.noise.active:
+            y += float(self.noise.sample()[0])
+        self._y[0] = y
+        return y
 
     def output(self) -> np.ndarray:
         """The last measured output ``c x + noise``."""
