@@ -96,7 +96,7 @@ def check_scalar_input(u: np.ndarray | float | list[float]) -> float:
 def check_step(dt: float) -> float:
     """``dt`` as a positive finite float."""
     value = float(dt)
-    if not np.isfinite(value) or value <= 0:
+    if not math.isfinite(value) or value <= 0:  # math, not numpy: a plant checks every step
         raise InputError(f"dt must be positive and finite, got {dt!r}")
     return value
 

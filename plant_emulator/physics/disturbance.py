@@ -48,7 +48,10 @@ class Disturbance:
         return float(disturbance_value(int(self._code), config.amplitude, config.frequency, config.start_time, t))
 
     def over_step(self, t0: float, dt: float) -> float:
-        """The value held over ``[t0, t0 + dt]`` (sampled at the midpoint, like ``Delta``)."""
+        """The value held over ``[t0, t0 + dt]`` (sampled at the midpoint, like ``Delta``); 0.0 unarmed, as the
+        kernel gives it, without its call (a plant asks every step)."""
+        if self._code is DisturbanceCode.NONE:
+            return 0.0
         return self.value(t0 + 0.5 * dt)
 
     def values(self, t0: float, dt: float, count: int) -> np.ndarray:
