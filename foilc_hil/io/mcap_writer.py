@@ -295,8 +295,8 @@ class McapFileWriter(_LogLifecycle):
         ``TypeError``.
 
         Why columns: the rows are built by ``zip`` and ``chain`` (C loops), where :meth:`log_frame_fields` is a
-        Python call per frame -- a third of the writer process's time per frame before (measured: 9.5 us a frame
-        in all, 3 us of it the calls).
+        Python call per frame: the calls per frame (the dispatch, the check, the row) were about a third of the
+        writer process's 9.5 us a frame in a profile; with this and :func:`classic_frames_documents`, 5.3 us.
         """
         columns = list(zip(*fields, strict=True))
         if not columns:
