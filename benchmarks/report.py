@@ -226,7 +226,7 @@ REALTIME_WHY = (
 #: Goals measured outside ``make bench`` (their figures are in the README).
 OUTSIDE = (
     "- **`make test` under 3 minutes on 2 cores** (fresh clone; measured outside `make bench`, the README gives the "
-    "last times): met with little room, 2 min 40 s to 2 min 58 s in the fresh clones of the last two sessions, so a "
+    "last times): met with little room, 2 min 40 s to 3 min 0 s in the fresh clones of the last two sessions, so a "
     "slower host can miss it. Bounded by CPU: the run is CPU-bound on two cores (mypy's cold run, numba's first "
     "compilation of the kernels and one test "
     "collection come before or beside pytest, and many tests are whole bench runs with their processes). Tried: "
