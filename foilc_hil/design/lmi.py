@@ -375,13 +375,20 @@ def _unpack(
     """:meth:`StandardForm.unpack` (``n`` states, ``p`` outputs, ``m`` inputs, ``c`` channels)."""
     start = n * (n + 1) // 2 + p * (p + 1) // 2  # J's first entry, after the two upper triangles
     x = np.asarray(x, dtype=float)
+    sigma_slots, gamma_slot = _multiplier_slots(x.size, c)
     return {
         "Qb": (Qb_map @ x).reshape(n, n),
         "Qt": (Qt_map @ x).reshape(p, p),
         "J": x[start:start + m * (n + p)].reshape(m, n + p),
-        "sigmas": tuple(float(v) for v in x[start + m * (n + p):][:c]),
-        "gamma": float(x[-1]),
+        "sigmas": tuple(float(x[slot]) for slot in sigma_slots),
+        "gamma": float(x[gamma_slot]),
     }
+
+
+def _multiplier_slots(k: int, c: int) -> tuple[range, int]:
+    """Where the ``c`` multipliers ``sigma`` and ``gamma`` sit in a decision vector of ``k`` entries: its last
+    ``c + 1``, in that order (:class:`StandardForm`)."""
+    return range(k - 1 - c, k - 1), k - 1
 
 
 def _symmetric_map(size: int, offset: int, k: int) -> np.ndarray:
@@ -426,8 +433,9 @@ def _solve_once(
     M = cp.reshape(form.F0.ravel() + form.F @ x, (size, size), order="C")
     Qb = cp.reshape(form.Qb_map @ x, (n, n), order="C")
     Qt = cp.reshape(form.Qt_map @ x, (p, p), order="C")
-    sigmas = [x[form.F.shape[1] - 1 - c + i] for i in range(c)]
-    gamma = x[form.F.shape[1] - 1]
+    sigma_slots, gamma_slot = _multiplier_slots(form.F.shape[1], c)
+    sigmas = [x[slot] for slot in sigma_slots]
+    gamma = x[gamma_slot]
     eye = np.eye(size)
     # M, Qb and Qt are symmetric by construction; cvxpy's PSD constraint still wants a symmetric expression, so
     # symmetrise explicitly (a no-op on the exact value).
