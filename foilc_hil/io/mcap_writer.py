@@ -509,6 +509,19 @@ def _publish_times(stamps: Iterable[float]) -> list[int]:
     return list(map(round, map(operator.mul, stamps, repeat(1e9))))
 
 
+def _timestamp_texts(stamps: Sequence[float], directions: Sequence[str]) -> tuple[list[str], str] | None:
+    """What both batch encoders write of a batch's timestamps: each one's ``repr`` (its shortest round trip, as
+    orjson spells it) and their concatenation; ``None`` if a direction is neither ``tx`` nor ``rx`` or a timestamp
+    needs orjson's own spelling (an exponent, a non-finite value): the batch then goes frame by frame."""
+    if not {"tx", "rx"}.issuperset(directions):
+        return None
+    texts = list(map(repr, stamps))
+    joined = "".join(texts)
+    if "e" in joined or "n" in joined:
+        return None
+    return texts, joined
+
+
 def classic_frames_documents(
     stamps: Sequence[float],
     ids: Sequence[int],
@@ -526,12 +539,10 @@ def classic_frames_documents(
     second at its start; see :mod:`foilc_hil.io.log_child`): 1.8 us a frame, against 3 us for :func:`frame_json`
     called per frame (measured on a batch of 1024).
     """
-    if not {"tx", "rx"}.issuperset(directions):
+    spelled = _timestamp_texts(stamps, directions)
+    if spelled is None:
         return None
-    texts = list(map(repr, stamps))
-    joined = "".join(texts)
-    if "e" in joined or "n" in joined:  # an exponent or a non-finite value: orjson's spelling, frame by frame
-        return None
+    texts = spelled[0]
     fields = {channel: _channel_field(channel) for channel in set(channels)}
     values = zip(
         texts, ids, map(_JSON_BOOL.__getitem__, map(bool, extended)), dlcs,
@@ -561,14 +572,12 @@ def classic_frames_records(
     from foilc_hil.io.frame_kernel import FIXED_BYTES, encode_frames
 
     count = len(ids)
-    if not {"tx", "rx"}.issuperset(directions):
-        return None
     if not all(stamps):  # the bench's own frames: their log time
         stamps = [stamp or log_time / 1e9 for stamp, log_time in zip(stamps, log_times, strict=True)]
-    texts = list(map(repr, stamps))
-    joined = "".join(texts)
-    if "e" in joined or "n" in joined:  # an exponent or a non-finite value: orjson's spelling, frame by frame
+    spelled = _timestamp_texts(stamps, directions)
+    if spelled is None:
         return None
+    texts, joined = spelled
     text = np.frombuffer(joined.encode("ascii"), np.uint8)
     payload = np.frombuffer(b"".join(datas), np.uint8)
     out = np.empty(count * FIXED_BYTES + text.size + 2 * payload.size, np.uint8)
