@@ -50,7 +50,7 @@ class Disturbance:
     def over_step(self, t0: float, dt: float) -> float:
         """The value held over ``[t0, t0 + dt]`` (sampled at the midpoint, like ``Delta``); 0.0 unarmed, as the
         kernel gives it, without its call (a plant asks every step)."""
-        if self._code is DisturbanceCode.NONE:
+        if not self.active:
             return 0.0
         return self.value(t0 + 0.5 * dt)
 
