@@ -13,7 +13,9 @@ processes started here, two per CPU, killed at the end), in the same run:
 - **python-can**: a process running ``bus.send_periodic(SYNC, 0.001)``;
 
 each peer once as a user would start it and once under ``chrt -f 50`` (the scheduling the bench gives its own
-cyclic threads, so the comparison is of the sender, not of the privilege). One independent receiver process (itself
+cyclic threads, so the comparison is of the sender, not of the privilege), that second run also holding the PM QoS
+request of the CPUs' wake-up latency the shipped config asks for (``cpu_latency_us``,
+:class:`drivers.realtime.CpuLatencyRequest`), as the host-floor probe does. One independent receiver process (itself
 under ``chrt -f 60``: it is the instrument) records every frame with its kernel receive timestamp. From it:
 SYNC interval deviation ``|dt - 1 ms|`` (p50/p99/max), SYNC lateness (the phase within the period against the
 earliest of the surrounding SYNCs, :func:`_lateness`: immune to clock drift, to the phase jump between the bench's
@@ -29,6 +31,7 @@ the "Realtime 1 kHz across processes" section of ``docs/benchmarks.md``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 import json
 import os
@@ -48,6 +51,7 @@ import numpy as np
 from benchmarks import host_floor
 from benchmarks.output import emit
 from drivers.cia301 import SYNC_COB_ID, FunctionCode, cob_id
+from drivers.realtime import CpuLatencyRequest
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "realtime_1khz.yaml"
@@ -207,14 +211,37 @@ def _stop_receiver(receiver: subprocess.Popen[str], out: Path) -> tuple[np.ndarr
     return np.load(out), dropped
 
 
+def _shipped_cpu_latency() -> int | None:
+    """``bench.realtime.cpu_latency_us`` of the shipped config (None: it asks for none)."""
+    import yaml
+
+    value = yaml.safe_load(CONFIG.read_text(encoding="utf-8"))["bench"]["realtime"].get("cpu_latency_us")
+    return None if value is None else int(value)
+
+
+def _privileged(fifo: bool) -> contextlib.AbstractContextManager[object]:
+    """The host privileges of the bench's own setup beyond SCHED_FIFO, for a privileged peer or the floor probe:
+    the shipped config's PM QoS request, held meanwhile (nothing when it asks for none, or for an unprivileged run)."""
+    microseconds = _shipped_cpu_latency()
+    if not fifo or microseconds is None:
+        return contextlib.nullcontext()
+    return CpuLatencyRequest(microseconds)
+
+
 def _peer(name: str, script: str, seconds: float, fifo: bool, work: Path) -> dict[str, Any]:
     out = work / f"peer-{name}-{fifo}.npy"
     receiver = _start_receiver(out)
     prefix = ["chrt", "-f", str(PEER_FIFO)] if fifo else []
-    subprocess.run([*prefix, _python(), "-c", script, GROUP, str(PERIOD), str(seconds)], check=True, cwd=ROOT)
+    with _privileged(fifo) as held:
+        subprocess.run([*prefix, _python(), "-c", script, GROUP, str(PERIOD), str(seconds)], check=True, cwd=ROOT)
     frames, dropped = _stop_receiver(receiver, out)
     syncs = frames[frames[:, 0] == SYNC_ID, 1]
-    return {"peer": name, "sched_fifo": fifo, "receiver_dropped": dropped, **sync_statistics(syncs)}
+    return {"peer": name, "sched_fifo": fifo, "cpu_latency_us": _held_latency(held), "receiver_dropped": dropped,
+            **sync_statistics(syncs)}
+
+
+def _held_latency(held: object) -> int | None:
+    return held.microseconds if isinstance(held, CpuLatencyRequest) else None
 
 
 def _bench_config(work: Path, trials: int, time_scale: float) -> Path:
@@ -302,7 +329,9 @@ def _condition(name: str, settings: dict[str, Any], work: Path) -> dict[str, Any
             for peer, script in (("canopen", _CANOPEN_PEER), ("python-can", _PYTHON_CAN_PEER))
             for fifo in (False, True)
         ]
-        result["host_floor"] = host_floor.wakeups(settings["peer_seconds"], PERIOD, work)
+        with _privileged(True) as held:  # the probe runs as the bench's cyclic threads do
+            result["host_floor"] = host_floor.wakeups(settings["peer_seconds"], PERIOD, work)
+        result["host_floor"]["cpu_latency_us"] = _held_latency(held)
         result["steal_percent"] = host_floor.StealMeter.now().percent_since(steal)
         result["load_average_1min_after"] = os.getloadavg()[0]
         return result
@@ -439,6 +468,19 @@ def _dropped(count: int | None) -> str:
     return "an unknown number of datagrams (not recorded)" if count is None else f"{count} datagrams"
 
 
+def _floor_latency(floor: dict[str, Any]) -> str:
+    latency = floor.get("cpu_latency_us")
+    return "" if latency is None else f", PM QoS {latency} us held"
+
+
+def _privileges(peer: dict[str, Any]) -> str:
+    """A peer row's label suffix: the privileges it ran with (none: a user's plain start)."""
+    if not peer["sched_fifo"]:
+        return ""
+    latency = peer.get("cpu_latency_us")  # not recorded before session 11: none was held
+    return f" (chrt -f {PEER_FIFO})" if latency is None else f" (chrt -f {PEER_FIFO}, PM QoS {latency} us)"
+
+
 def _floor_lines(condition: dict[str, Any]) -> list[str]:
     """The host floor of a condition (:mod:`benchmarks.host_floor`), if the run measured it."""
     floor = condition.get("host_floor")
@@ -447,7 +489,8 @@ def _floor_lines(condition: dict[str, Any]) -> list[str]:
     steal = condition.get("steal_percent")
     return [
         f"Host floor (`benchmarks.host_floor`: a `chrt -f {host_floor.PROBE_FIFO}` process only waking on 1 ms "
-        f"deadlines, {floor['wakeups']} wake-ups): lateness p50/p99/p99.9/max {_us(floor['p50_us'])}/"
+        f"deadlines{_floor_latency(floor)}, {floor['wakeups']} wake-ups): lateness p50/p99/p99.9/max "
+        f"{_us(floor['p50_us'])}/"
         f"{_us(floor['p99_us'])}/{_us(floor['p99_9_us'])}/{_us(floor['max_us'])} us; later than 0.5 ms "
         f"{100 * floor['over_500us_fraction']:.2f} %, later than 1 ms {100 * floor['over_1000us_fraction']:.2f} %. "
         f"CPU steal over the condition: {'-' if steal is None else f'{steal:.2f} %'} of the guest's CPU time. "
@@ -506,7 +549,7 @@ def markdown(document: dict[str, Any]) -> str:
             _sync_row("bench (`foilc-hil run`)", receiver, receiver),
         ]
         lines += [
-            _sync_row(f"{peer['peer']}{' (chrt -f 50)' if peer['sched_fifo'] else ''}", peer, receiver)
+            _sync_row(f"{peer['peer']}{_privileges(peer)}", peer, receiver)
             for peer in condition["peers"]
         ]
         lines += ["", *_floor_lines(condition), ""]

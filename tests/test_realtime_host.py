@@ -6,6 +6,7 @@ import gc
 import os
 import sys
 import threading
+from pathlib import Path
 
 import pytest
 
@@ -103,6 +104,48 @@ def test_affinity_is_set_and_restored_and_a_bad_cpu_is_reported() -> None:
     with RealtimeSession(RealtimeConfig(cpus=[4096])) as session:
         assert session.report is not None and any(line.startswith("cpus [4096]") for line in session.report.not_applied)
         assert os.sched_getaffinity(0) == before
+
+
+def _latency_requests_held() -> int:
+    """This process's open files on the PM QoS device (each one a request the kernel holds)."""
+    fds = Path("/proc/self/fd")
+    return sum(1 for fd in fds.iterdir() if os.path.realpath(fd) == realtime.CPU_LATENCY_DEVICE)
+
+
+def _latency_device_usable() -> bool:
+    try:
+        os.close(os.open(realtime.CPU_LATENCY_DEVICE, os.O_WRONLY))
+    except OSError:
+        return False
+    return True
+
+
+@pytest.mark.skipif(not _latency_device_usable(), reason=f"{realtime.CPU_LATENCY_DEVICE} cannot be opened here "
+                    "(no PM QoS device, or not root): the refusal is tested below")
+def test_the_cpu_latency_request_is_in_force_for_the_session_and_dropped_after() -> None:
+    before = _latency_requests_held()
+    with RealtimeSession(RealtimeConfig(cpu_latency_us=0)) as session:
+        # the kernel's aggregate (the lowest request of all processes) is what reading the device gives
+        with open(realtime.CPU_LATENCY_DEVICE, "rb") as device:
+            in_force = int.from_bytes(device.read(4), sys.byteorder, signed=True)
+        assert in_force == 0
+        assert _latency_requests_held() == before + 1
+        assert session.report is not None and session.report.cpu_latency_us == 0
+        assert session.report.to_json()["cpu_latency_us"] == 0 and session.report.not_applied == ()
+    assert _latency_requests_held() == before
+
+
+def test_a_refused_cpu_latency_request_is_reported(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setattr(realtime, "CPU_LATENCY_DEVICE", str(tmp_path / "no-such-device"))
+    with RealtimeSession(RealtimeConfig(cpu_latency_us=0)) as session:
+        report = session.report
+        assert report is not None and report.cpu_latency_us is None
+        assert [line for line in report.not_applied if line.startswith("cpu_latency_us 0:")] == [
+            f"cpu_latency_us 0: {tmp_path / 'no-such-device'}: No such file or directory"
+        ]
+    with RealtimeSession(RealtimeConfig()) as session:  # not asked: neither held nor reported
+        assert session.report is not None and session.report.cpu_latency_us is None
+        assert not any("cpu_latency" in line for line in session.report.not_applied)
 
 
 def test_exiting_a_session_never_entered_changes_nothing() -> None:
