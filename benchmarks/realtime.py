@@ -219,13 +219,17 @@ def _shipped_cpu_latency() -> int | None:
     return None if value is None else int(value)
 
 
-def _privileged(fifo: bool) -> contextlib.AbstractContextManager[object]:
+def _privileged(fifo: bool) -> contextlib.AbstractContextManager[CpuLatencyRequest | None]:
     """The host privileges of the bench's own setup beyond SCHED_FIFO, for a privileged peer or the floor probe:
-    the shipped config's PM QoS request, held meanwhile (nothing when it asks for none, or for an unprivileged run)."""
+    the shipped config's PM QoS request, held meanwhile (nothing when it asks for none, for an unprivileged run, or
+    when the host refuses it: the rows then say no request was held, as the bench's report does)."""
     microseconds = _shipped_cpu_latency()
     if not fifo or microseconds is None:
         return contextlib.nullcontext()
-    return CpuLatencyRequest(microseconds)
+    request = CpuLatencyRequest(microseconds)
+    if request.open() is not None:
+        return contextlib.nullcontext()
+    return contextlib.closing(request)
 
 
 def _peer(name: str, script: str, seconds: float, fifo: bool, work: Path) -> dict[str, Any]:
@@ -240,8 +244,8 @@ def _peer(name: str, script: str, seconds: float, fifo: bool, work: Path) -> dic
             **sync_statistics(syncs)}
 
 
-def _held_latency(held: object) -> int | None:
-    return held.microseconds if isinstance(held, CpuLatencyRequest) else None
+def _held_latency(held: CpuLatencyRequest | None) -> int | None:
+    return None if held is None else held.microseconds
 
 
 def _bench_config(work: Path, trials: int, time_scale: float) -> Path:

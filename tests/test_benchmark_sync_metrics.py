@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -69,3 +71,24 @@ def test_no_frame_lost_is_judged_per_kind_never_summed(syncs_lost: int, tpdo1_lo
     (row,) = [row for row in targets(document) if row["target"].startswith("no frame lost")]
     assert row["met"] is met
     assert row["bench"] == f"{syncs_lost}, {tpdo1_lost}"
+
+
+def test_privileged_peers_and_the_floor_say_which_pm_qos_request_they_held(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    from benchmarks import realtime as bench_realtime
+    from drivers import realtime as host_setup
+
+    assert bench_realtime._privileges({"sched_fifo": False}) == ""
+    assert bench_realtime._privileges({"sched_fifo": True}) == " (chrt -f 50)"  # a document from before the field
+    assert bench_realtime._privileges({"sched_fifo": True, "cpu_latency_us": 0}) == " (chrt -f 50, PM QoS 0 us)"
+    floor = {"wakeups": 10, "p50_us": 1.0, "p99_us": 2.0, "p99_9_us": 3.0, "max_us": 4.0,
+             "over_500us_fraction": 0.0, "over_1000us_fraction": 0.0, "cpu_latency_us": 0}
+    (line,) = bench_realtime._floor_lines({"host_floor": floor})
+    assert "1 ms deadlines, PM QoS 0 us held, 10 wake-ups" in line
+    with bench_realtime._privileged(False) as held:  # a user's plain start holds nothing
+        assert bench_realtime._held_latency(held) is None
+    # a host that refuses the request: the privileged run goes on without it, and its row says so
+    monkeypatch.setattr(host_setup, "CPU_LATENCY_DEVICE", str(tmp_path / "no-such-device"))
+    with bench_realtime._privileged(True) as held:
+        assert bench_realtime._held_latency(held) is None
