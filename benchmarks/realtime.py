@@ -33,6 +33,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import datetime
+import functools
 import json
 import os
 import platform
@@ -211,6 +212,7 @@ def _stop_receiver(receiver: subprocess.Popen[str], out: Path) -> tuple[np.ndarr
     return np.load(out), dropped
 
 
+@functools.cache  # read once: every privileged peer and each condition's floor probe ask
 def _shipped_cpu_latency() -> int | None:
     """``bench.realtime.cpu_latency_us`` of the shipped config (None: it asks for none)."""
     import yaml

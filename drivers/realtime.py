@@ -300,8 +300,7 @@ class RealtimeSession:
 
 class CpuLatencyRequest:
     """A PM QoS request of the CPUs' wake-up latency (:data:`CPU_LATENCY_DEVICE`): in force from :meth:`open` until
-    :meth:`close` -- the kernel drops it with its file, so a process that dies drops it too. A context manager
-    (``with CpuLatencyRequest(0):``) raises :class:`OSError` where it cannot be opened; :meth:`open` says why."""
+    :meth:`close` -- the kernel drops it with its file, so a process that dies drops it too."""
 
     def __init__(self, microseconds: int) -> None:
         self.microseconds = microseconds
@@ -328,17 +327,6 @@ class CpuLatencyRequest:
         fd, self._fd = self._fd, None
         if fd is not None:
             os.close(fd)
-
-    def __enter__(self) -> CpuLatencyRequest:
-        refused = self.open()
-        if refused is not None:
-            raise OSError(refused)
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
 
 
 def _helper(priority: int) -> int:
