@@ -26,24 +26,17 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from enum import StrEnum
 
 import can
 
 from drivers.bus import open_bus
 from drivers.config import BusConfig
 from drivers.inprocess import INTERFACE as INPROCESS_INTERFACE
+from drivers.realtime import CyclicReceive
 
 __all__ = ["CyclicReceive", "CyclicReceiver", "open_cyclic_receiver"]
 
 Callback = Callable[[int, bytearray, float], None]
-
-
-class CyclicReceive(StrEnum):
-    """Which thread receives the cyclic TPDOs of a realtime bench (``bench.realtime.cyclic_receive``)."""
-
-    LOOP = "loop"  # the loop thread, on a bus object of its own (CyclicReceiver)
-    NOTIFIER = "notifier"  # the Notifier thread, handing each to the loop through a condition variable
 
 
 class CyclicReceiver:

@@ -47,7 +47,6 @@ from typing import Any
 
 from pydantic import Field
 
-from drivers.cyclic_rx import CyclicReceive
 from foilc_hil.schema import Section
 
 __all__ = [
@@ -56,6 +55,7 @@ __all__ = [
     "NOTIFIER_THREAD_PREFIX",
     "BenchRealtimeConfig",
     "CpuLatencyRequest",
+    "CyclicReceive",
     "GcPolicy",
     "RealtimeConfig",
     "RealtimeReport",
@@ -73,6 +73,17 @@ _PR_SET_TIMERSLACK, _PR_GET_TIMERSLACK = 29, 30  # <linux/prctl.h>
 _MIN_TIMER_SLACK_NS = 1  # 0 would mean "back to the thread's default slack"
 #: the PM QoS device of the CPUs' wake-up latency (Linux): a request holds while its file stays open
 CPU_LATENCY_DEVICE = "/dev/cpu_dma_latency"
+
+
+class CyclicReceive(StrEnum):
+    """Which thread receives the cyclic TPDOs of a realtime bench (``bench.realtime.cyclic_receive``).
+
+    Defined here, with the config that names it, and not beside :class:`drivers.cyclic_rx.CyclicReceiver` (which
+    re-exports it): that module imports python-can, and every config load imports this one.
+    """
+
+    LOOP = "loop"  # the loop thread, on a bus object of its own (CyclicReceiver)
+    NOTIFIER = "notifier"  # the Notifier thread, handing each to the loop through a condition variable
 
 
 class GcPolicy(StrEnum):

@@ -16,7 +16,7 @@ import yaml
 from pydantic import Field, model_validator
 
 from drivers.config import BusConfig, DriveConfig
-from drivers.faults import Injection
+from drivers.injection import Injection
 from drivers.realtime import BenchRealtimeConfig
 from foilc_hil.schema import Section, apply_overrides, load_document, validate
 from plant_emulator.config import PlantConfig

@@ -40,13 +40,14 @@ Memory (``history``)
 
 The sum is a *linear* (not circular) convolution of the weights with ``g``. Short signals use a direct
 convolution; long ones sum the first :data:`NEAR_FIELD` weights directly and the rest by a zero-padded FFT
-(``scipy.signal.fftconvolve``), so the FFT's rounding never dominates the small early samples (at N = 200,000,
+(:func:`foilc_hil.design.convolution.fft_convolve`: ``scipy.signal.fftconvolve``'s operations, bit for bit,
+without importing ``scipy.signal``), so the FFT's rounding never dominates the small early samples (at N = 200,000,
 r = 0.7, f = t^1.5: within 6.8e-11 of the direct sum at every sample, 0.04 s against 5.8 s). For r > 1 the sum
 itself cancels (alternating weights against a growing signal) and both methods lose digits alike. The direct sum of
 a 2-D signal (the learning law's) is a compiled loop that adds the products in the order of scipy's 2-D direct
 ``signal.convolve``, so it equals scipy's bit for bit (``replay --verify`` of logs written with scipy needs it) at a
-fifteenth of its time; a 1-D signal uses scipy's 1-D direct convolution. The
-third-party ``differint`` package's GL uses an unpadded (circular) FFT and is only right at the last sample, so it
+fifteenth of its time (numba, in :mod:`foilc_hil.design.gl_kernel`, loaded on the first 2-D call); a 1-D signal uses
+scipy's 1-D direct convolution, which is ``numpy.convolve``. The third-party ``differint`` package's GL uses an unpadded (circular) FFT and is only right at the last sample, so it
 is not used.
 """
 
@@ -56,8 +57,8 @@ import math
 from typing import Literal
 
 import numpy as np
-from numba import njit
 
+from foilc_hil.design.convolution import fft_convolve
 from foilc_hil.errors import ConfigError, InputError
 
 __all__ = [
@@ -149,54 +150,23 @@ def estimate_initial_slope(f: np.ndarray, h: float) -> np.ndarray | float:
     return float(slope) if array.ndim == 1 else np.asarray(slope)
 
 
-@njit(cache=True)
-def _direct_columns(weights: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """``out[i, c] = sum_{j <= i} weights[j] g[i - j, c]`` for ``i < len(g)``: the first ``len(g)`` rows of the
-    linear convolution of ``weights`` with every column of ``g`` (shape ``(N, p)``).
-
-    Each sum starts from ``0.0`` and adds ``weights[j] * g[i - j, c]`` in ascending ``j``, one rounding per product
-    and per addition: the order of scipy's 2-D direct ``signal.convolve``, so the result is the same bit for bit
-    (``replay --verify`` of logs written with scipy's 2-D call needs it; tests check it against scipy). The loops
-    run ``j`` outside and ``i`` inside over a contiguous copy of the column, which keeps every output's order and
-    lets the compiler vectorise across outputs: ~15x faster than scipy's N-d direct loop at N = 6000, 256 weights.
-    """
-    n, p = g.shape
-    taps = min(n, weights.shape[0])
-    out = np.empty((n, p))
-    column = np.empty(n)
-    acc = np.empty(n)
-    for c in range(p):
-        for i in range(n):
-            column[i] = g[i, c]
-            acc[i] = 0.0
-        for j in range(taps):
-            wj = weights[j]
-            for i in range(j, n):
-                acc[i] += wj * column[i - j]
-        for i in range(n):
-            out[i, c] = acc[i]
-    return out
-
-
 def _direct(weights: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """First ``len(g)`` samples of the direct linear convolution along axis 0 (1-D: scipy's; 2-D: the same sums as
-    scipy's 2-D direct method, compiled -- :func:`_direct_columns`)."""
-    from scipy import signal
-
+    """First ``len(g)`` samples of the direct linear convolution along axis 0 (1-D: scipy's, which is
+    ``numpy.convolve``; 2-D: the same sums as scipy's 2-D direct method, compiled --
+    :func:`foilc_hil.design.gl_kernel.direct_columns`)."""
     if g.ndim == 1:
-        return np.asarray(signal.convolve(weights, g, mode="full", method="direct")[: g.shape[0]])
-    return _direct_columns(np.ascontiguousarray(weights, dtype=float), np.ascontiguousarray(g, dtype=float))
+        # scipy.signal.convolve(method="direct") of two 1-D float arrays returns numpy.convolve's result: the same
+        # call, without importing scipy.signal (about 1 s of a process's start)
+        return np.asarray(np.convolve(weights, g, mode="full")[: g.shape[0]])
+    # Only the learning law filters 2-D signals; numba (about 0.6 s to import and start) is loaded on this first
+    # use, not by every importer of this module (the design uses 1-D signals only)
+    from foilc_hil.design.gl_kernel import direct_columns
 
-
-# At import, compiled or loaded from numba's cache (C-contiguous float64 only, as _direct passes): never in the
-# first update between trials.
-_direct_columns(np.ones(1), np.ones((1, 1)))
+    return direct_columns(np.ascontiguousarray(weights, dtype=float), np.ascontiguousarray(g, dtype=float))
 
 
 def _linear_convolution(weights: np.ndarray, g: np.ndarray, method: ConvolutionMethod) -> np.ndarray:
     """First ``len(g)`` samples of the linear convolution of ``weights`` with ``g`` along axis 0."""
-    from scipy import signal
-
     n = g.shape[0]
     use_fft = method == "fft" or (method == "auto" and n >= FFT_THRESHOLD)
     if not use_fft:
@@ -209,9 +179,10 @@ def _linear_convolution(weights: np.ndarray, g: np.ndarray, method: ConvolutionM
     near = min(n, NEAR_FIELD)
     out = _direct(weights[:near], g)
     if n > near:
-        # fftconvolve pads both operands to the full linear length: no wrap-around.
+        # fft_convolve (scipy.signal.fftconvolve's operations) pads both operands to the full linear length: no
+        # wrap-around.
         kernel = weights if g.ndim == 1 else weights[:, None]
-        far = signal.fftconvolve(kernel[near:], g[: n - near], mode="full", axes=0)[: n - near]
+        far = fft_convolve(kernel[near:], g[: n - near])[: n - near]
         out[near:] += far
     return out
 

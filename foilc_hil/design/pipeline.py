@@ -101,7 +101,7 @@ def _fractional_parameters(config: Config, law: LawKind) -> tuple[float, float]:
     if config.synthesis.design is DesignMethod.CODESIGN and kp is None and config.tuning.crossover is None:
         return 0.0, UNUSED_ORDER  # no initial guess to tune: the co-design searches from its grid alone
     if kp is None or r is None:
-        tuned = tune(config)
+        tuned = tune(config, python_control=False)  # only kp, r are used: no python-control cross-check
         kp, r = tuned.kp, tuned.r
     return float(kp), float(r)
 
