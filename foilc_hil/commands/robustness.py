@@ -1,13 +1,15 @@
 """``foilc-hil robustness``: every law over plants drawn from the uncertainty set, trials simulated per draw, on Dask.
 
-Each law is designed once with the one pipeline (``build_design``), then certified and run with ``simulate`` on
-the box corners and ``--samples`` seeded random plants (:mod:`foilc_hil.loop.robustness`: frozen and time-varying
-``Delta``, the disturbance, sensor noise). The draws run on ``dask.distributed`` only: a ``LocalCluster`` of
-``--workers`` processes bound to 127.0.0.1 by default, the in-process cluster with ``--scheduler inprocess``
-(threads, in-process transport: no socket), or a running cluster with ``--scheduler tcp://HOST:PORT``
-(``docs/robustness.md``). JSON (``--json``): :meth:`~foilc_hil.loop.robustness.RobustnessReport.to_json`; with
-``--out DIR`` the same document as ``robustness.json`` and the plots. Exit 3 when a law cannot be designed; the
-distributions are reported whatever they show (exit 0).
+The laws are ``--laws``, else the config's ``law.kind`` followed by the others of :data:`DEFAULT_LAWS` (the command
+line overrides the file). Each law is designed once with the one pipeline (``build_design``), then certified and
+run with ``simulate`` on the box corners and ``--samples`` seeded random plants (:mod:`foilc_hil.loop.robustness`:
+frozen and time-varying ``Delta``, the disturbance, sensor noise). The draws run on ``dask.distributed`` only: a
+``LocalCluster`` of ``--workers`` processes bound to 127.0.0.1 by default, the in-process cluster with
+``--scheduler inprocess`` (threads, in-process transport: no socket), or a running cluster with ``--scheduler
+tcp://HOST:PORT`` (``docs/robustness.md``). JSON (``--json``):
+:meth:`~foilc_hil.loop.robustness.RobustnessReport.to_json`; with ``--out DIR`` the same document as
+``robustness.json`` and the plots. Exit 3 when a law cannot be designed; the distributions are reported whatever
+they show (exit 0).
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ HTTP_ADDRESS = f"{LOOPBACK}:0"
 #: turns off glibc's dynamic mmap threshold, so every array of a NOILC draw (a few 32 MB ones) was mapped afresh and
 #: faulted in page by page: the draw's certificate took 0.31 s instead of 0.14 s (measured in a thread, load 7).
 WORKER_ENVIRONMENT: dict[str, str | None] = {"MALLOC_TRIM_THRESHOLD_": None}
-#: Laws run when ``--laws`` is not given.
+#: The laws compared beside the config's ``law.kind`` when ``--laws`` is not given.
 DEFAULT_LAWS = (LawKind.FOILC, LawKind.IOILC, LawKind.NOILC)
 
 
@@ -46,8 +48,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", required=True, help="YAML configuration file")
     parser.add_argument(
         "--laws",
-        default=",".join(DEFAULT_LAWS),
-        help=f"comma-separated laws among {', '.join(LawKind)} (default {','.join(DEFAULT_LAWS)})",
+        default=None,
+        help=f"comma-separated laws among {', '.join(LawKind)} (default: the config's law.kind, then the others of "
+        f"{','.join(DEFAULT_LAWS)})",
     )
     parser.add_argument("--samples", type=int, default=100, help="random plants besides the box corners (default 100)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the draws (default 0)")
@@ -116,6 +119,12 @@ def _client(address: str | None, workers: int) -> Iterator[Any]:
         yield client
 
 
+def _default_laws(configured: LawKind) -> list[LawKind]:
+    """The laws run without ``--laws``: the config's ``law.kind`` first (the command line names none, so the file's
+    law is the one under test), then the others of :data:`DEFAULT_LAWS` to compare it with."""
+    return [configured, *(law for law in DEFAULT_LAWS if law is not configured)]
+
+
 def _laws(text: str) -> list[LawKind]:
     from foilc_hil.errors import InputError
 
@@ -157,13 +166,15 @@ def execute(args: argparse.Namespace) -> CommandResult:
     from foilc_hil.loop.robustness import MonteCarloSettings, plot_robustness, run_robustness
     from foilc_hil.references import reference_profile
 
-    laws = _laws(args.laws)
+    laws = None if args.laws is None else _laws(args.laws)  # checked before the config is read
     if args.workers < 1:
         raise InputError(f"--workers: must be >= 1, got {args.workers}")
     address = args.scheduler
     if not (address is None or address == IN_PROCESS or address.startswith(("tcp://", "tls://"))):
         raise InputError(f"--scheduler: {address!r} is not tcp://HOST:PORT, tls://HOST:PORT or {IN_PROCESS}")
     config = load_config(args.config, {})
+    if laws is None:
+        laws = _default_laws(config.law.kind)
     reference = reference_profile(config.reference, config.sample_time)
     span = float(reference.max() - reference.min()) or float(abs(reference).max()) or 1.0  # as the paper table's
     settings = MonteCarloSettings(

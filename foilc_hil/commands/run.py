@@ -108,7 +108,9 @@ def execute(args: argparse.Namespace) -> CommandResult:
 
     if args.trials is not None and args.trials < 1:
         raise InputError(f"--trials: must be >= 1, got {args.trials}")
-    config = load_config(args.config)
+    # --law overrides law.kind (also in the logged config, so the log says which law ran); RunRequest.law carries
+    # it to each axis of an axes: run, whose own law sections the top-level key does not reach
+    config = load_config(args.config, {"law.kind": args.law})
     if args.inject:
         from drivers.faults import parse_injection
 

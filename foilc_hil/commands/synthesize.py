@@ -33,8 +33,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--law",
         choices=tuple(kind.value for kind in LawKind),
-        default=LawKind.FOILC.value,
-        help="law to design (IOILC: kp = 0; p-type, noilc: baselines; default foilc)",
+        default=None,
+        help="law to design (IOILC: kp = 0; p-type, noilc, gradient: baselines; default: the config's law.kind)",
     )
     parser.add_argument(
         "--design",
@@ -112,8 +112,14 @@ def execute(args: argparse.Namespace) -> CommandResult:
 
     if args.input_delay < 0:
         raise InputError(f"--input-delay: must be >= 0, got {args.input_delay}")
-    overrides = {"synthesis.tau": args.tau, "synthesis.theta": args.theta, "synthesis.design": args.design}
+    # the command line overrides the file, which overrides the defaults: --law, else law.kind, else foilc
+    overrides = {
+        "law.kind": args.law,
+        "synthesis.tau": args.tau,
+        "synthesis.theta": args.theta,
+        "synthesis.design": args.design,
+    }
     config = load_config(args.config, overrides)
     n_samples = trial_samples(config.reference, config.sample_time)
-    design = build_design(config, args.law, n_samples, input_delay=args.input_delay)
+    design = build_design(config, config.law.kind, n_samples, input_delay=args.input_delay)
     return CommandResult(document=design.to_json(), text=_text(design))
