@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from pathlib import Path
 
@@ -211,10 +212,23 @@ def test_the_backlog_stays_bounded_while_a_send_is_in_progress(tmp_path: Path, m
     monkeypatch.setattr(log_process, "MAX_BACKLOG", 3 * log_process.BATCH)
     with ProcessLogWriter(tmp_path / "b.mcap", config_yaml=None, fsync=False) as writer:
         deepest = 0
-        with writer._send_lock:  # as if another thread were blocked on a full pipe: this one must not send
+        held, release = threading.Event(), threading.Event()
+
+        def hold() -> None:  # another thread in the middle of a send: this one must not send
+            with writer._send_lock:
+                held.set()
+                release.wait()
+
+        holder = threading.Thread(target=hold)
+        holder.start()
+        held.wait()
+        try:
             for i in range(3 * log_process.BATCH):
                 writer.log_sample(1, i * 0.01, 1.0, 0.5, 0.25, 0.5, sample=i)
                 deepest = max(deepest, writer.pending())
+        finally:
+            release.set()
+            holder.join()
         assert deepest == 3 * log_process.BATCH
         for i in range(3 * log_process.BATCH, 8 * log_process.BATCH):
             writer.log_sample(1, i * 0.01, 1.0, 0.5, 0.25, 0.5, sample=i)
@@ -301,3 +315,33 @@ def test_the_child_labels_the_channels_with_the_units_the_loop_worked_out(tmp_pa
     result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, check=True)
     assert result.stdout.strip() == "[]", result.stdout
     assert read_log(tmp_path / "probe.mcap").truncated is False
+
+
+def test_a_stopped_child_never_blocks_the_producer_and_is_reported(tmp_path: Path) -> None:
+    """A writer process stopped (a hung disk) mid-run: every logging call still returns, the stall is handed to
+    ``on_failure`` once as a LogWriteError naming the file, and the child, once continued, finishes the file."""
+    out = tmp_path / "stalled.mcap"
+    failures: list[LogWriteError] = []
+    writer = ProcessLogWriter(out, config_yaml=None, fsync=False, stall_timeout=0.2)
+    writer.on_failure = failures.append
+    frame = can.Message(arbitration_id=0x181, data=bytes(8), is_extended_id=False, timestamp=1.0)
+    writer.log_trial({"trial": 1, "sse": 1.0, "rmse": 1.0, "max_abs_error": 1.0})
+    writer.end_trial(wait=True)
+    assert writer.written_trials == [1]
+    os.kill(writer.pid, signal.SIGSTOP)
+    try:
+        calls = 0
+        while not failures:  # a blocking pipe write held this loop (and a moving axis) for as long as the stall
+            writer.log_frame(frame, "tx")
+            calls += 1
+        assert calls > log_process.PIPE_BYTES // 64  # the pipe filled: the producer went on past it
+        assert len(failures) == 1 and f"{out}: the log writer process (pid {writer.pid}) stalled" in str(failures[0])
+        assert writer.stalled and writer.failed
+        for _ in range(1000):  # dropped from now on, still without blocking
+            writer.log_frame(frame, "tx")
+        with pytest.raises(LogWriteError, match="stalled"):
+            writer.close()
+    finally:
+        os.kill(writer.pid, signal.SIGCONT)
+    writer._process.wait(timeout=60)
+    assert read_log(out).trials[0]["trial"] == 1 and not read_log(out).truncated  # finished after it resumed

@@ -48,7 +48,8 @@ class WireOp(enum.IntEnum):
 
 @enum.unique
 class ReplyKind(enum.IntEnum):
-    """What the writer process says back: a :meth:`ProcessLogWriter.sync` reached it, or an error."""
+    """What the writer process says back: a :meth:`ProcessLogWriter.sync` reached it or a trial ended with
+    ``END_TRIAL`` is written and synced (the item's token), or an error (its message, naming the file)."""
 
     SYNCED = 0
     ERROR = 1
@@ -136,12 +137,17 @@ def _open_writer(item: tuple[Any, ...], file_fd: int) -> McapFileWriter:
     return writer
 
 
-def _apply_run(writer: McapFileWriter, op: int, run: Iterable[tuple[Any, ...]]) -> None:
+def _apply_run(writer: McapFileWriter, op: int, run: Iterable[tuple[Any, ...]], replies: IO[bytes]) -> None:
     """A run of items of one opcode (every op but ``OPEN`` and ``SYNC``) on the writer: frames all at once (their
-    columns: see :meth:`McapFileWriter.log_frames`), anything else one by one."""
+    columns: see :meth:`McapFileWriter.log_frames`), a trial's end acknowledged once it is on disk, anything else
+    one by one."""
     if op == WireOp.FRAME:
         _, log_times, directions, fields = zip(*run, strict=True)
         writer.log_frames(fields, directions, log_times)
+    elif op == WireOp.END_TRIAL:
+        for item in run:
+            writer.end_trial()
+            _reply(replies, ReplyKind.SYNCED, item[1])
     else:
         for item in run:
             _apply(writer, item)
@@ -160,16 +166,26 @@ def _apply(writer: McapFileWriter, item: tuple[Any, ...]) -> None:
         writer.write_timing(TimingRecord(*item[2]), item[1])
     elif op == WireOp.TRIAL:
         writer.log_trial_at(item[1], item[2], {})
-    elif op == WireOp.END_TRIAL:
-        writer.end_trial()
     elif op == WireOp.METADATA:
         writer.add_metadata(item[1], item[2])
 
 
+def _failure(exc: Exception, path: str) -> str:
+    """One line naming the file and the OS error (the writer's own errors name the file already)."""
+    text = str(exc)
+    if isinstance(exc, OSError) and exc.strerror:
+        text = exc.strerror
+    return text if text.startswith(path) else f"{path}: {text}"
+
+
 def serve(data_fd: int, reply_fd: int, file_fd: int) -> None:
-    """The writer process: apply the batches to one :class:`McapFileWriter`, then close the file (summary, footer)."""
+    """The writer process: apply the batches to one :class:`McapFileWriter`, then close the file (summary, footer).
+
+    ``SYNC`` is answered when it is read; ``END_TRIAL`` once the trial's chunk is written and synced. After a
+    failed write nothing more is written or acknowledged (the bench was told), but the pipe is read to its end."""
     writer: McapFileWriter | None = None
     failed = False
+    path = "the log"
     with os.fdopen(reply_fd, "wb") as replies:
         try:
             # each batch in runs of one opcode (a lockstep batch is mostly one run of frames)
@@ -177,22 +193,23 @@ def serve(data_fd: int, reply_fd: int, file_fd: int) -> None:
                 if op == WireOp.SYNC:
                     for item in run:
                         _reply(replies, ReplyKind.SYNCED, item[1])
-                elif not failed:  # once broken, the log drops the rest (the bench was told), but keeps reading
+                elif not failed:
                     try:
                         if op == WireOp.OPEN:
                             for item in run:
+                                path = str(item[1])
                                 writer = _open_writer(item, file_fd)
                         elif writer is not None:
-                            _apply_run(writer, op, run)
+                            _apply_run(writer, op, run, replies)
                     except Exception as exc:
                         failed = True
-                        _reply(replies, ReplyKind.ERROR, str(exc))
+                        _reply(replies, ReplyKind.ERROR, _failure(exc, path))
         finally:  # the pipe ended (close, or the bench died): the file is closed with what it has
             if writer is not None:
                 try:
                     writer.close()
                 except Exception as exc:
-                    _reply(replies, ReplyKind.ERROR, str(exc))
+                    _reply(replies, ReplyKind.ERROR, _failure(exc, path))
 
 
 def _stand_back() -> None:

@@ -47,6 +47,7 @@ from foilc_hil.loop.bench import (
     build_design,
     command_limiter,
     cyclic_receiver,
+    logged_trials,
     loop_settings,
     realtime_session,
     stop_error,
@@ -431,6 +432,7 @@ def run_axes(request: RunRequest) -> AxesRunReport:
     plan = _plan_axes(request)
     stops: dict[int, StopReport] = {}
     loops: list[TrialLoop] = []
+    sinks: list[McapSink] = []
     try:
         with _confirmed_stops(stops, plan.node_ids), contextlib.ExitStack() as stack:
             sink = None
@@ -442,6 +444,7 @@ def run_axes(request: RunRequest) -> AxesRunReport:
                 stack.callback(writer.close)
                 _log_axes(writer, plan)
                 sink = McapSink(writer, None)
+                sinks.append(sink)
             bus_cfg, emulators = _start_emulators(stack, plan, threaded=bool(config.inject))
             # the host setup of bench.realtime, as for one axis (bench.run_bench): undone after every axis's
             # confirmed stop (LIFO); without it the loop ran at normal priority behind the emulators' FIFO threads
@@ -451,6 +454,8 @@ def run_axes(request: RunRequest) -> AxesRunReport:
                                      quiet=request.quiet)
             stack.callback(progress.close)
             stop = stack.enter_context(StopRequest())
+            if sink is not None:
+                sink.stop_on_failure(stop)
             log = AxesSink(sink, plan.laws, plan.limiter, plan.node_ids) if sink is not None else None
             loop = TrialLoop(group, plan.laws, plan.reference, plan.limiter, plan.settings, log=log,
                              progress=progress, stop=stop, before_trial=trial_hook([*emulators, *faulty], None))
@@ -460,13 +465,15 @@ def run_axes(request: RunRequest) -> AxesRunReport:
             if session is not None and outcome.timing is not None:
                 outcome.timing = replace(outcome.timing, realtime=session.report)
     except FoilcHilError as exc:
-        done = loops[0].outcome.trials if loops else []
-        exc.partial = {"law": plan.law_kind, "trials": [metrics.to_json() for metrics in done],
+        ran = loops[0].outcome.trials if loops else []
+        done = logged_trials(ran, sinks)
+        exc.partial = {"law": plan.law_kind, "trials": [metrics.to_json() for metrics in done], "trials_run": len(ran),
                        "stopped": str(exc).splitlines()[0] if str(exc) else type(exc).__name__,
                        "log": str(request.out) if request.out is not None else "",
                        "drive_stop": _worst(stops, plan.node_ids).to_json() if stops else None,
                        "axes": [axis.to_json() for axis in _axis_outcomes(plan, stops)]}
         raise
+    outcome.trials = logged_trials(outcome.trials, sinks)
     injected: list[InjectionReport] = [report for wrapper in faulty for report in wrapper.reports()]
     run = RunReport(law=plan.law_kind, outcome=outcome, log=str(request.out) if request.out is not None else "",
                     design=_design_summary(plan.designs[0]), bus=f"{bus_cfg.interface}:{bus_cfg.channel}",

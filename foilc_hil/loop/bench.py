@@ -87,8 +87,6 @@ from foilc_hil.errors import (
     DriveNotStoppedError,
     FeedbackTimeoutError,
     FoilcHilError,
-    LearningDivergedError,
-    RunInterruptedError,
 )
 from foilc_hil.io.records import TrialSamples
 from foilc_hil.laws.learning import TrialUpdate
@@ -342,6 +340,14 @@ class _RawTrial:
     faults: FaultCounts
 
 
+#: seconds between the loop's looks at its stop request while it waits for a between-trial update (a stalled log
+#: writer can make that wait last the writer's stall timeout: a signal must not)
+_UPDATE_POLL = 0.05
+#: seconds an abort gives the between-trial update to log its trial before the drive is disabled: the update's
+#: own waits for a stalled log writer last up to its stall timeout, and the disable must not wait that long
+_UPDATE_GRACE = 0.5
+
+
 class _TrialUpdateThread:
     """Runs :meth:`TrialLoop._finish_trial` in a thread while the loop settles the axis for the next trial."""
 
@@ -376,15 +382,25 @@ class _TrialUpdateThread:
         except BaseException as exc:  # handed to the loop's thread by result()
             self._error = exc
 
+    def finish(self, timeout: float) -> None:
+        """On the way out of an abort: give the update up to ``timeout`` seconds to finish logging its trial, and
+        drop its outcome (the abort is what the run reports)."""
+        if self._thread.ident is not None:
+            self._thread.join(timeout)
+
     @property
     def done(self) -> bool:
         """The update has finished (successfully or not)."""
         return not self._thread.is_alive()
 
-    def result(self) -> DivergenceVerdict:
-        """Wait for the update; re-raise its error in the caller's thread."""
+    def result(self, stop: StopRequest | None = None) -> DivergenceVerdict:
+        """Wait for the update; re-raise its error in the caller's thread. With ``stop``, a signal or a failure
+        handed to it ends the wait at once (raised as :meth:`StopRequest.raise_if_requested` does)."""
         if self._thread.ident is not None:  # started (else it ran in the caller's thread)
-            self._thread.join()
+            while self._thread.is_alive():
+                self._thread.join(_UPDATE_POLL)
+                if stop is not None:
+                    stop.raise_if_requested()
         if self._error is not None:
             raise self._error
         assert self._verdict is not None
@@ -513,7 +529,7 @@ class TrialLoop:
                 # SYNC keeps flowing on its period between trials
                 self._settle(trial, update)
                 if update is not None:
-                    verdict = update.result()
+                    verdict = update.result(self.stop)
                     update = None
                     if verdict.diverged:
                         self._stop_learning(verdict)
@@ -525,18 +541,18 @@ class TrialLoop:
             if update is not None:
                 if self.scheduler is not None:  # realtime: the drive watches SYNC until it is stopped
                     self._settle(trials, update, phase="final")
-                verdict = update.result()
+                verdict = update.result(self.stop)
                 update = None
                 if verdict.diverged:
                     self._stop_learning(verdict)
-        except (DriveError, LearningDivergedError, RunInterruptedError):
+        except FoilcHilError:  # the drive's, the law's, a signal, the log writer's: the axis stops first
             self._quick_stop()
             raise
         finally:
             if update is not None:
-                # an abort during the settle phase: the trial before it did complete, so finish logging it
-                with contextlib.suppress(Exception):
-                    update.result()
+                # an abort during the settle phase: the trial before it did complete, so finish logging it (the
+                # writer's waits are bounded: a stalled writer ends the update within its stall timeout)
+                update.finish(_UPDATE_GRACE)
             self._emit_timing()
             self.outcome.clamped_commands = self._clamped_count()
             self.outcome.faults = FaultCounts(self.watchdog.total, self.drive.bad_frames)
@@ -729,7 +745,7 @@ class TrialLoop:
 
     def _check_stop(self) -> None:
         if self.stop.requested:
-            raise RunInterruptedError(f"interrupted by {self.stop.signal_name}; quick stop commanded")
+            self.stop.raise_if_requested()
 
     def _lost_feedback(self, cause: FeedbackTimeoutError) -> float:
         """This SYNC's wait expired: count it, and hold the last good feedback -- or trip the watchdog."""
@@ -953,6 +969,29 @@ class McapSink:
         """Block until the writer keeps pace with the loop (a writer process has started): before the enable."""
         self.writer.started()
 
+    def stop_on_failure(self, stop: StopRequest) -> None:
+        """A writer process that stalls, dies or fails a write stops the loop at its next cycle (the drive is
+        quick-stopped, then disabled, as for any abort): the log never holds a moving axis."""
+        from foilc_hil.io.log_process import ProcessLogWriter
+
+        if isinstance(self.writer, ProcessLogWriter):
+            self.writer.on_failure = stop.fail
+
+    def written_trials(self) -> frozenset[int] | None:
+        """The trials the file holds: as its writer process acknowledged them, or, after the writer failed, as the
+        damage-tolerant reader finds them complete in the file (a write can fail after a trial's chunk is on
+        disk); ``None``: a writer in this process (what it was given is what it holds, or it raised)."""
+        from foilc_hil.io.log_process import ProcessLogWriter
+        from foilc_hil.io.mcap_log import McapLogReader
+
+        writer = self.writer
+        if not isinstance(writer, ProcessLogWriter):
+            return None
+        if writer.failed:
+            with contextlib.suppress(Exception), McapLogReader(writer.path) as reader:  # a file too damaged to read
+                return frozenset(reader.read().completed_trials)  # holds what was acknowledged, at most
+        return frozenset(writer.written_trials)
+
     def trial_finished(self, record: TrialRecord) -> None:
         self.writer.write_trial_samples(record.samples())  # one call a trial: the rows are built by the writer
         # initial_output = y(0): the law's input at sample 0, which no row holds (replay --verify);
@@ -990,6 +1029,16 @@ class McapSink:
                 lost_feedback=record.missing_feedback,
             )
         self._previous_sync = previous
+
+
+def logged_trials(trials: list[TrialMetrics], sinks: Sequence[McapSink]) -> list[TrialMetrics]:
+    """The ``trials`` the run's log holds (all of them without a log): a report lists what the file has, and a
+    trial whose write failed is not in it."""
+    for sink in sinks:
+        written = sink.written_trials()
+        if written is not None:
+            trials = [metrics for metrics in trials if metrics.trial in written]
+    return trials
 
 
 @dataclass(frozen=True)
@@ -1168,9 +1217,11 @@ def run_bench(request: RunRequest) -> RunReport:
     plan = _plan_run(request)
     stops: list[StopReport] = []
     loops: list[TrialLoop] = []
+    sinks: list[McapSink] = []
     try:
         with _truth_about_the_stop(stops, config.drive.node_id), contextlib.ExitStack() as stack:
             sink = _open_log(stack, request, plan)
+            sinks.extend([sink] if sink is not None else [])
             bus_cfg, emulator = _start_emulator(stack, config, plan.bus)
             # undone only after the confirmed stop below (LIFO): restoring the host (the garbage collector first of
             # all) takes a tenth of a second, which must not pass between the loop's last SYNC and the stop
@@ -1179,6 +1230,8 @@ def run_bench(request: RunRequest) -> RunReport:
             progress = request.progress or make_progress(plan.title, quiet=request.quiet)
             stack.callback(progress.close)
             stop = stack.enter_context(StopRequest())
+            if sink is not None:
+                sink.stop_on_failure(stop)
             # the loop and the host setup before the drive is enabled: from its first SYNC in OPERATIONAL the drive
             # supervises SYNC, so nothing slow may run between the enable's last SYNC and the loop's first
             loop = TrialLoop(drive, plan.law, plan.reference, plan.limiter, plan.settings, log=sink,
@@ -1197,12 +1250,14 @@ def run_bench(request: RunRequest) -> RunReport:
         done = loops[0].outcome if loops else BenchOutcome()
         exc.partial = {
             "law": plan.law_kind,
-            "trials": [metrics.to_json() for metrics in done.trials],
+            "trials": [metrics.to_json() for metrics in logged_trials(done.trials, sinks)],
+            "trials_run": len(done.trials),
             "stopped": str(exc).splitlines()[0] if str(exc) else type(exc).__name__,
             "log": str(request.out) if request.out is not None else "",
             "drive_stop": stops[-1].to_json() if stops else None,
         }
         raise
+    outcome.trials = logged_trials(outcome.trials, sinks)
     design = plan.design
     return RunReport(
         law=plan.law_kind,

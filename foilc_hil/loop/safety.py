@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from foilc_hil.errors import FeedbackTimeoutError, LearningDivergedError
+from foilc_hil.errors import FeedbackTimeoutError, FoilcHilError, LearningDivergedError, RunInterruptedError
 
 __all__ = [
     "CommandLimiter",
@@ -208,12 +208,28 @@ class StopRequest:
     def __init__(self) -> None:
         self.requested = False
         self.signal_name = ""
+        self.failure: FoilcHilError | None = None
         self._previous: dict[int, Callable[[int, FrameType | None], Any] | int | None] = {}
 
     def request(self, reason: str = "stop requested") -> None:
         """Ask the loop to stop (what the signal handler does)."""
         self.requested = True
         self.signal_name = reason
+
+    def fail(self, error: FoilcHilError) -> None:
+        """Stop the loop with ``error`` at its next cycle: a failure found on another thread (the log writer's),
+        raised on the loop's as any other abort (the drive quick-stopped first). The first failure is kept."""
+        if self.failure is None:
+            self.failure = error
+        self.request(type(error).__name__)
+
+    def raise_if_requested(self) -> None:
+        """Raise the failure handed to :meth:`fail`, or :class:`RunInterruptedError` for a signal."""
+        if not self.requested:
+            return
+        if self.failure is not None:
+            raise self.failure
+        raise RunInterruptedError(f"interrupted by {self.signal_name}; quick stop commanded")
 
     def _handle(self, signum: int, frame: FrameType | None) -> None:
         if self.requested:
