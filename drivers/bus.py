@@ -4,7 +4,7 @@
 ``-b/--bitrate`` beside ``--bus``; python-can's environment and config file when the command line names none).
 
 ``open_bus`` is the only place the product calls ``can.Bus``; it turns python-can's open errors into one
-:class:`~foilc_hil.errors.DriveError` line that says what to do (for SocketCAN: create the interface). The
+:class:`~drivers.errors.DriveError` line that says what to do (for SocketCAN: create the interface). The
 ``embedded`` interface (the in-process emulator) is resolved by ``plant_emulator.embedded``, not here; the bus it
 gives the master (``inprocess``, :mod:`drivers.inprocess`) is built here without python-can's interface registry.
 
@@ -29,9 +29,9 @@ import can
 from pydantic import ValidationError
 
 from drivers.config import BusConfig
+from drivers.errors import DriveError, InputError
 from drivers.inprocess import INTERFACE as INPROCESS_INTERFACE
 from drivers.inprocess import InProcessBus
-from foilc_hil.errors import DriveError, InputError
 
 __all__ = [
     "SIMULATED_INTERFACES",

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import can
 
 from drivers.cia402_master import PdoPlan
-from foilc_hil.errors import ConfigError
+from drivers.errors import ConfigError
 
 __all__ = [
     "DEFAULT_BITRATE",

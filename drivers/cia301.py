@@ -9,7 +9,7 @@ import enum
 from dataclasses import dataclass
 from enum import IntEnum, unique
 
-from foilc_hil.errors import ProtocolError
+from drivers.errors import ProtocolError
 
 NODE_ID_MIN = 1
 NODE_ID_MAX = 127

@@ -29,7 +29,7 @@ to the frame tap).
 Waiting: every wait of the master (feedback, heartbeats, state changes, pacing) runs on the bus's timebase
 (:func:`drivers.inprocess.timebase_of`). On a lockstep in-process bus (the embedded emulator) frames are delivered
 inside ``send``, so nothing arrives by waiting: an unanswered SYNC is known when ``sync`` returns and
-``wait_feedback`` raises :class:`~foilc_hil.errors.FeedbackTimeoutError` at once, with no deadline; an SDO answer is
+``wait_feedback`` raises :class:`~drivers.errors.FeedbackTimeoutError` at once, with no deadline; an SDO answer is
 there or never comes (no response timeout); and time is the channel's simulated time, one cycle period per SYNC
 (``sync`` advances it) plus the master's own pauses, so heartbeat supervision never reads a busy host as a lost
 drive. On any other bus they are wall-clock waits.
@@ -39,22 +39,22 @@ Units: ``set_target`` takes plant units and sends ``round(value * scale)`` after
 is divided by the same scales. The shipped EDS counts velocity in 0.001 rpm, so a plant in rpm needs
 ``velocity_scale: 1000``, the ``DriveConfig`` default. Torque is per mille of rated torque (CiA 402).
 
-Errors: EMCY -> :class:`~foilc_hil.errors.EmergencyError` (code decoded), statusword fault bit ->
-:class:`~foilc_hil.errors.DriveFaultError`, no heartbeat for ``heartbeat_timeout_factor x 0x1017`` ->
-:class:`~foilc_hil.errors.HeartbeatLostError` (checked by ``wait_feedback`` and by a watchdog thread), no TPDO set
-in time -> :class:`~foilc_hil.errors.FeedbackTimeoutError`, SDO abort -> :class:`~foilc_hil.errors.SdoError`
-(abort code decoded), no SDO answer -> :class:`~foilc_hil.errors.DriveTimeoutError`.
+Errors: EMCY -> :class:`~drivers.errors.EmergencyError` (code decoded), statusword fault bit ->
+:class:`~drivers.errors.DriveFaultError`, no heartbeat for ``heartbeat_timeout_factor x 0x1017`` ->
+:class:`~drivers.errors.HeartbeatLostError` (checked by ``wait_feedback`` and by a watchdog thread), no TPDO set
+in time -> :class:`~drivers.errors.FeedbackTimeoutError`, SDO abort -> :class:`~drivers.errors.SdoError`
+(abort code decoded), no SDO answer -> :class:`~drivers.errors.DriveTimeoutError`.
 Before any of these but ``FeedbackTimeoutError`` leaves ``wait_feedback`` the master commands quick stop (controlword
 0x02, target 0, one SYNC); one unanswered SYNC leaves the command as it was, for the caller to judge.
 Received frames: a TPDO/EMCY/heartbeat of the drive that does not decode (wrong DLC, impossible statusword) is
 counted in :attr:`Cia402Drive.stats` (``bad_frames``); with ``fatal_bad_frames`` (the default) it is also a
-:class:`~foilc_hil.errors.BadFrameError` (a run-time error, exit 1) raised by the next ``wait_feedback``, otherwise
+:class:`~drivers.errors.BadFrameError` (a run-time error, exit 1) raised by the next ``wait_feedback``, otherwise
 it is only counted (a TPDO set left incomplete by it then simply never answers its SYNC). A frame with a COB-ID
 nobody subscribed to (another node's traffic) is ignored and counted (``unknown_frames``).
 
 NMT supervision: once the drive's heartbeat has reported OPERATIONAL after ``configure`` (the heartbeat is armed),
 a heartbeat reporting any other NMT state while the master is operational is a
-:class:`~foilc_hil.errors.DriveNmtStateError` raised by the next ``wait_feedback``: a drive out of OPERATIONAL
+:class:`~drivers.errors.DriveNmtStateError` raised by the next ``wait_feedback``: a drive out of OPERATIONAL
 ignores RPDOs, so the cyclic path no longer reaches it. The master's own NMT commands disarm the heartbeat first.
 
 Thread safety
@@ -119,12 +119,7 @@ from drivers.config import DriveConfig
 from drivers.cyclic_rx import CyclicReceiver
 from drivers.drive import DISABLED_STATES, DeviceInfo, Drive, Feedback, StopPath, StopReport
 from drivers.emcy import decode_emcy
-from drivers.heartbeat import HeartbeatMonitor
-from drivers.inprocess import LockstepClock, timebase_of
-from drivers.network import DriveNetwork
-from drivers.od import load_od, mapped_variable
-from drivers.pdo import MappedVariable, PdoCodec, PdoDirection, PdoLayout, data_frame
-from foilc_hil.errors import (
+from drivers.errors import (
     BadFrameError,
     ConfigError,
     DriveError,
@@ -132,12 +127,17 @@ from foilc_hil.errors import (
     DriveNmtStateError,
     DriveTimeoutError,
     FeedbackTimeoutError,
-    FoilcHilError,
     HeartbeatLostError,
+    ProductError,
     ProtocolError,
     SdoError,
     StateTransitionError,
 )
+from drivers.heartbeat import HeartbeatMonitor
+from drivers.inprocess import LockstepClock, timebase_of
+from drivers.network import DriveNetwork
+from drivers.od import load_od, mapped_variable
+from drivers.pdo import MappedVariable, PdoCodec, PdoDirection, PdoLayout, data_frame
 
 __all__ = ["Cia402Drive", "PdoPlan", "RxStats", "interpolation_time_period", "pdo_plan"]
 
@@ -231,7 +231,7 @@ def pdo_plan(mode: OperationMode, node_id: int, od: ObjectDictionary | None) -> 
     TPDO2 = torque actual + position actual. All synchronous (transmission type 1), default COB-IDs. Only objects
     and PDOs the EDS has are used: a drive without 0x6077 or 0x6064 gets them left out (a note says so), one
     without TPDO2 gets what fits into TPDO1. What the mode truly needs -- controlword, target, statusword, velocity
-    actual, an RPDO and a TPDO -- is refused with a :class:`~foilc_hil.errors.DriveError` naming the object.
+    actual, an RPDO and a TPDO -- is refused with a :class:`~drivers.errors.DriveError` naming the object.
     """
     target = Obj.TARGET_TORQUE if mode is OperationMode.CYCLIC_SYNC_TORQUE else Obj.TARGET_VELOCITY
     needed = (Obj.CONTROLWORD, target, *_REQUIRED_FEEDBACK)
@@ -344,7 +344,7 @@ class Cia402Drive(Drive):
         self._cycle = 0
         self._parts: dict[int, tuple[int, ...]] = {}
         self._feedback: Feedback | None = None
-        self._errors: collections.deque[FoilcHilError] = collections.deque()
+        self._errors: collections.deque[ProductError] = collections.deque()
         self._tpdo_frames = self._emcy_frames = self._heartbeat_frames = self._bad_frames = 0
         self._heartbeat_fault = False
         #: a frame from the drive that does not decode is raised (BadFrameError) by the next wait_feedback; False:
@@ -399,7 +399,7 @@ class Cia402Drive(Drive):
         """A master for drive ``cfg.node_id`` on ``bus`` with the EDS ``cfg.eds`` (default: the shipped one).
 
         ``receiver``: the TPDOs are received on the thread that waits for them (:mod:`drivers.cyclic_rx`; it
-        stays the caller's, as the bus does). Raises :class:`~foilc_hil.errors.EdsError` for a bad EDS. Nothing
+        stays the caller's, as the bus does). Raises :class:`~drivers.errors.EdsError` for a bad EDS. Nothing
         is sent until :meth:`connect`.
         """
         od = load_od(cfg.eds, cfg.node_id)
@@ -411,8 +411,8 @@ class Cia402Drive(Drive):
 
         Each drive keeps its own SDO client, NMT commands, PDO codecs, heartbeat supervision and errors: frames
         reach it by COB-ID through the network's one receive path. :meth:`sync` of any member sends the one SYNC
-        and starts a new cycle on every member. Raises :class:`~foilc_hil.errors.ConfigError` for a node id
-        already on the network and :class:`~foilc_hil.errors.EdsError` for a bad EDS.
+        and starts a new cycle on every member. Raises :class:`~drivers.errors.ConfigError` for a node id
+        already on the network and :class:`~drivers.errors.EdsError` for a bad EDS.
         """
         od = load_od(cfg.eds, cfg.node_id)
         return cls(network.bus, cfg, sample_time=sample_time, od=od, network=network)
@@ -576,7 +576,7 @@ class Cia402Drive(Drive):
             raise StateTransitionError(
                 f"node {self.node_id} never reached OPERATION_ENABLED (last state {state.name})"
             )
-        except FoilcHilError:
+        except ProductError:
             self._fail_safe()
             raise
 
@@ -676,7 +676,7 @@ class Cia402Drive(Drive):
             # not a stop: the caller decides whether one unanswered SYNC is fatal (the bench counts a lost feedback
             # and holds the last good one); the drive keeps its last command meanwhile
             raise
-        except (FoilcHilError, can.CanError) as exc:
+        except (ProductError, can.CanError) as exc:
             with self._cv:
                 if exc is self._nmt_departure:
                     self._nmt_departure = None  # the caller has it
@@ -901,7 +901,7 @@ class Cia402Drive(Drive):
         with self._cv:
             self._heartbeat_fault = True
 
-    def _post_error(self, error: FoilcHilError, *, bad_frame: bool = False) -> None:
+    def _post_error(self, error: ProductError, *, bad_frame: bool = False) -> None:
         with self._cv:
             if bad_frame:
                 self._bad_frames += 1

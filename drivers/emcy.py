@@ -2,7 +2,7 @@
 
 canopen's ``EmcyConsumer`` unpacks with a fixed ``struct`` and fails inside the Notifier thread on a short frame;
 :func:`decode_emcy` checks the length and returns an :class:`Emergency` whose :meth:`Emergency.error` is the
-:class:`~foilc_hil.errors.EmergencyError` the bench sees, with the code decoded by
+:class:`~drivers.errors.EmergencyError` the bench sees, with the code decoded by
 :func:`drivers.cia301.emcy_text`.
 """
 
@@ -12,7 +12,7 @@ import struct
 from dataclasses import dataclass
 
 from drivers.cia301 import emcy_text
-from foilc_hil.errors import EmergencyError, ProtocolError
+from drivers.errors import EmergencyError, ProtocolError
 
 __all__ = ["EMCY_LENGTH", "Emergency", "decode_emcy"]
 

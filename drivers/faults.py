@@ -49,6 +49,7 @@ from drivers.cia301 import (
     cob_id,
     split_cob_id,
 )
+from drivers.errors import ConfigError
 
 # the configuration side lives in drivers.injection (no python-can there: every config load imports it)
 from drivers.injection import (
@@ -62,7 +63,6 @@ from drivers.injection import (
     require_actions,
     split_by_axis,
 )
-from foilc_hil.errors import ConfigError
 
 __all__ = [
     "EMULATOR_KINDS",

@@ -6,7 +6,7 @@ canopen records the last heartbeat (``NmtMaster.timestamp``) but never declares 
 - :class:`HeartbeatProducer` sends the master's heartbeat (``0x700 + master node id``, state byte) with python-can's
   ``send_periodic``, so a drive whose consumer heartbeat 0x1016 watches the master can detect a dead master.
 - :class:`HeartbeatMonitor` keeps the time and NMT state of the drive's last heartbeat (fed from the Notifier
-  thread), answers :meth:`HeartbeatMonitor.check` with :class:`~foilc_hil.errors.HeartbeatLostError` once no
+  thread), answers :meth:`HeartbeatMonitor.check` with :class:`~drivers.errors.HeartbeatLostError` once no
   heartbeat arrived for ``timeout`` seconds, and optionally runs a watchdog thread that reports the loss even when
   nobody is polling.
 
@@ -28,8 +28,8 @@ from collections.abc import Callable
 import can
 
 from drivers.cia301 import FunctionCode, NmtState, cob_id, heartbeat_state
+from drivers.errors import DriveError, HeartbeatLostError
 from drivers.inprocess import LockstepClock
-from foilc_hil.errors import DriveError, HeartbeatLostError
 
 __all__ = ["HeartbeatMonitor", "HeartbeatProducer"]
 

@@ -18,7 +18,7 @@ from enum import StrEnum
 
 from pydantic import Field, model_validator
 
-from foilc_hil.errors import ConfigError, InputError
+from drivers.errors import ConfigError, InputError
 from foilc_hil.schema import Section, validate
 
 __all__ = [

@@ -32,9 +32,9 @@ import canopen
 from drivers.bus import FrameTap
 from drivers.cia301 import SYNC_COB_ID
 from drivers.cyclic_rx import CyclicReceiver
+from drivers.errors import ConfigError, DriveError
 from drivers.heartbeat import HeartbeatProducer
 from drivers.inprocess import connect_network, subscribe_cyclic, timebase_of
-from foilc_hil.errors import ConfigError, DriveError
 
 __all__ = ["DriveNetwork", "UnknownFrameCounter", "received_elsewhere"]
 
@@ -125,7 +125,7 @@ class DriveNetwork:
     def listen(self) -> None:
         """Attach the frame tap and start the one receive path (idempotent).
 
-        Raises :class:`~foilc_hil.errors.DriveError` when the bus already has a Notifier (another owner).
+        Raises :class:`~drivers.errors.DriveError` when the bus already has a Notifier (another owner).
         """
         if self.listening:
             return
@@ -140,7 +140,7 @@ class DriveNetwork:
     def start_master_heartbeat(self, master_node_id: int, period: float) -> None:
         """Start the master's heartbeat once for the whole bus (idempotent for the same master node id).
 
-        Raises :class:`~foilc_hil.errors.ConfigError` when a member asks for another master node id: one master
+        Raises :class:`~drivers.errors.ConfigError` when a member asks for another master node id: one master
         sends one heartbeat.
         """
         if self._producer is not None:

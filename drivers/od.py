@@ -2,7 +2,7 @@
 
 :func:`load_od` is the one way the product reads an EDS (the shipped ``configs/foilc_servo.eds`` by default, or the
 drive's own EDS from ``drive.eds``). Every failure -- missing file, syntax error, a sub-index with no parent, a
-missing mandatory object -- becomes one :class:`~foilc_hil.errors.EdsError` line naming the file.
+missing mandatory object -- becomes one :class:`~drivers.errors.EdsError` line naming the file.
 
 :func:`mapped_variable` gives the size and signedness of an object for a PDO codec: from the EDS when it describes
 the object, else from the CiA 301/402 standard type of the object (:data:`STANDARD_TYPES`), so the master can map
@@ -27,8 +27,8 @@ import canopen
 from canopen.objectdictionary import ObjectDictionary, ObjectDictionaryError, ODVariable, datatypes
 
 from drivers.cia402 import Obj
+from drivers.errors import EdsError
 from drivers.pdo import MappedVariable
-from foilc_hil.errors import EdsError
 
 __all__ = [
     "DEFAULT_EDS",

@@ -2,7 +2,7 @@
 
 The cyclic path never touches SDO or canopen's per-variable PDO machinery: :meth:`PdoCodec.encode` and
 :meth:`PdoCodec.decode` are one ``struct`` call each. :meth:`PdoCodec.decode` checks the data length code (a frame
-whose DLC differs from the mapping is a :class:`~foilc_hil.errors.ProtocolError`, as CiA 301 asks a device to
+whose DLC differs from the mapping is a :class:`~drivers.errors.ProtocolError`, as CiA 301 asks a device to
 reject it with EMCY 0x8210).
 """
 
@@ -17,7 +17,7 @@ import can
 
 from drivers.cia301 import COB_ID_INVALID
 from drivers.cia402 import Obj
-from foilc_hil.errors import ProtocolError
+from drivers.errors import ProtocolError
 
 __all__ = [
     "PDO_DISABLED",

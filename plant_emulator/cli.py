@@ -33,8 +33,8 @@ from typing import TYPE_CHECKING, Any, NoReturn
 from pydantic import ConfigDict, Field
 
 from drivers.config import DriveConfig
+from drivers.errors import ConfigError, ExitCode, InputError, ProductError
 from drivers.faults import FaultyBus, Injection, Role, parse_injection, split_by_axis
-from foilc_hil.errors import ConfigError, ExitCode, FoilcHilError, InputError
 from foilc_hil.schema import Section, apply_overrides, load_document, validate
 from plant_emulator.config import PlantConfig
 from plant_emulator.settings import EmulatorConfig
@@ -115,7 +115,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return _serve(args)
-    except FoilcHilError as exc:
+    except ProductError as exc:
         if isinstance(exc, ConfigError) and exc.key and not exc.source and args.config:
             exc = ConfigError(exc.message, key=exc.key, source=args.config)  # name the file it came from
         print(f"{PROG}: error: {exc}", file=sys.stderr)

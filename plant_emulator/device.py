@@ -64,9 +64,9 @@ from canopen import objectdictionary as cod
 
 from drivers.cia301 import SYNC_COB_ID, CobIdEntry, FunctionCode, NmtCommand, NmtState, check_node_id
 from drivers.cia402 import Obj, State402
+from drivers.errors import InputError
 from drivers.inprocess import InProcessBus, LockstepClock, connect_network, subscribe_cyclic, timebase_of
 from drivers.od import DEFAULT_EDS
-from foilc_hil.errors import InputError
 from plant_emulator.application import APPLICATION_OBJECTS, Cia402Application, FaultKind
 from plant_emulator.axis import Axis
 from plant_emulator.motion import AxisPhysics, default_units

@@ -16,8 +16,8 @@ from typing import Protocol
 
 from drivers.bus import open_bus
 from drivers.config import BusConfig, DriveConfig
+from drivers.errors import InputError
 from drivers.inprocess import INTERFACE as INPROCESS_INTERFACE
-from foilc_hil.errors import InputError
 from plant_emulator.config import PlantConfig
 from plant_emulator.device import TimingMode, VirtualDrive
 from plant_emulator.physics import build_plant

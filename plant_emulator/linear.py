@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from foilc_hil.errors import ConfigError
+from drivers.errors import ConfigError
 from foilc_hil.schema import as_array
 from plant_emulator.config import PlantConfig
 

@@ -17,9 +17,9 @@ from canopen import objectdictionary as cod
 
 from drivers.cia301 import NmtState
 from drivers.cia402 import Obj
+from drivers.errors import EdsError
 from drivers.od import DEFAULT_EDS, load_od
 from drivers.pdo import data_frame
-from foilc_hil.errors import EdsError
 
 __all__ = ["EmulatedNode", "load_object_dictionary"]
 
@@ -29,7 +29,7 @@ def load_object_dictionary(node_id: int, eds: str | Path | None = None) -> cod.O
 
     Raises
     ------
-    foilc_hil.errors.EdsError
+    drivers.errors.EdsError
         If the file is missing or malformed, or lacks an object the drive needs.
     """
     od = load_od(eds, node_id)

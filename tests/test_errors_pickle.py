@@ -1,5 +1,6 @@
-"""Every error of :mod:`foilc_hil.errors` survives a pickle round trip (the demo's runs raise them in worker
-processes): same class, message, fields and the ``partial`` a failed run attaches.
+"""Every error of :mod:`foilc_hil.errors` and :mod:`drivers.errors` (the drive side's, re-exported by the former)
+survives a pickle round trip (the demo's runs raise them in worker processes): same class, message, fields and the
+``partial`` a failed run attaches.
 
 The pickler here has its own, empty dispatch table: ``distributed`` (imported by other tests in the same process)
 registers tblib's exception reducer in ``copyreg`` for every exception class that exists when it is imported, and
@@ -16,6 +17,7 @@ import pickle
 
 import pytest
 
+import drivers.errors
 import foilc_hil.errors as errors
 from foilc_hil.io.mcap_log import LogWriteError
 
@@ -25,8 +27,8 @@ FIELDS: dict[type[BaseException], tuple[object, ...]] = {
     errors.SdoError: (0x6060, 0, 0x06090030, "value range exceeded"),
 }
 CLASSES = [
-    *sorted((cls for cls in vars(errors).values()
-             if inspect.isclass(cls) and issubclass(cls, errors.FoilcHilError) and cls.__module__ == errors.__name__),
+    *sorted((cls for module in (errors, drivers.errors) for cls in vars(module).values()
+             if inspect.isclass(cls) and issubclass(cls, errors.FoilcHilError) and cls.__module__ == module.__name__),
             key=lambda cls: cls.__name__),
     LogWriteError,
 ]

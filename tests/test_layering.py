@@ -21,6 +21,7 @@ PACKAGES = ("foilc_hil", "drivers", "plant_emulator")
 RANKS: dict[str, int] = {
     "foilc_hil": 0,  # the package itself (__init__ imports nothing)
     "foilc_hil.errors": 0,
+    "drivers.errors": 0,  # the root of the one error tree, below every package that raises (foilc_hil.errors re-exports)
     "foilc_hil.schema": 1,
     "drivers": 2,
     "plant_emulator": 3,
