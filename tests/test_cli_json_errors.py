@@ -14,8 +14,9 @@ import pytest
 
 from foilc_hil.cli import main
 
+# the P-type gain is certified (rescaled) on the model; the plant's real input gain is ten times the model's
 DIVERGING = """
-plant: {a: -1.23, b: 1.68, c: 1.0}
+plant: {a: -1.23, b: 1.68, c: 1.0, variation: {b: {kind: sine, amplitude: 15.0, frequency: 0.001, phase: 1.5707963}}}
 reference: {profile: piecewise, segments: [{duration: 1.0, start: 1.0}]}
 sample_time: 0.05
 trials: 6

@@ -76,7 +76,11 @@ def test_bad_sample_time_names_the_key(tmp_path: Path, capsys: pytest.CaptureFix
 
 
 def test_divergence_exits_1_with_document(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    path = _write(tmp_path, CONFIG.replace("p_type_gain: 0.5", "p_type_gain: 500.0"))
+    # the gain is certified (rescaled) on the model; the plant's real input gain is ten times the model's
+    mismodelled = "plant: {a: -1.23, b: 1.68, c: 1.0, variation: {b: {kind: sine, amplitude: 15.0, frequency: 0.001, " \
+        "phase: 1.5707963}}}"
+    path = _write(tmp_path, CONFIG.replace("p_type_gain: 0.5", "p_type_gain: 500.0").replace(
+        "plant: {a: -1.23, b: 1.68, c: 1.0}", mismodelled))
     code = main(["simulate", "--config", str(path), "--trials", "20", "--json"])
     captured = capsys.readouterr()
     assert code == 1

@@ -215,11 +215,16 @@ def test_run_law_works_without_tuning_and_the_log_verifies(
 
 DESIGN_ORDER = (
     "models",
+    "convolution",
+    "gl_kernel",
     "fractional",
     "qfilter",
     "ptype",
     "record",
     "certificates",
+    "admission",
+    "lifted_kernel",
+    "trial_operator",
     "noilc",
     "gradient",
     "lmi",

@@ -103,15 +103,23 @@ def test_p_type_with_input_delay_matches_closed_form(tmp_path: Path) -> None:
 def test_disturbance_starts_at_its_trial(tmp_path: Path) -> None:
     d = 0.3
     config = _config(tmp_path, extra=f"  disturbance: {{kind: constant, amplitude: {d}, start_trial: 2}}")
-    config = config.model_copy(update={"law": config.law.model_copy(update={"p_type_gain": 0.0})})
-    result = simulate(config, law="p-type", trials=2)
+    ad, bd = _zoh()
+    # a P-type law that learns nothing (Gamma = 0), given as a design: the pipeline refuses it (||T|| = 1 is not a
+    # certified contraction), and here it only has to leave the plant's response to the disturbance alone
+    silent = plain_design([[ad]], [[bd]], [[1.0]], [[0.0, 0.0]], kp=0.0, r=1.0, sample_time=TS, law="p-type")
+    result = simulate(config, law="p-type", trials=2, design=silent)
     t = np.arange(1, N + 1) * TS
     np.testing.assert_array_equal(result.outputs[0], 0.0)
     np.testing.assert_allclose(result.outputs[1, :, 0], d / A_C * (np.exp(A_C * t) - 1.0), rtol=1e-10)
 
 
+#: The plant's real input gain ten times the model's (b + 15 sin(pi / 2 + 1e-3 t), nearly constant over a trial): the
+#: design, certified (and rescaled) on the model, learns ten times too fast on this plant.
+MISMODELLED = "  variation: {b: {kind: sine, amplitude: 15.0, frequency: 0.001, phase: 1.5707963}}"
+
+
 def test_divergence_stops_the_run(tmp_path: Path) -> None:
-    config = _config(tmp_path)
+    config = _config(tmp_path, extra=MISMODELLED)
     config = config.model_copy(update={"law": config.law.model_copy(update={"p_type_gain": 500.0})})
     result = simulate(config, law="p-type", trials=20)
     assert result.stopped

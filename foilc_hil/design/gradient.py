@@ -1,12 +1,13 @@
-"""Gradient (steepest-descent) ILC, lifted: the simplest model-based baseline beside norm-optimal ILC.
+"""Gradient (steepest-descent) ILC: the simplest model-based baseline beside norm-optimal ILC.
 
 Each trial takes one step down the gradient of ``||e||^2 / 2`` with respect to the input,
 
     u_k = u_{k-1} + beta G^T e_{k-1},
 
 with ``G`` the lifted nominal plant of :func:`foilc_hil.design.noilc.lifted_plant` (inputs ``u[0..N-d-1]`` to the
-errors they move, ``e[d..N-1]``). ``G^T e`` runs the plant's impulse response backwards in time over the trial: the
-law is feedforward only, computed between trials (like NOILC's).
+errors they move, ``e[d..N-1]``). ``G^T e`` runs the plant's impulse response backwards in time over the trial: one
+backward pass of the adjoint state-space system (:func:`foilc_hil.design.noilc.plant_operator`, transposed),
+``O(N n)``, no lifted matrix. The law is feedforward only, computed between trials (like NOILC's).
 
 The step
 --------
@@ -17,12 +18,14 @@ the singular values ``sigma_i`` of ``G``. It contracts monotonically (``||T||_2 
 (eigenvalue 0), every other contracts by ``1 - sigma_i^2 / ||G||^2 in [0, 1)`` (no overshoot on the nominal plant),
 and a plant whose gain is up to twice the nominal one in that direction still contracts. The slowest direction is
 the one of the smallest plant gain: gradient ILC is slow where the plant is small, which is NOILC's advantage.
+``||G||_2`` is :func:`foilc_hil.design.noilc.plant_norm` (structured, no SVD).
 
 Certificates
 ------------
-The dense trial map (error map, or the input map with a Q-filter) at the nominal plant and every uncertainty
-vertex, spectral radius and induced 2-norm, by :func:`foilc_hil.design.noilc.certify_lifted`, the code NOILC's
-certificates use.
+Those of NOILC (:func:`foilc_hil.design.noilc.certify_lifted`: dense for short trials, the structured test of the
+trial map ``I - beta G_v G^T`` for long ones; its spectral radius also through the similar map
+``I - beta G^T G_v``), under the one rule of :mod:`foilc_hil.design.admission`: a step that is not certified
+monotonic is rescaled (the recorded ``beta`` and ``step_relative`` are the scaled ones) or refused.
 
 Module order: after :mod:`foilc_hil.design.noilc`, before :mod:`foilc_hil.design.lmi`.
 """
@@ -34,64 +37,96 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from foilc_hil.config import LawKind
+from foilc_hil.config import DivergentFilterPolicy, LawKind
 from foilc_hil.design.certificates import LawStructure
 from foilc_hil.design.models import DiscreteModel, Uncertainty
-from foilc_hil.design.noilc import certify_lifted, lifted_plant, noilc_gain
+from foilc_hil.design.noilc import LiftedDesign, LiftedUpdate, certify_lifted, noilc_update, plant_norm, plant_operator
 from foilc_hil.design.record import Design, GradientStep, NoilcWeights
+from foilc_hil.design.trial_operator import TrialOperator
 from foilc_hil.errors import InputError
 
-__all__ = ["STEP_RELATIVE", "certify_gradient", "gradient_gain", "gradient_step", "lifted_gain"]
+__all__ = [
+    "STEP_RELATIVE",
+    "certify_gradient",
+    "gradient_gain",
+    "gradient_step",
+    "gradient_update",
+    "lifted_gain",
+    "lifted_update",
+]
 
 #: ``beta ||G||_2^2``: 1 is the middle of the monotonic range ``(0, 2)`` (module notes).
 STEP_RELATIVE = 1.0
 
 
-def gradient_step(model: DiscreteModel, n_samples: int) -> GradientStep:
-    """``beta = STEP_RELATIVE / ||G||_2^2`` for trials of ``n_samples`` on ``model`` (module notes)."""
-    G = lifted_plant(model.A, model.B, model.measured_output, n_samples, model.input_delay)
-    norm = float(np.linalg.norm(G, 2))
+def gradient_step(model: DiscreteModel, n_samples: int, step_relative: float = STEP_RELATIVE) -> GradientStep:
+    """``beta = step_relative / ||G||_2^2`` for trials of ``n_samples`` on ``model`` (module notes)."""
+    norm = plant_norm(model, n_samples)
     if not norm > 0:
         raise InputError("plant: no input moves the measured output within a trial; gradient ILC cannot learn")
-    return GradientStep(beta=STEP_RELATIVE / norm**2, plant_norm=norm, step_relative=STEP_RELATIVE)
+    return GradientStep(beta=step_relative / norm**2, plant_norm=norm, step_relative=step_relative)
+
+
+def gradient_update(model: DiscreteModel, step: GradientStep, n_samples: int) -> LiftedUpdate:
+    """``du = beta G^T e``: the adjoint pass of the plant, scaled (no right factor)."""
+    G = plant_operator(model.A, model.B, model.measured_output, n_samples, model.input_delay)
+    return LiftedUpdate(G.transpose().scaled(step.beta), TrialOperator.identity(G.length, G.shape[1]))
 
 
 def gradient_gain(model: DiscreteModel, step: GradientStep, n_samples: int) -> np.ndarray:
-    """``L = beta G^T``, ``(L m) x (L p)``: the lifted learning gain."""
-    G = lifted_plant(model.A, model.B, model.measured_output, n_samples, model.input_delay)
-    return np.asarray(step.beta * G.T, dtype=float)
+    """``L = beta G^T``, ``(L m) x (L p)``: the lifted learning gain, dense."""
+    return gradient_update(model, step, n_samples).dense()
 
 
 def certify_gradient(
-    model: DiscreteModel, uncertainty: Uncertainty, law: LawStructure, *, require_monotonic: bool
+    model: DiscreteModel,
+    uncertainty: Uncertainty,
+    law: LawStructure,
+    *,
+    require_monotonic: bool,
+    policy: DivergentFilterPolicy = DivergentFilterPolicy.RESCALE,
+    growth_horizon: int = 10,
 ) -> Design:
-    """The gradient ILC design for ``model``: its step and the certificates of the law as it runs."""
+    """The gradient ILC design for ``model``: its step and the certificates of the law as it runs, rescaled or
+    refused by the rule of :mod:`foilc_hil.design.admission`."""
     step = gradient_step(model, law.n_samples)
-    return certify_lifted(
-        model,
-        uncertainty,
-        gradient_gain(model, step, law.n_samples),
-        law,
-        require_monotonic=require_monotonic,
-        kind=LawKind.GRADIENT,
-        addition={"gradient": step},
+    base = gradient_update(model, step, law.n_samples)
+
+    def scaled(scale: float) -> GradientStep:
+        return GradientStep(scale * step.beta, step.plant_norm, scale * step.step_relative)
+
+    lifted = LiftedDesign(
+        LawKind.GRADIENT,
+        base.scaled,
+        lambda scale: {"gradient": scaled(scale)},
+        policy,
+        require_monotonic,
+        growth_horizon,
     )
+    return certify_lifted(model, uncertainty, lifted, law)
 
 
-def lifted_gain(design: Design, n_samples: int) -> np.ndarray | None:
-    """The lifted gain ``L`` of a NOILC or gradient design for trials of ``n_samples``; ``None`` for the laws that
-    run per sample (FOILC, IOILC, P-type). Rebuilt from the weights or step its certificates record.
-
-    The array is read-only and shared: a process keeps the last few gains (a robustness run builds a law per drawn
-    plant from one design, and NOILC's gain costs an ``O(L^3)`` solve, about a second at 2000 samples)."""
+def lifted_update(design: Design, n_samples: int) -> LiftedUpdate | None:
+    """The update ``du = L e`` of a NOILC or gradient design for trials of ``n_samples``, rebuilt from the weights
+    (and scale) or the step its certificates record; ``None`` for the laws that run per sample (FOILC, IOILC,
+    P-type). Shared: a process keeps the last few (a robustness run builds a law per drawn plant from one design)."""
     certificates = design.certificates
     if design.law is LawKind.NOILC and certificates is not None and certificates.noilc is not None:
-        return _shared_gain(_SameModel(design.model), certificates.noilc, n_samples)
+        return _shared_update(_SameModel(design.model), certificates.noilc, n_samples)
     if design.law is LawKind.GRADIENT and certificates is not None and certificates.gradient is not None:
-        return _shared_gain(_SameModel(design.model), certificates.gradient, n_samples)
+        return _shared_update(_SameModel(design.model), certificates.gradient, n_samples)
     if design.law in (LawKind.NOILC, LawKind.GRADIENT):
         raise InputError(f"design.certificates: a {design.law} design records its lifted gain's parameters")
     return None
+
+
+def lifted_gain(design: Design, n_samples: int) -> np.ndarray | None:
+    """:func:`lifted_update` as a dense, read-only, shared ``(L m) x (L p)`` matrix (the robustness draws' dense
+    maps); ``None`` for the laws that run per sample."""
+    update = lifted_update(design, n_samples)
+    if update is None:
+        return None
+    return _shared_gain(update)
 
 
 @dataclass(frozen=True, eq=False)
@@ -113,10 +148,14 @@ class _SameModel:
 
 
 @functools.lru_cache(maxsize=4)
-def _shared_gain(model: _SameModel, parameters: NoilcWeights | GradientStep, n_samples: int) -> np.ndarray:
+def _shared_update(model: _SameModel, parameters: NoilcWeights | GradientStep, n_samples: int) -> LiftedUpdate:
     if isinstance(parameters, NoilcWeights):
-        gain = noilc_gain(model.model, parameters, n_samples)
-    else:
-        gain = gradient_gain(model.model, parameters, n_samples)
+        return noilc_update(model.model, parameters, n_samples)
+    return gradient_update(model.model, parameters, n_samples)
+
+
+@functools.lru_cache(maxsize=4)
+def _shared_gain(update: LiftedUpdate) -> np.ndarray:
+    gain = update.dense()
     gain.flags.writeable = False
     return gain

@@ -1,4 +1,4 @@
-"""Norm-optimal ILC (Amann–Owens), lifted: the baseline an ILC engineer compares a new law with.
+"""Norm-optimal ILC (Amann–Owens): the baseline an ILC engineer compares a new law with, in its state-space form.
 
 Each trial minimises ``||e_k||_Q^2 + ||u_k - u_{k-1}||_R^2`` on the lifted plant, which gives
 
@@ -8,74 +8,269 @@ with ``G`` the lifted nominal plant from the inputs ``u[0..N-d-1]`` to the error
 ``e[d..N-1]`` (block lower-triangular Toeplitz with blocks ``C_measured A^(j + d) B``; the first ``d`` samples never
 change and the last ``d`` inputs move nothing, as for every law here). ``Q = q I``, ``R = r I``.
 
+The state-space form
+--------------------
+``L`` is never formed. ``G`` is the causal system ``xi_(i+1) = A_p xi_i + B_p u_i``, ``y_i = C_p A_p xi_i + C_p B_p
+u_i`` of the plant without its delay states (:func:`plant_realization`; ``d`` samples of delay are the shift the
+lifted map already accounts for), and ``M = q G^T G + r I`` factors through the finite-horizon Riccati recursion
+of the LQ problem ``min q ||G du||^2 + r ||du||^2`` (:func:`foilc_hil.design.lifted_kernel.noilc_riccati`, run
+backward from ``P_L = 0``: the terminal condition of the finite trial): ``M = F^T W F`` with ``F du = du + K x``
+(``x`` the nominal model's state under ``du``), lower triangular with unit diagonal. So
+
+    L = Fi Fi^T q G^T,   Fi = F^-1 R_W^-1   (W_i = R_W,i^T R_W,i),
+
+and the update ``L e`` is one backward pass (the costate of ``G Fi``: ``q (G Fi)^T e``) and one forward pass
+(``Fi``: the Riccati feedback ``du_i = -K_i x_i + v_i``), ``O(N n^3)`` (:class:`LiftedUpdate`). It is the dense
+update to rounding: ``tests/test_baselines.py`` checks it against the normal equations.
+
 Certificates
 ------------
-The trial-to-trial error map is ``T = I - G_v L`` at each plant ``G_v`` (nominal and uncertainty vertices): with a
-Q-filter the input map ``M = Q_f - L S G_y`` instead (:mod:`foilc_hil.design.certificates` notes). Both are
-dense (``L`` is not Toeplitz); :func:`~foilc_hil.design.certificates.matrix_certificate` computes their spectral
-radius and induced 2-norm with the same code as every other law's. On the nominal plant
-``T = r (q G G^T + r I)^-1`` is symmetric with eigenvalues ``r / (r + q sigma_i^2)`` in ``(0, 1)``: monotonic by
-construction, fastest where the plant gain ``sigma_i`` is large. The vertices measure its robustness.
+The trial-to-trial error map is ``T = I - G_v s L`` at each plant ``G_v`` (nominal and uncertainty vertices; ``s``
+the update's scale, 1 unless :mod:`foilc_hil.design.admission` had to shrink it); with a Q-filter the input map
+``M = Q_f - L S G_y`` instead. On the nominal plant ``T = r (q G G^T + r I)^-1`` is symmetric with eigenvalues
+``r / (r + q sigma_i^2)`` in ``(0, 1)``: monotonic by construction; the vertices measure its robustness.
+
+* Trials of up to :data:`DENSE_LIMIT` samples: ``T`` dense, its exact spectral radius and 2-norm
+  (:func:`~foilc_hil.design.certificates.matrix_certificate`, method ``dense``).
+* Longer trials: ``T`` as a :class:`~foilc_hil.design.trial_operator.TrialOperator` (``3 n`` states), its 2-norm
+  from above by the structured Cholesky test of its dilation and bisection (:data:`STRUCTURED_METHOD`: exact to the
+  bisection's ``1e-10`` and a rounding margin, ``O(N n^3)`` per test). Its spectral radius is bounded by that
+  norm, and when that is not below one by the 2-norm of a similar map, ``X = I - s q (G Fi)^T G_v Fi`` (the
+  spectrum of ``I - G_v L`` is that of ``I - L G_v``, similar to ``X`` through ``Fi``; on the nominal plant ``X`` is
+  symmetric and its norm the exact radius); where neither is below one the radius says "inconclusive at bound X".
+* With a Q-filter: dense up to :data:`Q_FILTER_DENSE_LIMIT` samples, beyond that not computed (inconclusive).
 
 The weight ``r`` is set relative to the plant, ``r = r_relative ||G||_2^2 q`` (``law.noilc.r_relative``), so one
 default fits plants of any gain: the direction of the largest plant gain contracts by
-``r_relative / (1 + r_relative)`` per trial.
+``r_relative / (1 + r_relative)`` per trial. ``||G||_2`` comes from the same structured test, bisected to
+``1e-13`` (:func:`plant_norm`).
 
-Module order: after :mod:`foilc_hil.design.certificates`, before :mod:`foilc_hil.design.lmi`.
+Module order: after :mod:`foilc_hil.design.trial_operator` and :mod:`foilc_hil.design.admission`, before
+:mod:`foilc_hil.design.gradient`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import functools
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
-from foilc_hil.config import FractionalMemory, LawKind, NoilcConfig
+from foilc_hil.config import DivergentFilterPolicy, FractionalMemory, LawKind, NoilcConfig
+from foilc_hil.design.admission import ScaledVerdict, admit
 from foilc_hil.design.certificates import (
-    CONTRACTION_LIMIT,
+    DENSE_LIMIT,
     LawStructure,
     dense_block_toeplitz,
     markov_blocks,
     matrix_certificate,
 )
 from foilc_hil.design.models import DiscreteModel, Uncertainty, uncertainty_vertices
-from foilc_hil.design.record import Bounds, CertificateAction, Certificates, Design, NoilcWeights, PlantCertificate
+from foilc_hil.design.record import (
+    Bounds,
+    CertificateAction,
+    Certificates,
+    Design,
+    NoilcWeights,
+    PlantCertificate,
+)
+from foilc_hil.design.trial_operator import TrialOperator
 from foilc_hil.errors import InputError
 from foilc_hil.progress import as_step
 
-__all__ = ["certify_lifted", "certify_noilc", "lifted_plant", "noilc_gain", "noilc_weights", "trial_map"]
+__all__ = [
+    "DENSE_LIMIT",
+    "STRUCTURED_METHOD",
+    "LiftedUpdate",
+    "Realization",
+    "certify_lifted",
+    "certify_noilc",
+    "lifted_plant",
+    "noilc_gain",
+    "noilc_update",
+    "noilc_weights",
+    "plant_norm",
+    "plant_operator",
+    "plant_realization",
+    "trial_map",
+]
 
 #: ``r`` recorded by a NOILC design: the law has no fractional term.
 UNUSED_ORDER = 1.0
+#: ``norm_2_method`` of a certificate from the structured test (module notes).
+STRUCTURED_METHOD = "structured exact (Cholesky test of the dilation through the state-space form; upper bound)"
+#: ``spectral_radius_method`` when the 2-norm bounds the radius.
+BY_NORM = "upper bound: the induced 2-norm"
+#: ``spectral_radius_method`` when the 2-norm of the similar map bounds it (module notes).
+BY_SIMILAR = "upper bound: the induced 2-norm of a similar map"
+#: Largest trial a lifted law's Q-filter input map is certified for (densely).
+Q_FILTER_DENSE_LIMIT = 2000
+#: Relative width of :func:`plant_norm`'s bisection: the weights and the step come from it.
+PLANT_NORM_TOLERANCE = 1e-13
 
 
-def lifted_plant(A: np.ndarray, B: np.ndarray, C_measured: np.ndarray, n_samples: int, lead: int) -> np.ndarray:
-    """``G`` (``(L p) x (L m)``, ``L = N - lead``): inputs ``u[0..L-1]`` to the errors they move, ``y[lead..N-1]``."""
+@dataclass(frozen=True)
+class Realization:
+    """The causal system of a lifted plant ``G``: ``xi_(i+1) = A xi_i + B u_i``, ``y_i = C xi_i + D u_i``."""
+
+    A: np.ndarray
+    B: np.ndarray
+    C: np.ndarray
+    D: np.ndarray
+
+
+def _delay_free(A: np.ndarray, B: np.ndarray, C_measured: np.ndarray, lead: int) -> Realization | None:
+    """The plant block of a model augmented by ``lead`` delay states (:func:`~foilc_hil.design.models.
+    augment_input_delay`'s layout, every uncertainty vertex's too), or ``None`` if ``(A, B)`` is not laid out so."""
+    n, m = B.shape
+    plant = n - lead * m
+    if plant < 1 or np.any(C_measured[:, plant:]) or np.any(A[:plant, plant + m :]):
+        return None
+    shift = np.zeros((lead * m, n))
+    for slot in range(lead - 1):
+        shift[slot * m : (slot + 1) * m, plant + (slot + 1) * m : plant + (slot + 2) * m] = np.eye(m)
+    newest = np.zeros((n, m))
+    newest[n - m :] = np.eye(m)
+    if not (np.array_equal(A[plant:], shift) and np.array_equal(B, newest)):
+        return None
+    A_p, B_p, C_p = A[:plant, :plant], A[:plant, plant : plant + m], C_measured[:, :plant]
+    return Realization(A_p, B_p, C_p @ A_p, C_p @ B_p)
+
+
+def plant_realization(A: np.ndarray, B: np.ndarray, C_measured: np.ndarray, lead: int) -> Realization:
+    """The causal system whose lifted matrix is :func:`lifted_plant` (blocks ``C_measured A^(j + lead) B``).
+
+    For a delay-augmented model the plant block alone (its ``lead`` delay states are the shift the lifted map
+    already makes: ``C_measured A^(j + lead) B = C_p A_p^j B_p``), so the map has the plant's order; otherwise
+    ``(A, B, C' A, C' B)`` with ``C' = C_measured A^lead``.
+    """
+    A, B, C_measured = (np.asarray(X, dtype=float) for X in (A, B, C_measured))
+    if lead:
+        reduced = _delay_free(A, B, C_measured, lead)
+        if reduced is not None:
+            return reduced
+    ahead = C_measured @ np.linalg.matrix_power(A, lead)
+    return Realization(A, B, ahead @ A, ahead @ B)
+
+
+def plant_operator(A: np.ndarray, B: np.ndarray, C_measured: np.ndarray, n_samples: int, lead: int) -> TrialOperator:
+    """``G`` of :func:`lifted_plant` as a :class:`~foilc_hil.design.trial_operator.TrialOperator` (``O(L)``)."""
+    length = _length(n_samples, lead)
+    system = plant_realization(A, B, C_measured, lead)
+    return TrialOperator.causal(system.A, system.B, system.C, system.D, length)
+
+
+def _length(n_samples: int, lead: int) -> int:
     length = n_samples - lead
     if length < 1:
         raise InputError(f"n_samples: must exceed the input delay {lead}, got {n_samples}")
-    return dense_block_toeplitz(markov_blocks(A, B, C_measured, lead, length))
+    return length
+
+
+def lifted_plant(A: np.ndarray, B: np.ndarray, C_measured: np.ndarray, n_samples: int, lead: int) -> np.ndarray:
+    """``G`` (``(L p) x (L m)``, ``L = N - lead``): inputs ``u[0..L-1]`` to the errors they move, ``y[lead..N-1]``
+    (dense: the small trials' certificates and the tests)."""
+    return dense_block_toeplitz(markov_blocks(A, B, C_measured, lead, _length(n_samples, lead)))
+
+
+def plant_norm(model: DiscreteModel, n_samples: int) -> float:
+    """``||G||_2`` of the lifted nominal plant for trials of ``n_samples``: the structured test bisected to
+    :data:`PLANT_NORM_TOLERANCE` (the middle of the final bracket)."""
+    G = plant_operator(model.A, model.B, model.measured_output, n_samples, model.input_delay)
+    square = G if G.shape[0] == G.shape[1] else G.transpose().product(G)
+    bound = square.norm_bound(PLANT_NORM_TOLERANCE)
+    if not math.isfinite(bound.upper):
+        raise InputError("plant: the lifted plant's norm overflows over one trial")
+    return bound.estimate if square is G else math.sqrt(bound.estimate)
+
+
+@dataclass(frozen=True, eq=False)
+class LiftedUpdate:
+    """The learning update ``du[0..L-1] = right (left e[d..N-1])`` of a lifted law, ``L = right left``.
+
+    NOILC: ``left = s q (G Fi)^T`` (the costate pass), ``right = Fi`` (the Riccati feedback pass); gradient ILC:
+    ``left = beta G^T``, ``right = I``. ``I - left G_v right`` is then similar to ``I - L G_v``, whose spectrum is
+    that of the trial map ``I - G_v L`` (the spectral radius bound of the module notes).
+    """
+
+    left: TrialOperator
+    right: TrialOperator
+
+    @property
+    def length(self) -> int:
+        """``L``, samples of the update."""
+        return self.left.length
+
+    def apply(self, error: np.ndarray) -> np.ndarray:
+        """``du = L e`` for ``e`` of shape ``(L, p)``: ``(L, m)``."""
+        return self.right.apply(self.left.apply(error))
+
+    def operator(self) -> TrialOperator:
+        """``L`` as one operator."""
+        return self.right.product(self.left)
+
+    def dense(self) -> np.ndarray:
+        """``L`` as a dense ``(L m) x (L p)`` matrix."""
+        length, p = self.length, self.left.shape[1]
+        unit = np.eye(length * p).reshape(length, p, length * p)
+        return np.asarray(self.apply(unit).reshape(-1, length * p))
+
+    def scaled(self, scale: float) -> LiftedUpdate:
+        """``scale L``."""
+        return LiftedUpdate(self.left.scaled(scale), self.right)
+
+    def trial_map(self, plant: TrialOperator) -> TrialOperator:
+        """``I - G_v L`` for the lifted plant ``G_v`` (``plant``)."""
+        step = plant.product(self.operator())
+        return TrialOperator.identity(self.length, step.shape[0]).plus(step.scaled(-1.0))
+
+    def similar_map(self, plant: TrialOperator) -> TrialOperator:
+        """``I - left G_v right``: the spectrum of :meth:`trial_map` (class notes)."""
+        step = self.left.product(plant.product(self.right))
+        return TrialOperator.identity(self.length, step.shape[0]).plus(step.scaled(-1.0))
 
 
 def noilc_weights(model: DiscreteModel, config: NoilcConfig, n_samples: int) -> NoilcWeights:
     """The absolute weights of ``law.noilc`` on ``model`` for trials of ``n_samples`` (module notes)."""
-    G = lifted_plant(model.A, model.B, model.measured_output, n_samples, model.input_delay)
-    scale = float(np.linalg.norm(G, 2)) ** 2
+    scale = plant_norm(model, n_samples) ** 2
     return NoilcWeights(q=config.q, r=config.r_relative * scale * config.q, r_relative=config.r_relative)
 
 
+def noilc_update(model: DiscreteModel, weights: NoilcWeights, n_samples: int) -> LiftedUpdate:
+    """``weights.scale L``, ``L = (q G^T G + r I)^-1 q G^T``, in the state-space form (module notes)."""
+    from foilc_hil.design.lifted_kernel import noilc_riccati
+
+    length = _length(n_samples, model.input_delay)
+    system = plant_realization(model.A, model.B, model.measured_output, model.input_delay)
+    gains, inverses = noilc_riccati(system.A, system.B, system.C, system.D, weights.q, weights.r, length)
+    # any S with S S^T = W^-1 factors M^-1 = F^-1 W^-1 F^-T = Fi Fi^T with Fi = F^-1 S: the Cholesky factor of W^-1
+    root = np.linalg.cholesky(inverses)
+    closed = system.A - system.B @ gains
+    Fi = TrialOperator(
+        np.ascontiguousarray(closed),
+        np.ascontiguousarray(system.B @ root),
+        np.ascontiguousarray(-gains),
+        np.zeros((length, 0, 0)),
+        np.zeros((length, 0, root.shape[2])),
+        np.zeros((length, gains.shape[1], 0)),
+        np.ascontiguousarray(root),
+    )
+    G = TrialOperator.causal(system.A, system.B, system.C, system.D, length)
+    return LiftedUpdate(G.product(Fi).transpose().scaled(weights.q * weights.scale), Fi)
+
+
 def noilc_gain(model: DiscreteModel, weights: NoilcWeights, n_samples: int) -> np.ndarray:
-    """``L = (q G^T G + r I)^-1 q G^T``, ``(L m) x (L p)``: the lifted learning gain (module notes)."""
-    G = lifted_plant(model.A, model.B, model.measured_output, n_samples, model.input_delay)
-    normal = weights.q * (G.T @ G) + weights.r * np.eye(G.shape[1])
-    return np.asarray(np.linalg.solve(normal, weights.q * G.T), dtype=float)
+    """``weights.scale L`` as a dense ``(L m) x (L p)`` matrix (the robustness draws' dense maps)."""
+    return noilc_update(model, weights, n_samples).dense()
 
 
 def trial_map(
     A: np.ndarray, B: np.ndarray, model: DiscreteModel, gain: np.ndarray, law: LawStructure
 ) -> tuple[np.ndarray, str]:
-    """The map the law runs on at plant ``(A, B)``: the error map, or with a Q-filter the input map."""
+    """The dense map the law runs on at plant ``(A, B)``: the error map, or with a Q-filter the input map."""
     n, lead = law.n_samples, law.lead
     C = model.measured_output
     if law.q_filter is None:
@@ -88,60 +283,123 @@ def trial_map(
     return np.kron(law.q_filter, np.eye(m)) - full @ G_y, "input (Q-filter)"
 
 
-def certify_lifted(
-    model: DiscreteModel,
-    uncertainty: Uncertainty,
-    gain: np.ndarray,
-    law: LawStructure,
-    *,
-    require_monotonic: bool,
-    kind: LawKind,
-    addition: Mapping[str, Any],
-) -> Design:
-    """The design of a lifted feedforward law ``u_k = u_{k-1} + L e_{k-1}`` (NOILC, gradient): certificates of
-    its dense map (:func:`trial_map`) at the nominal plant and every vertex; ``addition`` is what its certificates
-    add (``{"noilc": weights}``, ``{"gradient": step}``). Nothing is rescaled: the certificates report the map as
-    it is (like P-type's)."""
+def _structured_certificate(update: LiftedUpdate, plant: TrialOperator) -> PlantCertificate:
+    """A long trial's error map: the structured norm, and the radius by it or by the similar map (module notes)."""
+    norm = update.trial_map(plant).norm_bound().upper
+    if norm < 1.0:
+        return PlantCertificate("", "error", norm, norm, STRUCTURED_METHOD, BY_NORM)
+    similar = update.similar_map(plant).norm_bound(stop_below=0.5).upper
+    radius, method = (norm, BY_NORM) if norm <= similar else (similar, BY_SIMILAR)
+    if not radius < 1.0:
+        method = f"inconclusive at bound {radius:.6g} ({method})"
+    return PlantCertificate("", "error", radius, norm, STRUCTURED_METHOD, method)
+
+
+def plant_certificate(
+    update: LiftedUpdate, model: DiscreteModel, A: np.ndarray, B: np.ndarray, law: LawStructure,
+    dense_gain: Callable[[], np.ndarray],
+) -> PlantCertificate:
+    """The certificate of the lifted law ``update`` at the plant ``(A, B)`` (module notes: dense, structured, or
+    with a Q-filter dense up to :data:`Q_FILTER_DENSE_LIMIT`); ``dense_gain()``: ``update`` as a matrix."""
+    length = law.n_samples - law.lead
+    if law.q_filter is not None:
+        if law.n_samples > Q_FILTER_DENSE_LIMIT:
+            method = f"inconclusive at bound inf (a Q-filter's input map is certified up to N = {Q_FILTER_DENSE_LIMIT})"
+            return PlantCertificate("", "input (Q-filter)", math.inf, math.inf, method, method)
+        return matrix_certificate(*trial_map(A, B, model, dense_gain(), law))
+    if length <= DENSE_LIMIT:
+        return matrix_certificate(*trial_map(A, B, model, dense_gain(), law))
+    plant = plant_operator(A, B, model.measured_output, law.n_samples, law.lead)
+    return _structured_certificate(update, plant)
+
+
+def _certificates(
+    verdict: ScaledVerdict, law: LawStructure, require_monotonic: bool, designed: Bounds, addition: Mapping[str, Any]
+) -> Certificates:
+    """The typed certificates of ``verdict`` (``designed``: the bounds at scale 1)."""
+    return Certificates(
+        spectral_radius=verdict.spectral_radius,
+        norm_2=verdict.norm_2,
+        monotonic_required=require_monotonic,
+        n_samples=law.n_samples,
+        lead=law.lead,
+        fractional_memory=FractionalMemory(law.fractional_memory),
+        filter_first_weight=1.0,
+        naive_without_filter=designed,
+        designed=designed,
+        vertices=len(verdict.plants) - 1,
+        q_filter=law.q_filter is not None,
+        action=CertificateAction.NONE,
+        gain_scale=verdict.scale,
+        asymptotic=verdict.asymptotic,
+        monotonic=verdict.monotonic,
+        plants=verdict.plants,
+        **addition,
+    )
+
+
+@dataclass(frozen=True)
+class LiftedDesign:
+    """What :func:`certify_lifted` needs of a lifted law: its update at scale ``s``, what its certificates add at
+    that scale (``{"noilc": weights}``, ``{"gradient": step}``), its kind, and the rule's settings."""
+
+    kind: LawKind
+    update: Callable[[float], LiftedUpdate]
+    addition: Callable[[float], Mapping[str, Any]]
+    policy: DivergentFilterPolicy = DivergentFilterPolicy.RESCALE
+    require_monotonic: bool = True
+    growth_horizon: int = 10
+
+
+def certify_lifted(model: DiscreteModel, uncertainty: Uncertainty, lifted: LiftedDesign, law: LawStructure) -> Design:
+    """The design of a lifted feedforward law ``u_k = u_{k-1} + s L e_{k-1}`` (NOILC, gradient): certificates of
+    its trial map at the nominal plant and every vertex (module notes), under the rule of
+    :mod:`foilc_hil.design.admission` (``s = 1`` unless it had to rescale).
+
+    Raises
+    ------
+    foilc_hil.errors.ConvergenceCertificateError
+        When the rule refuses the design (exit 3).
+    """
     if law.lead != model.input_delay:
         raise InputError(f"law: its lead {law.lead} must be the model's input delay {model.input_delay}")
     plants = [("nominal", model.A, model.B)]
     plants += [
         (f"vertex {i}", model.A + dA, model.B + dB) for i, (dA, dB) in enumerate(uncertainty_vertices(uncertainty), 1)
     ]
-    entries: list[PlantCertificate] = []
-    for name, A_v, B_v in plants:
-        matrix, map_kind = trial_map(A_v, B_v, model, gain, law)
-        entries.append(matrix_certificate(matrix, map_kind).named(name))
-    radius = max(entry.spectral_radius for entry in entries)
-    norm = max(entry.norm_2 for entry in entries)
-    bounds = Bounds(radius, norm)
-    certificates = Certificates(
-        spectral_radius=radius,
-        norm_2=norm,
-        monotonic_required=require_monotonic,
-        n_samples=law.n_samples,
-        lead=law.lead,
-        fractional_memory=FractionalMemory(law.fractional_memory),
-        filter_first_weight=1.0,
-        naive_without_filter=bounds,
-        designed=bounds,
-        vertices=len(entries) - 1,
-        q_filter=law.q_filter is not None,
-        action=CertificateAction.NONE,
-        gain_scale=1.0,
-        asymptotic=radius < 1.0,
-        monotonic=radius < 1.0 and norm <= CONTRACTION_LIMIT,
-        plants=tuple(entries),
-        **addition,
+
+    @functools.cache
+    def evaluate(scale: float) -> ScaledVerdict:
+        update = lifted.update(scale)
+        dense = functools.cache(update.dense)
+        entries = [plant_certificate(update, model, A_v, B_v, law, dense).named(name) for name, A_v, B_v in plants]
+        return ScaledVerdict(scale, tuple(entries))
+
+    admission = admit(
+        evaluate,
+        law=str(lifted.kind),
+        policy=lifted.policy,
+        require_monotonic=lifted.require_monotonic,
+        growth_horizon=lifted.growth_horizon,
+    )
+    designed = evaluate(1.0)
+    chosen = admission.verdict
+    certificates = replace(
+        _certificates(chosen, law, lifted.require_monotonic, Bounds(designed.spectral_radius, designed.norm_2),
+                      lifted.addition(chosen.scale)),
+        action=admission.action,
+        rescale_criterion=admission.criterion,
+        growth_bound=admission.growth_bound,
     )
     P = np.zeros((model.n_inputs, model.n_states + model.n_outputs))
     return Design(
-        law=kind,
+        law=lifted.kind,
         model=model,
         uncertainty=uncertainty,
         P=P,
         kp=0.0,
         r=UNUSED_ORDER,
+        gain_scale=chosen.scale,
         certificates=certificates,
     )
 
@@ -154,16 +412,19 @@ def certify_noilc(
     law: LawStructure,
     *,
     require_monotonic: bool,
+    policy: DivergentFilterPolicy = DivergentFilterPolicy.RESCALE,
+    growth_horizon: int = 10,
 ) -> Design:
-    """The NOILC design for ``model``: its weights, and certificates of the law as it runs (nominal, vertices)."""
+    """The NOILC design for ``model``: its weights, and certificates of the law as it runs (nominal, vertices),
+    rescaled or refused by the rule of :mod:`foilc_hil.design.admission`."""
     weights = noilc_weights(model, config, law.n_samples)
-    gain = noilc_gain(model, weights, law.n_samples)
-    return certify_lifted(
-        model,
-        uncertainty,
-        gain,
-        law,
-        require_monotonic=require_monotonic,
-        kind=LawKind.NOILC,
-        addition={"noilc": weights},
+    base = noilc_update(model, weights, law.n_samples)
+    lifted = LiftedDesign(
+        LawKind.NOILC,
+        base.scaled,
+        lambda scale: {"noilc": replace(weights, scale=scale)},
+        policy,
+        require_monotonic,
+        growth_horizon,
     )
+    return certify_lifted(model, uncertainty, lifted, law)

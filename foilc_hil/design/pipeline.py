@@ -16,8 +16,10 @@ from __future__ import annotations
 
 import sys
 import time
+from dataclasses import replace
 
 from foilc_hil.config import Config, DesignMethod, LawKind
+from foilc_hil.design.admission import ScaledVerdict, admit
 from foilc_hil.design.certificates import LawStructure, certify_p_type
 from foilc_hil.design.codesign import codesign
 from foilc_hil.design.gradient import certify_gradient
@@ -33,7 +35,7 @@ from foilc_hil.design.models import (
 from foilc_hil.design.noilc import certify_noilc
 from foilc_hil.design.ptype import p_type_gain
 from foilc_hil.design.qfilter import QFilter
-from foilc_hil.design.record import Design
+from foilc_hil.design.record import Bounds, CertificateAction, Design
 from foilc_hil.design.tuning import tune
 from foilc_hil.errors import ConfigError
 from plant_emulator.linear import continuous_model
@@ -146,6 +148,50 @@ def _codesign(config: Config, model: DiscreteModel, uncertainty: Uncertainty, st
     )
 
 
+def _p_type(config: Config, model: DiscreteModel, uncertainty: Uncertainty, structure: LawStructure) -> Design:
+    """P-type's gain (``law.p_type_gain`` or its default) and certificates, under the one rule of
+    :mod:`foilc_hil.design.admission`: a gain not certified as required is rescaled (``Gamma`` scaled, the scaled
+    gain recorded) or refused."""
+    settings = config.synthesis
+    vertices = list(uncertainty_vertices(uncertainty))
+    gain = p_type_gain(
+        config.law.p_type_gain, model.A, model.B, model.measured_output, model.input_delay, vertices=vertices
+    )
+    designs: dict[float, Design] = {}
+
+    def evaluate(scale: float) -> ScaledVerdict:
+        if scale not in designs:
+            designs[scale] = certify_p_type(
+                model, uncertainty, scale * gain, structure, require_monotonic=settings.require_monotonic
+            )
+        certificates = designs[scale].certificates
+        assert certificates is not None
+        return ScaledVerdict(scale, certificates.plants)
+
+    admission = admit(
+        evaluate,
+        law=str(LawKind.P_TYPE),
+        policy=settings.on_divergent_filter,
+        require_monotonic=settings.require_monotonic,
+        growth_horizon=config.trials,
+    )
+    chosen = designs[admission.verdict.scale]
+    if admission.action is CertificateAction.NONE:
+        return chosen
+    assert chosen.certificates is not None
+    designed = designs[1.0].certificates
+    assert designed is not None
+    certificates = replace(
+        chosen.certificates,
+        designed=Bounds(designed.spectral_radius, designed.norm_2),
+        action=admission.action,
+        gain_scale=admission.verdict.scale,
+        rescale_criterion=admission.criterion,
+        growth_bound=admission.growth_bound,
+    )
+    return replace(chosen, gain_scale=admission.verdict.scale, certificates=certificates)
+
+
 def build_design(config: Config, law: str, n_samples: int, *, input_delay: int) -> Design:
     """The design of ``law`` for ``config``'s plant, certified as the law will run.
 
@@ -188,20 +234,25 @@ def _design(
 ) -> Design:
     """The gain of ``kind`` on ``model`` and its certificates (the step after tuning of :func:`build_design`)."""
     settings = config.synthesis
+    monotonic, policy, horizon = settings.require_monotonic, settings.on_divergent_filter, config.trials
     if kind is LawKind.GRADIENT:
-        return certify_gradient(model, uncertainty, structure, require_monotonic=settings.require_monotonic)
+        return certify_gradient(
+            model, uncertainty, structure, require_monotonic=monotonic, policy=policy, growth_horizon=horizon
+        )
     if kind is LawKind.NOILC:
         return certify_noilc(
-            model, uncertainty, config.law.noilc, structure, require_monotonic=settings.require_monotonic
+            model,
+            uncertainty,
+            config.law.noilc,
+            structure,
+            require_monotonic=monotonic,
+            policy=policy,
+            growth_horizon=horizon,
         )
     if kind is LawKind.FOILC and settings.design is DesignMethod.CODESIGN:
         return _codesign(config, model, uncertainty, structure)
     if kind is LawKind.P_TYPE:
-        vertices = list(uncertainty_vertices(uncertainty))
-        gain = p_type_gain(
-            config.law.p_type_gain, model.A, model.B, model.measured_output, model.input_delay, vertices=vertices
-        )
-        return certify_p_type(model, uncertainty, gain, structure, require_monotonic=settings.require_monotonic)
+        return _p_type(config, model, uncertainty, structure)
     return synthesize(
         model,
         uncertainty,

@@ -388,22 +388,29 @@ class PTypeGain:
 @dataclass(frozen=True)
 class NoilcWeights:
     """What a norm-optimal ILC design adds to its certificates: its weights ``Q = q I``, ``R = r I`` (absolute;
-    ``r = r_relative ||G||_2^2 q``), from which the law rebuilds its lifted gain exactly."""
+    ``r = r_relative ||G||_2^2 q``), from which the law rebuilds its lifted gain exactly, and the ``scale`` its
+    update runs at (``u_k = u_(k-1) + scale L e_(k-1)``: below 1 only when the certificate step had to shrink it,
+    :func:`foilc_hil.design.noilc.certify_noilc`; written only then, so earlier documents read back unchanged)."""
 
     q: float
     r: float
     r_relative: float
+    scale: float = 1.0
 
     def to_json(self) -> dict[str, Any]:
-        """``certificates["noilc"]``: ``{"q", "r", "r_relative"}``."""
-        return {"q": self.q, "r": self.r, "r_relative": self.r_relative}
+        """``certificates["noilc"]``: ``{"q", "r", "r_relative"}``, and ``"scale"`` when it is not 1."""
+        document = {"q": self.q, "r": self.r, "r_relative": self.r_relative}
+        if self.scale != 1.0:
+            document["scale"] = self.scale
+        return document
 
     @classmethod
     def from_json(cls, value: Any) -> NoilcWeights:
         """Read :meth:`to_json` output."""
         where = "design.certificates.noilc"
         document = _mapping(value, where)
-        return cls(*(_number(document, key, where) for key in ("q", "r", "r_relative")))
+        q, r, relative = (_number(document, key, where) for key in ("q", "r", "r_relative"))
+        return cls(q, r, relative, _number(document, "scale", where) if "scale" in document else 1.0)
 
 
 @dataclass(frozen=True)

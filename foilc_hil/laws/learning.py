@@ -46,9 +46,10 @@ P-type (Arimoto): ``u_k(t) = u_{k-1}(t) + Gamma e_{k-1}[t + d]``, the 2D law wit
 design (gain, model, certificates) comes from the same pipeline (:mod:`foilc_hil.design.pipeline`).
 
 NOILC (norm-optimal, Amann–Owens): ``u_k = u_{k-1} + L e_{k-1}`` with the lifted gain
-``L = (G^T Q G + R)^-1 G^T Q`` acting on the whole trial (:mod:`foilc_hil.design.noilc`); ``L e[d:]`` updates
-``u[:N-d]`` like every other law's learning term. Gradient ILC (``u_k = u_{k-1} + beta G^T e_{k-1}``,
-:mod:`foilc_hil.design.gradient`) runs the same way with its own lifted gain ``beta G^T``.
+``L = (G^T Q G + R)^-1 G^T Q`` acting on the whole trial (:mod:`foilc_hil.design.noilc`), applied in its
+state-space (Riccati) form between trials; ``L e[d:]`` updates ``u[:N-d]`` like every other law's learning term.
+Gradient ILC (``u_k = u_{k-1} + beta G^T e_{k-1}``, :mod:`foilc_hil.design.gradient`) runs the same way with its
+own update ``beta G^T`` (one adjoint pass).
 
 First trial and restore
 -----------------------
@@ -82,7 +83,7 @@ import numpy as np
 
 from foilc_hil.config import FractionalMemory, LawConfig, LawKind
 from foilc_hil.design.fractional import FractionalPD, History
-from foilc_hil.design.gradient import lifted_gain
+from foilc_hil.design.gradient import lifted_update
 from foilc_hil.design.ptype import p_type_gain
 from foilc_hil.design.qfilter import QFilter
 from foilc_hil.design.record import Design
@@ -564,10 +565,12 @@ class PType(LearningLaw):
 
 
 class Noilc(LearningLaw):
-    """Norm-optimal ILC (Amann–Owens), lifted: ``u_k = u_{k-1} + L e_{k-1}`` (:mod:`foilc_hil.design.noilc`).
+    """Norm-optimal ILC (Amann–Owens): ``u_k = u_{k-1} + L e_{k-1}`` (:mod:`foilc_hil.design.noilc`).
 
-    ``L`` is rebuilt from the design's model and the weights its certificates record (``certificates.noilc``),
-    for ``n_samples``, with the same numpy calls as the design: a logged design replays bit for bit.
+    ``L`` is applied in its state-space form (a backward costate pass, then a forward pass with the Riccati
+    feedback: ``O(N)`` per trial, no lifted matrix), rebuilt from the design's model and the weights (and scale) its
+    certificates record (``certificates.noilc``), for ``n_samples``, with the same compiled recursions as the
+    design: a logged design replays bit for bit.
 
     Parameters
     ----------
@@ -600,20 +603,20 @@ class Noilc(LearningLaw):
             q_filter=q_filter,
             limits=limits,
         )
-        self._gain = lifted_gain(design, self.n_samples) if self.input_delay < n_samples else None
+        self._update = lifted_update(design, self.n_samples) if self.input_delay < n_samples else None
 
     def _learning_signal(self, error: np.ndarray) -> np.ndarray:
         return error.copy()
 
     def _learning_update(self, learned: np.ndarray) -> np.ndarray:
-        assert self._gain is not None  # begin_trial only asks when d < N
-        return np.asarray((self._gain @ learned.ravel()).reshape(learned.shape[0], self.n_inputs))
+        assert self._update is not None  # begin_trial only asks when d < N
+        return self._update.apply(learned)
 
 
 class Gradient(Noilc):
-    """Gradient ILC, lifted: ``u_k = u_{k-1} + beta G^T e_{k-1}`` (:mod:`foilc_hil.design.gradient`); ``beta G^T``
-    is rebuilt from the design's model and the step its certificates record (``certificates.gradient``). Runs like
-    :class:`Noilc`: feedforward only, the lifted gain applied between trials."""
+    """Gradient ILC: ``u_k = u_{k-1} + beta G^T e_{k-1}`` (:mod:`foilc_hil.design.gradient`); ``beta G^T e`` is one
+    backward pass of the adjoint plant, rebuilt from the design's model and the step its certificates record
+    (``certificates.gradient``). Runs like :class:`Noilc`: feedforward only, the update applied between trials."""
 
     kind = LawKind.GRADIENT
 
