@@ -3,9 +3,9 @@
 ``axis_cycles``
     Lockstep ``foilc-hil run`` of the first 1, 2 and 4 axes of configs/scara_4axis.yaml on the embedded emulator
     (one trial loop, one SYNC per cycle for all axes, :mod:`foilc_hil.loop.axes`): cycles/s (the bench's own count
-    over its loop, ``TimingSummary``) times the number of axes, against the peer: the single-axis ``run_bench`` of
-    the first axis alone (the pre-``axes:`` path, one drive on its own bus), interleaved in the same run. Above 1:
-    one loop over several axes moves more axis-cycles per second than one single-axis loop.
+    over its loop, ``TimingSummary``) times the number of axes, against the peer: the first axis alone (its config
+    without ``axes:``; the same rig, :func:`foilc_hil.loop.rig.run_rig`, with one member), interleaved in the same
+    run. Above 1: one loop over several axes moves more axis-cycles per second than one single-axis loop.
 ``bus_load``
     The load a 4-axis run's log shows -- the exact wire bits (:func:`drivers.busload.wire_bits`: stuff bits,
     interframe space) of every frame between two consecutive SYNCs of the loop, averaged over its periods, at
@@ -40,21 +40,20 @@ def _config(n_axes: int) -> Any:
 
 
 def axes_run(n_axes: int, out: Path | None = None) -> float:
-    """Cycles/s of one lockstep run of the first ``n_axes`` axes (``run_axes``); ``out``: also write its log."""
-    from foilc_hil.loop.axes import run_axes
-    from foilc_hil.loop.bench import RunRequest
+    """Cycles/s of one lockstep run of the first ``n_axes`` axes (``run_rig``); ``out``: also write its log."""
+    from foilc_hil.loop.rig import RunRequest, run_rig
 
-    report = run_axes(RunRequest(config=_config(n_axes), out=out, trials=TRIALS, quiet=True))
+    report = run_rig(RunRequest(config=_config(n_axes), out=out, trials=TRIALS, quiet=True))
     return _rate(report.outcome.timing)
 
 
 def single_axis_run() -> float:
-    """Cycles/s of the first axis alone through ``run_bench`` (its single-axis config, no ``axes:``)."""
+    """Cycles/s of the first axis alone (its single-axis config, no ``axes:``)."""
     from foilc_hil.config import axis_configs
-    from foilc_hil.loop.bench import RunRequest, run_bench
+    from foilc_hil.loop.rig import RunRequest, run_rig
 
     first = axis_configs(_config(1))[0]
-    return _rate(run_bench(RunRequest(config=first, out=None, trials=TRIALS, quiet=True)).outcome.timing)
+    return _rate(run_rig(RunRequest(config=first, out=None, trials=TRIALS, quiet=True)).outcome.timing)
 
 
 def _rate(timing: Any) -> float:
@@ -103,7 +102,7 @@ def collect(repeats: int = 3) -> tuple[dict[str, Any], list[Comparison]]:
     peer = Figure(tuple(runs["single"]))
     rows = [Comparison(target=f"lockstep run of {n} axes on one bus (one loop, one SYNC), axis-cycles/s",
                        unit="axis-cycles/s", higher_is_better=True, project=Figure(tuple(runs[f"axes{n}"])),
-                       peer=peer, peer_name="single-axis run_bench of the first axis")
+                       peer=peer, peer_name="single-axis run of the first axis")
             for n in AXES]
     rows.append(Comparison(
         target="bus load of 4 axes at 2.5 ms: measured from the log (wire bits per SYNC period) vs computed",

@@ -10,7 +10,7 @@ Four measurements of the same lockstep exchange (per cycle: RPDO, SYNC, TPDO1, T
     The peer written with canopen's master API: ``BaseNode402`` and its PDO maps against the same virtual drive
     (PMSM axis at 1 ms) on python-can ``virtual`` (see :func:`canopen_basenode402`).
 ``run_embedded``
-    :func:`foilc_hil.loop.bench.run_bench` (what ``foilc-hil run --emulator embedded`` calls) in lockstep: canopen's
+    :func:`foilc_hil.loop.rig.run_rig` (what ``foilc-hil run --emulator embedded`` calls) in lockstep: canopen's
     SDO start-up, the CiA 402 master, the virtual drive and the learning law, on the synchronous in-process
     transport (:mod:`drivers.inprocess`): the PMSM axis of ``configs/realtime_1khz.yaml`` at 1 ms in lockstep
     (1000-sample trials; the row judged against issue 9's goal, since the demo moves to the PMSM at 1 ms), the
@@ -222,10 +222,10 @@ def _design(plant: str, sample_time: float, duration: float) -> Any:
 
 def run_embedded(plant: str, *, transport: str = "inprocess", sample_time: float = 0.001, duration: float = 1.0,
                  trials: int = 3) -> dict[str, Any]:
-    """One lockstep ``run_bench`` on the embedded emulator; ``transport`` ``inprocess`` (the product) or
+    """One lockstep ``run_rig`` on the embedded emulator; ``transport`` ``inprocess`` (the product) or
     ``virtual`` (the drive on a python-can virtual channel, Notifier threads on both ends)."""
     from drivers.config import BusConfig
-    from foilc_hil.loop.bench import RunRequest, run_bench
+    from foilc_hil.loop.rig import RunRequest, run_rig
     from plant_emulator.device import TimingMode
     from plant_emulator.embedded import EmbeddedEmulator
 
@@ -238,11 +238,11 @@ def run_embedded(plant: str, *, transport: str = "inprocess", sample_time: float
             emulator.drive.start(can.Bus(interface="virtual", channel=emulator.channel))
             stack.callback(emulator.drive.stop)
             bus = BusConfig(interface="virtual", channel=emulator.channel)
-        report = run_bench(RunRequest(config=config, out=None, law="foilc", trials=trials, mode=TimingMode.LOCKSTEP,
+        report = run_rig(RunRequest(config=config, out=None, law="foilc", trials=trials, mode=TimingMode.LOCKSTEP,
                                       design=design, quiet=True, bus=bus))
     timing = report.outcome.timing
     if timing is None:
-        raise RuntimeError("run_bench returned no timing summary")
+        raise RuntimeError("run_rig returned no timing summary")
     p50 = timing.cycle_time_p50_us
     return {"plant": plant, "transport": transport, "cycles": timing.cycles,
             "cycles_per_second": timing.cycles_per_second, "cycle_time_p50_us": p50,

@@ -7,7 +7,7 @@ Three measurements, each a short run of the real code:
     :class:`foilc_hil.loop.bench.TrialLoop` against an in-memory drive (a first-order plant answering each SYNC at
     once, no CAN): the loop's own cost per cycle (law, clamp, safety, timing record).
 ``can_lockstep_no_log`` / ``can_lockstep_logged``
-    :func:`foilc_hil.loop.bench.run_bench` over the embedded emulator (the in-process transport of
+    :func:`foilc_hil.loop.rig.run_rig` over the embedded emulator (the in-process transport of
     :mod:`drivers.inprocess`, the CiA 402 master and the virtual drive in one thread), without a log and with the
     queued MCAP log. ``cycles_per_second`` is
     what the demo's sample-time choice rests on; ``compute_p50_us`` is the hot-path cost (feedback in -> command
@@ -125,14 +125,14 @@ def loop_only(samples: int = 2000, trials: int = 5) -> dict[str, Any]:
 def can_lockstep(logged: bool, *, sample_time: float = 0.005, duration: float = 2.0, trials: int = 5) -> dict[str, Any]:
     """Lockstep run over the embedded emulator (in-process transport), with or without the MCAP log."""
     from drivers.config import BusConfig
-    from foilc_hil.loop.bench import RunRequest, run_bench
+    from foilc_hil.loop.rig import RunRequest, run_rig
     from plant_emulator.device import TimingMode
 
     config = _first_order_config(sample_time, duration)
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "bench.mcap" if logged else None
         started = time.perf_counter()
-        report = run_bench(
+        report = run_rig(
             RunRequest(
                 config=config,
                 out=out,

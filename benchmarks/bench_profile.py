@@ -1,6 +1,6 @@
 """Where each microsecond of a lockstep cycle goes, before and after the lean cyclic path (issue 9, target 2).
 
-One lockstep ``run_bench`` on the embedded emulator -- the PMSM axis at 1 ms (``configs/realtime_1khz.yaml`` in
+One lockstep ``run_rig`` on the embedded emulator -- the PMSM axis at 1 ms (``configs/realtime_1khz.yaml`` in
 lockstep, 1 s trials), the row judged against the goal in :mod:`benchmarks.bench_lockstep` -- is timed stage by stage:
 every function of :data:`STAGES` is wrapped with a timer that books its *exclusive* time (its own, minus that of the
 wrapped functions it calls) to its stage, on the control thread; ``TrialLoop.run`` is the root, so what no other
@@ -138,7 +138,7 @@ def _run(trials: int = 3) -> tuple[int, float, float]:
     time of the control thread: what a loaded machine leaves least distorted)."""
     from drivers.config import BusConfig
     from foilc_hil.config import load_config
-    from foilc_hil.loop import bench
+    from foilc_hil.loop import bench, rig
     from foilc_hil.references import trial_samples
     from plant_emulator.device import TimingMode
 
@@ -166,14 +166,14 @@ def _run(trials: int = 3) -> tuple[int, float, float]:
 
     bench.TrialLoop.run = timed_run  # type: ignore[method-assign,assignment]
     try:
-        report = bench.run_bench(bench.RunRequest(
+        report = rig.run_rig(rig.RunRequest(
             config=config, out=None, law="foilc", trials=trials, mode=TimingMode.LOCKSTEP, design=design, quiet=True,
             bus=BusConfig(interface="embedded", channel="profile")))
     finally:
         bench.TrialLoop.run = original  # type: ignore[method-assign]
     timing = report.outcome.timing
     if timing is None:
-        raise RuntimeError("run_bench returned no timing summary")
+        raise RuntimeError("run_rig returned no timing summary")
     wall, cpu = spent[0]
     return timing.cycles, wall, cpu
 

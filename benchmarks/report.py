@@ -104,7 +104,7 @@ def _lockstep_profile(results: dict[str, Any]) -> list[str]:
     return [
         "## The lockstep profile: where each microsecond of a cycle goes",
         "",
-        "One lockstep `run_bench` of the PMSM axis at 1 ms on the embedded emulator (3 trials of 1000 samples), "
+        "One lockstep `run_rig` of the PMSM axis at 1 ms on the embedded emulator (3 trials of 1000 samples), "
         f"*before* on main at `{profile['baseline_commit'][:10]}` (before the lean cyclic path), *after* on this "
         "tree, each in its own process, one after the other. Every stage is the exclusive time of the functions "
         "`benchmarks/bench_profile.py` names for it, per cycle, on the control thread; the timers themselves cost a "

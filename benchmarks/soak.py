@@ -66,7 +66,7 @@ class Sampler:
 
 def soak(config_path: str, trials: int, every: float) -> dict[str, object]:
     from foilc_hil.config import load_config
-    from foilc_hil.loop.bench import RunRequest, run_bench
+    from foilc_hil.loop.rig import RunRequest, run_rig
 
     config = load_config(config_path)
     sampler = Sampler(every)
@@ -75,7 +75,7 @@ def soak(config_path: str, trials: int, every: float) -> dict[str, object]:
         sampler.start()
         began = time.monotonic()
         try:
-            report = run_bench(RunRequest(config=config, out=log, trials=trials, quiet=True))
+            report = run_rig(RunRequest(config=config, out=log, trials=trials, quiet=True))
         finally:
             sampler.stop()
         seconds = time.monotonic() - began

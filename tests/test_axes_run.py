@@ -150,11 +150,10 @@ def test_a_fault_on_a_node_that_is_not_an_axis_is_refused(config: Path, tmp_path
 def test_a_precomputed_design_is_refused_for_axes(capsys: pytest.CaptureFixture[str]) -> None:
     from foilc_hil.config import load_config
     from foilc_hil.errors import InputError
-    from foilc_hil.loop.axes import run_axes
-    from foilc_hil.loop.bench import RunRequest
+    from foilc_hil.loop.rig import RunRequest, run_rig
 
     with pytest.raises(InputError, match=r"^design: "):
-        run_axes(RunRequest(config=load_config(SCARA), out=None, trials=1, design=object()))
+        run_rig(RunRequest(config=load_config(SCARA), out=None, trials=1, design=object()))
 
 
 def _runs(indices: list[int]) -> list[int]:

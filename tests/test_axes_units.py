@@ -15,7 +15,8 @@ from drivers.drive import Feedback
 from foilc_hil.errors import DriveError, FeedbackTimeoutError
 from foilc_hil.io.mcap_log import read_log
 from foilc_hil.logtools.axes import log_axes
-from foilc_hil.loop.axes import AxisGroup, AxisLimiter, _commission_axes
+from foilc_hil.loop.axes import AxisGroup, AxisLimiter
+from foilc_hil.loop.rig import _commission
 from foilc_hil.loop.safety import CommandLimiter
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -132,8 +133,8 @@ def test_a_realtime_axes_run_enters_the_host_setup_once_every_receive_path_exist
     before any is configured (the drives supervise SYNC from then on: nothing slow may follow)."""
     calls: list[str] = []
     drives = [_CommissionedDrive(node, calls) for node in (1, 2)]
-    axis = SimpleNamespace(drive=SimpleNamespace(operation_mode="csv"), sample_time=0.0025)
-    plan = cast(Any, SimpleNamespace(configs=[axis, axis]))
-    _commission_axes(AxisGroup(drives), plan, None, cast(Any, _Session(calls)))
+    axis = SimpleNamespace(config=SimpleNamespace(drive=SimpleNamespace(operation_mode="csv")))
+    plan = cast(Any, SimpleNamespace(axes=[axis, axis], config=SimpleNamespace(sample_time=0.0025)))
+    _commission(drives, plan, None, cast(Any, _Session(calls)))
     assert calls == ["connect 1", "connect 2", "realtime host setup", "configure 1", "configure 2", "enable 1",
                      "enable 2"]

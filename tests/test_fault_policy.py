@@ -25,7 +25,7 @@ from drivers.drive import DISABLED_STATES
 from foilc_hil.cli import main
 from foilc_hil.config import load_config
 from foilc_hil.errors import DriveNmtStateError
-from foilc_hil.loop.bench import RunRequest, run_bench
+from foilc_hil.loop.rig import RunRequest, run_rig
 from tests.test_bench_e2e import NODE, bench_config
 from tests.test_bench_faults import assert_completed_trials_intact, read_log, when_mid_trial
 
@@ -210,7 +210,7 @@ def test_nmt_stop_mid_trial_raises_the_typed_error_in_process(
 
     watcher = when_mid_trial(emulator, 0, nmt_stop)
     with pytest.raises(DriveNmtStateError, match=rf"node {NODE} left NMT OPERATIONAL: its heartbeat reports STOPPED"):
-        run_bench(RunRequest(config=config, out=out, trials=3))
+        run_rig(RunRequest(config=config, out=out, trials=3))
     assert watcher.fired
     assert emulator.drive.state is not State402.OPERATION_ENABLED
     assert emulator.drive.state in DISABLED_STATES

@@ -81,12 +81,13 @@ def running(tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str], Path]]:
     """A long run on the embedded emulator, two trials on disk; killed with its writer if a test fails."""
     out = tmp_path / "run.mcap"
     process = _start(_command(bench_config(tmp_path), out, trials=100_000))
-    writer = _writer_of(process)
+    writers: list[int] = []
     try:
+        writers.append(_writer_of(process))
         _when_trials_on_disk(process, out, 2)
         yield process, out
     finally:
-        for pid in (process.pid, writer):
+        for pid in (process.pid, *writers):
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGKILL)
         process.communicate()

@@ -22,7 +22,8 @@ from foilc_hil.design.models import DiscreteModel, augment_input_delay
 from foilc_hil.design.record import Design
 from foilc_hil.errors import ConfigError
 from foilc_hil.io.mcap_log import McapLogWriter, read_log
-from foilc_hil.loop.bench import McapSink, RunRequest, TrialLoop, loop_settings, run_bench
+from foilc_hil.loop.bench import McapSink, TrialLoop, loop_settings
+from foilc_hil.loop.rig import RunRequest, run_rig
 from foilc_hil.loop.simulated_drive import SimulatedDrive
 from foilc_hil.loop.simulation import build_law, simulate
 from foilc_hil.references import reference_profile
@@ -73,7 +74,7 @@ def _bench(config: Config, design: Design, channel: str, out: Path | None = None
     request = RunRequest(
         config=config, out=out, law="foilc", design=design, bus=BusConfig(interface="embedded", channel=channel)
     )
-    return run_bench(request)
+    return run_rig(request)
 
 
 # --- the simulated drive ----------------------------------------------------------------------------------------

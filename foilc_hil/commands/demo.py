@@ -188,13 +188,13 @@ def _run_law(config: Any, law: str, trials: int | None, out_dir: Path, design: d
 def _run_and_report(config: Any, law: str, trials: int | None, out_dir: Path, design: Any,
                     no_report: bool) -> LawRun:
     from drivers.config import BusConfig
-    from foilc_hil.loop.bench import RunRequest, run_bench
+    from foilc_hil.loop.rig import RunRequest, run_rig
     from foilc_hil.progress import QueueProgress
     from plant_emulator.device import TimingMode
 
     log_path = out_dir / f"demo-{law}.mcap"
     started = time.perf_counter()
-    report = run_bench(
+    report = run_rig(
         RunRequest(
             config=config,
             out=log_path,

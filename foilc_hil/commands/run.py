@@ -103,7 +103,7 @@ def check_bus_load(config: Any, bus: Any) -> Any:
 def execute(args: argparse.Namespace) -> CommandResult:
     from foilc_hil.config import load_config
     from foilc_hil.errors import InputError
-    from foilc_hil.loop.bench import RunRequest, run_bench
+    from foilc_hil.loop.rig import RunRequest, run_rig
     from plant_emulator.device import TimingMode
 
     if args.trials is not None and args.trials < 1:
@@ -130,12 +130,7 @@ def execute(args: argparse.Namespace) -> CommandResult:
         bus=bus,
         quiet=bool(args.quiet or args.json),
     )
-    if config.axes:
-        from foilc_hil.loop.axes import run_axes
-
-        report: Any = run_axes(request)
-    else:
-        report = run_bench(request)
+    report = run_rig(request)
     document = {**report.to_json(), "bus_load": load.to_json()}
     text = f"{render_text(document)}\n{load.describe()}"
     if report.outcome.diverged:
