@@ -7,7 +7,7 @@ from typing import Literal
 from pydantic import Field, field_validator
 
 from drivers.cia402 import OperationMode
-from foilc_hil.schema import Section
+from drivers.schema import Section
 
 _OPERATION_MODES = {
     "csv": OperationMode.CYCLIC_SYNC_VELOCITY,

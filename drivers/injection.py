@@ -19,7 +19,7 @@ from enum import StrEnum
 from pydantic import Field, model_validator
 
 from drivers.errors import ConfigError, InputError
-from foilc_hil.schema import Section, validate
+from drivers.schema import Section, validate
 
 __all__ = [
     "DEFAULT_FRAMES",

@@ -47,7 +47,7 @@ from typing import Any
 
 from pydantic import Field
 
-from foilc_hil.schema import Section
+from drivers.schema import Section
 
 __all__ = [
     "CPU_LATENCY_DEVICE",

@@ -35,7 +35,8 @@ from pydantic import ConfigDict, Field
 from drivers.config import DriveConfig
 from drivers.errors import ConfigError, ExitCode, InputError, ProductError
 from drivers.faults import FaultyBus, Injection, Role, parse_injection, split_by_axis
-from foilc_hil.schema import Section, apply_overrides, load_document, validate
+from drivers.schema import Section, validate
+from drivers.yaml_document import apply_overrides, load_document
 from plant_emulator.config import PlantConfig
 from plant_emulator.settings import EmulatorConfig
 

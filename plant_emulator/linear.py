@@ -11,8 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from drivers.errors import ConfigError
-from foilc_hil.schema import as_array
 from plant_emulator.config import PlantConfig
+from plant_emulator.matrix import as_array
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@ from typing import Literal
 from pydantic import Field
 
 from drivers.realtime import RealtimeConfig
-from foilc_hil.schema import Section
+from drivers.schema import Section
 
 
 class EmulatorRealtimeConfig(RealtimeConfig):

@@ -16,15 +16,14 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("foilc_hil", "drivers", "plant_emulator")
 
-# Rank of each part of the data path: config -> design -> law -> loop -> log -> tools -> commands.
+# Rank of each part of the data path: drive side -> config -> design -> law -> loop -> log -> tools -> commands.
 # A module may import modules of its own rank or lower. The longest matching prefix decides.
 RANKS: dict[str, int] = {
-    "foilc_hil": 0,  # the package itself (__init__ imports nothing)
-    "foilc_hil.errors": 0,
-    "drivers.errors": 0,  # the root of the one error tree, below every package that raises (foilc_hil.errors re-exports)
-    "foilc_hil.schema": 1,
-    "drivers": 2,
-    "plant_emulator": 3,
+    "drivers": 0,  # the CAN side, with the root of the error tree and the config sections' base: stands alone
+    "plant_emulator": 1,  # physics and the virtual drive, on drivers only: stands alone too
+    "foilc_hil": 2,  # the package itself (__init__ imports nothing)
+    "foilc_hil.errors": 2,
+    "foilc_hil.schema": 2,
     "foilc_hil.config": 4,
     "foilc_hil.metrics": 4,
     "foilc_hil.references": 5,
@@ -37,6 +36,21 @@ RANKS: dict[str, int] = {
     "foilc_hil.commission": 10,
     "foilc_hil.commands": 11,
     "foilc_hil.cli": 12,
+}
+
+#: the packages a script may import without the control stack: nothing of theirs imports ``foilc_hil``
+STANDALONE = ("drivers", "plant_emulator")
+
+#: modules of a stand-alone package that still import ``foilc_hil``, in the hands of another line of work when this
+#: rule came in (issue 27); each needs a one-line change to the same objects one rank down (below). Their rows are
+#: strict xfails: they turn red the moment the import is fixed, and then the entry goes.
+_PHYSICS = "plant_emulator/physics is owned by the physics work: `from drivers.errors import ConfigError[, InputError]`"
+AWAITING_OWNER: dict[str, str] = {
+    "plant_emulator.physics.base": _PHYSICS,
+    "plant_emulator.physics.first_order": _PHYSICS,
+    "plant_emulator.physics.pmsm": _PHYSICS,
+    "plant_emulator.config": "uncommitted edits of another line of work in the file: `from drivers.schema import "
+                             "Section` and `from plant_emulator.matrix import Matrix`",
 }
 
 
@@ -126,13 +140,38 @@ def test_every_module_has_a_rank() -> None:
     assert not unranked, f"give these a rank in RANKS (and docs/architecture.md): {unranked}"
 
 
-@pytest.mark.parametrize("module", sorted(MODULES))
+def _rows(modules: Iterable[str]) -> list[object]:
+    """``modules`` as parameters, those of :data:`AWAITING_OWNER` as strict xfails."""
+    return [pytest.param(module, marks=pytest.mark.xfail(strict=True, reason=AWAITING_OWNER[module]))
+            if module in AWAITING_OWNER else module for module in sorted(modules)]
+
+
+@pytest.mark.parametrize("module", _rows(MODULES))
 def test_imports_point_down(module: str) -> None:
     own = rank(module)
     assert own is not None
     graph = project_graph()
     upward = sorted(f"{target} (rank {rank(target)})" for target in graph[module] if (rank(target) or 0) > own)
     assert not upward, f"{module} (rank {own}) imports up: {upward}"
+
+
+@pytest.mark.parametrize("module", _rows(m for m in MODULES if m.split(".")[0] in STANDALONE))
+def test_stand_alone_packages_import_nothing_of_foilc_hil(module: str) -> None:
+    """``drivers`` and ``plant_emulator`` stand alone: no import of theirs, function-local ones included, reaches
+    ``foilc_hil`` (the ranks alone would allow a same-rank one)."""
+    reached = sorted(target for target in project_graph()[module] if target.split(".")[0] == "foilc_hil")
+    assert not reached, f"{module} imports {reached}"
+
+
+def test_awaiting_owner_names_real_modules() -> None:
+    assert set(AWAITING_OWNER) <= set(MODULES)
+
+
+def test_a_planted_import_of_foilc_hil_is_seen() -> None:
+    """The stand-alone rule sees a function-local import of foilc_hil inside drivers."""
+    source = "def late():\n    from foilc_hil.errors import ConfigError\n"
+    found = imports_of("drivers.bus", source, MODULES)
+    assert any(target.split(".")[0] == "foilc_hil" for target in found)
 
 
 def test_the_import_graph_has_no_cycle() -> None:
@@ -158,5 +197,5 @@ def test_a_planted_cycle_is_found() -> None:
 
 def test_a_planted_upward_import_is_flagged() -> None:
     assert (rank("foilc_hil.loop.bench") or 0) > (rank("foilc_hil.design.lmi") or 0)
-    assert (rank("foilc_hil.errors") or 0) < (rank("drivers.cia402") or 0)
+    assert (rank("drivers.cia402") or 0) < (rank("plant_emulator.device") or 0) < (rank("foilc_hil.errors") or 0)
     assert rank("numpy") is None
