@@ -55,7 +55,6 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from enum import StrEnum
 
 import can
 import canopen
@@ -67,6 +66,7 @@ from drivers.cia402 import Obj, State402
 from drivers.errors import InputError
 from drivers.inprocess import InProcessBus, LockstepClock, connect_network, subscribe_cyclic, timebase_of
 from drivers.od import DEFAULT_EDS
+from drivers.timing import TimingMode  # its home is below the loop and the emulator; the old name stays
 from plant_emulator.application import APPLICATION_OBJECTS, Cia402Application, FaultKind
 from plant_emulator.axis import Axis
 from plant_emulator.motion import AxisPhysics, default_units
@@ -91,13 +91,6 @@ __all__ = [
 NOTIFIER_CYCLE = 0.1  # s the notifier blocks in recv(): bounds how long stop() waits (canopen default 1 s)
 THREAD_JOIN_TIMEOUT = 2.0  # s stop() waits for each of the drive's threads
 _COMMUNICATION_AREA = range(0x1000, 0x2000)
-
-
-class TimingMode(StrEnum):
-    """How the physics clock is driven."""
-
-    LOCKSTEP = "lockstep"  # one cycle period per SYNC: deterministic, as fast as the bus allows
-    REALTIME = "realtime"  # wall clock in its own thread: late/missing SYNC look as on hardware
 
 
 @dataclass

@@ -18,8 +18,9 @@ from drivers.bus import open_bus
 from drivers.config import BusConfig, DriveConfig
 from drivers.errors import InputError
 from drivers.inprocess import INTERFACE as INPROCESS_INTERFACE
+from drivers.timing import TimingMode
 from plant_emulator.config import PlantConfig
-from plant_emulator.device import TimingMode, VirtualDrive
+from plant_emulator.device import VirtualDrive
 from plant_emulator.physics import build_plant
 from plant_emulator.settings import EmulatorConfig
 
