@@ -14,11 +14,23 @@ from foilc_hil.schema import Matrix, Section
 
 
 class VariationConfig(Section):
-    """Time-varying parameter uncertainty ``Delta(t)`` added to a nominal parameter."""
+    """Time-varying parameter uncertainty ``Delta(t)`` added to a nominal parameter.
+
+    ``sine`` is ``amplitude * sin(frequency * t + phase)``, the same in every trial; ``random_walk`` is a seeded
+    Ornstein-Uhlenbeck process (``frequency`` its mean-reversion rate) and takes no phase.
+    """
 
     kind: Literal["none", "sine", "random_walk"] = "none"
     amplitude: float = Field(default=0.0, ge=0)  # absolute bound on |Delta(t)|
     frequency: float = Field(default=1.0, gt=0)  # rad/s (sine) or correlation rate (random walk)
+    phase: float = 0.0  # rad, the sine's phase at t = 0 (0: Delta(t) = amplitude sin(frequency t))
+
+    @model_validator(mode="after")
+    def _phase_needs_a_sine(self) -> VariationConfig:
+        # a phase on a shape that has none would be silently ignored; say so instead
+        if self.phase != 0 and self.kind != "sine":
+            raise ValueError(f"phase applies to kind 'sine', not {self.kind!r}")
+        return self
 
 
 class ParameterVariation(Section):
@@ -32,7 +44,7 @@ class DisturbanceConfig(Section):
     """External disturbance ``d(t)`` entering the state equation, from ``start_trial`` on.
 
     ``constant`` is ``amplitude`` over the whole trial; ``step`` jumps from 0 to ``amplitude`` at ``start_time``;
-    ``sine`` is ``amplitude * sin(frequency * (t - start_time))`` and ``square`` its sign, both from
+    ``sine`` is ``amplitude * sin(frequency * (t - start_time) + phase)`` and ``square`` its sign, both from
     ``start_time`` on. For ``first_order`` plants ``d`` is added to every state equation; for ``pmsm`` it is a
     load torque in N m added to the motor torque.
     """
@@ -42,6 +54,13 @@ class DisturbanceConfig(Section):
     frequency: float = Field(default=1.0, gt=0)  # rad/s
     start_time: float = Field(default=0.0, ge=0)  # within a trial, seconds
     start_trial: int = Field(default=1, ge=1)
+    phase: float = 0.0  # rad, of the sine (and the square wave) at start_time
+
+    @model_validator(mode="after")
+    def _phase_needs_a_wave(self) -> DisturbanceConfig:
+        if self.phase != 0 and self.kind not in ("sine", "square"):
+            raise ValueError(f"phase applies to kinds 'sine' and 'square', not {self.kind!r}")
+        return self
 
 
 class UncertaintyConfig(Section):
@@ -83,10 +102,11 @@ class PmsmSpread(Section):
 
 class PmsmDrift(Section):
     """Slow sinusoidal drift of the inertia within a trial:
-    ``J(t) = J * (1 + amplitude * sin(frequency * t + phase_per_trial * (trial - 1)))``."""
+    ``J(t) = J * (1 + amplitude * sin(frequency * t + phase + phase_per_trial * (trial - 1)))``."""
 
     amplitude: float = Field(default=0.0, ge=0, lt=1)  # relative
     frequency: float = Field(default=0.5, gt=0)  # rad/s
+    phase: float = 0.0  # rad, the drift's phase at t = 0 of trial 1
     phase_per_trial: float = 0.0  # rad, so the drift differs from trial to trial
 
 
@@ -164,4 +184,6 @@ class PlantConfig(Section):
     saturation: SaturationConfig = SaturationConfig()
     output_noise: float = Field(default=0.0, ge=0)  # std of additive measurement noise
     seed: int = 0
+    # why a second seed: a new plant.seed also redraws a pmsm's parameters (pmsm.spread); this one moves the noise alone
+    noise_seed: int | None = None  # seed of the sensor noise (None: the physics seed, plant.seed or the node's)
     pmsm: PmsmConfig = PmsmConfig()  # used when ``model: pmsm``

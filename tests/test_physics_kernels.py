@@ -47,7 +47,7 @@ def test_first_order_step_response_reaches_the_analytic_steady_state() -> None:
     ],
 )
 def test_disturbance_kernel_shapes(code: DisturbanceCode, t: float, expected: float) -> None:
-    assert disturbance_value(int(code), 2.0, 4.0, 1.0, t) == pytest.approx(expected, abs=1e-12)
+    assert disturbance_value(int(code), 2.0, 4.0, 0.0, 1.0, t) == pytest.approx(expected, abs=1e-12)
 
 
 def test_the_square_disturbance_is_the_sign_of_its_sine_at_and_near_every_switch() -> None:
@@ -63,7 +63,7 @@ def test_the_square_disturbance_is_the_sign_of_its_sine_at_and_near_every_switch
     times += [start + 1e9, start + 1e300, start - 0.5]  # beyond 1e6 periods, sin's own reduction; before start
     for t in times:
         expected = 0.0 if t < start else amplitude if math.sin(frequency * (t - start)) >= 0 else -amplitude
-        assert disturbance_value(int(DisturbanceCode.SQUARE), amplitude, frequency, start, t) == expected, t
+        assert disturbance_value(int(DisturbanceCode.SQUARE), amplitude, frequency, 0.0, start, t) == expected, t
 
 
 def test_pmsm_with_nonlinear_friction_and_cogging_matches_solve_ivp() -> None:
@@ -176,15 +176,16 @@ def test_the_drift_phasor_follows_the_phase_of_each_internal_step() -> None:
     from plant_emulator.physics.kernels import PMSM_PARAM_SIZE, PmsmParam, _derive, _drift_phasor, _drift_turn, _motor
 
     params = np.ones(PMSM_PARAM_SIZE)
-    frequency, per_trial, h, t0, trial = 2.0, 0.7, 5e-5, 4.321, 3
+    frequency, per_trial, offset, h, t0, trial = 2.0, 0.7, 1.9, 5e-5, 4.321, 3
     params[PmsmParam.DRIFT_AMPLITUDE] = 0.05
     params[PmsmParam.DRIFT_FREQUENCY] = frequency
     params[PmsmParam.DRIFT_PHASE_PER_TRIAL] = per_trial
+    params[PmsmParam.DRIFT_PHASE] = offset
     _derive(params, h)
     motor = _motor(params)
     phasor = _drift_phasor(motor, t0, h, trial)
     for k in range(40):  # twice a 1 ms caller step's 20 internal steps
-        phase = frequency * (t0 + k * h + 0.5 * h) + per_trial * (trial - 1)
+        phase = frequency * (t0 + k * h + 0.5 * h) + offset + per_trial * (trial - 1)
         assert phasor[0] == pytest.approx(math.sin(phase), abs=1e-14)
         assert phasor[1] == pytest.approx(math.cos(phase), abs=1e-14)
         phasor = _drift_turn(motor, phasor)

@@ -45,7 +45,11 @@ class Disturbance:
     def value(self, t: float) -> float:
         """``d(t)``, ``t`` in seconds since the start of the trial."""
         config = self._config
-        return float(disturbance_value(int(self._code), config.amplitude, config.frequency, config.start_time, t))
+        return float(
+            disturbance_value(
+                int(self._code), config.amplitude, config.frequency, config.phase, config.start_time, t
+            )
+        )
 
     def over_step(self, t0: float, dt: float) -> float:
         """The value held over ``[t0, t0 + dt]`` (sampled at the midpoint, like ``Delta``); 0.0 unarmed, as the
@@ -59,5 +63,7 @@ class Disturbance:
         out = np.zeros(count)
         if self.active:
             config = self._config
-            disturbance_values(int(self._code), config.amplitude, config.frequency, config.start_time, t0, dt, out)
+            disturbance_values(
+                int(self._code), config.amplitude, config.frequency, config.phase, config.start_time, t0, dt, out
+            )
         return out

@@ -29,7 +29,7 @@ from plant_emulator.linear import continuous_model
 from plant_emulator.physics.base import check_input, check_scalar_input, check_step, check_trial
 from plant_emulator.physics.disturbance import Disturbance
 from plant_emulator.physics.kernels import scalar_plant_step
-from plant_emulator.physics.noise import SensorNoise
+from plant_emulator.physics.noise import plant_noise
 from plant_emulator.physics.trial import PlantKind, ScalarInput, ScalarParam, ScalarState, TrialProgram
 from plant_emulator.physics.variation import VariationSignal
 
@@ -47,7 +47,7 @@ class FirstOrderPlant:
     plant
         The ``plant:`` section (``model: first_order``).
     seed
-        Seed of the random walk variation and the output noise.
+        Seed of the random walk variation and of the output noise (unless ``plant.noise_seed`` is set).
     """
 
     def __init__(self, plant: PlantConfig, *, seed: int) -> None:
@@ -78,7 +78,7 @@ class FirstOrderPlant:
         self._delta_a = VariationSignal(plant.variation.a, seed, stream=1)
         self._delta_b = VariationSignal(plant.variation.b, seed, stream=2)
         self._disturbance = Disturbance(plant.disturbance)
-        self.noise = SensorNoise(plant.output_noise, seed, _NOISE_STREAM, self.n_outputs)
+        self.noise = plant_noise(plant, seed, _NOISE_STREAM, self.n_outputs)
         """The sensor noise (``plant.output_noise``): its :meth:`~SensorNoise.trial_vector` is a trial's draws."""
         self._u_min = -np.inf if plant.saturation.u_min is None else plant.saturation.u_min
         self._u_max = np.inf if plant.saturation.u_max is None else plant.saturation.u_max

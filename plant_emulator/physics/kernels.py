@@ -128,19 +128,21 @@ class PmsmParam(enum.IntEnum):
     DISTURBANCE_FREQUENCY = 32
     DISTURBANCE_START = 33
     HOLDING_TORQUE = 34  # the holding brake's torque while it is closed, N m; 0.0 while it is open (or absent)
+    DRIFT_PHASE = 35  # rad, the inertia drift's phase at t = 0 of trial 1 (pmsm.drift.phase)
+    DISTURBANCE_PHASE = 36  # rad (plant.disturbance.phase)
     # Derived from the slots above and the internal step h by pmsm_advance itself (_derive), kept for the next call
     # with the same h: a function of h and of slots that stay fixed once the plant is built (not of the per-trial
     # disturbance code or the brake's torque)
-    DERIVED_STEP = 35  # the h the slots below hold for; any other value (0.0 in a new vector): not derived yet
-    DECAY_D = 36  # exp(-R h / Ld)
-    DECAY_Q = 37  # exp(-R h / Lq)
-    LOOP_SMOOTHING = 38  # 1 - exp(-h / velocity_loop_filter); 1.0 without the filter
-    COUNT_RATE = 39  # count_angle / h
-    DRIFT_COSINE = 40  # cos(drift_frequency h): the drift's phase turns by drift_frequency h per internal step
-    DRIFT_SINE = 41  # sin(drift_frequency h)
-    TORQUE_CONSTANT_INVERSE = 42  # 1 / torque_constant
-    COULOMB_SCALE_INVERSE = 43  # 1 / coulomb_scale
-    COUNT_ANGLE_INVERSE = 44  # 1 / count_angle
+    DERIVED_STEP = 37  # the h the slots below hold for; any other value (0.0 in a new vector): not derived yet
+    DECAY_D = 38  # exp(-R h / Ld)
+    DECAY_Q = 39  # exp(-R h / Lq)
+    LOOP_SMOOTHING = 40  # 1 - exp(-h / velocity_loop_filter); 1.0 without the filter
+    COUNT_RATE = 41  # count_angle / h
+    DRIFT_COSINE = 42  # cos(drift_frequency h): the drift's phase turns by drift_frequency h per internal step
+    DRIFT_SINE = 43  # sin(drift_frequency h)
+    TORQUE_CONSTANT_INVERSE = 44  # 1 / torque_constant
+    COULOMB_SCALE_INVERSE = 45  # 1 / coulomb_scale
+    COUNT_ANGLE_INVERSE = 46  # 1 / count_angle
 
 
 PMSM_STATE_SIZE = len(PmsmState)
@@ -152,8 +154,11 @@ _D = DisturbanceCode
 
 
 @njit(cache=True)
-def disturbance_value(code: int, amplitude: float, frequency: float, start_time: float, t: float) -> float:
-    """``d(t)`` of :class:`~plant_emulator.config.DisturbanceConfig` (``code`` is its kind, ``NONE`` if not armed)."""
+def disturbance_value(
+    code: int, amplitude: float, frequency: float, phase: float, start_time: float, t: float
+) -> float:
+    """``d(t)`` of :class:`~plant_emulator.config.DisturbanceConfig` (``code`` is its kind, ``NONE`` if not armed;
+    ``phase`` in rad moves the sine and the square wave)."""
     if code == _D.NONE:
         return 0.0
     if code == _D.CONSTANT:
@@ -163,7 +168,7 @@ def disturbance_value(code: int, amplitude: float, frequency: float, start_time:
         return 0.0
     if code == _D.STEP:
         return amplitude
-    x = frequency * elapsed
+    x = frequency * elapsed + phase  # + 0.0 is exact: phase 0 gives the same doubles as before the phase existed
     if code == _D.SINE:
         return amplitude * math.sin(x)
     # The square wave is the sign of sin(x). Away from its zeros (beyond 1e-6 of a period) the half period that x
@@ -180,14 +185,15 @@ def disturbance_value(code: int, amplitude: float, frequency: float, start_time:
 
 @njit(cache=True)
 def disturbance_values(
-    code: int, amplitude: float, frequency: float, start_time: float, t0: float, dt: float, out: np.ndarray
+    code: int, amplitude: float, frequency: float, phase: float, start_time: float, t0: float, dt: float,
+    out: np.ndarray,
 ) -> None:
     """``d`` held over each of ``len(out)`` consecutive steps of ``dt`` from ``t0``, sampled at the step's midpoint
     (:meth:`~plant_emulator.physics.disturbance.Disturbance.over_step`); the time accumulates step by step as the
     plant's clock does."""
     t = t0
     for k in range(out.shape[0]):
-        out[k] = disturbance_value(code, amplitude, frequency, start_time, t + 0.5 * dt)
+        out[k] = disturbance_value(code, amplitude, frequency, phase, start_time, t + 0.5 * dt)
         t = t + dt
 
 
@@ -196,6 +202,7 @@ def variation_values(
     code: int,
     amplitude: float,
     frequency: float,
+    phase: float,
     t0: float,
     dt: float,
     normals: np.ndarray,
@@ -205,7 +212,8 @@ def variation_values(
     """``Delta`` held over each of ``len(out)`` consecutive steps of ``dt`` from ``t0``; returns the random walk's
     value after them.
 
-    A sine is sampled at each step's midpoint; a random walk is an Ornstein-Uhlenbeck process (rate ``frequency``,
+    A sine, ``amplitude sin(frequency t + phase)``, is sampled at each step's midpoint; a random walk is an
+    Ornstein-Uhlenbeck process (rate ``frequency``,
     stationary standard deviation ``amplitude / 2``) clipped to ``[-amplitude, amplitude]``, advanced once per step
     by ``normals[k]`` (a standard normal draw per step; unused for the other kinds).
     """
@@ -214,7 +222,7 @@ def variation_values(
     t = t0
     for k in range(out.shape[0]):
         if code == VariationCode.SINE:
-            out[k] = amplitude * math.sin(frequency * (t + 0.5 * dt))
+            out[k] = amplitude * math.sin(frequency * (t + 0.5 * dt) + phase)
         elif code == VariationCode.RANDOM_WALK:
             walk = min(max(decay * walk + sigma * normals[k], -amplitude), amplitude)
             out[k] = walk
@@ -292,6 +300,7 @@ class _Motor(NamedTuple):
     drift_amplitude: float
     drift_frequency: float
     drift_phase_per_trial: float
+    drift_phase: float
     count_angle: float
     velocity_loop_filter: float
     speed_limit: float
@@ -299,6 +308,7 @@ class _Motor(NamedTuple):
     disturbance_amplitude: float
     disturbance_frequency: float
     disturbance_start: float
+    disturbance_phase: float
     holding_torque: float
     derived_step: float
     decay_d: float
@@ -348,6 +358,7 @@ def _motor(p: np.ndarray) -> _Motor:
         drift_amplitude=p[_P.DRIFT_AMPLITUDE],
         drift_frequency=p[_P.DRIFT_FREQUENCY],
         drift_phase_per_trial=p[_P.DRIFT_PHASE_PER_TRIAL],
+        drift_phase=p[_P.DRIFT_PHASE],
         count_angle=p[_P.COUNT_ANGLE],
         velocity_loop_filter=p[_P.VELOCITY_LOOP_FILTER],
         speed_limit=p[_P.SPEED_LIMIT],
@@ -355,6 +366,7 @@ def _motor(p: np.ndarray) -> _Motor:
         disturbance_amplitude=p[_P.DISTURBANCE_AMPLITUDE],
         disturbance_frequency=p[_P.DISTURBANCE_FREQUENCY],
         disturbance_start=p[_P.DISTURBANCE_START],
+        disturbance_phase=p[_P.DISTURBANCE_PHASE],
         holding_torque=p[_P.HOLDING_TORQUE],
         derived_step=p[_P.DERIVED_STEP],
         decay_d=p[_P.DECAY_D],
@@ -422,7 +434,7 @@ def _cogging(m: _Motor, theta: float) -> float:
 def _drift_phasor(m: _Motor, t: float, h: float, trial: int) -> tuple[float, float]:
     """``(sin, cos)`` of the inertia drift's phase at the midpoint of the internal step that starts at ``t``."""
     if m.drift_amplitude > 0:
-        phase = m.drift_frequency * (t + 0.5 * h) + m.drift_phase_per_trial * (trial - 1)
+        phase = m.drift_frequency * (t + 0.5 * h) + m.drift_phase + m.drift_phase_per_trial * (trial - 1)
         return math.sin(phase), math.cos(phase)
     return 0.0, 1.0
 
@@ -451,7 +463,12 @@ def _step_start(m: _Motor, theta: float, omega: float, t: float, h: float, drift
     processor runs them alongside that chain; the sums are the same, in the same order.
     """
     load = disturbance_value(
-        int(m.disturbance_code), m.disturbance_amplitude, m.disturbance_frequency, m.disturbance_start, t + 0.5 * h
+        int(m.disturbance_code),
+        m.disturbance_amplitude,
+        m.disturbance_frequency,
+        m.disturbance_phase,
+        m.disturbance_start,
+        t + 0.5 * h,
     )
     inertia = m.inertia
     if m.drift_amplitude > 0:
@@ -692,10 +709,10 @@ def pmsm_step(
 
 def warm_up() -> None:
     """Run every kernel once (compiling it, or loading it from numba's cache) so that no control loop pays it."""
-    disturbance_value(int(DisturbanceCode.SQUARE), 1.0, 1.0, 0.0, 0.5)
+    disturbance_value(int(DisturbanceCode.SQUARE), 1.0, 1.0, 0.0, 0.0, 0.5)
     values = np.zeros(2)
-    disturbance_values(int(DisturbanceCode.SQUARE), 1.0, 1.0, 0.0, 0.0, 1e-3, values)
-    variation_values(int(VariationCode.RANDOM_WALK), 1.0, 1.0, 0.0, 1e-3, np.zeros(2), 0.0, values)
+    disturbance_values(int(DisturbanceCode.SQUARE), 1.0, 1.0, 0.0, 0.0, 0.0, 1e-3, values)
+    variation_values(int(VariationCode.RANDOM_WALK), 1.0, 1.0, 0.0, 0.0, 1e-3, np.zeros(2), 0.0, values)
     scalar_zoh_step(0.0, -1.0, 1.0, 0.0, 1e-3)
     scalar_plant_step(0.0, -1.0, np.ones(1), np.ones(1), np.ones(1), (0.0, 0.0), 0.0, 1e-3)
     state = np.zeros(PMSM_STATE_SIZE)

@@ -12,9 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from plant_emulator.config import PlantConfig
 from plant_emulator.physics.base import trial_rng
 
-__all__ = ["SensorNoise"]
+__all__ = ["SensorNoise", "plant_noise"]
 
 
 class SensorNoise:
@@ -65,3 +66,9 @@ class SensorNoise:
         if not self.active:
             return np.zeros((measurements, self._outputs))
         return self.std * trial_rng(self._seed, trial, self._stream).standard_normal((measurements, self._outputs))
+
+
+def plant_noise(plant: PlantConfig, seed: int, stream: int, outputs: int) -> SensorNoise:
+    """The sensor noise of a plant built with the physics seed ``seed``: ``plant.output_noise`` seeded by
+    ``plant.noise_seed``, or by ``seed`` when that is not set (one rule for both plants)."""
+    return SensorNoise(plant.output_noise, seed if plant.noise_seed is None else plant.noise_seed, stream, outputs)

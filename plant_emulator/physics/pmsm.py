@@ -54,7 +54,7 @@ from plant_emulator.config import DisturbanceConfig, PlantConfig, PmsmConfig
 from plant_emulator.physics.base import check_scalar_input, check_step, check_trial, trial_rng
 from plant_emulator.physics.disturbance import Disturbance
 from plant_emulator.physics.kernels import PMSM_PARAM_SIZE, PMSM_STATE_SIZE, PmsmParam, PmsmState, pmsm_step_compiled
-from plant_emulator.physics.noise import SensorNoise
+from plant_emulator.physics.noise import plant_noise
 from plant_emulator.physics.trial import PlantKind, PmsmTrialParam, PmsmTrialState, TrialProgram
 
 __all__ = ["RAD_PER_S_PER_RPM", "InputKind", "PmsmPlant", "nominal_first_order"]
@@ -76,7 +76,7 @@ class PmsmPlant:
     plant
         The ``plant:`` section with ``model: pmsm``; the motor is ``plant.pmsm``.
     seed
-        Seed of the parameter draws (per run) and of the output noise (per trial).
+        Seed of the parameter draws (per run) and of the output noise (per trial; ``plant.noise_seed`` if set).
     """
 
     n_inputs = 1
@@ -94,7 +94,7 @@ class PmsmPlant:
         self._initial_speed = 0.0 if plant.x0 is None else plant.x0[0] * RAD_PER_S_PER_RPM
         self._u_min = -math.inf if plant.saturation.u_min is None else plant.saturation.u_min
         self._u_max = math.inf if plant.saturation.u_max is None else plant.saturation.u_max
-        self.noise = SensorNoise(plant.output_noise, seed, _NOISE_STREAM, 1)
+        self.noise = plant_noise(plant, seed, _NOISE_STREAM, 1)
         """The sensor noise on the reported velocity (rpm), on top of the resolver's quantisation."""
         self._disturbance = Disturbance(plant.disturbance)
         self._input_kind: InputKind = config.input_kind
@@ -331,6 +331,7 @@ def _kernel_parameters(config: PmsmConfig, drawn: dict[str, float], count_angle:
         PmsmParam.DRIFT_AMPLITUDE: config.drift.amplitude,
         PmsmParam.DRIFT_FREQUENCY: config.drift.frequency,
         PmsmParam.DRIFT_PHASE_PER_TRIAL: config.drift.phase_per_trial,
+        PmsmParam.DRIFT_PHASE: config.drift.phase,
         PmsmParam.COUNT_ANGLE: count_angle,
         PmsmParam.VELOCITY_LOOP_FILTER: config.velocity_loop_filter,
         PmsmParam.SPEED_LIMIT: config.speed_limit * RAD_PER_S_PER_RPM,
@@ -342,9 +343,10 @@ def _kernel_parameters(config: PmsmConfig, drawn: dict[str, float], count_angle:
 
 
 def _set_disturbance_shape(params: np.ndarray, disturbance: DisturbanceConfig) -> None:
-    """Write the load torque's amplitude, frequency and start time (its code is set per trial by ``reset``)."""
+    """Write the load torque's amplitude, frequency, phase and start time (its code is set per trial by ``reset``)."""
     params[PmsmParam.DISTURBANCE_AMPLITUDE] = disturbance.amplitude
     params[PmsmParam.DISTURBANCE_FREQUENCY] = disturbance.frequency
+    params[PmsmParam.DISTURBANCE_PHASE] = disturbance.phase
     params[PmsmParam.DISTURBANCE_START] = disturbance.start_time
 
 

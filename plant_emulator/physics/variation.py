@@ -26,8 +26,8 @@ class VariationSignal:
     Parameters
     ----------
     config
-        Kind, bound ``amplitude`` on ``|Delta|``, and ``frequency`` (rad/s for the sine; mean-reversion rate
-        for the random walk).
+        Kind, bound ``amplitude`` on ``|Delta|``, ``frequency`` (rad/s for the sine; mean-reversion rate
+        for the random walk) and the sine's ``phase`` (rad).
     seed, stream
         Make the random walk reproducible: same (seed, trial, stream), same path.
     """
@@ -66,6 +66,6 @@ class VariationSignal:
         # one standard normal per step, from the trial's generator in order: the same numbers as step by step
         normals = self._rng.standard_normal(count) if self._code is VariationCode.RANDOM_WALK else out
         self._walk = variation_values(
-            int(self._code), config.amplitude, config.frequency, t0, dt, normals, self._walk, out
+            int(self._code), config.amplitude, config.frequency, config.phase, t0, dt, normals, self._walk, out
         )
         return out
