@@ -36,7 +36,9 @@ def test_the_variation_sine_takes_its_phase(phase: float) -> None:
 
 @pytest.mark.parametrize(("kind", "phase"), [("sine", 1.1), ("square", 2.0), ("square", 0.0)])
 def test_the_disturbance_wave_takes_its_phase(kind: str, phase: float) -> None:
-    config = DisturbanceConfig(kind=kind, amplitude=0.2, frequency=3.0, start_time=1.0, phase=phase)  # type: ignore[arg-type]
+    config = DisturbanceConfig.model_validate(
+        {"kind": kind, "amplitude": 0.2, "frequency": 3.0, "start_time": 1.0, "phase": phase}
+    )
     disturbance = Disturbance(config)
     disturbance.reset(1)
     got = disturbance.values(T0, DT, STEPS)

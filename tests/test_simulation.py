@@ -150,23 +150,6 @@ def test_mcap_log_and_plots(tmp_path: Path) -> None:
     assert all(p.stat().st_size > 1000 for p in paths)
 
 
-def test_paper_table_numbers_come_from_runs(tmp_path: Path) -> None:
-    from foilc_hil.loop.simulation import paper_table
-
-    extra = "  disturbance: {kind: constant, amplitude: 0.2, start_trial: 3}"
-    config = _config(tmp_path, extra=extra)
-    config = config.model_copy(update={"tuning": config.tuning.model_copy(update={"kp": 0.2, "r": 0.5})})
-    table = paper_table(config, trials=4)
-    runs = {law: simulate(config, law=law, trials=4) for law in ("foilc", "ioilc", "p-type")}
-    for law, result in runs.items():
-        row = next(line for line in table.splitlines() if line.startswith(f"| {law} |"))  # main table first
-        cells = [cell.strip() for cell in row.strip("|").split("|")]
-        assert float(cells[3]) == pytest.approx(result.metrics[-1].rmse, rel=1e-3)  # final RMSE
-        assert float(cells[5]) == pytest.approx(result.metrics[2].sse, rel=1e-3)  # SSE at the disturbance trial
-    assert "The paper's claims" in table
-    assert ("-> holds" in table) or ("-> does not hold" in table)
-
-
 # --- fractional memory: the converged error with an uncontrollable first sample ------------------------------------
 
 

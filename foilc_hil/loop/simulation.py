@@ -10,16 +10,13 @@ the plant for trial ``k`` (initial condition, disturbance armed from ``disturban
 :meth:`~foilc_hil.laws.learning.LearningLaw.end_trial`. The divergence rule, the per-sample log and the metrics are
 the bench's. No plant dynamics and no trial loop are written here.
 
-``python -m foilc_hil.loop.simulation --paper-table [--config configs/paper_sim.yaml]`` prints the Markdown table of
-``docs/paper-reproduction.md`` from fresh runs.
+The tables of ``docs/paper-reproduction.md`` (every law over seeds) are generated outside the package, by
+``python -m benchmarks.reproduction``.
 """
 
 from __future__ import annotations
 
-import argparse
 import contextlib
-import math
-import sys
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -28,7 +25,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from foilc_hil.config import LawKind
 from foilc_hil.design.record import jsonable
 from foilc_hil.errors import ConfigError, LearningDivergedError
 from foilc_hil.metrics import TrialMetrics
@@ -43,7 +39,6 @@ if TYPE_CHECKING:
 __all__ = [
     "SimulationResult",
     "build_law",
-    "paper_table",
     "plot_simulation",
     "simulate",
 ]
@@ -357,213 +352,3 @@ def plot_simulation(result: SimulationResult, out_dir: str | Path) -> list[Path]
     plt.close(fig)
     written.append(path)
     return written
-
-
-# --- the paper-reproduction table -------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class PaperRow:
-    """One law's line of the reproduction table."""
-
-    law: str
-    trials_to_tolerance: int | None
-    final_rmse: float
-    sse_before_disturbance: float
-    sse_at_disturbance: float
-    recovery_trials: int | None
-    certificates: dict[str, Any]
-    stopped: str
-    sse_by_trial: list[float]
-    gamma: float | None
-    gain_scale: float | None
-    kp: float | None
-    r: float | None
-
-
-def _paper_row(result: SimulationResult, tolerance: float, disturbance_trial: int) -> PaperRow:
-    rmse = [m.rmse for m in result.metrics]
-    sse = [m.sse for m in result.metrics]
-    reached = next((i + 1 for i, value in enumerate(rmse) if value < tolerance), None)
-    before = sse[disturbance_trial - 2] if len(sse) >= disturbance_trial else math.nan
-    at = sse[disturbance_trial - 1] if len(sse) >= disturbance_trial else math.nan
-    recovery = None
-    for i in range(disturbance_trial - 1, len(rmse)):
-        if rmse[i] < tolerance:
-            recovery = i + 1 - disturbance_trial
-            break
-    return PaperRow(
-        law=result.law,
-        trials_to_tolerance=reached,
-        final_rmse=rmse[-1] if rmse else math.nan,
-        sse_before_disturbance=before,
-        sse_at_disturbance=at,
-        recovery_trials=recovery,
-        certificates=result.certificates,
-        stopped=result.stopped,
-        sse_by_trial=sse,
-        gamma=None if result.design is None else result.design.gamma,
-        gain_scale=None if result.design is None else result.design.gain_scale,
-        kp=None if result.design is None else result.design.kp,
-        r=None if result.design is None else result.design.r,
-    )
-
-
-def _fmt(value: Any, digits: int = 4) -> str:
-    if value is None:
-        return "not reached"
-    if isinstance(value, float):
-        return f"{value:.{digits}g}"
-    return str(value)
-
-
-def paper_table(config: Config, *, trials: int | None = None, tolerance_fraction: float = 0.01) -> str:
-    """Run FOILC, IOILC and P-type on ``config`` and return the Markdown reproduction table.
-
-    The tolerance is ``tolerance_fraction`` of the reference range (max - min); the disturbance trial is
-    ``plant.disturbance.start_trial``.
-    """
-    from foilc_hil.errors import FoilcHilError
-    from foilc_hil.references import reference_profile
-
-    count = config.trials if trials is None else trials
-    reference = reference_profile(config.reference, config.sample_time)
-    span = float(np.max(reference) - np.min(reference)) or float(np.max(np.abs(reference))) or 1.0
-    tolerance = tolerance_fraction * span
-    start = config.plant.disturbance.start_trial if config.plant.disturbance.kind != "none" else count + 1
-    rows: list[PaperRow] = []
-    timings: list[str] = []
-    refused: list[str] = []
-    for law in LawKind:
-        began = time.perf_counter()
-        try:
-            result = simulate(config, law=law, trials=count)
-        except FoilcHilError as exc:  # an infeasible or uncertified design is a result too: report it
-            refused.append(f"- **{law}**: no run -- {type(exc).__name__}: {exc}")
-            continue
-        rows.append(_paper_row(result, tolerance, start))
-        timings.append(f"{law} {result.seconds:.2f} s loop / {time.perf_counter() - began:.1f} s with design")
-    lines = [
-        f"Tolerance: RMSE < {tolerance:g} ({tolerance_fraction:.0%} of the reference range {span:g}); "
-        f"{count} trials; disturbance from trial {start}. Trial-loop time: {', '.join(timings)}.",
-        "",
-        "| law | kp, r | first trial with RMSE < tol | final RMSE | SSE trial "
-        f"{start - 1} | SSE trial {start} | trials after {start} to RMSE < tol | spectral radius | 2-norm "
-        "| gamma | gain_scale |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for row in rows:
-        cert = row.certificates
-        radius = _certificate(cert, ("spectral_radius",))
-        norm = _certificate(cert, ("norm_2",))
-        pair = "-" if row.kp is None else f"{row.kp:.4g}, {row.r:.4g}" if row.kp else "0 (integer order)"
-        lines.append(
-            f"| {row.law} | {pair} | {_fmt(row.trials_to_tolerance)} | {_fmt(row.final_rmse)} | "
-            f"{_fmt(row.sse_before_disturbance)} | {_fmt(row.sse_at_disturbance)} | {_fmt(row.recovery_trials)} | "
-            f"{_fmt(radius)} | {_fmt(norm)} | {_fmt(row.gamma, 4) if row.gamma is not None else '-'} | "
-            f"{_fmt(row.gain_scale) if row.gain_scale is not None else '-'} |"
-        )
-        if row.stopped:
-            lines.append(f"|  | stopped: {row.stopped} | | | | | | | | | |")
-    if refused:
-        lines += ["", "Laws without a run:", *refused]
-    lines += ["", "SSE by trial:", "", "| law | " + " | ".join(str(k) for k in range(1, count + 1)) + " |"]
-    lines.append("|---" * (count + 1) + "|")
-    for row in rows:
-        cells = [_fmt(value, 3) for value in row.sse_by_trial] + ["-"] * (count - len(row.sse_by_trial))
-        lines.append(f"| {row.law} | " + " | ".join(cells) + " |")
-    lines += ["", "The paper's claims, checked on these runs:", ""]
-    lines += _claims(rows, start)
-    return "\n".join(lines) + "\n"
-
-
-def _claims(rows: Sequence[PaperRow], start: int) -> list[str]:
-    """Statements generated from the rows (never typed by hand): the paper's two comparative claims."""
-    by_law = {row.law: row for row in rows}
-    foilc, ioilc = by_law.get("foilc"), by_law.get("ioilc")
-    if foilc is None or ioilc is None:
-        return ["- not checkable: FOILC or IOILC has no run (see above)."]
-    out = []
-    f_reach, i_reach = foilc.trials_to_tolerance, ioilc.trials_to_tolerance
-    holds = f_reach is not None and f_reach <= 3 and (i_reach is None or i_reach > 4)
-    out.append(
-        f'- "FOILC tracks by the 3rd cycle, IOILC needs more than 4": FOILC first within tolerance at trial '
-        f"{_fmt(f_reach)}, IOILC at trial {_fmt(i_reach)} -> {'holds' if holds else 'does not hold'}."
-    )
-    f_jump = foilc.sse_at_disturbance / foilc.sse_before_disturbance if foilc.sse_before_disturbance else math.inf
-    i_jump = ioilc.sse_at_disturbance / ioilc.sse_before_disturbance if ioilc.sse_before_disturbance else math.inf
-    f_rec = math.inf if foilc.recovery_trials is None else foilc.recovery_trials
-    i_rec = math.inf if ioilc.recovery_trials is None else ioilc.recovery_trials
-    robust = foilc.sse_at_disturbance <= ioilc.sse_at_disturbance and f_rec <= i_rec
-    out.append(
-        f'- "FOILC is more robust to the disturbance from cycle {start}": SSE at trial {start} is '
-        f"{_fmt(foilc.sse_at_disturbance)} (FOILC, x{_fmt(f_jump, 3)} the trial before) vs "
-        f"{_fmt(ioilc.sse_at_disturbance)} (IOILC, x{_fmt(i_jump, 3)}); trials to recover {_fmt(foilc.recovery_trials)}"
-        f" vs {_fmt(ioilc.recovery_trials)} -> {'holds' if robust else 'does not hold'}."
-    )
-    return out
-
-
-def _certificate(certificates: dict[str, Any], names: Sequence[str]) -> Any:
-    for name in names:
-        if name in certificates:
-            value = certificates[name]
-            return float(value) if isinstance(value, (int, float)) else value
-    return None
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m foilc_hil.loop.simulation --paper-table [--config C] [--trials N]``."""
-    from foilc_hil.config import load_config
-    from foilc_hil.errors import FoilcHilError
-
-    parser = argparse.ArgumentParser(prog="python -m foilc_hil.simulation")
-    parser.add_argument("--paper-table", action="store_true", help="print the paper-reproduction table")
-    parser.add_argument("--config", default="configs/paper_sim.yaml")
-    parser.add_argument("--trials", type=int, default=None)
-    parser.add_argument(
-        "--update-doc",
-        default=None,
-        metavar="FILE",
-        help=f"replace the text between {TABLE_BEGIN!r} and {TABLE_END!r} in FILE with the table",
-    )
-    args = parser.parse_args(argv)
-    if not args.paper_table:
-        parser.error("nothing to do: give --paper-table")
-    try:
-        table = paper_table(load_config(args.config), trials=args.trials)
-        if args.update_doc is not None:
-            _update_doc(
-                Path(args.update_doc),
-                table,
-                f"python -m foilc_hil.loop.simulation --paper-table --config {args.config}",
-            )
-    except FoilcHilError as exc:
-        sys.stderr.write(f"{exc}\n")
-        return int(exc.exit_code)
-    sys.stdout.write(table)
-    return 0
-
-
-TABLE_BEGIN = "<!-- paper-table:begin -->"
-TABLE_END = "<!-- paper-table:end -->"
-
-
-def _update_doc(path: Path, table: str, command: str) -> None:
-    """Write ``table`` between the markers of ``path`` (generated text only; the prose around it is kept)."""
-    from foilc_hil.errors import InputError
-
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read: {exc}") from None
-    if TABLE_BEGIN not in text or TABLE_END not in text:
-        raise InputError(f"{path}: has no {TABLE_BEGIN} ... {TABLE_END} markers")
-    head, rest = text.split(TABLE_BEGIN, 1)
-    _, tail = rest.split(TABLE_END, 1)
-    stamp = f"<!-- generated by `{command}`; do not edit by hand -->"
-    path.write_text(f"{head}{TABLE_BEGIN}\n{stamp}\n\n{table}\n{TABLE_END}{tail}", encoding="utf-8")
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
