@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.seed_study import LawStudy, PlantStudy, RunFigures, StudySettings, moved_signals, run_study
-from benchmarks.verdicts import RULE, PairedJudgement, Verdict, combine, judge, sign_test_p, spread
+from benchmarks.verdicts import RELEVANCE, RULE, PairedJudgement, Verdict, combine, judge, sign_test_p, spread
 from foilc_hil.config import Config, LawKind
 from foilc_hil.errors import FoilcHilError, InputError
 
@@ -63,6 +63,7 @@ FIGURES = (
     FigureRow("learnable RMSE, trial 3", ".3g", lambda run: run.rmse_trial_3),
     FigureRow("transient SSE, trials 2-{before}", ".3g", lambda run: run.transient_sse, "2a"),
     FigureRow("SSE, trial {start}", ".3g", lambda run: run.disturbance_sse, "2b"),
+    FigureRow("SSE added in trial {start} (trial {start} - trial {before})", ".3g", lambda run: run.disturbance_jump),
     FigureRow("trials after {start} to tolerance", "g", lambda run: run.recovery_trials),
     FigureRow("final learnable RMSE", ".3g", lambda run: run.final_rmse),
 )
@@ -138,8 +139,30 @@ def _paired(foilc: LawStudy, ioilc: LawStudy, row: FigureRow) -> PairedJudgement
     return judge([f for f, _ in kept], [i for _, i in kept])
 
 
-def _claims_table(study: PlantStudy, foilc: LawStudy, ioilc: LawStudy) -> tuple[list[str], dict[str, Verdict]]:
-    """Every figure judged FOILC against IOILC, seed by seed; the verdicts of the figures that decide a claim."""
+def _why_a_tie(judgement: PairedJudgement, row: FigureRow, foilc: LawStudy, ioilc: LawStudy) -> str:
+    """What a tie rests on, where the rule's reason is not the spread: unanimous seeds under the relevance floor, or
+    a tolerance neither law reaches."""
+    if judgement.verdict is not Verdict.TIE:
+        return ""
+    if row.claim == "1" and not any(run.reached for run in (*foilc.runs, *ioilc.runs)):
+        return " (neither law gets within tolerance on any seed: this figure cannot separate them)"
+    low, high = judgement.interval
+    if low > 0 or high < 0:
+        side = "better" if high < 0 else "worse"
+        share = abs(judgement.difference.median) / abs(judgement.reference) if judgement.reference else math.inf
+        return (
+            f" (consistent in sign: FOILC {side} on {judgement.better if high < 0 else judgement.worse} of "
+            f"{judgement.n} seeds, but by {100 * share:.2g} % of IOILC's median, under the "
+            f"{100 * RELEVANCE:.0f} % floor)"
+        )
+    return ""
+
+
+def _claims_table(
+    study: PlantStudy, foilc: LawStudy, ioilc: LawStudy
+) -> tuple[list[str], dict[str, Verdict], dict[str, str]]:
+    """Every figure judged FOILC against IOILC, seed by seed; the verdicts of the figures that decide a claim, and
+    what a tied one rests on."""
     start = study.settings.disturbance_trial
     lines = [
         "| claim | figure | seeds | d = FOILC - IOILC: median [5 %, 95 %] | 95 % interval of the median of d | "
@@ -147,12 +170,13 @@ def _claims_table(study: PlantStudy, foilc: LawStudy, ioilc: LawStudy) -> tuple[
         "|---|---|---|---|---|---|---|---|---|",
     ]
     verdicts: dict[str, Verdict] = {}
+    notes: dict[str, str] = {}
     for row in FIGURES:
         judgement = _paired(foilc, ioilc, row)
         claim = row.claim or "(shown)"
         if judgement is None:
             lines.append(f"| {claim} | {row.title(start)} | fewer than 2 | | | | | | {Verdict.TIE} |")
-            verdicts[row.claim] = Verdict.TIE
+            verdicts[row.claim], notes[row.claim] = Verdict.TIE, " (fewer than 2 seeds with this figure)"
             continue
         low, high = judgement.interval
         lines.append(
@@ -160,8 +184,8 @@ def _claims_table(study: PlantStudy, foilc: LawStudy, ioilc: LawStudy) -> tuple[
             f"[{low:.3g}, {high:.3g}] | {judgement.reference:.3g} | {judgement.better} / {judgement.equal} / "
             f"{judgement.worse} | {sign_test_p(judgement.better, judgement.worse):.2g} | {judgement.verdict} |"
         )
-        verdicts[row.claim] = judgement.verdict
-    return lines, verdicts
+        verdicts[row.claim], notes[row.claim] = judgement.verdict, _why_a_tie(judgement, row, foilc, ioilc)
+    return lines, verdicts, notes
 
 
 def claims_lines(study: PlantStudy) -> list[str]:
@@ -169,7 +193,7 @@ def claims_lines(study: PlantStudy) -> list[str]:
     foilc, ioilc = study.law(LawKind.FOILC), study.law(LawKind.IOILC)
     if foilc is None or ioilc is None:
         return ["- not checkable: FOILC or IOILC has no design (see above)."]
-    table, verdicts = _claims_table(study, foilc, ioilc)
+    table, verdicts, notes = _claims_table(study, foilc, ioilc)
     n, start = len(foilc.runs), study.settings.disturbance_trial
     by_third = sum(1 for run in foilc.runs if run.reached and run.trials_to_tolerance <= 3)
     after_fourth = sum(1 for run in ioilc.runs if run.trials_to_tolerance > 4)
@@ -180,9 +204,9 @@ def claims_lines(study: PlantStudy) -> list[str]:
         "",
         f'- **Claim 1**, "FOILC tracks by the 3rd cycle, IOILC needs more than 4": FOILC within tolerance by trial 3 '
         f"on {by_third} of {n} seeds, IOILC still outside it after trial 4 on {after_fourth} of {n}; trials to "
-        f"tolerance, seed by seed -> **{verdicts['1']}**.",
+        f"tolerance, seed by seed -> **{verdicts['1']}**{notes['1']}.",
         f'- **Claim 2**, "FOILC has better transients and is more robust to the disturbance from cycle {start}": '
-        f"transient SSE (2a) {transient}, SSE of trial {start} (2b) {disturbance} -> "
+        f"transient SSE (2a) {transient}{notes['2a']}, SSE of trial {start} (2b) {disturbance}{notes['2b']} -> "
         f"**{combine([transient, disturbance])}** (both parts must hold).{same_order}",
     ]
 

@@ -107,6 +107,8 @@ class RunFigures:
     """The figures of one law's run on one seed (errors over the learnable samples, ``TrialMetrics``).
 
     Trials that never reach the tolerance count as one past the last trial (``reached`` says whether they did).
+    ``disturbance_jump`` is the SSE the disturbance trial adds to the trial before it: the disturbance's share,
+    where the SSE of the disturbance trial itself also holds the noise every trial has.
     """
 
     trials_to_tolerance: float
@@ -114,6 +116,7 @@ class RunFigures:
     rmse_trial_3: float
     transient_sse: float
     disturbance_sse: float
+    disturbance_jump: float
     recovery_trials: float
     recovered: bool
     final_rmse: float
@@ -138,6 +141,7 @@ def run_figures(rmse: Sequence[float], sse: Sequence[float], settings: StudySett
         rmse_trial_3=at(rmse, 3),
         transient_sse=float(sum(transient)),
         disturbance_sse=at(sse, start),
+        disturbance_jump=at(sse, start) - at(sse, start - 1),
         recovery_trials=float(trials - start + 1 if recovery is None else recovery),
         recovered=recovery is not None,
         final_rmse=at(rmse, trials),
