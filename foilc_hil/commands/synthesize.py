@@ -8,18 +8,24 @@ gain, weights or step, no LMI (``Qb``, ``Qt``, ``gamma`` are ``null``).
 JSON (``--json``): ``{"A", "B", "C", "G1", "H1", "G2", "H2", "P", "Qb", "Qt", "gamma", "tau", "theta", "kp", "r",
 "sample_time", "certificates": {...}}`` plus ``law``, ``input_delay``, ``gain_scale``, ``p1``, ``p2`` and
 ``C_measured`` (:meth:`foilc_hil.design.record.Design.to_json`). ``kp``/``r`` come from ``tuning.kp``/``tuning.r`` when
-given, else from the tuner. An infeasible LMI or an uncertifiable law exits 3.
+given, else from the tuner. An infeasible LMI or an uncertifiable law exits 3. The law is ``--law``, else the
+config's ``law.kind``. ``--plots DIR`` also draws ``DIR/convergence.png``
+(:func:`foilc_hil.logtools.report.plot_convergence`) and adds ``plots`` and ``convergence``
+(:meth:`foilc_hil.design.frequency_picture.ConvergencePicture.to_json`) to the document.
 """
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from foilc_hil.commands import CommandResult
 from foilc_hil.config import DesignMethod, LawKind
 
 if TYPE_CHECKING:
+    from foilc_hil.config import Config
+    from foilc_hil.design.frequency_picture import ConvergencePicture
     from foilc_hil.design.record import Design
 
 HELP = "design the learning gain P (LMI of Theorem 1, co-design, or a baseline's gain) and certify it"
@@ -48,6 +54,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=0,
         metavar="CYCLES",
         help="cycles of input delay folded into the design model (1 for the SYNC-driven CAN loop)",
+    )
+    parser.add_argument(
+        "--plots",
+        default=None,
+        metavar="DIR",
+        help="also draw DIR/convergence.png: the law's trial-to-trial map over frequency against 1 "
+        "(docs/convergence.md)",
     )
     parser.add_argument("--json", action="store_true", help="print one JSON document on stdout")
 
@@ -122,4 +135,30 @@ def execute(args: argparse.Namespace) -> CommandResult:
     config = load_config(args.config, overrides)
     n_samples = trial_samples(config.reference, config.sample_time)
     design = build_design(config, config.law.kind, n_samples, input_delay=args.input_delay)
-    return CommandResult(document=design.to_json(), text=_text(design))
+    document, text = design.to_json(), _text(design)
+    if args.plots is not None:
+        picture, path = _draw_convergence(design, config, args.plots)
+        summary = picture.to_json()
+        document = {**document, "plots": [str(path)], "convergence": summary}
+        text += (
+            f"\nconvergence over frequency: sup |M| = {summary['worst_peak']:.6g} ({summary['worst_plant']}, "
+            f"{summary['worst_frequency']:.4g} rad/s), nominal {summary['nominal_peak']:.6g} -> {path}"
+        )
+    return CommandResult(document=document, text=text)
+
+
+def _draw_convergence(design: Design, config: Config, directory: str) -> tuple[ConvergencePicture, Path]:
+    """``--plots DIR``: the picture of convergence of ``design`` with the config's Q-filter, as ``convergence.png``.
+    matplotlib is imported here only (the design never needs it)."""
+    from foilc_hil.design.frequency_picture import QFilterSpec, convergence_picture
+    from foilc_hil.errors import InputError
+    from foilc_hil.logtools.report import plot_convergence
+
+    settings = config.law.q_filter
+    picture = convergence_picture(design, q_filter=None if settings is None else QFilterSpec.from_settings(settings))
+    out = Path(directory)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"--plots: {out}: cannot create: {exc.strerror or exc}") from None
+    return picture, plot_convergence(picture, out / "convergence.png")

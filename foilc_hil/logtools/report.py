@@ -2,7 +2,9 @@
 
 Plots (matplotlib, Agg, no pyplot state): ``outputs.png`` (output by trial with the reference), ``control.png``,
 ``error.png``, ``sse.png`` (SSE and learnable RMSE against trial, log scale) and, when the log has ``/timing``,
-``timing.png`` (histograms of SYNC lateness and cycle period). The output drawn is ``reference - error`` -- the
+``timing.png`` (histograms of SYNC lateness and cycle period) and, when the log's design reads back whole,
+``convergence.png`` (:func:`plot_convergence`: the law's trial-to-trial map over frequency against 1, nominal and at
+the uncertainty vertices, with the logged config's Q-filter). The output drawn is ``reference - error`` -- the
 output at the reference's instant, whichever ``/ilc/sample`` layout the log has. Titles name the law (from the
 logged design), axes carry the units of the logged config (``drive.velocity_unit``; ``drive.torque_unit`` for a
 CST command). At most :data:`MAX_TRIALS_DRAWN` trials are drawn, coloured along a sequential colormap with a
@@ -38,10 +40,11 @@ from foilc_hil.progress import as_step
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
+    from foilc_hil.design.frequency_picture import ConvergencePicture
     from foilc_hil.io.mcap_log import LogContents
 
 __all__ = ["MAX_TRIALS_DRAWN", "REPORT_TOPICS", "LogContext", "ReportFiles", "draw_comparison", "frame_directions",
-           "log_context", "report_of", "summarize", "write_comparison", "write_report"]
+           "log_context", "plot_convergence", "report_of", "summarize", "write_comparison", "write_report"]
 
 #: at most this many trials are drawn per plot (evenly spread, first and last always included)
 MAX_TRIALS_DRAWN = 8
@@ -331,6 +334,65 @@ def _plot_sse(trials: Sequence[Mapping[str, Any]], path: Path, truncated: bool, 
     ax.legend(fontsize="small")
     figure.savefig(path, dpi=110)
     return path
+
+
+def plot_convergence(picture: ConvergencePicture, path: str | Path) -> Path:
+    """``convergence.png``: ``|M(e^jw)|`` of the law's trial-to-trial map over frequency against 1 (the nominal plant
+    and every uncertainty vertex), the Q-filter's cutoff and the certificate's 2-norm marked
+    (:mod:`foilc_hil.design.frequency_picture`; ``docs/convergence.md`` says how to read it)."""
+    target = Path(path)
+    figure = _new_figure()
+    ax = figure.subplots()
+    f = picture.frequency
+    for k, curve in enumerate(picture.vertices):
+        ax.semilogx(f, curve.magnitude, color="0.55", linewidth=0.9,
+                    label=f"uncertainty vertices ({len(picture.vertices)})" if k == 0 else None)
+    ax.semilogx(f, picture.nominal.magnitude, color="tab:blue", linewidth=2.0, label="nominal plant")
+    ax.axhline(1.0, color="black", linestyle="--", linewidth=1.2, label="1: monotone convergence limit")
+    if picture.certified_norm_2 is not None:
+        method = f"\n{picture.norm_2_method}" if picture.norm_2_method else ""
+        ax.axhline(picture.certified_norm_2, color="tab:red", linestyle=":", linewidth=1.5,
+                   label=f"certificate's ||map||_2: {picture.certified_norm_2:.4g} at N = {picture.n_samples}{method}")
+    if picture.q_filter is not None:
+        q = picture.q_filter
+        ax.axvline(q.cutoff, color="tab:green", linestyle="-.", linewidth=1.2,
+                   label=f"Q-filter cutoff {q.cutoff:.4g} rad/s (order {q.order}, {q.phase})")
+    worst = picture.worst
+    at = float(f[int(np.argmax(worst.magnitude))])
+    ax.plot([at], [worst.peak], "o", color="tab:red" if worst.peak >= 1 else "tab:blue", markersize=5,
+            label=f"sup = {worst.peak:.4g} at {at:.4g} rad/s ({worst.plant})")
+    top = max(1.15, min(1.08 * worst.peak, 4.0))  # a divergent curve is clipped, its peak says how far it goes
+    ax.set_ylim(0.0, top)
+    ax.set_xlim(float(f[0]), float(f[-1]))
+    ax.set_xlabel(f"frequency (rad/s); Nyquist {math.pi / picture.sample_time:.4g} rad/s")
+    ax.set_ylabel("|M(e^jw)|: per-trial contraction")
+    ax.set_title(f"{str(picture.law).upper()}: trial-to-trial map over frequency (long trials)\n{picture.formula}",
+                 fontsize="medium")
+    ax.grid(True, which="both", alpha=0.3)
+    # below the axes: inside, it hid the curves' peaks or the line at 1, which are what the picture is read for
+    figure.set_figheight(figure.get_figheight() + 1.1)
+    figure.legend(loc="outside lower center", ncol=2, fontsize="x-small", frameon=False)
+    figure.savefig(target, dpi=110)
+    return target
+
+
+def _convergence(contents: LogContents, directory: Path) -> tuple[Path, dict[str, Any]] | None:
+    """The picture of convergence of the logged design (with the logged config's Q-filter), or ``None`` when the log
+    has no design that reads back as a whole (a synthetic or a damaged record: the rest of the report stands)."""
+    from foilc_hil.design.frequency_picture import QFilterSpec, convergence_picture
+    from foilc_hil.design.record import Design
+
+    if contents.design is None:
+        return None
+    try:
+        design = Design.from_json(contents.design)
+        config = _logged_config(contents)
+        settings = None if config is None else config.law.q_filter
+        q_filter = None if settings is None else QFilterSpec.from_settings(settings)
+        picture = convergence_picture(design, q_filter=q_filter)
+    except (FoilcHilError, np.linalg.LinAlgError):
+        return None
+    return plot_convergence(picture, directory / "convergence.png"), picture.to_json()
 
 
 def _union(limits: Sequence[tuple[float, float] | None]) -> tuple[float, float] | None:
@@ -623,6 +685,10 @@ def _write_report(contents: LogContents, directory: Path) -> ReportFiles:
         plots.append(_plot_sse(contents.trials, directory / "sse.png", contents.truncated, context))
     if contents.timing:
         plots.append(_plot_timing(contents.timing, directory / "timing.png"))
+    convergence = _convergence(contents, directory)
+    summary["convergence"] = None if convergence is None else convergence[1]
+    if convergence is not None:
+        plots.append(convergence[0])
     summary["plots"] = [path.name for path in plots]
     summary_json = directory / "summary.json"
     summary_md = directory / "summary.md"
