@@ -137,6 +137,14 @@ class NmtState(IntEnum):
     PRE_OPERATIONAL = 0x7F
 
 
+def nmt_state_name(state: int) -> str:
+    """The name of NMT state byte ``state``, or its hex value when it is none of :class:`NmtState`."""
+    try:
+        return NmtState(state).name
+    except ValueError:
+        return f"state 0x{state:02X}"
+
+
 @unique
 class NmtCommand(IntEnum):
     """NMT command specifiers (first byte of a frame on COB-ID 0x000)."""
