@@ -10,7 +10,8 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from foilc_hil.schema import Matrix, Section
+from drivers.schema import Section
+from plant_emulator.matrix import Matrix
 
 
 class VariationConfig(Section):

@@ -49,8 +49,6 @@ AWAITING_OWNER: dict[str, str] = {
     "plant_emulator.physics.base": _PHYSICS,
     "plant_emulator.physics.first_order": _PHYSICS,
     "plant_emulator.physics.pmsm": _PHYSICS,
-    "plant_emulator.config": "uncommitted edits of another line of work in the file: `from drivers.schema import "
-                             "Section` and `from plant_emulator.matrix import Matrix`",
 }
 
 
