@@ -42,7 +42,7 @@ def simulated_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_every_simulated_row_is_one_instant(simulated_log: Path) -> None:
     contents = read_log(simulated_log)
-    assert contents.metadata[METADATA_LAYOUT] == {"ilc_sample": "2"}
+    assert contents.metadata[METADATA_LAYOUT] == {"ilc_sample": "2", "closing": "1"}
     assert sample_layout(contents) == 2
     trials = {record["trial"]: record for record in contents.trials}
     for row in contents.samples:

@@ -141,8 +141,8 @@ def execute(args: argparse.Namespace) -> CommandResult:
             )
         else:
             lines.append(
-                f"NOT verified: trial {divergence['trial']} sample {divergence['sample']}: {divergence['reason']} "
-                f"(logged {divergence['logged']}, recomputed {divergence['recomputed']})"
+                f"NOT verified: {divergence['topic']}, trial {divergence['trial']} sample {divergence['sample']}: "
+                f"{divergence['reason']} (logged {divergence['logged']}, recomputed {divergence['recomputed']})"
             )
     text = "\n".join(lines)
     if document["verified"] is False:
@@ -151,8 +151,8 @@ def execute(args: argparse.Namespace) -> CommandResult:
             document,
             text,
             exit_code=ExitCode.RUNTIME_FAILURE,
-            message=f"replay differs from the log at trial {divergence['trial']}, sample {divergence['sample']}: "
-            f"{divergence['reason']}",
+            message=f"the log does not hold up at {divergence['topic']}, trial {divergence['trial']}, sample "
+            f"{divergence['sample']}: {divergence['reason']}",
         )
     if document["partial"]:
         # Why exit 1: "verified" must mean the whole log was checked; a damaged log was only checked up to the damage

@@ -31,6 +31,7 @@ from foilc_hil.io.mcap_chunks import ChunkedMcapWriter
 from foilc_hil.io.records import SampleRecord, TimingRecord, TrialSamples
 from foilc_hil.io.schemas import (
     MESSAGE_ENCODING,
+    METADATA_CLOSING,
     METADATA_CONFIG,
     METADATA_DESIGN,
     SCHEMA_ENCODING,
@@ -262,6 +263,8 @@ class McapFileWriter(_LogLifecycle):
             raise LogFormatError(f"{self.path}: {exc}") from None
         self._writer.start(profile=_PROFILE, library=_LIBRARY)
         self._channels: dict[str, int] = {}
+        self._trials: list[int] = []  # the /ilc/trial records written, for the closing record
+        self._samples_per_trial: dict[int, int] = {}
         # units of the fields
         metadata = channel_metadata(config_yaml) if channels_metadata is None else channels_metadata
         for topic, (name, schema) in TOPICS.items():
@@ -326,6 +329,7 @@ class McapFileWriter(_LogLifecycle):
         Scalars for a SISO axis, sequences/arrays for a multi-variable one. Values are encoded exactly (float64
         ``repr``), so :func:`foilc_hil.logtools.replay.verify_log` can check the law bit for bit.
         """
+        self._samples_per_trial[int(record.trial)] = self._samples_per_trial.get(int(record.trial), 0) + 1
         self._add(TOPIC_SAMPLE, record.to_json(), time.time_ns() if log_time_ns is None else log_time_ns)
 
     def write_trial_samples(self, samples: TrialSamples, log_time_ns: int | None = None) -> None:
@@ -333,6 +337,8 @@ class McapFileWriter(_LogLifecycle):
         :meth:`write_sample` writes for its rows (:func:`trial_samples_documents`), appended as one batch."""
         documents = trial_samples_documents(samples)
         log_time = time.time_ns() if log_time_ns is None else log_time_ns
+        trial = int(samples.trial)
+        self._samples_per_trial[trial] = self._samples_per_trial.get(trial, 0) + len(samples.reference)
         if documents is None:  # columns of vectors: row by row
             for record in samples.records():
                 self.write_sample(record, log_time)
@@ -361,6 +367,7 @@ class McapFileWriter(_LogLifecycle):
         if missing:
             raise LogFormatError(f"/ilc/trial message lacks {', '.join(missing)}")
         self._add(TOPIC_TRIAL, {**base, **extra}, log_time_ns)
+        self._trials.append(int(base["trial"]))
 
     def write_timing(self, record: TimingRecord, log_time_ns: int | None = None) -> None:
         """Log one real-time cycle on ``/timing`` (see :data:`foilc_hil.io.schemas.TIMING_SCHEMA`)."""
@@ -398,6 +405,7 @@ class McapFileWriter(_LogLifecycle):
                 self._write_frames()
                 self._closed = True
                 self._frames = _ClosedRows(self.path)
+                self._writer.add_metadata(METADATA_CLOSING, self._closing_record())
                 self._writer.finish()
                 self._stream.flush()
             except OSError as exc:
@@ -410,6 +418,15 @@ class McapFileWriter(_LogLifecycle):
     @property
     def closed(self) -> bool:
         return self._closed
+
+    def _closing_record(self) -> dict[str, str]:
+        """What this writer wrote (:data:`~foilc_hil.io.schemas.METADATA_CLOSING`): each /ilc/trial's trial, each
+        trial's sample rows (an axis's rows counted with the others of its trial) and the /can messages."""
+        trials = list(dict.fromkeys(self._trials))
+        samples = [self._samples_per_trial.get(trial, 0) for trial in trials]
+        frames = self._writer.message_count(self._can_channel)
+        return {"trials": orjson.dumps(self._trials).decode(), "samples": orjson.dumps(samples).decode(),
+                "frames": str(frames)}
 
     def message_count(self, topic: str) -> int:
         """Messages written on ``topic`` so far."""

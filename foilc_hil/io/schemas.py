@@ -25,6 +25,7 @@ __all__ = [
     "JSON_SCHEMA_DIALECT",
     "MESSAGE_ENCODING",
     "METADATA_AXIS_PREFIX",
+    "METADATA_CLOSING",
     "METADATA_CONFIG",
     "METADATA_DESIGN",
     "METADATA_LAYOUT",
@@ -60,7 +61,8 @@ METADATA_DESIGN: Final = "foilc_hil.design"
 #: the ``foilc_hil.config`` and ``foilc_hil.design`` records are the whole document's and the first axis's design
 METADATA_AXIS_PREFIX: Final = "foilc_hil.axis"
 
-#: metadata record holding ``{"ilc_sample": "<version>"}``: how ``/ilc/sample`` rows align (absent: version 1)
+#: metadata record holding ``{"ilc_sample": "<version>", "closing": "1"}``: how ``/ilc/sample`` rows align (absent:
+#: version 1), and that the writer closes the log with :data:`METADATA_CLOSING` (absent: a log written before it)
 METADATA_LAYOUT: Final = "foilc_hil.layout"
 #: the ``/ilc/sample`` layout the bench writes. 1 (logs without ``foilc_hil.layout``): row ``i`` has ``t = i Ts``,
 #: ``output = y(i Ts)`` but ``reference``, ``error``, ``E`` at ``(i + 1) Ts``. 2: every field of row ``i`` is at
@@ -73,6 +75,12 @@ SAMPLE_LAYOUT: Final = 2
 #: (:func:`foilc_hil.io.pdo_mapping.encode_pdo_mapping`); ``export --format dbc`` reads it. Written after the drive
 #: is configured.
 METADATA_PDO_MAPPING: Final = "foilc_hil.pdo_mapping"
+#: metadata record the writer adds when it closes the log: what it wrote, for ``replay --verify`` to hold the file
+#: against (a trial, a sample or a frame gone is found, the last trial's included): ``{"trials": "[1, 2, ...]"`` (the
+#: ``/ilc/trial`` records, in order), ``"samples": "[N1, N2, ...]"`` (``/ilc/sample`` rows of each trial),
+#: ``"frames": "<count>"`` (``/can`` messages in all)}; each value JSON text. A log without it was cut (or written
+#: before it existed).
+METADATA_CLOSING: Final = "foilc_hil.closing"
 
 
 #: values of ``/can`` ``dir``: sent by the bench, received by the bench

@@ -13,8 +13,9 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 from foilc_hil.errors import LogFormatError
-from foilc_hil.io.schemas import METADATA_AXIS_PREFIX, METADATA_CONFIG, METADATA_DESIGN
-from foilc_hil.logtools.replay import Verification, verify_log
+from foilc_hil.io.schemas import METADATA_AXIS_PREFIX, METADATA_CONFIG, METADATA_DESIGN, METADATA_PDO_MAPPING
+from foilc_hil.logtools.audit import check_closing, promises_closing
+from foilc_hil.logtools.replay import Divergence, Verification, verify_log
 
 if TYPE_CHECKING:
     from foilc_hil.io.mcap_log import LogContents
@@ -38,6 +39,9 @@ def axis_view(contents: LogContents, node: int) -> LogContents:
         if record is None:
             raise LogFormatError(f"{contents.path}: no {METADATA_AXIS_PREFIX}.{node}.{kind} metadata for axis {node}")
         metadata[name] = record
+    mapping = contents.metadata.get(f"{METADATA_AXIS_PREFIX}.{node}.pdo_mapping")
+    if mapping is not None:  # the axis's own PDOs, for the check of its frames
+        metadata[METADATA_PDO_MAPPING] = mapping
     return replace(
         contents,
         metadata=metadata,
@@ -65,10 +69,17 @@ class AxisVerification:
 
 
 def verify_axes(contents: LogContents) -> tuple[Verification, list[AxisVerification]]:
-    """Every axis verified bit for bit on its own law; the log's result: verified when every axis is, the counts
-    summed, the first divergence of the first axis that has one."""
-    axes = [AxisVerification(node, verify_log(axis_view(contents, node))) for node in log_axes(contents)]
+    """Every axis verified bit for bit on its own law, and the log's closing record; the log's result: verified
+    when every axis and the record are, the counts summed, the first divergence of the first axis that has one
+    (the record's after them)."""
+    axes = [AxisVerification(node, verify_log(axis_view(contents, node), whole_log=False))
+            for node in log_axes(contents)]
     failed = [axis.verification for axis in axes if not axis.verification.verified]
+    # the writer's record is the whole log's: checked once, on all of it
+    closing = check_closing(contents) if promises_closing(contents) and not contents.truncated else None
+    if closing is not None:
+        failed.append(Verification(False, 0, 0, Divergence(closing.trial, closing.sample, None, closing.logged,
+                                                           closing.recomputed, closing.reason, closing.topic)))
     total = Verification(
         verified=not failed,
         samples_checked=sum(axis.verification.samples_checked for axis in axes),

@@ -38,11 +38,22 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from foilc_hil.errors import FoilcHilError, InputError, LogFormatError
+from foilc_hil.logtools.audit import (
+    Finding,
+    check_closing,
+    check_design,
+    check_law_kind,
+    check_trial_record,
+    first_differing_row,
+    promises_closing,
+)
+from foilc_hil.logtools.wire import WireMap, check_trial_wire, sync_windows, wire_map
 
 if TYPE_CHECKING:
     import can
 
     from foilc_hil.io.mcap_log import LogContents
+    from foilc_hil.metrics import NoiseFloorTracker
 
 __all__ = [
     "Divergence",
@@ -50,6 +61,7 @@ __all__ = [
     "Playback",
     "Verification",
     "law_from_log",
+    "logged_config",
     "play_frames",
     "select_frames",
     "verify_log",
@@ -169,9 +181,11 @@ class Divergence:
     logged: Any
     recomputed: Any
     reason: str
+    topic: str = "/ilc/sample"  # or "/can", "/ilc/trial", a metadata record: where the log disagrees
 
     def to_json(self) -> dict[str, Any]:
         return {
+            "topic": self.topic,
             "trial": self.trial,
             "sample": self.sample,
             "t": self.t,
@@ -235,24 +249,17 @@ def _output_for_error(reference: float, error: float) -> float | None:
     return None
 
 
-def law_from_log(contents: LogContents, n_samples: int) -> LawLike:
-    """Rebuild the run's law from the log's metadata.
-
-    With a ``foilc_hil.design`` record: ``make_law(design, config.law, n_samples, limits=...)`` (the design names
-    the law that ran; the bench may override the config's ``law.kind``), with the command limits the bench logged
-    in ``/ilc/trial`` (``command_limits``; none in offline logs, whose laws do not clamp). Without one (an offline
-    P-type run written before P-type designs were logged): the P-type design of the config's nominal model from
-    the design pipeline (:func:`foilc_hil.design.pipeline.build_design`, no input delay), which gives the same
-    gain.
+def logged_config(contents: LogContents) -> Any:
+    """The run's :class:`~foilc_hil.config.Config` from the ``foilc_hil.config`` metadata.
 
     Raises
     ------
     LogFormatError
-        The log lacks the records it needs, or they do not load (the message says which).
+        The log lacks the record, or it does not load (the message says which).
     """
     import yaml
 
-    from foilc_hil.config import Config, LawKind
+    from foilc_hil.config import Config
     from foilc_hil.schema import load_yaml_text, validate
 
     config_yaml = contents.config_yaml
@@ -264,9 +271,27 @@ def law_from_log(contents: LogContents, n_samples: int) -> LawLike:
         raise LogFormatError(f"{contents.path}: metadata foilc_hil.config is not YAML: {exc}") from None
     if not isinstance(document, dict):
         raise LogFormatError(f"{contents.path}: metadata foilc_hil.config is not a mapping")
+    return validate(Config, document, source=f"{contents.path} (foilc_hil.config)")
+
+
+def law_from_log(contents: LogContents, n_samples: int) -> LawLike:
+    """Rebuild the run's law from the log's metadata.
+
+    With a ``foilc_hil.design`` record: ``make_law(design, config.law, n_samples, limits=...)`` (the design names
+    the law that ran), with the command limits the bench logged in ``/ilc/trial`` (``command_limits``; none in
+    offline logs, whose laws do not clamp). Without one (an offline P-type run written before P-type designs were
+    logged): the P-type design of the config's nominal model from the design pipeline
+    (:func:`foilc_hil.design.pipeline.build_design`, no input delay), which gives the same gain.
+
+    Raises
+    ------
+    LogFormatError
+        The log lacks the records it needs, or they do not load (the message says which).
+    """
+    from foilc_hil.config import LawKind
     from foilc_hil.laws.learning import make_law
 
-    config = validate(Config, document, source=f"{contents.path} (foilc_hil.config)")
+    config = logged_config(contents)
     design_doc = contents.design
     if design_doc is None:
         if config.law.kind is not LawKind.P_TYPE:
@@ -343,62 +368,189 @@ def _law_inputs(rows: Sequence[Mapping[str, Any]], record: Mapping[str, Any] | N
     return [record["initial_output"], *(row["output"] for row in rows[:-1])]
 
 
-def verify_log(contents: LogContents, law: LawLike | None = None) -> Verification:
-    """Re-run the learning law on the logged feedback; check every command bit for bit.
+@dataclass
+class _Checks:
+    """What each trial is held to besides its commands (nothing more where the caller hands in the law)."""
+
+    records: bool  # /ilc/trial figures and E, from the law's own end_trial
+    tracker: NoiseFloorTracker | None  # the bench's noise floor of a single-axis log, trial after trial
+    wire: WireMap | None  # the node's PDOs, where the log has the mapping and its trials their first SYNC
+    windows: list[Any]
+
+
+def _checks(contents: LogContents, config: Any, layout: int) -> _Checks:
+    if config is None or layout == 1:  # logs before layout 2: their figures were computed another way
+        return _Checks(records=False, tracker=None, wire=None, windows=[])
+    from foilc_hil.io.schemas import METADATA_PDO_MAPPING
+    from foilc_hil.metrics import NoiseFloorTracker
+
+    several = any("axis" in record for record in contents.trials)  # an axis's records carry no noise floor
+    mapping = contents.metadata.get(METADATA_PDO_MAPPING)
+    wire = wire_map(mapping, config.drive) if mapping is not None else None
+    windows = sync_windows(contents.frames) if wire is not None else []
+    return _Checks(records=True, tracker=None if several else NoiseFloorTracker(), wire=wire, windows=windows)
+
+
+def verify_log(contents: LogContents, law: LawLike | None = None, *, whole_log: bool = True) -> Verification:
+    """Prove what the log claims, as far as it goes (a truncated log as far as it was read).
+
+    Re-runs the learning law on the logged feedback and checks every command bit for bit; holds every trial's
+    ``E`` and ``/ilc/trial`` figures against the law's own update, and its ``/can`` frames against its samples
+    (:mod:`foilc_hil.logtools.wire`); then the log as a whole (:mod:`foilc_hil.logtools.audit`): the closing
+    record (``whole_log``; an axis's view of a log of several is checked as part of the whole), the config's law
+    against the design's, and the design against the one the logged config gives.
 
     Parameters
     ----------
     contents
-        The log (:func:`foilc_hil.io.mcap_log.read_log`); a truncated log is verified as far as it goes.
+        The log (:func:`foilc_hil.io.mcap_log.read_log`).
     law
-        The law to drive; by default :func:`law_from_log`.
+        The law to drive; by default :func:`law_from_log`. A law handed in is checked on its commands alone.
+    whole_log
+        Check the closing record too (``False`` for one axis's view, :func:`foilc_hil.logtools.axes.verify_axes`).
     """
     grouped = _group_samples(contents.samples)
     if not grouped:
-        raise LogFormatError(f"{contents.path}: no /ilc/sample messages to verify")
+        damage = f" ({contents.damage})" if contents.damage else ""
+        raise LogFormatError(f"{contents.path}: no /ilc/sample messages to verify{damage}")
     layout = sample_layout(contents)
     n = samples_per_trial(contents)
+    config = None
     if law is None:
+        config = logged_config(contents)
         law = law_from_log(contents, n)
+    result = _verify_trials(contents, grouped, layout, n, law, _checks(contents, config, layout))
+    if not result.verified or config is None:
+        return result
+    finding = _log_finding(contents, config, n, whole_log)
+    if finding is None:
+        return result
+    return Verification(False, result.samples_checked, result.trials_checked, _divergence(finding))
+
+
+def _verify_trials(contents: LogContents, grouped: dict[int, list[Mapping[str, Any]]], layout: int, n: int,
+                   law: LawLike, checks: _Checks) -> Verification:
     trial_records = {int(record["trial"]): record for record in contents.trials}
-    checked = 0
-    trials_checked = 0
+    checked = trials_checked = 0
     expected_trial = min(grouped)
     for trial in sorted(grouped):
-        rows = grouped[trial]
-        position = 0
         if trial != expected_trial:
-            return _stop(checked, trials_checked, trial, 0, None, None, None, f"trial {expected_trial} is missing")
-        inputs = _law_inputs(rows, trial_records.get(trial), layout)
-        if inputs is None:
-            break  # the trial in progress when the log ended, without its y(0): nothing to check after it
-        try:
-            law.begin_trial()
-            for i, row in enumerate(rows):
-                position = i
-                if int(row.get("sample", i)) != i:
-                    return _stop(checked, trials_checked, trial, i, row.get("t"), None, None, "sample missing")
-                y = _as_vector(inputs[i])
-                logged = _as_vector(row["control"])
-                if y is None or logged is None:
-                    return _stop(checked, trials_checked, trial, i, row.get("t"), row["control"], None, "not numeric")
-                recomputed = np.asarray(law.command(i, y), dtype=np.float64).ravel()
-                if not _bits_equal(recomputed, logged):
-                    return _stop(
-                        checked, trials_checked, trial, i, row.get("t"), logged, recomputed.copy(), "command differs"
-                    )
-                checked += 1
-            if trial not in trial_records or len(rows) != n:
-                break  # the trial in progress when the log ended: nothing after it
-            reference, output, problem = _trial_arrays(rows, trial_records[trial], layout)
-            if problem:
-                return _stop(checked, trials_checked, trial, n - 1, rows[-1].get("t"), None, None, problem)
-            law.end_trial(reference, output)
-        except FoilcHilError as exc:
-            return _stop(checked, trials_checked, trial, position, None, None, None, f"the law refused: {exc}")
+            return _stop(checked, trials_checked, expected_trial, 0, None, None, None,
+                         f"trial {expected_trial} is missing (the next in the log is trial {trial})")
+        record = trial_records.get(trial)
+        rows, count, divergence, complete = grouped[trial], 0, None, False
+        inputs = _law_inputs(rows, record, layout)
+        if inputs is not None:
+            count, divergence, complete = _verify_trial(trial, rows, record, inputs, layout, n, law, checks)
+        checked += count
+        if divergence is not None:
+            return Verification(False, checked, trials_checked, divergence)
+        if not complete:
+            break  # the trial in progress when the log ended: nothing to check after it
         trials_checked += 1
         expected_trial = trial + 1
     return Verification(True, checked, trials_checked, None)
+
+
+def _verify_trial(trial: int, rows: Sequence[Mapping[str, Any]], record: Mapping[str, Any] | None,
+                  inputs: list[Any], layout: int, n: int, law: LawLike,
+                  checks: _Checks) -> tuple[int, Divergence | None, bool]:
+    """One trial: its commands re-run, then (complete) its update and records; rows checked, the first
+    divergence, and whether the trial was complete."""
+    position = 0
+    try:
+        law.begin_trial()
+        for i, row in enumerate(rows):
+            position = i
+            if int(row.get("sample", i)) != i:
+                return i, _divergence(Finding("/ilc/sample", trial, i, "sample missing")), False
+            y = _as_vector(inputs[i])
+            logged = _as_vector(row["control"])
+            if y is None or logged is None:
+                return i, Divergence(trial, i, row.get("t"), row["control"], None, "not numeric"), False
+            recomputed = np.asarray(law.command(i, y), dtype=np.float64).ravel()
+            if not _bits_equal(recomputed, logged):
+                return i, Divergence(trial, i, row.get("t"), logged, recomputed.copy(), "command differs"), False
+        if record is None or len(rows) != n:
+            return len(rows), None, False
+        reference, output, problem, at = _trial_arrays(rows, record, layout)
+        if problem:
+            return len(rows), Divergence(trial, at, rows[at].get("t"), None, None, problem), False
+        update = law.end_trial(reference, output)
+    except FoilcHilError as exc:
+        return position, Divergence(trial, position, None, None, None, f"the law refused: {exc}"), False
+    finding = _trial_finding(trial, rows, record, inputs, update, output, checks)
+    return len(rows), _divergence(finding) if finding is not None else None, True
+
+
+def _trial_finding(trial: int, rows: Sequence[Mapping[str, Any]], record: Mapping[str, Any], inputs: list[Any],
+                   update: Any, output: np.ndarray, checks: _Checks) -> Finding | None:
+    """A complete trial's ``E``, ``/ilc/trial`` figures and ``/can`` frames against what the law recomputed."""
+    if not checks.records:
+        return None
+    n = len(rows)
+    E = np.asarray(update.E, dtype=np.float64).reshape(n, -1)
+    at = first_differing_row([row.get("E") for row in rows], E)
+    if at is not None:
+        return Finding("/ilc/sample", trial, at, "E is not the law's E recomputed from the trial's errors",
+                       rows[at].get("E"), E[at].tolist())
+    metrics = update.metrics
+    if checks.tracker is not None:
+        metrics = checks.tracker.measured(metrics, np.asarray(update.error, dtype=np.float64))
+    limits = _record_limits(record)
+    finding = check_trial_record(record, metrics.to_json(), rows, limits)
+    if finding is not None or checks.wire is None or "first_sync" not in record or E.shape[1] != 1:
+        return finding
+    feedback = [_as_float(value) for value in inputs] + [float(output[-1].ravel()[0])]
+    controls = [_as_float(row["control"]) for row in rows]
+    mismatch = check_trial_wire(checks.windows, record, feedback, controls, checks.wire)
+    if mismatch is None:
+        return None
+    return Finding("/can", mismatch.trial, mismatch.sample, mismatch.reason, mismatch.logged, mismatch.on_wire)
+
+
+def _record_limits(record: Mapping[str, Any]) -> tuple[float, float] | None:
+    limits = record.get("command_limits")
+    return (float(limits[0]), float(limits[1])) if isinstance(limits, list) and len(limits) == 2 else None
+
+
+def _as_float(value: Any) -> float:
+    vector = _as_vector(value)
+    return float(vector[0]) if vector is not None and vector.size == 1 else math.nan
+
+
+def _log_finding(contents: LogContents, config: Any, n: int, whole_log: bool) -> Finding | None:
+    """The log as a whole: its closing record, the config's law against the design's, the design rebuilt."""
+    if not promises_closing(contents):
+        return None  # a log written before these records, or by hand: its commands and figures are what is checked
+    if whole_log and not contents.truncated:  # a cut log is reported as partial, the closing record with it
+        finding = check_closing(contents)
+        if finding is not None:
+            return finding
+    design = contents.design
+    if design is None:
+        return None
+    return check_law_kind(config, design) or check_design(design, _rebuilt_design(config, design, n))
+
+
+def _rebuilt_design(config: Any, design: Mapping[str, Any], n: int) -> dict[str, Any]:
+    """The design the logged config gives for the logged law and input delay, as the log would hold it."""
+    import json
+
+    from foilc_hil.design.pipeline import build_design
+    from foilc_hil.io.mcap_writer import encode_design
+
+    try:
+        rebuilt = build_design(config, str(design.get("law")), n, input_delay=int(design.get("input_delay", 0)))
+    except FoilcHilError as exc:
+        return {"law": f"not designable: {exc}"}
+    return {key: json.loads(value) for key, value in encode_design(rebuilt.to_json()).items()}
+
+
+def _divergence(finding: Finding) -> Divergence:
+    return Divergence(finding.trial, finding.sample, None, finding.logged, finding.recomputed, finding.reason,
+                      finding.topic)
+
 
 
 def _stop(
@@ -416,21 +568,21 @@ def _stop(
 
 def _trial_arrays(
     rows: Sequence[Mapping[str, Any]], record: Mapping[str, Any], layout: int
-) -> tuple[np.ndarray, np.ndarray, str]:
-    """``end_trial``'s ``(reference, output)`` (module docstring: per layout); or why not."""
+) -> tuple[np.ndarray, np.ndarray, str, int]:
+    """``end_trial``'s ``(reference, output)`` (module docstring: per layout); or why not, and the sample."""
     reference = np.array([_as_vector(row["reference"]) for row in rows], dtype=np.float64)
     if layout == 1:
         output, problem = _layout1_output(rows, record, reference)
         if problem:
-            return reference, reference, problem
+            return reference, reference, problem, len(rows) - 1
     else:
         output = np.array([_as_vector(row["output"]) for row in rows], dtype=np.float64)
     # The log must agree with itself: the error it records is reference - output for every sample.
     for i, row in enumerate(rows):
         logged_error = _as_vector(row["error"])
-        if logged_error is not None and not _bits_equal(reference[i] - output[i], logged_error):
-            return reference, output, f"logged error of sample {i} is not reference - output"
-    return reference, output, ""
+        if logged_error is None or not _bits_equal(reference[i] - output[i], logged_error):
+            return reference, output, f"logged error of sample {i} is not reference - output", i
+    return reference, output, "", 0
 
 
 def _layout1_output(

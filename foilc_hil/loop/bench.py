@@ -259,6 +259,7 @@ class TrialRecord:
     faults: FaultCounts = field(default_factory=FaultCounts)  # lost feedbacks, bad frames in the trial
     axis: int | None = None  # the axis's node id in a run of several axes (``axes:``); None: the only axis
     command_limits: tuple[float, float] | None = None  # this axis's limits when they are not the sink's
+    first_sync: int | None = None  # the drive's count of the trial's first SYNC (its frame in /can); None: no bus
 
     def samples(self) -> TrialSamples:
         """The ``/ilc/sample`` messages of this trial as columns, layout :data:`~foilc_hil.io.schemas.SAMPLE_LAYOUT`
@@ -333,6 +334,7 @@ class _RawTrial:
     clamped: int
     feedforward_used: np.ndarray
     faults: FaultCounts
+    first_sync: int | None
 
 
 #: seconds between the loop's looks at its stop request while it waits for a between-trial update (a stalled log
@@ -492,6 +494,7 @@ class TrialLoop:
         self._deadline = self._lateness = math.nan
         self._skipped = 0
         self._late = self._missing = False
+        self._sync_number = 0  # the drive's count of the last SYNC it sent (its frame in the log)
 
     # -- public --------------------------------------------------------------------------------------------------
 
@@ -612,7 +615,8 @@ class TrialLoop:
         drive = self.drive
         law = self.law
         try:
-            for i in range(self._run_whole_trial(seen, control, applied, sync_times), n):  # those left, one by one
+            whole = self._run_whole_trial(seen, control, applied, sync_times)
+            for i in range(whole, n):  # those left, one by one
                 y = self._cycle_feedback()
                 sync_times[i] = self._sync_time
                 seen[i] = y
@@ -633,9 +637,11 @@ class TrialLoop:
             self._flush_timing(first_cycle)
         self.progress.advance(n)
         faults = FaultCounts(self.watchdog.total - lost_before, self.drive.bad_frames - bad_before)
+        # SYNCs are counted one by one, the trial's N + 1 the last of them (no count where the drive ran it whole)
+        first_sync = self._sync_number - n if whole == 0 else None
         return _RawTrial(
             trial, seen, control, applied, sync_times, self._clamped_count() - clamped_before, self._feedforward_used,
-            faults,
+            faults, first_sync,
         )
 
     def _run_whole_trial(
@@ -688,6 +694,7 @@ class TrialLoop:
             sync_times=raw.sync_times,
             clamped=raw.clamped,
             faults=raw.faults,
+            first_sync=raw.first_sync,
         )
         self.outcome.trials.append(metrics)
         self.outcome.trial_faults.append(raw.faults)
@@ -712,7 +719,7 @@ class TrialLoop:
             deadline, lateness, skipped = self.scheduler.wait()
         else:
             deadline, lateness, skipped = math.nan, math.nan, 0
-        self.drive.sync()
+        self._sync_number = self.drive.sync()
         sync_time = self._clock()
         self._sync_time = sync_time
         self._deadline, self._lateness, self._skipped = deadline, lateness, skipped
@@ -883,7 +890,8 @@ class McapSink:
 
         self.writer = writer
         self.command_limits = None if command_limits is None else [float(limit) for limit in command_limits]
-        writer.add_metadata(METADATA_LAYOUT, {"ilc_sample": str(SAMPLE_LAYOUT)})  # replay --verify reads rows by it
+        # replay --verify reads rows by it, and requires the closing record the writer ends every log with
+        writer.add_metadata(METADATA_LAYOUT, {"ilc_sample": str(SAMPLE_LAYOUT), "closing": "1"})
         self._previous_sync: float | None = None  # across blocks: a settle phase's first period_us is a real one
 
     def ready(self) -> None:
@@ -920,6 +928,8 @@ class McapSink:
         ends = {"initial_output": float(record.seen[0]), "final_output": float(record.seen[-1])}
         if record.axis is not None:  # a run of several axes: every /ilc/trial names its axis
             ends["axis"] = record.axis
+        if record.first_sync is not None:  # replay --verify finds the trial's frames in /can from it
+            ends["first_sync"] = record.first_sync
         limits = self.command_limits if record.command_limits is None else [float(x) for x in record.command_limits]
         if limits is None:
             self.writer.log_trial(record.metrics, **ends)

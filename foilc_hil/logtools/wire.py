@@ -1,0 +1,187 @@
+"""What the wire says: a trial's ``/can`` frames held against its ``/ilc/sample`` rows (``replay --verify``).
+
+A run's ``/ilc/trial`` records carry ``first_sync``: the count of the trial's first SYNC among the SYNC frames the
+bench sent, which the log holds in order (the frame tap logs every frame from the drive's connect on). Cycle ``i``
+of the trial (``i = 0 .. N``) is the window of frames from its SYNC to the next one: the drive's TPDO set answering
+that SYNC, then the bench's RPDO. So, with the PDO mapping the run installed (``foilc_hil.pdo_mapping``) and the
+drive section of the logged config:
+
+- the velocity in cycle ``i``'s TPDO is the feedback the law was given at sample ``i`` (``initial_output`` for
+  ``i = 0``, the previous row's ``output`` after it): ``raw / drive.velocity_scale``, bit for bit; a cycle with no
+  TPDO is a lost feedback, for which the law was given the last good value again (``lost_feedback`` counts them);
+- the target in cycle ``i``'s RPDO (``i < N``) is the row's ``control`` as the bench sent it: clamped to
+  ``/ilc/trial`` ``command_limits`` and to the drive's limit, scaled and rounded (the master's ``set_target``);
+  cycle ``N``'s is the zero command that ends the trial;
+- a frame of the node's TPDOs whose length is not the mapping's is a bad frame (``bad_frames`` counts them).
+
+Logs without ``first_sync`` (offline runs, logs written before it) have no wire to check; the caller says so.
+"""
+
+from __future__ import annotations
+
+import base64
+import math
+import struct
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from drivers.cia301 import SYNC_COB_ID
+from drivers.pdo import PdoLayout
+from foilc_hil.errors import LogFormatError
+
+__all__ = ["PdoField", "WireMap", "WireMismatch", "check_trial_wire", "sync_windows", "wire_map"]
+
+#: CiA 402 objects the check reads: target velocity (CSV, PV), target torque (CST), velocity actual value
+_TARGET_VELOCITY, _TARGET_TORQUE, _VELOCITY_ACTUAL = 0x60FF, 0x6071, 0x606C
+
+
+@dataclass(frozen=True)
+class PdoField:
+    """Where one mapped object sits in a PDO: its COB-ID, bit offset, width and sign."""
+
+    cob_id: int
+    offset: int
+    bits: int
+    signed: bool
+    size: int  # the PDO's length in bytes
+
+    def decode(self, data: bytes) -> int:
+        raw = int.from_bytes(data, "little") >> self.offset & ((1 << self.bits) - 1)
+        return raw - (1 << self.bits) if self.signed and raw >> (self.bits - 1) else raw
+
+
+@dataclass(frozen=True)
+class WireMap:
+    """The node's target in its RPDO, its velocity in its TPDO, and how the bench scaled and limited them."""
+
+    target: PdoField
+    velocity: PdoField
+    tpdo_sizes: Mapping[int, int]  # COB-ID -> bytes, every TPDO of the node
+    target_scale: float
+    target_limit: float
+    velocity_scale: float
+
+
+@dataclass(frozen=True)
+class WireMismatch:
+    """Where the wire disagrees with the samples: the trial, the sample (cycle), what, and both values."""
+
+    trial: int
+    sample: int
+    reason: str
+    logged: Any
+    on_wire: Any
+
+
+def _field(layouts: Sequence[PdoLayout], index: int) -> PdoField | None:
+    for layout in layouts:
+        offset = 0
+        for variable in layout.variables:
+            if variable.index == index:
+                size = sum(v.bits for v in layout.variables) // 8
+                return PdoField(layout.cob_id, offset, variable.bits, variable.signed, size)
+            offset += variable.bits
+    return None
+
+
+def wire_map(mapping: Mapping[str, str], drive: Any) -> WireMap:
+    """The :class:`WireMap` of the logged mapping record and the config's ``drive`` section."""
+    from foilc_hil.io.pdo_mapping import decode_pdo_mapping
+
+    try:
+        rpdos, tpdos = decode_pdo_mapping(dict(mapping))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise LogFormatError(f"metadata foilc_hil.pdo_mapping is malformed: {exc}") from None
+    torque = getattr(drive.mode, "value", drive.mode) == "cst"
+    target = _field(rpdos, _TARGET_TORQUE if torque else _TARGET_VELOCITY)
+    velocity = _field(tpdos, _VELOCITY_ACTUAL)
+    if target is None or velocity is None:
+        raise LogFormatError("metadata foilc_hil.pdo_mapping maps no target or no velocity actual value")
+    return WireMap(
+        target=target,
+        velocity=velocity,
+        tpdo_sizes={layout.cob_id: sum(v.bits for v in layout.variables) // 8 for layout in tpdos},
+        target_scale=float(drive.torque_scale if torque else drive.velocity_scale),
+        target_limit=float(drive.torque_limit if torque else drive.velocity_limit),
+        velocity_scale=float(drive.velocity_scale),
+    )
+
+
+@dataclass(frozen=True)
+class _Frame:
+    cob_id: int
+    tx: bool
+    data: bytes
+
+
+def sync_windows(frames: Sequence[Mapping[str, Any]]) -> list[list[_Frame]]:
+    """The log's frames cut at each SYNC the bench sent: window ``k - 1`` starts with the ``k``-th SYNC."""
+    windows: list[list[_Frame]] = []
+    for frame in frames:
+        cob, tx = int(frame["id"]), frame.get("dir") == "tx"
+        if tx and cob == SYNC_COB_ID:
+            windows.append([])
+        elif windows:
+            windows[-1].append(_Frame(cob, tx, base64.b64decode(frame.get("data") or "")))
+    return windows
+
+
+def _sent_raw(control: float, limits: tuple[float, float] | None, wire: WireMap) -> int:
+    """The target the master sent for the law's ``control``: the bench's limiter, then ``set_target``'s clamp,
+    scale and rounding."""
+    value = control
+    if limits is not None:
+        value = min(max(value, limits[0]), limits[1])
+    value = min(max(value, -wire.target_limit), wire.target_limit)
+    return round(value * wire.target_scale)
+
+
+def check_trial_wire(
+    windows: Sequence[Sequence[_Frame]], record: Mapping[str, Any], inputs: Sequence[float],
+    controls: Sequence[float], wire: WireMap,
+) -> WireMismatch | None:
+    """Hold one trial's ``N + 1`` cycles on the wire against the law's inputs (``N + 1``: ``y_0 .. y_N``) and its
+    ``N`` commands; the first disagreement, or ``None``."""
+    trial, first = int(record["trial"]), int(record["first_sync"])
+    limits = tuple(record["command_limits"]) if "command_limits" in record else None
+    n = len(controls)
+    if first < 1 or first + n > len(windows):
+        return WireMismatch(trial, 0, f"/can holds {len(windows)} SYNCs, not the trial's from SYNC {first}",
+                            first, len(windows))
+    lost = bad = 0
+    held = math.nan
+    for i in range(n + 1):
+        window = windows[first - 1 + i]
+        bad += sum(1 for f in window if not f.tx and f.cob_id in wire.tpdo_sizes
+                   and len(f.data) != wire.tpdo_sizes[f.cob_id])
+        answers = [f for f in window if not f.tx and f.cob_id == wire.velocity.cob_id
+                   and len(f.data) == wire.velocity.size]
+        # a cycle without its TPDO is a lost feedback: the law was given the last good value again
+        y = wire.velocity.decode(answers[0].data) / wire.velocity_scale if answers else held
+        lost += not answers
+        held = y
+        if not (math.isnan(y) and not answers) and _bits(y) != _bits(inputs[i]):
+            what = "the TPDO's velocity" if answers else "the value held for a lost TPDO"
+            return WireMismatch(trial, i, f"{what} is not the feedback the law was given", inputs[i], y)
+        commands = [f for f in window if f.tx and f.cob_id == wire.target.cob_id]
+        expected = _sent_raw(controls[i], limits, wire) if i < n else 0
+        if i == n:  # after the last trial's zero command the stop's own RPDOs may follow before any SYNC
+            commands = commands[:1]
+        if len(commands) != 1:
+            return WireMismatch(trial, i, f"{len(commands)} RPDOs in the cycle, not one", expected, len(commands))
+        sent = wire.target.decode(commands[0].data)
+        if sent != expected:
+            logged = controls[i] if i < n else 0.0
+            return WireMismatch(trial, i, "the RPDO's target is not the logged control as the bench sends it",
+                                logged, sent / wire.target_scale)
+    for key, count in (("lost_feedback", lost), ("bad_frames", bad)):
+        if key in record and int(record[key]) != count:
+            return WireMismatch(trial, n, f"/ilc/trial {key} is {record[key]}, the wire shows {count}",
+                                record[key], count)
+    return None
+
+
+def _bits(value: float) -> bytes:
+    """A float's IEEE 754 bits (``-0.0`` and ``0.0`` differ, NaNs compare by their payload)."""
+    return struct.pack("<d", value)
