@@ -41,17 +41,6 @@ RANKS: dict[str, int] = {
 #: the packages a script may import without the control stack: nothing of theirs imports ``foilc_hil``
 STANDALONE = ("drivers", "plant_emulator")
 
-#: modules of a stand-alone package that still import ``foilc_hil``, in the hands of another line of work when this
-#: rule came in (issue 27); each needs a one-line change to the same objects one rank down (below). Their rows are
-#: strict xfails: they turn red the moment the import is fixed, and then the entry goes.
-_PHYSICS = "plant_emulator/physics is owned by the physics work: `from drivers.errors import ConfigError[, InputError]`"
-AWAITING_OWNER: dict[str, str] = {
-    "plant_emulator.physics.base": _PHYSICS,
-    "plant_emulator.physics.first_order": _PHYSICS,
-    "plant_emulator.physics.pmsm": _PHYSICS,
-}
-
-
 def rank(module: str) -> int | None:
     """The rank of ``module`` (None: not ours)."""
     parts = module.split(".")
@@ -138,13 +127,7 @@ def test_every_module_has_a_rank() -> None:
     assert not unranked, f"give these a rank in RANKS (and docs/architecture.md): {unranked}"
 
 
-def _rows(modules: Iterable[str]) -> list[object]:
-    """``modules`` as parameters, those of :data:`AWAITING_OWNER` as strict xfails."""
-    return [pytest.param(module, marks=pytest.mark.xfail(strict=True, reason=AWAITING_OWNER[module]))
-            if module in AWAITING_OWNER else module for module in sorted(modules)]
-
-
-@pytest.mark.parametrize("module", _rows(MODULES))
+@pytest.mark.parametrize("module", sorted(MODULES))
 def test_imports_point_down(module: str) -> None:
     own = rank(module)
     assert own is not None
@@ -153,16 +136,12 @@ def test_imports_point_down(module: str) -> None:
     assert not upward, f"{module} (rank {own}) imports up: {upward}"
 
 
-@pytest.mark.parametrize("module", _rows(m for m in MODULES if m.split(".")[0] in STANDALONE))
+@pytest.mark.parametrize("module", sorted(m for m in MODULES if m.split(".")[0] in STANDALONE))
 def test_stand_alone_packages_import_nothing_of_foilc_hil(module: str) -> None:
     """``drivers`` and ``plant_emulator`` stand alone: no import of theirs, function-local ones included, reaches
     ``foilc_hil`` (the ranks alone would allow a same-rank one)."""
     reached = sorted(target for target in project_graph()[module] if target.split(".")[0] == "foilc_hil")
     assert not reached, f"{module} imports {reached}"
-
-
-def test_awaiting_owner_names_real_modules() -> None:
-    assert set(AWAITING_OWNER) <= set(MODULES)
 
 
 def test_a_planted_import_of_foilc_hil_is_seen() -> None:

@@ -10,8 +10,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
 import drivers
 import drivers.schema
 import drivers.timing
@@ -45,8 +43,6 @@ def test_the_probe_sees_foilc_hil() -> None:
     assert "foilc_hil.errors" in loaded_by(["foilc_hil.errors"])
 
 
-@pytest.mark.xfail(strict=True, reason="plant_emulator.physics (base, first_order, pmsm) still imports "
-                   "foilc_hil.errors: tests/test_layering.py AWAITING_OWNER")
 def test_the_emulator_imports_without_foilc_hil() -> None:
     assert loaded_by(["plant_emulator.embedded", "plant_emulator.cli"]) == []
 

@@ -13,7 +13,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from foilc_hil.errors import ConfigError, InputError
+from drivers.errors import ConfigError, InputError
 
 __all__ = ["Plant", "ScalarPlant", "check_input", "check_scalar_input", "check_step", "check_trial", "trial_rng"]
 

@@ -23,7 +23,7 @@ import itertools
 import numpy as np
 from scipy.linalg import expm
 
-from foilc_hil.errors import ConfigError
+from drivers.errors import ConfigError
 from plant_emulator.config import PlantConfig
 from plant_emulator.linear import continuous_model
 from plant_emulator.physics.base import check_input, check_scalar_input, check_step, check_trial

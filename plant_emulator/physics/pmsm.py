@@ -49,7 +49,7 @@ from typing import Literal
 
 import numpy as np
 
-from foilc_hil.errors import ConfigError
+from drivers.errors import ConfigError
 from plant_emulator.config import DisturbanceConfig, PlantConfig, PmsmConfig
 from plant_emulator.physics.base import check_scalar_input, check_step, check_trial, trial_rng
 from plant_emulator.physics.disturbance import Disturbance
