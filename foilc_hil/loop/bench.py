@@ -351,7 +351,7 @@ class _TrialUpdateThread:
     def __init__(self, loop: TrialLoop, raw: _RawTrial) -> None:
         self._loop = loop
         self._raw = raw
-        self._verdict: DivergenceVerdict | None = None
+        self._finished: tuple[TrialRecord, DivergenceVerdict] | None = None
         self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._work, name=f"foilc-hil-trial-{raw.trial}-update", daemon=True)
 
@@ -374,7 +374,7 @@ class _TrialUpdateThread:
     def _update(self) -> None:
         try:
             self._loop._emit_timing()
-            self._verdict = self._loop._finish_trial(self._raw)
+            self._finished = self._loop._finish_trial(self._raw)
             collect_young()  # the cyclic garbage of the trial, while the gc is off for the run (drivers.realtime)
         except BaseException as exc:  # handed to the loop's thread by result()
             self._error = exc
@@ -390,9 +390,10 @@ class _TrialUpdateThread:
         """The update has finished (successfully or not)."""
         return not self._thread.is_alive()
 
-    def result(self, stop: StopRequest | None = None) -> DivergenceVerdict:
-        """Wait for the update; re-raise its error in the caller's thread. With ``stop``, a signal or a failure
-        handed to it ends the wait at once (raised as :meth:`StopRequest.raise_if_requested` does)."""
+    def result(self, stop: StopRequest | None = None) -> tuple[TrialRecord, DivergenceVerdict]:
+        """Wait for the update: the trial's record and the divergence verdict; re-raise its error in the caller's
+        thread. With ``stop``, a signal or a failure handed to it ends the wait at once (raised as
+        :meth:`StopRequest.raise_if_requested` does)."""
         if self._thread.ident is not None:  # started (else it ran in the caller's thread)
             while self._thread.is_alive():
                 self._thread.join(_UPDATE_POLL)
@@ -400,8 +401,8 @@ class _TrialUpdateThread:
                     stop.raise_if_requested()
         if self._error is not None:
             raise self._error
-        assert self._verdict is not None
-        return self._verdict
+        assert self._finished is not None
+        return self._finished
 
 
 # --- the loop -----------------------------------------------------------------------------------------------------
@@ -495,6 +496,7 @@ class TrialLoop:
         self._skipped = 0
         self._late = self._missing = False
         self._sync_number = 0  # the drive's count of the last SYNC it sent (its frame in the log)
+        self._next_trial = 1  # the number the next trial gets (iter_trials continues it)
 
     # -- public --------------------------------------------------------------------------------------------------
 
@@ -504,7 +506,8 @@ class TrialLoop:
         return self._cycle
 
     def run(self, trials: int) -> BenchOutcome:
-        """Run up to ``trials`` trials. Returns the outcome; raises on aborts after quick-stopping the drive.
+        """Run up to ``trials`` trials (:meth:`iter_trials` to the end). Returns the outcome; raises on aborts after
+        quick-stopping the drive.
 
         Raises
         ------
@@ -515,34 +518,55 @@ class TrialLoop:
         RunInterruptedError
             SIGINT / SIGTERM.
         """
+        for _ in self.iter_trials(trials):
+            pass
+        return self.outcome
+
+    def iter_trials(self, trials: int) -> Iterator[TrialRecord]:
+        """Run up to ``trials`` more trials, yielding each one's record once its between-trial update is done.
+
+        Trial ``k``'s record comes after the settle phase before trial ``k + 1`` (the update runs meanwhile, as in
+        :meth:`run`), or after the last trial; while the caller holds it no cycle runs (lockstep loses nothing; in
+        realtime the drive's SYNC supervision is waiting, so keep the caller's work short). A divergence stop yields
+        the diverged trial (learning already stopped, the drive quick-stopped) and ends. Another call continues the
+        numbering; after a divergence stop it yields nothing. Raises as :meth:`run` does.
+        """
         if trials < 1:
             raise ValueError(f"trials must be >= 1, got {trials}")
-        self.timing.start()
+        if self.outcome.diverged:
+            return
+        first, last = self._next_trial, self._next_trial + trials - 1
+        if first == 1:
+            self.timing.start()
         if self.scheduler is not None:
             self.scheduler.start()
         update: _TrialUpdateThread | None = None
         try:
-            for trial in range(1, trials + 1):
+            for trial in range(first, last + 1):
                 # the previous trial's update (law, metrics, log) runs in `update` while the axis settles, so
                 # SYNC keeps flowing on its period between trials
                 self._settle(trial, update)
                 if update is not None:
-                    verdict = update.result(self.stop)
+                    record, verdict = update.result(self.stop)
                     update = None
                     if verdict.diverged:
                         self._stop_learning(verdict)
-                        break
+                    yield record
+                    if verdict.diverged:
+                        return
                 if self._before_trial is not None:
                     self._before_trial(trial)
-                raw = self._run_trial(trial, trials)
+                raw = self._run_trial(trial, last)
+                self._next_trial = trial + 1
                 update = _TrialUpdateThread.start(self, raw)
             if update is not None:
                 if self.scheduler is not None:  # realtime: the drive watches SYNC until it is stopped
-                    self._settle(trials, update, phase="final")
-                verdict = update.result(self.stop)
+                    self._settle(last, update, phase="final")
+                record, verdict = update.result(self.stop)
                 update = None
                 if verdict.diverged:
                     self._stop_learning(verdict)
+                yield record
         except FoilcHilError:  # the drive's, the law's, a signal, the log writer's: the axis stops first
             self._quick_stop()
             raise
@@ -555,7 +579,6 @@ class TrialLoop:
             self.outcome.clamped_commands = self._clamped_count()
             self.outcome.faults = FaultCounts(self.watchdog.total, self.drive.bad_frames)
             self.outcome.timing = self.timing.summary()
-        return self.outcome
 
     # -- phases --------------------------------------------------------------------------------------------------
 
@@ -670,7 +693,7 @@ class TrialLoop:
         self._held = float(seen[ran.cycles - 1])
         return ran.cycles
 
-    def _finish_trial(self, raw: _RawTrial) -> DivergenceVerdict:
+    def _finish_trial(self, raw: _RawTrial) -> tuple[TrialRecord, DivergenceVerdict]:
         """Between trials (off the hot path): the law's update, metrics, progress, log, divergence check."""
         n = self.reference.shape[0]
         output = raw.seen[1:].copy()
@@ -701,7 +724,7 @@ class TrialLoop:
         self.progress.end_trial(raw.trial, metrics.sse, metrics.rmse, metrics.max_abs_error)
         if self.log is not None:
             self.log.trial_finished(record)
-        return self.guard.check(raw.trial, metrics.sse, raw.feedforward_used)
+        return record, self.guard.check(raw.trial, metrics.sse, raw.feedforward_used)
 
     def _stop_learning(self, verdict: DivergenceVerdict) -> None:
         """The divergence guard tripped: restore the best feedforward, stop the axis, say why."""

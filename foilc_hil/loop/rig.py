@@ -55,7 +55,7 @@ if TYPE_CHECKING:
     from foilc_hil.config import Config
     from foilc_hil.design.record import Design
 
-__all__ = ["AxisPlan", "RunPlan", "RunReport", "RunRequest", "plan_run", "run_rig"]
+__all__ = ["AxisPlan", "Rig", "RunPlan", "RunReport", "RunRequest", "plan_run", "run_rig"]
 
 
 @dataclass(frozen=True)
@@ -248,19 +248,55 @@ def run_rig(request: RunRequest) -> RunReport:
     the run had done in ``partial`` (``--json``'s error document) and each drive's stop in ``facts``; a divergence
     stop does not raise -- the report's ``outcome.stopped`` says why and ``outcome.diverged`` is set.
     """
-    plan = plan_run(request)
-    stops: dict[int, StopReport] = {}
-    loops: list[TrialLoop] = []
-    sinks: list[McapSink] = []
-    try:
-        with _truth_about_the_stops(stops, plan.node_ids), contextlib.ExitStack() as stack:
+    rig = Rig(request)
+    with rig:
+        rig.loop.run(rig.plan.trials)
+    return rig.report()
+
+
+class Rig:
+    """The rig's stack, open between ``__enter__`` and ``__exit__``: what :func:`run_rig` runs its trials in, and
+    ``foilc_hil.Bench`` its caller's, trial by trial (:meth:`TrialLoop.iter_trials`).
+
+    ``__enter__`` plans (:func:`plan_run`), then opens the log, the emulators, the realtime session, the bus and
+    the drives, and commissions and enables every drive, everything registered to be undone in reverse;
+    ``__exit__`` undoes it on every path: every drive safe-stopped (read back) before any is closed and before the
+    log closes, the truth about the stops told (an error for an unconfirmed or faulted stop), and an error that
+    ends the run given what it had done in ``partial``.
+    """
+
+    def __init__(self, request: RunRequest) -> None:
+        self.request = request
+        self.plan = plan_run(request)
+        self.stops: dict[int, StopReport] = {}
+        self.sinks: list[McapSink] = []
+        self._loop: TrialLoop | None = None
+        self._session: RealtimeSession | None = None
+        self._faulty: list[FaultyBus] = []
+        self._bus = ""
+        self._open = contextlib.ExitStack()
+
+    @property
+    def loop(self) -> TrialLoop:
+        """The one trial loop (the rig is open)."""
+        if self._loop is None:
+            raise InputError("the rig is not open: use it in a with block")
+        return self._loop
+
+    def __enter__(self) -> Rig:
+        plan, request = self.plan, self.request
+        with contextlib.ExitStack() as outer:
+            outer.enter_context(self._partial_on_error())
+            outer.enter_context(_truth_about_the_stops(self.stops, plan.node_ids))
+            stack = outer.enter_context(contextlib.ExitStack())
             sink = _open_log(stack, request, plan)
-            sinks.extend([sink] if sink is not None else [])
+            self.sinks.extend([sink] if sink is not None else [])
             bus_cfg, emulators = _start_emulators(stack, plan)
+            self._bus = f"{bus_cfg.interface}:{bus_cfg.channel}"
             # undone only after the confirmed stops (LIFO): restoring the host (the garbage collector first of all)
             # takes a tenth of a second, which must not pass between the loop's last SYNC and the stop
-            session = realtime_session(stack, plan.settings)
-            drives, faulty = _open_drives(stack, plan, bus_cfg, sink, stops, emulators)
+            self._session = realtime_session(stack, plan.settings)
+            drives, self._faulty = _open_drives(stack, plan, bus_cfg, sink, self.stops, emulators)
             progress = request.progress or _progress(plan, request.quiet)
             stack.callback(progress.close)
             stop = stack.enter_context(StopRequest())
@@ -268,33 +304,48 @@ def run_rig(request: RunRequest) -> RunReport:
                 sink.stop_on_failure(stop)
             # the loop and the host setup before the drives are enabled: from its first SYNC in OPERATIONAL a drive
             # supervises SYNC, so nothing slow may run between the enable's last SYNC and the loop's first
-            loop = _trial_loop(plan, drives, sink, progress, stop, hook=trial_hook([*emulators, *faulty]))
-            loops.append(loop)
-            _commission(drives, plan, sink, session)
-            outcome = loop.run(plan.trials)
-            if session is not None and outcome.timing is not None:
-                outcome.timing = replace(outcome.timing, realtime=session.report)
-    except FoilcHilError as exc:
-        ran = loops[0].outcome.trials if loops else []
-        exc.partial = {
-            "law": plan.law_kind,
-            "trials": [metrics.to_json() for metrics in logged_trials(ran, sinks)],
-            "trials_run": len(ran),
-            "stopped": str(exc).splitlines()[0] if str(exc) else type(exc).__name__,
-            "log": str(request.out) if request.out is not None else "",
-            "drive_stop": _worst(stops, plan.node_ids).to_json() if stops else None,
-        }
-        if plan.several:
-            exc.partial["axes"] = [axis.to_json() for axis in _axis_outcomes(plan, stops)]
-        raise
-    outcome.trials = logged_trials(outcome.trials, sinks)
-    return RunReport(
-        law=plan.law_kind, outcome=outcome, log=str(request.out) if request.out is not None else "",
-        design=_design_summary(plan.axes[0].design), bus=f"{bus_cfg.interface}:{bus_cfg.channel}",
-        cycles=loop.cycles, drive_stop=_worst(stops, plan.node_ids),
-        injected=[report for wrapper in faulty for report in wrapper.reports()],
-        axes=_axis_outcomes(plan, stops) if plan.several else [],
-    )
+            self._loop = _trial_loop(plan, drives, sink, progress, stop, hook=trial_hook([*emulators, *self._faulty]))
+            _commission(drives, plan, sink, self._session)
+            self._open = outer.pop_all()
+        return self
+
+    def __exit__(self, *exc: Any) -> bool:
+        outcome = self._loop.outcome if self._loop is not None else None
+        if exc[0] is None and outcome is not None and self._session is not None and outcome.timing is not None:
+            outcome.timing = replace(outcome.timing, realtime=self._session.report)
+        return bool(self._open.__exit__(*exc))
+
+    @contextlib.contextmanager
+    def _partial_on_error(self) -> Iterator[None]:
+        """An error that ends the run carries what the run had done (``--json``'s error document)."""
+        plan, request = self.plan, self.request
+        try:
+            yield
+        except FoilcHilError as exc:
+            ran = self._loop.outcome.trials if self._loop is not None else []
+            exc.partial = {
+                "law": plan.law_kind,
+                "trials": [metrics.to_json() for metrics in logged_trials(ran, self.sinks)],
+                "trials_run": len(ran),
+                "stopped": str(exc).splitlines()[0] if str(exc) else type(exc).__name__,
+                "log": str(request.out) if request.out is not None else "",
+                "drive_stop": _worst(self.stops, plan.node_ids).to_json() if self.stops else None,
+            }
+            if plan.several:
+                exc.partial["axes"] = [axis.to_json() for axis in _axis_outcomes(plan, self.stops)]
+            raise
+
+    def report(self) -> RunReport:
+        """What the run produced (the rig closed): the trials its log holds, every drive's stop."""
+        plan, loop = self.plan, self.loop
+        loop.outcome.trials = logged_trials(loop.outcome.trials, self.sinks)
+        return RunReport(
+            law=plan.law_kind, outcome=loop.outcome, log=str(self.request.out) if self.request.out is not None else "",
+            design=_design_summary(plan.axes[0].design), bus=self._bus, cycles=loop.cycles,
+            drive_stop=_worst(self.stops, plan.node_ids),
+            injected=[report for wrapper in self._faulty for report in wrapper.reports()],
+            axes=_axis_outcomes(plan, self.stops) if plan.several else [],
+        )
 
 
 def _progress(plan: RunPlan, quiet: bool) -> ProgressView:
