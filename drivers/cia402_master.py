@@ -108,7 +108,7 @@ from drivers.master.startup import CIA402_PROFILE, MASTER_HEARTBEATS_PER_CONSUME
 from drivers.master.state402 import PowerStateCommands
 from drivers.master.supervision import DriveSupervision
 from drivers.network import DriveNetwork
-from drivers.od import load_od
+from drivers.od import load_od, object_address
 from drivers.pdo import PdoCodec
 
 __all__ = [
@@ -379,13 +379,54 @@ class Cia402Drive(Drive):
         """Raw SDO download (start-up and commissioning, never the cyclic path); failures as product errors."""
         self.sdo.download(index, subindex, data)
 
-    def read_object(self, index: int, subindex: int = 0) -> int:
-        """SDO upload of an integer object, typed by the EDS (or the CiA 402 standard); SdoError on abort."""
-        return self.sdo.read_object(index, subindex)
+    def read_object(self, obj: int | str, subindex: int | str = 0) -> int:
+        """SDO upload of an integer object, typed by the EDS (or the CiA 402 standard).
 
-    def write_object(self, index: int, subindex: int, value: int) -> None:
-        """SDO download of an integer object, typed by the EDS (or the CiA 402 standard); SdoError on abort."""
-        self.sdo.write_object(index, subindex, value)
+        Parameters
+        ----------
+        obj
+            The index (``0x6041``) or the EDS's name of the object (``"Statusword"``).
+        subindex
+            The sub-index, or its EDS name (``"Vendor-ID"`` of ``"Identity object"``).
+
+        Returns
+        -------
+        int
+            The value, signed or not as the object's type says.
+
+        Raises
+        ------
+        InputError
+            A name the EDS does not have.
+        SdoError
+            The drive aborted the transfer (the abort code decoded).
+        DriveTimeoutError
+            No answer.
+        """
+        return self.sdo.read_object(*object_address(self.od, obj, subindex))
+
+    def write_object(self, obj: int | str, subindex: int | str, value: int) -> None:
+        """SDO download of an integer object, typed by the EDS (or the CiA 402 standard).
+
+        Parameters
+        ----------
+        obj
+            The index or the EDS's name of the object (``"Producer heartbeat time"``).
+        subindex
+            The sub-index, or its EDS name.
+        value
+            The value; one that does not fit the object's type is a ``ConfigError`` and nothing is sent.
+
+        Raises
+        ------
+        InputError
+            A name the EDS does not have.
+        SdoError
+            The drive aborted the transfer (the abort code decoded).
+        DriveTimeoutError
+            No answer.
+        """
+        self.sdo.write_object(*object_address(self.od, obj, subindex), value)
 
     # --- observation ------------------------------------------------------------------------------------------
 

@@ -24,7 +24,7 @@ the receive callbacks run on the Notifier thread and belong to the drives (see `
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import can
 import canopen
@@ -35,6 +35,7 @@ from drivers.cyclic_rx import CyclicReceiver
 from drivers.errors import ConfigError, DriveError
 from drivers.heartbeat import HeartbeatProducer
 from drivers.inprocess import connect_network, subscribe_cyclic, timebase_of
+from drivers.scan import ScanResult, scan_bus
 
 __all__ = ["DriveNetwork", "UnknownFrameCounter", "received_elsewhere"]
 
@@ -136,6 +137,36 @@ class DriveNetwork:
             self.tap.detach()
             raise DriveError(f"cannot listen on the bus: {exc}; one DriveNetwork must own the bus's Notifier "
                              "(drives share it with Cia402Drive.on_network; add_frame_listener sees frames)") from exc
+
+    def scan(self, nodes: Sequence[int] = range(1, 128), *, listen: float = 1.2, nmt_reset: bool = False,
+             sdo_timeout: float = 0.3) -> ScanResult:
+        """Discover the CANopen nodes on this network's bus (:func:`drivers.scan.scan_bus`), before it listens.
+
+        Parameters
+        ----------
+        nodes
+            Node ids to look for (1..127).
+        listen
+            Seconds to listen to heartbeats and boot-ups (lockstep time on the embedded emulator's bus).
+        nmt_reset
+            Broadcast NMT reset communication first (resets every node's communication parameters).
+        sdo_timeout
+            Seconds to wait for the SDO probe's answers and each identity read.
+
+        Returns
+        -------
+        ScanResult
+            Every node found, sorted by node id, with identity and NMT state.
+
+        Raises
+        ------
+        DriveError
+            The network already listens (python-can allows one receive path per bus: scan first), or a frame
+            cannot be sent.
+        """
+        if self.listening:
+            raise DriveError("scan before listen: the network's receive path owns the bus")
+        return scan_bus(self.bus, nodes=nodes, listen=listen, nmt_reset=nmt_reset, sdo_timeout=sdo_timeout)
 
     def start_master_heartbeat(self, master_node_id: int, period: float) -> None:
         """Start the master's heartbeat once for the whole bus (idempotent for the same master node id).

@@ -24,10 +24,10 @@ import threading
 from pathlib import Path
 
 import canopen
-from canopen.objectdictionary import ObjectDictionary, ObjectDictionaryError, ODVariable, datatypes
+from canopen.objectdictionary import ObjectDictionary, ObjectDictionaryError, ODArray, ODRecord, ODVariable, datatypes
 
 from drivers.cia402 import Obj
-from drivers.errors import EdsError
+from drivers.errors import EdsError, InputError
 from drivers.pdo import MappedVariable
 
 __all__ = [
@@ -37,6 +37,7 @@ __all__ = [
     "STANDARD_TYPES",
     "load_od",
     "mapped_variable",
+    "object_address",
 ]
 
 DEFAULT_EDS = Path(__file__).resolve().parents[1] / "configs" / "foilc_servo.eds"
@@ -164,3 +165,33 @@ def mapped_variable(od: ObjectDictionary | None, index: int, subindex: int = 0) 
         bits, signed = STANDARD_TYPES[index]
         return MappedVariable(index, subindex, bits, signed=signed)
     raise EdsError(f"object 0x{index:04X}:{subindex:02X} is neither in the EDS nor a known CiA 402 object")
+
+
+def object_address(od: ObjectDictionary, obj: int | str, subindex: int | str = 0) -> tuple[int, int]:
+    """``(index, sub-index)`` of an object named as the EDS names it, or given by number.
+
+    Parameters
+    ----------
+    od
+        The drive's object dictionary (:func:`load_od`).
+    obj
+        The index (``0x6041``) or the EDS's ``ParameterName`` (``"Statusword"``, ``"Identity object"``).
+    subindex
+        The sub-index, or its ``ParameterName`` within a record or array (``"Vendor-ID"``).
+
+    Raises
+    ------
+    InputError
+        A name the EDS does not have (an object given by number passes unchecked: the drive's answer decides).
+    """
+    if isinstance(obj, int) and isinstance(subindex, int):
+        return obj, subindex
+    try:
+        entry = od[obj]
+        if isinstance(entry, (ODRecord, ODArray)):
+            entry = entry[subindex]
+        elif subindex not in (0, entry.name):
+            raise KeyError(subindex)
+    except KeyError:
+        raise InputError(f"the EDS has no object {obj!r}" + (f" sub-index {subindex!r}" if subindex else "")) from None
+    return int(entry.index), int(entry.subindex)

@@ -21,7 +21,7 @@ PACKAGES = ("foilc_hil", "drivers", "plant_emulator")
 RANKS: dict[str, int] = {
     "drivers": 0,  # the CAN side, with the root of the error tree and the config sections' base: stands alone
     "plant_emulator": 1,  # physics and the virtual drive, on drivers only: stands alone too
-    "foilc_hil": 2,  # the package itself (__init__ imports nothing)
+    "foilc_hil": 2,  # the prefix of every foilc_hil module; the package's own __init__ is in PACKAGE_TOPS
     "foilc_hil.errors": 2,
     "foilc_hil.schema": 2,
     "foilc_hil.config": 4,
@@ -35,14 +35,21 @@ RANKS: dict[str, int] = {
     "foilc_hil.logtools": 10,
     "foilc_hil.commission": 10,
     "foilc_hil.commands": 11,
+    "foilc_hil.api": 11,
     "foilc_hil.cli": 12,
 }
+
+#: a package's own ``__init__`` where it is not its modules' prefix rank: ``foilc_hil``'s is the public API, which
+#: re-exports (lazily) from every rank up to ``foilc_hil.api``; the CLI imports its ``__version__``
+PACKAGE_TOPS: dict[str, int] = {"foilc_hil": 12}
 
 #: the packages a script may import without the control stack: nothing of theirs imports ``foilc_hil``
 STANDALONE = ("drivers", "plant_emulator")
 
 def rank(module: str) -> int | None:
     """The rank of ``module`` (None: not ours)."""
+    if module in PACKAGE_TOPS:
+        return PACKAGE_TOPS[module]
     parts = module.split(".")
     for end in range(len(parts), 0, -1):
         prefix = ".".join(parts[:end])

@@ -215,7 +215,7 @@ def execute(args: argparse.Namespace) -> CommandResult:
 
 
 def _scan(args: argparse.Namespace) -> CommandResult:
-    from foilc_hil.commission.scan import render_scan, scan_bus
+    from drivers.scan import render_scan, scan_bus
     from foilc_hil.commission.target import parse_node_list
 
     _positive(args.timeout, "--timeout")

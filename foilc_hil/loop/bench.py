@@ -70,7 +70,7 @@ import contextlib
 import math
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Generator, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -522,7 +522,7 @@ class TrialLoop:
             pass
         return self.outcome
 
-    def iter_trials(self, trials: int) -> Iterator[TrialRecord]:
+    def iter_trials(self, trials: int) -> Generator[TrialRecord, None, None]:
         """Run up to ``trials`` more trials, yielding each one's record once its between-trial update is done.
 
         Trial ``k``'s record comes after the settle phase before trial ``k + 1`` (the update runs meanwhile, as in

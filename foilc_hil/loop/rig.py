@@ -273,6 +273,8 @@ class Rig:
         self._loop: TrialLoop | None = None
         self._session: RealtimeSession | None = None
         self._faulty: list[FaultyBus] = []
+        self.emulators: list[Any] = []  # the embedded emulators (plant_emulator.embedded), one per axis; [] on a bus
+        self.drives: list[Any] = []  # the masters (drivers.cia402_master.Cia402Drive), one per axis
         self._bus = ""
         self._open = contextlib.ExitStack()
 
@@ -291,12 +293,12 @@ class Rig:
             stack = outer.enter_context(contextlib.ExitStack())
             sink = _open_log(stack, request, plan)
             self.sinks.extend([sink] if sink is not None else [])
-            bus_cfg, emulators = _start_emulators(stack, plan)
+            bus_cfg, self.emulators = _start_emulators(stack, plan)
             self._bus = f"{bus_cfg.interface}:{bus_cfg.channel}"
             # undone only after the confirmed stops (LIFO): restoring the host (the garbage collector first of all)
             # takes a tenth of a second, which must not pass between the loop's last SYNC and the stop
             self._session = realtime_session(stack, plan.settings)
-            drives, self._faulty = _open_drives(stack, plan, bus_cfg, sink, self.stops, emulators)
+            self.drives, self._faulty = _open_drives(stack, plan, bus_cfg, sink, self.stops, self.emulators)
             progress = request.progress or _progress(plan, request.quiet)
             stack.callback(progress.close)
             stop = stack.enter_context(StopRequest())
@@ -304,8 +306,9 @@ class Rig:
                 sink.stop_on_failure(stop)
             # the loop and the host setup before the drives are enabled: from its first SYNC in OPERATIONAL a drive
             # supervises SYNC, so nothing slow may run between the enable's last SYNC and the loop's first
-            self._loop = _trial_loop(plan, drives, sink, progress, stop, hook=trial_hook([*emulators, *self._faulty]))
-            _commission(drives, plan, sink, self._session)
+            hook = trial_hook([*self.emulators, *self._faulty])
+            self._loop = _trial_loop(plan, self.drives, sink, progress, stop, hook=hook)
+            _commission(self.drives, plan, sink, self._session)
             self._open = outer.pop_all()
         return self
 

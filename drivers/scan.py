@@ -1,4 +1,5 @@
-"""``commission scan``: which CANopen nodes are on the bus, what they are and in which NMT state.
+"""Node discovery on a CAN bus (``commission scan``, :meth:`drivers.network.DriveNetwork.scan`): which CANopen
+nodes are on the bus, what they are and in which NMT state.
 
 Discovery runs three passes, cheapest and least intrusive first, all on one python-can bus:
 
@@ -39,10 +40,10 @@ from drivers.cia301 import (
     split_cob_id,
 )
 from drivers.cia402 import IdentitySub, Obj
+from drivers.errors import DriveError
 from drivers.inprocess import connect_network, timebase_of
-from foilc_hil.errors import DriveError
 
-__all__ = ["NodeReport", "ScanResult", "SdoCommand", "scan_bus"]
+__all__ = ["NodeReport", "ScanResult", "SdoCommand", "render_scan", "scan_bus"]
 
 DEVICE_PROFILE_MASK = 0xFFFF
 
