@@ -398,6 +398,8 @@ class Cia402Drive(Drive):
         ------
         InputError
             A name the EDS does not have.
+        EdsError
+            An index neither the EDS nor the CiA 402 standard types (nothing is sent).
         SdoError
             The drive aborted the transfer (the abort code decoded).
         DriveTimeoutError
@@ -421,6 +423,8 @@ class Cia402Drive(Drive):
         ------
         InputError
             A name the EDS does not have.
+        EdsError
+            An index neither the EDS nor the CiA 402 standard types (nothing is sent).
         SdoError
             The drive aborted the transfer (the abort code decoded).
         DriveTimeoutError
