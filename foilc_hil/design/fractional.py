@@ -47,8 +47,8 @@ itself cancels (alternating weights against a growing signal) and both methods l
 a 2-D signal (the learning law's) is a compiled loop that adds the products in the order of scipy's 2-D direct
 ``signal.convolve``, so it equals scipy's bit for bit (``replay --verify`` of logs written with scipy needs it) at a
 fifteenth of its time (numba, in :mod:`foilc_hil.design.gl_kernel`, loaded on the first 2-D call); a 1-D signal uses
-scipy's 1-D direct convolution, which is ``numpy.convolve``. The third-party ``differint`` package's GL uses an unpadded (circular) FFT and is only right at the last sample, so it
-is not used.
+scipy's 1-D direct convolution, which is ``numpy.convolve``. The third-party ``differint`` package's GL uses an
+unpadded (circular) FFT and is only right at the last sample, so it is not used.
 """
 
 from __future__ import annotations
