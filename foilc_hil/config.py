@@ -74,6 +74,19 @@ class DivergentFilterPolicy(StrEnum):
     REFUSE = "refuse"
 
 
+@enum.unique
+class QFilterPhase(StrEnum):
+    """How the Q-filter runs over a trial (``law.q_filter.phase``; :mod:`foilc_hil.design.qfilter`).
+
+    ``ZERO``: forward then backward over the trial (zero phase, squared magnitude; the map is not causal).
+    ``CAUSAL``: one forward pass (the Butterworth's own phase lag; the trial-to-trial map stays causal, so its
+    spectral radius is exact from its diagonal).
+    """
+
+    ZERO = "zero"
+    CAUSAL = "causal"
+
+
 class Segment(Section):
     """One piece of a user-defined piecewise reference: hold or ramp from ``start`` to ``end`` over ``duration``."""
 
@@ -136,15 +149,20 @@ class SynthesisConfig(Section):
     on_divergent_filter: DivergentFilterPolicy = DivergentFilterPolicy.RESCALE
     # Certify monotonic convergence (induced 2-norm of the lifted trial map < 1), not only asymptotic (radius < 1).
     require_monotonic: bool = True
+    # false: every certificate within a bounded time (a fast bound may say "inconclusive at bound X"); true: the
+    # exact values where the fast bound is not (slow on long trials, with progress; `synthesize --exact`)
+    exact_certificates: bool = False
     design: DesignMethod = DesignMethod.PAPER  # FOILC only: the paper's method or the co-design
     codesign: CodesignConfig = CodesignConfig()
 
 
 class QFilterConfig(Section):
-    """Zero-phase low-pass Q-filter applied to the feedforward between trials."""
+    """Butterworth low-pass Q-filter applied to the feedforward between trials (zero-phase or causal)."""
 
-    cutoff: float = Field(gt=0)  # rad/s
+    cutoff: float = Field(gt=0)  # rad/s, -3 dB of one pass
     order: int = Field(default=2, ge=1, le=8)
+    # zero: forward-backward over the trial (zero phase, squared magnitude); causal: one forward pass
+    phase: QFilterPhase = QFilterPhase.ZERO
 
 
 class NoilcConfig(Section):

@@ -22,7 +22,6 @@ from foilc_hil.design.certificates import (
     dense_error_map,
     dense_input_map,
     lifted_error_map,
-    lifted_input_map,
     map_certificate,
     matrix_norm_bound,
 )
@@ -30,6 +29,7 @@ from foilc_hil.design.fractional import FractionalPD
 from foilc_hil.design.lmi import solve_lmi
 from foilc_hil.design.models import DiscreteModel, Uncertainty, augment_input_delay, discretize
 from foilc_hil.design.qfilter import QFilter
+from foilc_hil.design.qmap import structured_input_map
 from foilc_hil.errors import ConvergenceCertificateError
 from plant_emulator.linear import ContinuousModel
 from tests.test_synthesis import _mimo
@@ -241,7 +241,8 @@ def test_q_filter_input_map_matches_brute_force_and_the_operator(memory: Fractio
     kp, r, h, n_samples = 0.1, 0.7, 0.05, 40
     first_weight = 1 + kp * h**-r
     p1, p2 = np.array([[0.05, -0.02]]), 0.5 / (C @ B * first_weight)  # a convergent law
-    Q = QFilter(cutoff=20.0, order=2, sample_time=h).matrix(n_samples)
+    q_filter = QFilter(cutoff=20.0, order=2, sample_time=h)
+    Q = q_filter.matrix(n_samples)
     rng = np.random.default_rng(1)
     reference = np.cumsum(rng.standard_normal((n_samples, 1)), axis=0) * 0.1
     _, inputs = _run_trials(A, B, C, p1, p2, FractionalPD(kp, r, h), reference, 0, trials=5, Q=Q, memory=memory)
@@ -250,19 +251,28 @@ def test_q_filter_input_map_matches_brute_force_and_the_operator(memory: Fractio
         before = (inputs[k - 1] - inputs[k - 2]).ravel()
         after = (inputs[k] - inputs[k - 1]).ravel()
         np.testing.assert_allclose(M @ before, after, atol=1e-10 * max(1.0, float(np.max(np.abs(after)))))
-    # The fast operator agrees with the dense map, forward and adjoint.
-    operator = lifted_input_map(LoopPlant(A, B, C, p1, p2), LawStructure(kp, r, h, n_samples, 0, memory, Q))
-    x, y = rng.standard_normal(n_samples), rng.standard_normal(n_samples)
-    np.testing.assert_allclose(operator.matvec(x), M @ x, atol=1e-10 * np.max(np.abs(M @ x)))
-    np.testing.assert_allclose(operator.rmatvec(y), M.T @ y, atol=1e-10 * np.max(np.abs(M.T @ y)))
-    # On a large trial the certificate's numbers agree with dense linear algebra.
+    # The structured operator agrees with the dense map, forward and adjoint.
+    law = LawStructure(kp, r, h, n_samples, 0, memory, q_filter.on(n_samples))
+    structured = structured_input_map(LoopPlant(A, B, C, p1, p2), law)
+    assert structured is not None
+    x, y = rng.standard_normal((1, 1, n_samples)), rng.standard_normal((1, 1, n_samples))
+    np.testing.assert_allclose(structured.apply(1.0, x)[0, 0], M @ x[0, 0], atol=1e-10 * np.max(np.abs(M @ x[0, 0])))
+    np.testing.assert_allclose(
+        structured.adjoint(1.0, y)[0, 0], M.T @ y[0, 0], atol=1e-10 * np.max(np.abs(M.T @ y[0, 0]))
+    )
+    # On a trial beyond the dense limit the certificate brackets the dense 2-norm and bounds the radius.
     n_large = DENSE_LIMIT + 100
-    Q_large = QFilter(cutoff=20.0, order=2, sample_time=h).matrix(n_large)
-    fast = map_certificate(LoopPlant(A, B, C, p1, p2), LawStructure(kp, r, h, n_large, 0, memory, Q_large))
-    M_large = dense_input_map(A, B, C, p1, p2, _law_operator(kp, r, h, n_large, 0, memory), Q_large)
-    assert fast.map == "input (Q-filter)"
-    # M is far from normal: its eigenvalues are ill-conditioned, so ARPACK and LAPACK agree only roughly.
-    assert fast.spectral_radius == pytest.approx(max(abs(np.linalg.eigvals(M_large))), rel=5e-2)
+    fast = map_certificate(
+        LoopPlant(A, B, C, p1, p2), LawStructure(kp, r, h, n_large, 0, memory, q_filter.on(n_large))
+    )
+    M_large = dense_input_map(A, B, C, p1, p2, _law_operator(kp, r, h, n_large, 0, memory), q_filter.matrix(n_large))
+    assert fast.map == "input (Q-filter)" and fast.proof is not None
+    exact = float(np.linalg.norm(M_large, 2))
+    if fast.proof.norm_2 == "lower bound":
+        assert fast.norm_2 <= exact * (1 + 1e-9)
+    else:
+        assert exact <= fast.norm_2 <= exact * (1 + 1e-3)
+    assert max(abs(np.linalg.eigvals(M_large))) <= fast.spectral_radius * (1 + 1e-9)
 
 
 def _paper_model(ts: float) -> DiscreteModel:

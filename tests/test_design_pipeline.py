@@ -221,6 +221,8 @@ DESIGN_ORDER = (
     "qfilter",
     "ptype",
     "record",
+    "lifted",
+    "qmap",
     "certificates",
     "admission",
     "lifted_kernel",

@@ -87,19 +87,47 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from foilc_hil.config import DivergentFilterPolicy, FractionalMemory, LawKind
-from foilc_hil.design.fractional import FractionalPD, gl_weights
+from foilc_hil.design.lifted import (
+    SYMBOL_GRID_CAP,
+    SYMBOL_GRID_CAP_MIMO,
+    SYMBOL_SLACK,
+    BlockToeplitz,
+    LawStructure,
+    LoopPlant,
+    ScalarFilter,
+    dense_block_toeplitz,
+    fractional_filter,
+    grid_bound,
+    law_filter_matrix,
+    markov_blocks,
+    moments,
+    symbol_grid,
+    zero_history_filter,
+)
 from foilc_hil.design.models import DiscreteModel, Uncertainty, uncertainty_vertices
 from foilc_hil.design.ptype import frequency_bound
+from foilc_hil.design.qmap import (
+    INPUT_MAP,
+    EdgeProxy,
+    StructuredInputMap,
+    input_map_certificate,
+    structured_input_map,
+    triangular_radius,
+)
 from foilc_hil.design.record import (
+    BoundClaim,
     Bounds,
     CertificateAction,
+    CertificateMethod,
     Certificates,
     Design,
     GrowthBound,
+    MonotoneVerdict,
     PlantCertificate,
+    Proof,
     PTypeGain,
 )
-from foilc_hil.errors import ConfigError, ConvergenceCertificateError, InputError
+from foilc_hil.errors import ConfigError, ConvergenceCertificateError
 from foilc_hil.progress import as_step
 
 __all__ = [
@@ -109,6 +137,7 @@ __all__ = [
     "LawStructure",
     "LiftedErrorMap",
     "LoopPlant",
+    "PTypeScales",
     "block_toeplitz_product",
     "bounded_matrix_certificate",
     "certify",
@@ -120,7 +149,6 @@ __all__ = [
     "gram_norm_bound",
     "law_filter_matrix",
     "lifted_error_map",
-    "lifted_input_map",
     "map_certificate",
     "markov_blocks",
     "matrix_certificate",
@@ -139,13 +167,6 @@ ARPACK_RESTARTS = 60
 DENSE_FALLBACK_LIMIT = 2500
 #: Power iterations for the lower bound used when the spectral radius already rules a certificate out.
 POWER_ITERATIONS = 40
-#: the symbol bound's grid is refined until its Lipschitz widening is at most this ...
-SYMBOL_SLACK = 1e-5
-#: ... or the grid has this many points (single output; several outputs need an SVD per point)
-SYMBOL_GRID_CAP = 1 << 22
-SYMBOL_GRID_CAP_MIMO = 1 << 15
-#: Columns of the fractional operator allowed to deviate from Toeplitz form (Caputo corrections).
-CORRECTION_COLUMNS = 4
 #: Admissible certificate: the worst-case 2-norm must be at most this (strictly below one).
 CONTRACTION_LIMIT = 1.0 - 1e-9
 #: The Cholesky test of :func:`matrix_norm_bound` tries ``rho^2 = (1 + gap) lambda`` (``lambda``: an estimate of
@@ -166,304 +187,12 @@ FFT_LEVEL_CONSTANT = 12.0
 # --- lifted block-Toeplitz operators via FFT ------------------------------------------------------------------
 
 
-class _BlockToeplitz:
-    """Block lower-triangular Toeplitz operator ``y[i] = sum_{j<=i} blocks[i-j] x[j]`` on ``(L, cols)`` arrays."""
-
-    def __init__(self, blocks: np.ndarray) -> None:
-        from scipy.fft import next_fast_len, rfft
-
-        self.blocks = blocks  # (L, rows, cols)
-        self.length = blocks.shape[0]
-        self.nfft = next_fast_len(2 * self.length, real=True)
-        self._spectrum = rfft(blocks, n=self.nfft, axis=0)  # (F, rows, cols)
-
-    def matvec(self, x: np.ndarray) -> np.ndarray:
-        from scipy.fft import irfft, rfft
-
-        spectrum = rfft(x, n=self.nfft, axis=0)  # (F, cols)
-        out = np.einsum("frc,fc->fr", self._spectrum, spectrum)
-        return np.asarray(irfft(out, n=self.nfft, axis=0)[: self.length])
-
-    def rmatvec(self, y: np.ndarray) -> np.ndarray:
-        from scipy.fft import irfft, rfft
-
-        spectrum = rfft(y[::-1], n=self.nfft, axis=0)
-        out = np.einsum("frc,fr->fc", self._spectrum, spectrum)
-        return np.asarray(irfft(out, n=self.nfft, axis=0)[: self.length][::-1])
-
-
-@dataclass(frozen=True)
-class _ScalarFilter:
-    """A scalar lifted filter ``F`` (acting on every channel) as Toeplitz weights plus a few dense columns.
-
-    ``F = Toeplitz(weights) + sum_j corrections[:, j] e_j^T`` for ``j < corrections.shape[1]``. With
-    ``window = w > 0`` that operator acts on samples ``w:`` only and the first ``w`` samples pass unchanged
-    (``F = diag(I_w, F_window)``: the law's "controllable" fractional memory).
-    """
-
-    weights: np.ndarray  # (N - window,)
-    corrections: np.ndarray  # (N - window, K)
-    window: int = 0
-
-    def sub(self, lead: int) -> _ScalarFilter:
-        """``F[lead:, lead:]`` in the same form."""
-        n = self.weights.shape[0]
-        k = self.corrections.shape[1]
-        kept = max(0, k - lead)
-        corrections = self.corrections[lead:, lead : lead + kept] if kept else np.zeros((n - lead, 0))
-        return _ScalarFilter(self.weights[: n - lead], corrections)
-
-    def dense(self) -> np.ndarray:
-        from scipy.linalg import block_diag, toeplitz
-
-        n = self.weights.shape[0]
-        matrix = toeplitz(self.weights, np.zeros(n))
-        k = self.corrections.shape[1]
-        matrix[:, :k] += self.corrections
-        if self.window:
-            return np.asarray(block_diag(np.eye(self.window), matrix))
-        return np.asarray(matrix)
-
-    def matvec(self, x: np.ndarray) -> np.ndarray:
-        from scipy.signal import fftconvolve
-
-        if self.window:
-            out = np.array(x, dtype=float, copy=True)
-            out[self.window :] = self._unwindowed().matvec(x[self.window :])
-            return out
-        n = self.weights.shape[0]
-        out = np.asarray(fftconvolve(self.weights[:, None], x, axes=0)[:n])
-        k = self.corrections.shape[1]
-        if k:
-            out = out + self.corrections @ x[:k]
-        return out
-
-    def _unwindowed(self) -> _ScalarFilter:
-        return _ScalarFilter(self.weights, self.corrections)
-
-    def rmatvec(self, y: np.ndarray) -> np.ndarray:
-        from scipy.signal import fftconvolve
-
-        if self.window:
-            out = np.array(y, dtype=float, copy=True)
-            out[self.window :] = self._unwindowed().rmatvec(y[self.window :])
-            return out
-        n = self.weights.shape[0]
-        out = np.asarray(fftconvolve(self.weights[:, None], y[::-1], axes=0)[:n][::-1])
-        k = self.corrections.shape[1]
-        if k:
-            out[:k] += self.corrections.T @ y
-        return out
-
-
-@dataclass(frozen=True)
-class LawStructure:
-    """How the learning law runs, everything its lifted trial map depends on besides the plant and the gain.
-
-    Attributes
-    ----------
-    kp, r, sample_time
-        The fractional PD function ``FractionalPD(kp, r, sample_time)`` (``kp = 0``: ``E = e``).
-    n_samples
-        ``N``, samples per trial.
-    lead
-        The input delay ``d`` in samples (the law uses ``E[i + d]``).
-    fractional_memory
-        The law's ``law.fractional_memory`` (:class:`~foilc_hil.config.FractionalMemory`).
-    q_filter
-        The ``N x N`` zero-phase Q-filter matrix the law applies to the feedforward between trials, or ``None``.
-    """
-
-    kp: float
-    r: float
-    sample_time: float
-    n_samples: int
-    lead: int = 0
-    fractional_memory: FractionalMemory = FractionalMemory.CONTROLLABLE
-    q_filter: np.ndarray | None = None
-
-    def __post_init__(self) -> None:
-        try:
-            object.__setattr__(self, "fractional_memory", FractionalMemory(self.fractional_memory))
-        except ValueError:
-            raise ConfigError(
-                f"must be 'controllable' or 'trial', got {self.fractional_memory!r}", key="law.fractional_memory"
-            ) from None
-        if not (isinstance(self.n_samples, int) and self.n_samples > self.lead + 1):
-            raise InputError(f"n_samples: must be an integer above {self.lead + 1}, got {self.n_samples!r}")
-        if self.q_filter is not None:
-            Q = np.asarray(self.q_filter, dtype=float)
-            if Q.shape != (self.n_samples, self.n_samples):
-                raise InputError(f"q_filter: must be {self.n_samples}x{self.n_samples} (one trial), got {Q.shape}")
-            object.__setattr__(self, "q_filter", Q)
-
-    @property
-    def filter_first_weight(self) -> float:
-        """``1 + kp h^-r``: the weight of the newest error sample in ``E`` (module notes)."""
-        return 1.0 + self.kp * self.sample_time**-self.r
-
-    def without_filters(self) -> LawStructure:
-        """The same law with the fractional filter and the Q-filter off (``E = e``): the naive comparison."""
-        return LawStructure(0.0, self.r, self.sample_time, self.n_samples, self.lead, self.fractional_memory)
-
-    def filter(self) -> _ScalarFilter:
-        """The ``N x N`` operator ``E = F e`` (per channel) the law applies, as a filter (see :func:`_law_filter`)."""
-        return _law_filter(self.kp, self.r, self.sample_time, self.n_samples, self.lead, self.fractional_memory)
-
-
-@dataclass(frozen=True)
-class LoopPlant:
-    """One plant of the learning loop with the gain ``P = (p1 p2)`` applied to it.
-
-    ``A``, ``B`` the (delay-augmented) plant, ``C_measured`` its measured output, ``p1`` (``m x n``) and ``p2``
-    (``m x p``) the gain blocks.
-    """
-
-    A: np.ndarray
-    B: np.ndarray
-    C_measured: np.ndarray
-    p1: np.ndarray
-    p2: np.ndarray
-
-    def scaled(self, scale: float) -> LoopPlant:
-        """The loop with ``p2`` scaled by ``scale``."""
-        return LoopPlant(self.A, self.B, self.C_measured, self.p1, scale * self.p2)
-
-
-def _zero_history_filter(kp: float, r: float, h: float, n: int) -> _ScalarFilter:
-    """``FractionalPD(kp, r, h, history="zero")`` on ``n`` samples: pure lower-triangular Toeplitz."""
-    FractionalPD(kp, r, h, history="zero")  # validates kp, r, h
-    weights = kp * h**-r * gl_weights(r, n)
-    weights[0] += 1.0
-    return _ScalarFilter(weights, np.zeros((n, 0)))
-
-
-def _law_filter(kp: float, r: float, h: float, n: int, lead: int, fractional_memory: str) -> _ScalarFilter:
-    """The ``N x N`` operator ``E = F e`` (per channel) that :mod:`foilc_hil.laws.learning` applies, as a filter.
-
-    ``"controllable"``: ``diag(I_lead, Toeplitz)`` (zero-history GL on ``e[lead:]``); ``"trial"``: the Caputo
-    ``FractionalPD`` on the whole trial (Toeplitz plus correction columns, or dense columns if that fails).
-    """
-    if FractionalMemory(fractional_memory) is FractionalMemory.CONTROLLABLE:
-        return _windowed(kp, r, h, n, lead)
-    filt, fpd = _fractional_filter(kp, r, h, n)
-    if filt is None:
-        filt = _ScalarFilter(np.zeros(n), np.asarray(fpd.matrix(n), dtype=float))
-    return filt
-
-
-def _windowed(kp: float, r: float, h: float, n: int, lead: int) -> _ScalarFilter:
-    inner = _zero_history_filter(kp, r, h, n - lead)
-    return _ScalarFilter(inner.weights, inner.corrections, window=lead)
-
-
-def law_filter_matrix(
-    kp: float, r: float, sample_time: float, n_samples: int, lead: int = 0, fractional_memory: str = "controllable"
-) -> np.ndarray:
-    """The dense ``(N, N)`` matrix ``F`` of ``E = F e`` as :class:`foilc_hil.laws.learning.Foilc` computes it per
-    channel.
-
-    ``fractional_memory="controllable"``: ``diag(I_lead, I + kp h^-r T)`` with ``T`` the GL Toeplitz matrix on
-    ``N - lead`` samples; ``"trial"``: ``FractionalPD(kp, r, h).matrix(N)`` (Caputo over the whole trial).
-    """
-    if not (isinstance(n_samples, int) and n_samples > lead >= 0):
-        raise InputError(f"n_samples: must be an integer above lead={lead}, got {n_samples!r}")
-    return _law_filter(kp, r, sample_time, n_samples, lead, fractional_memory).dense()
-
-
-def _fractional_filter(kp: float, r: float, h: float, n: int) -> tuple[_ScalarFilter | None, FractionalPD]:
-    """Decompose ``FractionalPD(kp, r, h)`` on ``n`` samples; ``None`` when the decomposition fails the probe."""
-    fpd = FractionalPD(kp, r, h)
-    k = min(CORRECTION_COLUMNS, n)
-    extended = np.zeros(n + k)
-    extended[k] = 1.0
-    weights = np.asarray(fpd.apply(extended), dtype=float)[k:]
-    corrections = np.zeros((n, k))
-    for j in range(k):
-        unit = np.zeros(n)
-        unit[j] = 1.0
-        column = np.asarray(fpd.apply(unit), dtype=float)
-        toeplitz_column = np.concatenate([np.zeros(j), weights[: n - j]])
-        corrections[:, j] = column - toeplitz_column
-    candidate = _ScalarFilter(weights, corrections)
-    probe = np.random.default_rng(12345).standard_normal(n)
-    expected = np.asarray(fpd.apply(probe), dtype=float)
-    got = candidate.matvec(probe[:, None])[:, 0]
-    scale = max(1.0, float(np.max(np.abs(expected))))
-    if n <= 3 or float(np.max(np.abs(got - expected))) > 1e-9 * scale:
-        return None, fpd
-    return candidate, fpd
-
-
-# --- the error map T (no Q-filter) ----------------------------------------------------------------------------
-
-
-#: :func:`markov_blocks` steps this many powers at once (one stacked product per stride instead of one per power).
-MARKOV_STRIDE = 64
-
-
-def markov_blocks(A_cl: np.ndarray, B_in: np.ndarray, C_out: np.ndarray, start: int, count: int) -> np.ndarray:
-    """``C_out A_cl^(start + j) B_in`` for ``j = 0..count-1``, shape ``(count, p, m)``; ``nan`` past an overflow.
-
-    The first :data:`MARKOV_STRIDE` powers one by one, then every further stride at once by ``A_cl^stride`` (a
-    stacked product): a Python step per power cost about 15 ms per 2000-sample map, a third of a robustness draw's
-    IOILC certificate. The blocks are the model the certificates take as given, as before.
-    """
-    blocks = np.empty((count, C_out.shape[0], B_in.shape[1]))
-    if count == 0:
-        return blocks
-    stride = min(MARKOV_STRIDE, count)
-    states = np.empty((stride, *B_in.shape))
-    states[0] = np.linalg.matrix_power(A_cl, start) @ B_in
-    for j in range(1, stride):
-        states[j] = A_cl @ states[j - 1]
-    jump = np.linalg.matrix_power(A_cl, stride)
-    for first in range(0, count, stride):
-        if not np.all(np.isfinite(states)):
-            blocks[first:] = np.nan
-            break
-        taken = min(stride, count - first)
-        blocks[first : first + taken] = C_out @ states[:taken]
-        states = jump @ states
-    return blocks
-
-
-def _symbol_grid(length: int, moments: tuple[float, float, float], cap: int) -> int:
-    """Points of the symbol grid: a power of two, at least ``max(4096, 2 L)``, fine enough that the curvature
-    widening of :func:`_grid_bound` is at most :data:`SYMBOL_SLACK` (``moments``: ``S_k = sum_j j^k ||tau_j||``)."""
-    s0, s1, s2 = moments
-    curvature = 2.0 * (s0 * s2 + s1 * s1)
-    wanted = max(4096, 2 * length, math.ceil(2.0 * math.pi * math.sqrt(curvature / (8.0 * SYMBOL_SLACK))))
-    return min(cap, 1 << math.ceil(math.log2(wanted)))
-
-
-def _grid_bound(peak: float, grid: int, moments: tuple[float, float, float]) -> float:
-    """A rigorous bound on ``sup_theta |a(theta)|`` from its maximum ``peak`` on a uniform ``grid``-point grid.
-
-    With ``S_k = sum_j j^k |tau_j|``: every ``theta`` lies within ``pi / M`` of a grid point and ``|a'| <= S_1``
-    (Lipschitz); ``g = |a|^2`` has ``|g''| <= 2 (S_0 S_2 + S_1^2)``, so between two grid points ``g`` exceeds the
-    larger end by at most ``(2 pi / M)^2 / 8`` times that (curvature); and ``|a| <= S_0`` (triangle inequality).
-    The smallest of the three.
-    """
-    s0, s1, s2 = moments
-    step = 2.0 * math.pi / grid
-    lipschitz = peak + s1 * step / 2.0
-    curvature = math.sqrt(peak * peak + step * step / 8.0 * 2.0 * (s0 * s2 + s1 * s1))
-    return min(lipschitz, curvature, s0)
-
-
-def _moments(magnitudes: np.ndarray) -> tuple[float, float, float]:
-    """``S_k = sum_j j^k magnitudes[j]`` for ``k = 0, 1, 2``."""
-    j = np.arange(magnitudes.shape[0], dtype=float)
-    return float(np.sum(magnitudes)), float(np.sum(j * magnitudes)), float(np.sum(j * j * magnitudes))
-
-
 @dataclass(frozen=True)
 class LiftedErrorMap:
     """``T = I - H F'`` on ``e[lead:]`` (module notes), with its pieces for fast products."""
 
-    H: _BlockToeplitz
-    F: _ScalarFilter | None  # None: the dense path
+    H: BlockToeplitz
+    F: ScalarFilter | None  # None: the dense path
     dense_matrix: np.ndarray | None
     n_outputs: int
     length: int  # L = N - lead
@@ -494,9 +223,7 @@ class LiftedErrorMap:
         if self.dense_matrix is not None:
             return self.dense_matrix
         assert self.F is not None
-        return np.eye(self.size) - dense_block_toeplitz(self.H.blocks) @ np.kron(
-            self.F.dense(), np.eye(self.n_outputs)
-        )
+        return np.eye(self.size) - dense_block_toeplitz(self.H.blocks) @ np.kron(self.F.dense(), np.eye(self.n_outputs))
 
     def diagonal_block(self) -> np.ndarray:
         """The repeated diagonal block ``I - h_0 w_0`` of the Toeplitz part."""
@@ -541,7 +268,7 @@ class LiftedErrorMap:
         The Toeplitz part of ``T`` is a finite section (a compression) of the Laurent operator of the truncated
         symbol ``a(theta) = sum_{j < L} tau_j e^{i j theta}``, whose norm is ``sup_theta ||a(theta)||_2``; so that sup
         bounds it, for every trial length. The sup is taken on an ``M``-point grid and widened rigorously: for one
-        output by :func:`_grid_bound` (the smallest of a Lipschitz, a curvature and the triangle bound; the
+        output by :func:`grid_bound` (the smallest of a Lipschitz, a curvature and the triangle bound; the
         curvature widening shrinks like ``1 / M^2``, so the grid stays small), for several by
         ``(pi / M) sum_j j ||tau_j||_2`` (``||a'|| <= sum_j j ||tau_j||``, every ``theta`` within ``pi / M`` of a
         grid point); the correction columns of the "trial" memory add their Frobenius norm.
@@ -552,17 +279,17 @@ class LiftedErrorMap:
 
         taus = self._taus()
         magnitudes = np.linalg.norm(taus, ord=2, axis=(1, 2))
-        moments = _moments(magnitudes)
+        sums = moments(magnitudes)
         if self.n_outputs == 1:
-            grid = _symbol_grid(self.length, moments, SYMBOL_GRID_CAP)
+            grid = symbol_grid(self.length, sums, SYMBOL_GRID_CAP)
             peak = float(np.max(np.abs(fft(taus[:, 0, 0], n=grid))))
-            return _grid_bound(peak, grid, moments) + self._correction_norm()
-        lipschitz = moments[1]
+            return grid_bound(peak, grid, sums) + self._correction_norm()
+        lipschitz = sums[1]
         wanted = max(4096, 2 * self.length, math.ceil(lipschitz * math.pi / SYMBOL_SLACK))
         grid = min(SYMBOL_GRID_CAP_MIMO, 1 << math.ceil(math.log2(wanted)))
         peak = float(np.max(np.linalg.svd(fft(taus, n=grid, axis=0), compute_uv=False)))
         # both are rigorous; the triangle inequality wins when every tau_j has the same phase at one frequency
-        return min(peak + lipschitz * math.pi / grid, moments[0]) + self._correction_norm()
+        return min(peak + lipschitz * math.pi / grid, sums[0]) + self._correction_norm()
 
     def _correction_norm(self) -> float:
         """Frobenius norm of ``T``'s correction columns (the Caputo terms of the "trial" memory); 0 without."""
@@ -618,15 +345,15 @@ def lifted_error_map(loop: LoopPlant, law: LawStructure) -> LiftedErrorMap:
     length = n_samples - lead
     A_cl = loop.A + loop.B @ loop.p1
     blocks = markov_blocks(A_cl, loop.B @ loop.p2, loop.C_measured, lead, length)
-    H = _BlockToeplitz(blocks)
+    H = BlockToeplitz(blocks)
     finite = bool(np.all(np.isfinite(blocks)))  # an overflowing plant takes the dense path (caller reports it)
     if law.fractional_memory is FractionalMemory.CONTROLLABLE:
-        window = _zero_history_filter(kp, r, sample_time, length)
+        window = zero_history_filter(kp, r, sample_time, length)
         if finite:
             return LiftedErrorMap(H, window, None, n_out, length)
         F_dense = window.dense()
     else:
-        filt, fpd = _fractional_filter(kp, r, sample_time, n_samples)
+        filt, fpd = fractional_filter(kp, r, sample_time, n_samples)
         if filt is not None and finite:
             return LiftedErrorMap(H, filt.sub(lead), None, n_out, length)
         F_dense = np.asarray(fpd.matrix(n_samples), dtype=float)[lead:, lead:]
@@ -634,15 +361,6 @@ def lifted_error_map(loop: LoopPlant, law: LawStructure) -> LiftedErrorMap:
     H_dense = dense_block_toeplitz(blocks)
     T = np.eye(length * n_out) - H_dense @ np.kron(F_dense, np.eye(n_out))
     return LiftedErrorMap(H, None, T, n_out, length)
-
-
-def dense_block_toeplitz(blocks: np.ndarray) -> np.ndarray:
-    """Dense block lower-triangular Toeplitz matrix with ``blocks[i - j]`` at block ``(i, j)``."""
-    length, rows, cols = blocks.shape
-    lag = np.arange(length)[:, None] - np.arange(length)[None, :]
-    padded = np.concatenate([blocks, np.zeros((1, rows, cols))])
-    tiles = padded[np.where(lag >= 0, lag, length)]  # (L, L, rows, cols); index L is the zero block
-    return np.asarray(tiles.transpose(0, 2, 1, 3).reshape(length * rows, length * cols))
 
 
 def _gamma(k: int) -> float:
@@ -791,70 +509,6 @@ def dense_input_map(
     return R @ (Qm - learning - P1 @ Gz)
 
 
-# --- the input map M (with a Q-filter), as an operator ---------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class LiftedInputMap:
-    """``M`` of the module notes via fast products; ``u`` flat, sample-major, ``m`` channels."""
-
-    Gz: _BlockToeplitz  # u -> z (strictly causal: block 0 is zero)
-    Gy: _BlockToeplitz  # u -> y
-    R: _BlockToeplitz  # (I - P1 Gz)^-1 = I + P1 Gz_cl
-    F: _ScalarFilter
-    Q: np.ndarray
-    p1: np.ndarray
-    p2: np.ndarray
-    lead: int
-    n_samples: int
-    n_inputs: int
-    n_outputs: int
-
-    @property
-    def size(self) -> int:
-        return self.n_samples * self.n_inputs
-
-    def matvec(self, x: np.ndarray) -> np.ndarray:
-        U = x.reshape(self.n_samples, self.n_inputs)
-        E = self.F.matvec(self.Gy.matvec(U))
-        advanced = np.zeros_like(E)
-        advanced[: self.n_samples - self.lead] = E[self.lead :]
-        out = self.Q @ U - advanced @ self.p2.T - self.Gz.matvec(U) @ self.p1.T
-        return self.R.matvec(out).ravel()
-
-    def rmatvec(self, y: np.ndarray) -> np.ndarray:
-        Y = self.R.rmatvec(y.reshape(self.n_samples, self.n_inputs))
-        back = np.zeros((self.n_samples, self.n_outputs))
-        back[self.lead :] = (Y @ self.p2)[: self.n_samples - self.lead]
-        learning = self.Gy.rmatvec(self.F.rmatvec(back))
-        return (self.Q.T @ Y - learning - self.Gz.rmatvec(Y @ self.p1)).ravel()
-
-
-def lifted_input_map(loop: LoopPlant, law: LawStructure) -> LiftedInputMap:
-    """The input map ``M`` (with the law's ``N x N`` Q-filter matrix ``law.q_filter``) as fast ``matvec``/``rmatvec``
-    products; the fractional operator is :func:`law_filter_matrix`'s for ``law.fractional_memory``."""
-    if law.q_filter is None:
-        raise InputError("q_filter: the input map needs the law's Q-filter (without one, see lifted_error_map)")
-    return _input_map(loop, law.filter(), law.q_filter, law.lead)
-
-
-def _input_map(loop: LoopPlant, F: _ScalarFilter, Q: np.ndarray, lead: int) -> LiftedInputMap:
-    A, B, C_measured, p1, p2 = loop.A, loop.B, loop.C_measured, loop.p1, loop.p2
-    n = Q.shape[0]
-    ns, m = B.shape
-    p = C_measured.shape[0]
-    z_blocks = np.zeros((n, ns, m))
-    z_blocks[1:] = markov_blocks(A, B, np.eye(ns), 0, n - 1)
-    y_blocks = markov_blocks(A, B, C_measured, 0, n)
-    A_cl = A + B @ p1
-    r_blocks = np.zeros((n, m, m))
-    r_blocks[0] = np.eye(m)
-    r_blocks[1:] = markov_blocks(A_cl, B, p1, 0, n - 1)
-    return LiftedInputMap(
-        _BlockToeplitz(z_blocks), _BlockToeplitz(y_blocks), _BlockToeplitz(r_blocks), F, Q, p1, p2, lead, n, m, p
-    )
-
-
 # --- certificates ---------------------------------------------------------------------------------------------
 
 
@@ -952,37 +606,42 @@ def _error_map_certificate(loop: LoopPlant, law: LawStructure) -> PlantCertifica
     return PlantCertificate("", "error", radius, norm, method, norm_2_symbol=symbol)
 
 
-def _input_map_radius(M: LiftedInputMap | _MatrixOperator, dense: Callable[[], np.ndarray]) -> tuple[float, str]:
-    """Spectral radius of the input map: dense up to :data:`RADIUS_DENSE_LIMIT` rows, ARPACK ``eigs`` beyond
-    (``nan`` if it fails)."""
-    if M.size <= RADIUS_DENSE_LIMIT:
-        return _radius(dense()), "dense"
-    from scipy.sparse.linalg import ArpackNoConvergence, LinearOperator, eigs
-
-    operator = LinearOperator((M.size, M.size), matvec=M.matvec, dtype=float)
-    try:
-        values = eigs(operator, k=1, which="LM", tol=1e-8, return_eigenvectors=False, maxiter=50 * M.size)
-    except ArpackNoConvergence:
-        return math.nan, "eigs did not converge"
-    return float(np.max(np.abs(values))), "eigs"
+def _matrix_radius(matrix: np.ndarray) -> tuple[float, str]:
+    """Spectral radius of a dense map: LAPACK up to :data:`RADIUS_DENSE_LIMIT` rows, beyond that not computed
+    (``nan``: the caller bounds it by the 2-norm; ARPACK's ``eigs`` is unbounded in time on these far-from-normal
+    maps)."""
+    if matrix.shape[0] <= RADIUS_DENSE_LIMIT:
+        return _radius(matrix), "dense"
+    return math.nan, "not computed"
 
 
-def _input_map_certificate(loop: LoopPlant, law: LawStructure, Q: np.ndarray) -> PlantCertificate:
-    """:func:`map_certificate` with a Q-filter: the input map ``M``."""
-    filt = law.filter()
-    M = _input_map(loop, filt, Q, law.lead)
+def _dense_input_certificate(loop: LoopPlant, law: LawStructure) -> PlantCertificate:
+    """The Q-filtered input map of a short trial, densely: exact 2-norm and spectral radius."""
+    assert law.q_filter is not None
+    F = law.filter().dense()
+    M = dense_input_map(loop.A, loop.B, loop.C_measured, loop.p1, loop.p2, F, law.q_filter.matrix(), law.lead)
+    if not np.all(np.isfinite(M)):
+        return PlantCertificate("", INPUT_MAP, math.inf, math.inf, "overflow", "overflow")
+    norm, radius = float(np.linalg.norm(M, 2)), _radius(M)
+    verdict = MonotoneVerdict.MONOTONE if norm <= CONTRACTION_LIMIT else MonotoneVerdict.NOT_MONOTONE
+    proof = Proof(BoundClaim.EXACT, BoundClaim.EXACT, verdict, CertificateMethod.DENSE)
+    return PlantCertificate("", INPUT_MAP, radius, norm, "dense", "dense", proof=proof)
 
-    def dense() -> np.ndarray:
-        return dense_input_map(loop.A, loop.B, loop.C_measured, loop.p1, loop.p2, filt.dense(), Q, law.lead)
 
-    kind = "input (Q-filter)"
-    radius, radius_method = _input_map_radius(M, dense)
-    if math.isfinite(radius) and radius >= 1.0:
-        return PlantCertificate("", kind, radius, radius, "lower bound: the spectral radius", radius_method)
-    norm, method = _operator_norm(M.size, M.matvec, M.rmatvec, dense)
-    if not math.isfinite(radius):  # fall back on the bound rho <= ||M||
-        radius, radius_method = norm, "upper bound: the induced 2-norm (eigs did not converge)"
-    return PlantCertificate("", kind, radius, norm, method, radius_method)
+def _input_map_certificate(
+    loop: LoopPlant, law: LawStructure, scaled: StructuredInputMap | None = None, scale: float = 1.0
+) -> PlantCertificate:
+    """:func:`map_certificate` with a Q-filter: the input map ``M``, densely for short trials, else in the
+    structured form of :mod:`foilc_hil.design.qmap` (``scaled``: that form of the unscaled loop, ``scale`` the
+    scale of ``p2`` to certify), else -- a map without that structure -- inconclusive."""
+    assert law.q_filter is not None
+    if law.n_samples * loop.B.shape[1] <= DENSE_LIMIT:
+        return _dense_input_certificate(loop.scaled(scale), law)
+    structured = scaled if scaled is not None else structured_input_map(loop, law)
+    if structured is None:
+        method = "inconclusive at bound inf (the input map has no Toeplitz-plus-low-rank form to certify)"
+        return PlantCertificate("", INPUT_MAP, math.inf, math.inf, method, method)
+    return input_map_certificate(structured, scale, exact=law.exact)
 
 
 def map_certificate(loop: LoopPlant, law: LawStructure) -> PlantCertificate:
@@ -994,7 +653,7 @@ def map_certificate(loop: LoopPlant, law: LawStructure) -> PlantCertificate:
     """
     if law.q_filter is None:
         return _error_map_certificate(loop, law)
-    return _input_map_certificate(loop, law, law.q_filter)
+    return _input_map_certificate(loop, law)
 
 
 def matrix_certificate(matrix: np.ndarray, kind: str) -> PlantCertificate:
@@ -1004,7 +663,8 @@ def matrix_certificate(matrix: np.ndarray, kind: str) -> PlantCertificate:
     and eigenvalues (exact). Beyond: ``||T||_2 = sqrt(lambda_max(T^T T))`` from the largest eigenvalue of the Gram
     matrix (LAPACK ``eigh`` on that one eigenvalue: exact to rounding, and unlike ARPACK unaffected by the
     clustered top singular values these maps have); when it is below one it bounds the spectral radius
-    (``rho <= ||T||``, so the verdict needs no eigenvalues) and the method says so, else ARPACK ``eigs``.
+    (``rho <= ||T||``, so the verdict needs no eigenvalues) and the method says so, else LAPACK's eigenvalues up
+    to :data:`RADIUS_DENSE_LIMIT` rows and beyond that "inconclusive at bound" the 2-norm.
     """
     from scipy.linalg import eigh
 
@@ -1019,7 +679,9 @@ def matrix_certificate(matrix: np.ndarray, kind: str) -> PlantCertificate:
     method = "dense (largest eigenvalue of T^T T)"
     if norm < 1.0:
         return PlantCertificate("", kind, norm, norm, method, "upper bound: the induced 2-norm")
-    radius, radius_method = _input_map_radius(_MatrixOperator(T), lambda: T)
+    radius, radius_method = _matrix_radius(T)
+    if math.isnan(radius):  # rho <= ||T||: an upper bound, not below one here
+        radius, radius_method = norm, f"inconclusive at bound {norm:.6g} (the induced 2-norm)"
     return PlantCertificate("", kind, radius, norm, method, radius_method)
 
 
@@ -1180,20 +842,6 @@ def bounded_matrix_certificate(matrix: np.ndarray, kind: str, error: float = 0.0
 
 
 @dataclass(frozen=True)
-class _MatrixOperator:
-    """A dense matrix behind the ``size``/``matvec`` interface of the ARPACK helpers."""
-
-    matrix: np.ndarray
-
-    @property
-    def size(self) -> int:
-        return int(self.matrix.shape[0])
-
-    def matvec(self, x: np.ndarray) -> np.ndarray:
-        return np.asarray(self.matrix @ x)
-
-
-@dataclass(frozen=True)
 class _ScaledErrorMap:
     """The error map ``T(s) = I - s H F'`` of one single-output plant for every scale ``s`` of ``p2`` at once.
 
@@ -1201,7 +849,7 @@ class _ScaledErrorMap:
     the Toeplitz blocks are ``tau_j(s) = delta_j - s c_j`` with ``c = h * w`` (``h`` the unscaled Markov
     parameters, ``w`` the filter's weights) computed once, and so is their spectrum on the symbol grid: a scale
     then costs one pass over that grid. The numbers are those of :meth:`LiftedErrorMap.spectral_radius` and
-    :meth:`LiftedErrorMap.symbol_upper_bound` (the same rigorous :func:`_grid_bound`, with ``S_1``, ``S_2`` of
+    :meth:`LiftedErrorMap.symbol_upper_bound` (the same rigorous :func:`grid_bound`, with ``S_1``, ``S_2`` of
     ``T(s)`` equal to ``s`` times those of ``c``), for pure Toeplitz maps (no correction
     columns) longer than :data:`DENSE_LIMIT`; anything else, and any scale whose bound is not below one, takes
     :func:`map_certificate`.
@@ -1229,8 +877,8 @@ class _ScaledErrorMap:
         taus = T._taus()[:, 0, 0]
         c = -taus  # tau_j = delta_j - c_j
         c[0] += 1.0
-        _, s1, s2 = _moments(np.abs(c))
-        grid = _symbol_grid(T.length, _moments(np.abs(taus)), SYMBOL_GRID_CAP)  # s = 1: the largest moments
+        _, s1, s2 = moments(np.abs(c))
+        grid = symbol_grid(T.length, moments(np.abs(taus)), SYMBOL_GRID_CAP)  # s = 1: the largest moments
         info = fft(c, n=max(4096, 2 * T.length))
         spectrum = rfft(c, n=grid)
         return _ScaledErrorMap(
@@ -1246,8 +894,8 @@ class _ScaledErrorMap:
         peak = math.sqrt(max(0.0, float(np.max(scale * scale * self.modulus2 - 2.0 * scale * self.real)) + 1.0))
         taus = -scale * self.c
         taus[0] += 1.0
-        moments = (float(np.sum(np.abs(taus))), scale * self.c_moments[0], scale * self.c_moments[1])
-        bound = _grid_bound(peak, self.grid, moments)
+        sums = (float(np.sum(np.abs(taus))), scale * self.c_moments[0], scale * self.c_moments[1])
+        bound = grid_bound(peak, self.grid, sums)
         symbol = float(np.max(np.abs(1.0 - scale * self.info_spectrum)))
         if bound < 1.0:
             return PlantCertificate(
@@ -1324,6 +972,8 @@ class _Evaluator:
         ]
         self._cache: dict[float, _Verdict] = {}
         self._scaled: dict[tuple[int, float, float, str], _ScaledErrorMap | None] = {}
+        self._structured: dict[tuple[int, float, float, str], StructuredInputMap | None] = {}
+        self._proxies: dict[tuple[int, float, float, str], EdgeProxy | None] = {}
 
     def at(self, scale: float, law: LawStructure | None = None) -> _Verdict:
         """The verdict with ``p2`` scaled by ``scale`` (for ``law``, default the law as it runs)."""
@@ -1340,17 +990,61 @@ class _Evaluator:
         """One plant's certificate: the precomputed scaled map where it is conclusive, else :func:`map_certificate`."""
         name, loop = self.loops[index]
         key = (index, law.kp, law.r, str(law.fractional_memory))
+        if law.q_filter is not None:
+            if law.n_samples * loop.B.shape[1] <= DENSE_LIMIT:
+                return _input_map_certificate(loop, law, scale=scale).named(name)
+            if key not in self._structured:
+                self._structured[key] = structured_input_map(loop, law)
+            return _input_map_certificate(loop, law, self._structured[key], scale).named(name)
         if key not in self._scaled:
             self._scaled[key] = _ScaledErrorMap.of(loop, law)
         scaled = self._scaled[key]
         fast = None if scaled is None else scaled.certificate(scale, loop, law)
         return (fast or map_certificate(loop.scaled(scale), law)).named(name)
 
+    def _proxy(self, index: int) -> EdgeProxy | None:
+        """The rescale search's estimate of plant ``index``'s Q-filtered map (``None``: no structured form, or a
+        trial short enough to certify densely at every scale)."""
+        loop = self.loops[index][1]
+        law = self.law
+        if law.q_filter is None or law.n_samples * loop.B.shape[1] <= DENSE_LIMIT:
+            return None
+        key = (index, law.kp, law.r, str(law.fractional_memory))
+        if key not in self._structured:
+            self._structured[key] = structured_input_map(loop, law)
+        if key not in self._proxies:
+            structured = self._structured[key]
+            self._proxies[key] = None if structured is None else EdgeProxy(structured, loop, law)
+        return self._proxies[key]
+
+    def estimate(self, scale: float, key: str) -> float:
+        """The worst-case ``key`` at ``scale`` for the search: the certificates themselves where they are cheap
+        (no Q-filter, short trials), else the Q-filtered maps' :class:`~foilc_hil.design.qmap.EdgeProxy` (the
+        spectral radius of a causal filter's map exactly, from its diagonal)."""
+        proxies = [self._proxy(index) for index in range(len(self.loops))]
+        if any(proxy is None for proxy in proxies):
+            return float(getattr(self.at(scale), key))
+        values = []
+        for index, proxy in enumerate(proxies):
+            assert proxy is not None
+            structured = self._structured[(index, self.law.kp, self.law.r, str(self.law.fractional_memory))]
+            if key == "spectral_radius" and structured is not None and structured.triangular:
+                values.append(triangular_radius(structured, scale))
+            else:
+                values.append(proxy.estimate(scale))
+        return max(values) if all(math.isfinite(v) for v in values) else math.inf
+
+    def admissible(self, scale: float, require_monotonic: bool) -> bool:
+        """Whether ``scale`` looks admissible to the search's estimates (:meth:`estimate`)."""
+        if self.estimate(scale, "spectral_radius") >= 1.0:
+            return False
+        return not require_monotonic or self.estimate(scale, "norm_2") <= CONTRACTION_LIMIT
+
     def objective(self, key: str) -> Callable[[float], float]:
-        """The worst-case ``key`` as a function of ``log(scale)`` (``1e300`` where it is not finite)."""
+        """The worst-case ``key`` estimate as a function of ``log(scale)`` (``1e300`` where it is not finite)."""
 
         def worst(log_scale: float) -> float:
-            value = float(getattr(self.at(math.exp(log_scale)), key))
+            value = self.estimate(math.exp(log_scale), key)
             return value if math.isfinite(value) else 1e300
 
         return worst
@@ -1441,17 +1135,18 @@ def _best_scale(evaluator: _Evaluator, summary: str, require_monotonic: bool) ->
 
 
 def _largest_admissible(evaluator: _Evaluator, best: _Verdict, require_monotonic: bool) -> float:
-    """Largest admissible scale (same criterion), by bisection between the chosen scale and 1 (not admissible)."""
+    """Largest admissible scale (same criterion), by bisection on the search's estimates between the chosen scale
+    and 1 (not admissible), the result certified as every chosen scale is (else the chosen scale itself)."""
     lo, hi = best.scale, 1.0
     for _ in range(40):
         if hi - lo <= 1e-2 * hi:
             break
         mid = math.sqrt(lo * hi)
-        if evaluator.at(mid).admissible(require_monotonic):
+        if evaluator.admissible(mid, require_monotonic):
             lo = mid
         else:
             hi = mid
-    return lo
+    return lo if lo == best.scale or evaluator.at(lo).admissible(require_monotonic) else best.scale
 
 
 @as_step("certificates of the law as it runs")
@@ -1523,6 +1218,58 @@ def certify(
     return Certification(scaled, best.scale, certificates)
 
 
+class PTypeScales:
+    """The P-type design ``P = (0 s Gamma)`` at every scale ``s`` of its gain, from one set of lifted maps: what the
+    rule of :mod:`foilc_hil.design.admission` searches over (the pipeline's P-type design).
+
+    ``design(s)`` is certified as it runs (``law``: ``kp = 0``), its certificates adding the gain and its
+    frequency-domain bound (:class:`PTypeGain`); ``estimate(s)`` gives the rescale search's worst-case spectral
+    radius and 2-norm (cheap; the certificates themselves where they are cheap anyway).
+    """
+
+    def __init__(
+        self,
+        model: DiscreteModel,
+        uncertainty: Uncertainty,
+        gain: np.ndarray,
+        law: LawStructure,
+        *,
+        require_monotonic: bool,
+    ) -> None:
+        self.model, self.uncertainty, self.law = model, uncertainty, law
+        self.gain = np.asarray(gain, dtype=float)
+        self.require_monotonic = require_monotonic
+        P = np.hstack([np.zeros((model.n_inputs, model.n_states)), self.gain])
+        self._evaluator = _Evaluator(model, uncertainty, P, law)
+
+    def design(self, scale: float) -> Design:
+        """The design with ``Gamma`` scaled by ``scale`` and its certificates (``designed``: at scale 1; the naive
+        comparison: the scaled gain with the filters off)."""
+        gamma = scale * self.gain
+        evaluator = self._evaluator
+        record = _record(evaluator, evaluator.at(scale), self.require_monotonic, CertificateAction.NONE)
+        certificates = replace(
+            record,
+            naive_without_filter=evaluator.at(scale, self.law.without_filters()).bounds(),
+            gain_scale=1.0,
+            p_type=PTypeGain(gamma, frequency_bound(self.model, gamma)),
+        )
+        P = np.hstack([np.zeros((self.model.n_inputs, self.model.n_states)), gamma])
+        return Design(
+            law=LawKind.P_TYPE,
+            model=self.model,
+            uncertainty=self.uncertainty,
+            P=P,
+            kp=self.law.kp,
+            r=self.law.r,
+            certificates=certificates,
+        )
+
+    def estimate(self, scale: float) -> Bounds:
+        """The worst-case spectral radius and 2-norm at ``scale`` as the rescale search sees them."""
+        return Bounds(self._evaluator.estimate(scale, "spectral_radius"), self._evaluator.estimate(scale, "norm_2"))
+
+
 @as_step("certificates of the P-type law")
 def certify_p_type(
     model: DiscreteModel, uncertainty: Uncertainty, gain: np.ndarray, law: LawStructure, *, require_monotonic: bool
@@ -1533,10 +1280,4 @@ def certify_p_type(
     the certificates report it, nothing rescales it (``synthesis.on_divergent_filter`` is about the fractional
     filter, which P-type does not have). They add the gain and its frequency-domain bound (:class:`PTypeGain`).
     """
-    gamma = np.asarray(gain, dtype=float)
-    P = np.hstack([np.zeros((model.n_inputs, model.n_states)), gamma])
-    record = certify_as_given(model, uncertainty, P, law, require_monotonic=require_monotonic)
-    certificates = replace(record, p_type=PTypeGain(gamma, frequency_bound(model, gamma)))
-    return Design(
-        law=LawKind.P_TYPE, model=model, uncertainty=uncertainty, P=P, kp=law.kp, r=law.r, certificates=certificates
-    )
+    return PTypeScales(model, uncertainty, gain, law, require_monotonic=require_monotonic).design(1.0)

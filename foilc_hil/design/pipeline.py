@@ -20,7 +20,7 @@ from dataclasses import replace
 
 from foilc_hil.config import Config, DesignMethod, LawKind
 from foilc_hil.design.admission import ScaledVerdict, admit
-from foilc_hil.design.certificates import LawStructure, certify_p_type
+from foilc_hil.design.certificates import LawStructure, PTypeScales
 from foilc_hil.design.codesign import codesign
 from foilc_hil.design.gradient import certify_gradient
 from foilc_hil.design.lmi import solve_lmi, synthesize
@@ -35,7 +35,7 @@ from foilc_hil.design.models import (
 from foilc_hil.design.noilc import certify_noilc
 from foilc_hil.design.ptype import p_type_gain
 from foilc_hil.design.qfilter import QFilter
-from foilc_hil.design.record import Bounds, CertificateAction, Design
+from foilc_hil.design.record import Bounds, CertificateAction, Design, PlantCertificate
 from foilc_hil.design.tuning import tune
 from foilc_hil.errors import ConfigError
 from plant_emulator.linear import continuous_model
@@ -111,10 +111,9 @@ def _fractional_parameters(config: Config, law: LawKind) -> tuple[float, float]:
 def law_structure(config: Config, law: LawKind, n_samples: int, *, input_delay: int) -> LawStructure:
     """How ``law`` runs for ``config`` (the certificates' :class:`LawStructure`), tuning FOILC if needed."""
     kp, r = _fractional_parameters(config, law)
-    q_matrix = None
-    if config.law.q_filter is not None:
-        q_filter = QFilter(config.law.q_filter.cutoff, config.law.q_filter.order, config.sample_time)
-        q_matrix = q_filter.matrix(n_samples)
+    q_filter = None
+    if config.law.q_filter is not None:  # the filter the law builds too (QFilter.of), on this trial length
+        q_filter = QFilter.of(config.law.q_filter, config.sample_time).on(n_samples)
     return LawStructure(
         kp=kp,
         r=r,
@@ -122,7 +121,8 @@ def law_structure(config: Config, law: LawKind, n_samples: int, *, input_delay: 
         n_samples=n_samples,
         lead=input_delay,
         fractional_memory=config.law.fractional_memory,
-        q_filter=q_matrix,
+        q_filter=q_filter,
+        exact=config.synthesis.exact_certificates,
     )
 
 
@@ -158,15 +158,19 @@ def _p_type(config: Config, model: DiscreteModel, uncertainty: Uncertainty, stru
         config.law.p_type_gain, model.A, model.B, model.measured_output, model.input_delay, vertices=vertices
     )
     designs: dict[float, Design] = {}
+    scales = PTypeScales(model, uncertainty, gain, structure, require_monotonic=settings.require_monotonic)
 
     def evaluate(scale: float) -> ScaledVerdict:
         if scale not in designs:
-            designs[scale] = certify_p_type(
-                model, uncertainty, scale * gain, structure, require_monotonic=settings.require_monotonic
-            )
+            designs[scale] = scales.design(scale)
         certificates = designs[scale].certificates
         assert certificates is not None
         return ScaledVerdict(scale, certificates.plants)
+
+    def estimate(scale: float) -> ScaledVerdict:  # the search's cheap numbers (certificates.PTypeScales)
+        bounds = scales.estimate(scale)
+        entry = PlantCertificate("worst case", "estimate", bounds.spectral_radius, bounds.norm_2, "search estimate")
+        return ScaledVerdict(scale, (entry,))
 
     admission = admit(
         evaluate,
@@ -174,6 +178,7 @@ def _p_type(config: Config, model: DiscreteModel, uncertainty: Uncertainty, stru
         policy=settings.on_divergent_filter,
         require_monotonic=settings.require_monotonic,
         growth_horizon=config.trials,
+        estimate=estimate,
     )
     chosen = designs[admission.verdict.scale]
     if admission.action is CertificateAction.NONE:

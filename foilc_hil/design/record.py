@@ -48,8 +48,10 @@ from foilc_hil.design.models import DiscreteModel, Uncertainty, ssmatrix
 from foilc_hil.errors import InputError
 
 __all__ = [
+    "BoundClaim",
     "Bounds",
     "CertificateAction",
+    "CertificateMethod",
     "Certificates",
     "CodesignRecord",
     "Design",
@@ -57,9 +59,11 @@ __all__ = [
     "GrowthBound",
     "LmiChecks",
     "LmiScaling",
+    "MonotoneVerdict",
     "NoilcWeights",
     "PTypeGain",
     "PlantCertificate",
+    "Proof",
     "Timing",
     "jsonable",
 ]
@@ -165,13 +169,78 @@ class Bounds:
         return cls(_number(document, "spectral_radius", where), _number(document, "norm_2", where))
 
 
+@enum.unique
+class BoundClaim(StrEnum):
+    """What a certificate's number is: a rigorous bound from above or below, or the exact value (to a stated
+    tolerance)."""
+
+    UPPER = "upper bound"
+    LOWER = "lower bound"
+    EXACT = "exact"
+
+
+@enum.unique
+class CertificateMethod(StrEnum):
+    """How a certificate was computed (:mod:`foilc_hil.design.qmap`)."""
+
+    SYMBOL = "symbol + finite-length correction"
+    STRUCTURED = "structured exact"
+    DENSE = "dense"
+
+
+@enum.unique
+class MonotoneVerdict(StrEnum):
+    """Whether the map is certified monotone (``norm_2`` at most the contraction limit), certified not monotone
+    (a lower bound or the exact value at or above it), or neither within the time allowed."""
+
+    MONOTONE = "monotone"
+    NOT_MONOTONE = "not monotone"
+    INCONCLUSIVE = "inconclusive"
+
+
+@dataclass(frozen=True)
+class Proof:
+    """What one plant's certificate proves and how (an addition: absent from earlier documents)."""
+
+    norm_2: BoundClaim
+    spectral_radius: BoundClaim
+    monotone: MonotoneVerdict
+    method: CertificateMethod
+
+    def to_json(self) -> dict[str, Any]:
+        """``{"norm_2", "spectral_radius", "monotone", "method"}``."""
+        return {
+            "norm_2": str(self.norm_2),
+            "spectral_radius": str(self.spectral_radius),
+            "monotone": str(self.monotone),
+            "method": str(self.method),
+        }
+
+    @classmethod
+    def from_json(cls, value: Any) -> Proof:
+        """Read :meth:`to_json` output."""
+        where = "design.certificates.plants[].proof"
+        document = _mapping(value, where)
+        try:
+            return cls(
+                BoundClaim(_typed(document, "norm_2", str, where)),
+                BoundClaim(_typed(document, "spectral_radius", str, where)),
+                MonotoneVerdict(_typed(document, "monotone", str, where)),
+                CertificateMethod(_typed(document, "method", str, where)),
+            )
+        except ValueError as exc:
+            raise InputError(f"{where}: {exc}") from None
+
+
 @dataclass(frozen=True)
 class PlantCertificate:
     """The lifted trial map of one plant (nominal or an uncertainty vertex): see
     :func:`foilc_hil.design.certificates.map_certificate`.
 
     ``map`` is ``"error"`` (no Q-filter) or ``"input (Q-filter)"``; ``spectral_radius_method`` is given for the
-    input map only, ``norm_2_symbol`` for the error map's Toeplitz path only.
+    input map only, ``norm_2_symbol`` for the error map's Toeplitz path only. ``proof`` (the Q-filtered input map
+    of :mod:`foilc_hil.design.qmap`) says what ``norm_2`` and ``spectral_radius`` are (upper or lower bounds, or
+    exact), whether the map is certified monotone, not monotone or neither, and by which method.
     """
 
     plant: str
@@ -181,6 +250,7 @@ class PlantCertificate:
     norm_2_method: str
     spectral_radius_method: str | None = None
     norm_2_symbol: float | None = None
+    proof: Proof | None = None
 
     def named(self, plant: str) -> PlantCertificate:
         """The same certificate for the plant called ``plant``."""
@@ -192,6 +262,7 @@ class PlantCertificate:
             self.norm_2_method,
             self.spectral_radius_method,
             self.norm_2_symbol,
+            self.proof,
         )
 
     def to_json(self) -> dict[str, Any]:
@@ -204,6 +275,8 @@ class PlantCertificate:
         )
         if self.norm_2_symbol is not None:
             document["norm_2_symbol"] = self.norm_2_symbol
+        if self.proof is not None:  # an addition (docs/interface-additions.md)
+            document["proof"] = self.proof.to_json()
         return document
 
     @classmethod
@@ -218,6 +291,7 @@ class PlantCertificate:
             norm_2_method=_typed(document, "norm_2_method", str, where),
             spectral_radius_method=_optional(document, "spectral_radius_method", str),
             norm_2_symbol=_number(document, "norm_2_symbol", where) if "norm_2_symbol" in document else None,
+            proof=_optional(document, "proof", Proof.from_json),
         )
 
 

@@ -58,8 +58,9 @@ With no previous trial the law has no ``x_{k-1}`` and no ``E_{k-1}``: trial 1 ru
 feedforward and drops the previous-trial record the same way, so the next trial re-measures the plant under the
 restored feedforward before learning resumes.
 
-Optional Q-filter: after each trial the feedforward stored for the next trial is ``Q(u_k)`` (zero phase,
-:mod:`foilc_hil.design.qfilter`).
+Optional Q-filter: after each trial the feedforward stored for the next trial is ``Q(u_k)`` (zero phase or
+causal, ``law.q_filter.phase``; :mod:`foilc_hil.design.qfilter`, built by :meth:`~foilc_hil.design.qfilter.QFilter.of`
+from the same section as the certificates' filter).
 
 Determinism: every operation is a fixed sequence of numpy calls on fixed-shape float64 arrays (no threads, no
 reductions whose order depends on data), so the same design, configuration and measured outputs give
@@ -648,9 +649,8 @@ def make_law(
 
 
 def _new_law(design: Design, law_cfg: LawConfig, n_samples: int, limits: tuple[float, float] | None) -> LearningLaw:
-    q_filter = None
-    if law_cfg.q_filter is not None:
-        q_filter = QFilter(law_cfg.q_filter.cutoff, law_cfg.q_filter.order, design.sample_time)
+    # the one constructor the certificates' LawStructure uses too (foilc_hil.design.pipeline.law_structure)
+    q_filter = None if law_cfg.q_filter is None else QFilter.of(law_cfg.q_filter, design.sample_time)
     memory = law_cfg.fractional_memory
     if design.law is LawKind.NOILC:
         return Noilc(design, n_samples, q_filter=q_filter, limits=limits)

@@ -1,0 +1,940 @@
+"""The Q-filtered input map of the 2D laws (FOILC, IOILC, P-type) as a Toeplitz section plus a low-rank correction,
+and its certificate in bounded time.
+
+The map
+-------
+With a Q-filter the law stores ``Q u_k`` for the next trial, and the trial-to-trial map acts on the input
+(:mod:`foilc_hil.design.certificates` notes)::
+
+    M(s) = R (Q - s P2 S F Gy - P1 Gz),   R = (I - P1 Gz)^-1,
+
+``s`` the scale of ``p2`` (the rescale search's variable). Every factor but ``Q`` (zero-phase: the backward pass)
+and ``S`` (the ``d``-sample advance) is causal and Toeplitz, and products of causal finite sections are finite
+sections again, so ``M`` differs from the finite section ``T = T_N(a)`` of its two-sided symbol
+``a = r (q - s p2 c - p1 gz)`` (``q`` the filter's: ``|h|^2`` zero-phase, ``h`` causal; ``c = f * z^d g`` the
+fractional weights times the plant's Markov parameters advanced by ``d``) only by a correction ``E = M - T`` of low
+rank whose range or co-range is known in advance (Widom's formula ``T_N(xy) = T_N(x) T_N(y) + P_N H(x) H(y~) P_N +
+W_N H(x~) H(y) W_N`` applied to each product):
+
+* ``R`` (causal, ``ns`` states) times the anticausal part of ``q`` (and of ``c`` when the plant's first ``d`` Markov
+  parameters do not vanish): range in the span of ``i -> p1 A_cl^i`` (the start of the trial);
+* the zero-phase backward pass from zero state at the end: ``Q = T_N(|h|^2) - (rank n_q)``, co-range in the span of
+  ``j -> A_h^(N-1-j) B_h`` (the end of the trial);
+* ``E[j] = 0`` for ``j >= N`` in the learning term: range in the last ``d`` samples;
+* the Caputo correction columns of the "trial" memory (and the first ``d`` error samples no input moves): co-range
+  in the first ``max(d, K)`` samples.
+
+With ``U``, ``V`` orthonormal bases of the known ranges and co-ranges, ``(I - P_U) E (I - P_V) = 0``, so
+``E = U (E^T U)^T + (I - P_U) (E V) V^T`` exactly, from ``k = dim U + dim V`` products with ``M`` and ``T`` (the
+structure is checked on random probes every time; a map that fails the check is not certified this way).
+
+What is computed
+----------------
+* ``tau >= ||T||_2``: the sup of the truncated symbol on a grid, widened rigorously
+  (:func:`foilc_hil.design.lifted.grid_bound`): the "symbol" part.
+* ``||M||_2 < gamma`` for a ``gamma > tau`` is decided EXACTLY ("structured exact"): ``gamma^2 I - M^T M = D - W C
+  W^T`` with ``D = gamma^2 I - T^T T`` positive definite (``gamma > tau``) and ``W C W^T = M^T M - T^T T`` of rank
+  ``2 k`` (``W = [V_E, T^T U_E]`` for ``E = U_E V_E^T``), so it is positive definite if and only if
+  ``G^-1 - C`` is, ``G = W^T D^-1 W`` (``2 k x 2 k``). ``D^-1 W`` comes from preconditioned conjugate gradients
+  (the circulant with the symbol's values as preconditioner: about a dozen FFT products) and ``G`` is bounded
+  above in the Loewner order by the residual: ``G <= sym(W^T Z + Z^T R) + ||R||^2 / (gamma^2 - tau^2) I`` for
+  any ``Z`` with residual ``R = W - D Z``; a bound above ``G`` keeps the test one-sided (it can only fail where
+  the exact test passes). The first ``gamma`` tried is ``max(tau, lower)`` widened by ``1e-6`` (``lower``: the
+  rigorous lower bound below); when it fails, a secant on the test's smallest eigenvalue (increasing in
+  ``gamma``) finds the edge singular value within a few tests.
+* Lower bounds (rigorous: ``||M x|| / ||x||``): a windowed sinusoid at the symbol's peak (the interior), and
+  each test's direction of its smallest margin refined by a few power steps (the edge singular vector when the
+  test ran near it): ``x^T (gamma^2 I - M^T M) x = y^T (G^-1 - C) y`` for ``x = D^-1 W G^-1 y``.
+* Spectral radius. A CAUSAL Q-filter keeps ``M`` lower triangular (block: ``m x m``) whenever the plant's first
+  ``d`` Markov parameters vanish (the delay-augmented design models): its spectrum is that of its diagonal blocks,
+  EXACT. A zero-phase filter makes ``M`` non-triangular: ``rho(M) <= ||M||_2`` (an upper bound, said so); the
+  exact value is computed densely only when asked (``LawStructure.exact``) and the trial is short enough.
+
+Rounding: the test is exact in exact arithmetic; the residual term of ``G`` is rigorous, the FFT products that
+form ``E`` and ``D Z`` carry relative errors of a few ``1e-15`` (Higham's FFT bound), covered by
+:data:`ROUNDING_MARGIN` added to every upper bound (a margin, not a proof: as in
+:mod:`foilc_hil.design.trial_operator`). Everything runs in ``O(k N log N)`` per test: nothing ``N x N``.
+
+Module order: after :mod:`foilc_hil.design.lifted` and :mod:`foilc_hil.design.record`, before
+:mod:`foilc_hil.design.certificates` (which calls :func:`input_map_certificate`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from foilc_hil.config import FractionalMemory, QFilterPhase
+from foilc_hil.design.lifted import (
+    SYMBOL_GRID_CAP,
+    SYMBOL_GRID_CAP_MIMO,
+    LawStructure,
+    LoopPlant,
+    ScalarFilter,
+    grid_bound,
+    markov_blocks,
+    symbol_grid,
+    zero_history_filter,
+)
+from foilc_hil.design.qfilter import TrialQFilter
+from foilc_hil.design.record import BoundClaim, CertificateMethod, MonotoneVerdict, PlantCertificate, Proof
+from foilc_hil.progress import step
+
+__all__ = [
+    "INPUT_MAP",
+    "ROUNDING_MARGIN",
+    "EdgeProxy",
+    "StructuredInputMap",
+    "StructuredNorm",
+    "ToeplitzSection",
+    "input_map_certificate",
+    "structured_input_map",
+    "triangular_radius",
+]
+
+#: Relative margin added to every structured upper bound for the FFT products' rounding (module notes).
+ROUNDING_MARGIN = 1e-11
+#: Relative widening of the first ``gamma`` tried above ``max(tau, lower bound)``.
+FIRST_WIDENING = 1e-6
+#: Structured tests allowed per certificate in the default (bounded-time) mode.
+FAST_TESTS = 6
+#: Relative width of the bracket at which the default mode stops.
+FAST_TOLERANCE = 1e-4
+#: Relative width of the bracket at which the exact mode stops (the value is then "exact" to this).
+EXACT_TOLERANCE = 1e-9
+#: Conjugate-gradient steps allowed per structured test.
+CG_STEPS = 150
+#: Power steps from a structured test's direction behind its lower bound.
+RATIO_STEPS = 2
+#: Largest trial (rows) whose exact spectral radius is computed densely when asked (``LawStructure.exact``).
+EXACT_RADIUS_DENSE_LIMIT = 6000
+#: Relative size of ``(I - P_U) E (I - P_V) x`` on random probes above which the structure counts as absent.
+STRUCTURE_TOLERANCE = 1e-9
+#: Unit roundoff of float64.
+UNIT_ROUNDOFF = 2.0**-53
+#: Admissible monotone certificate: the 2-norm must be at most this (the certificates' CONTRACTION_LIMIT).
+CONTRACTION_LIMIT = 1.0 - 1e-9
+
+
+# --- signals: (columns, channels, samples), time on the last (contiguous) axis ---------------------------------------
+
+
+def _fft_length(n: int) -> int:
+    from scipy.fft import next_fast_len
+
+    return int(next_fast_len(2 * n - 1, real=True))
+
+
+def _mix(spectrum: np.ndarray, signals: np.ndarray) -> np.ndarray:
+    """Per-frequency block products: ``spectrum`` ``(r, c, F)`` times ``signals`` ``(K, c, F)`` -> ``(K, r, F)``."""
+    if spectrum.shape[0] == spectrum.shape[1] == 1:
+        return signals * spectrum[0]
+    return np.einsum("rcf,kcf->krf", spectrum, signals)
+
+
+@dataclass(frozen=True)
+class CausalToeplitz:
+    """A causal block Toeplitz finite section ``y[t] = sum_(j <= t) blocks[t - j] x[j]`` by FFT."""
+
+    spectrum: np.ndarray  # (rows, cols, F) of the blocks (L, rows, cols)
+    n_samples: int
+    nfft: int
+
+    @classmethod
+    def of(cls, blocks: np.ndarray) -> CausalToeplitz:
+        from scipy.fft import rfft
+
+        n = blocks.shape[0]
+        nfft = _fft_length(n)
+        return cls(rfft(np.ascontiguousarray(blocks.transpose(1, 2, 0)), n=nfft, axis=-1), n, nfft)
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        from scipy.fft import irfft, rfft
+
+        mixed = _mix(self.spectrum, rfft(x, n=self.nfft, axis=-1))
+        return np.asarray(irfft(mixed, n=self.nfft, axis=-1)[..., : self.n_samples])
+
+    def adjoint(self, y: np.ndarray) -> np.ndarray:
+        """``T^T y``: the transposed blocks on the time-reversed signal, reversed back."""
+        from scipy.fft import irfft, rfft
+
+        mixed = _mix(self.spectrum.transpose(1, 0, 2), rfft(y[..., ::-1], n=self.nfft, axis=-1))
+        return np.asarray(irfft(mixed, n=self.nfft, axis=-1)[..., : self.n_samples][..., ::-1])
+
+
+@dataclass(frozen=True)
+class ToeplitzSection:
+    """``T_N(a)``: ``T[i, j] = a_(i - j)`` for two-sided block coefficients ``a_k``, ``|k| < N``, stored as
+    ``(2N - 1, m, m)`` with ``a_k`` at index ``k + N - 1``; products by FFT on ``(K, m, N)`` signals."""
+
+    coefficients: np.ndarray
+    spectrum: np.ndarray  # (m, m, F)
+    nfft: int
+
+    @classmethod
+    def of(cls, coefficients: np.ndarray) -> ToeplitzSection:
+        from scipy.fft import next_fast_len, rfft
+
+        nfft = int(next_fast_len(coefficients.shape[0], real=True))
+        spectrum = rfft(np.ascontiguousarray(coefficients.transpose(1, 2, 0)), n=nfft, axis=-1)
+        return cls(coefficients, spectrum, nfft)
+
+    @property
+    def n_samples(self) -> int:
+        return (self.coefficients.shape[0] + 1) // 2
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        """``T x``: a circular convolution of length ``>= 2N - 1`` leaves outputs ``N-1 .. 2N-2`` un-aliased."""
+        from scipy.fft import irfft, rfft
+
+        n = self.n_samples
+        mixed = _mix(self.spectrum, rfft(x, n=self.nfft, axis=-1))
+        return np.asarray(irfft(mixed, n=self.nfft, axis=-1)[..., n - 1 : 2 * n - 1])
+
+    def adjoint(self, y: np.ndarray) -> np.ndarray:
+        """``T^T y = J T_N(a^T) J y`` (``J`` reverses time)."""
+        from scipy.fft import irfft, rfft
+
+        n = self.n_samples
+        mixed = _mix(self.spectrum.transpose(1, 0, 2), rfft(y[..., ::-1], n=self.nfft, axis=-1))
+        return np.asarray(irfft(mixed, n=self.nfft, axis=-1)[..., n - 1 : 2 * n - 1][..., ::-1])
+
+    def l1(self) -> float:
+        """``sum_k ||a_k||_F``: bounds ``||T||`` and the FFT products' rounding."""
+        return float(np.sum(np.linalg.norm(self.coefficients.reshape(self.coefficients.shape[0], -1), axis=1)))
+
+
+# --- the input map as the law runs it (exact products: the reference every structure is checked against) --------
+
+
+@dataclass(frozen=True)
+class InputOperator:
+    """``M(s) = M0 - s M1`` applied as the law runs it, on ``(K, m, N)`` signals: ``M0 = R (Q - P1 Gz)``,
+    ``M1 = R P2 S F Gy`` (module notes; ``Q`` by :meth:`~foilc_hil.design.qfilter.QFilter.apply`)."""
+
+    R: CausalToeplitz  # m x m: I, p1 A_cl^(k-1) B
+    P1Gz: CausalToeplitz  # m x m: 0, p1 A^(k-1) B
+    Gy: CausalToeplitz  # p x m: C A^k B
+    F: ScalarFilter
+    q: TrialQFilter
+    p2: np.ndarray
+    lead: int
+
+    def _filter(self, x: np.ndarray, adjoint: bool) -> np.ndarray:
+        """``Q x`` (or ``Q^T x``: the zero-phase ``Q`` is symmetric, the causal one is reversed in time)."""
+        if adjoint and self.q.phase is QFilterPhase.CAUSAL:
+            return self._filter(x[..., ::-1], adjoint=False)[..., ::-1]
+        return np.moveaxis(self.q.apply(np.moveaxis(x, -1, 0)), 0, -1)
+
+    def _fractional(self, x: np.ndarray, adjoint: bool) -> np.ndarray:
+        """``F`` (or ``F^T``) on every channel of every column."""
+        k, channels, n = x.shape
+        flat = x.reshape(k * channels, n).T
+        out = self.F.rmatvec(flat) if adjoint else self.F.matvec(flat)
+        return np.ascontiguousarray(out.T).reshape(k, channels, n)
+
+    def apply(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(M0 x, M1 x)``."""
+        d, n = self.lead, x.shape[-1]
+        error = self._fractional(self.Gy.apply(x), adjoint=False)
+        advanced = np.zeros_like(error)
+        advanced[..., : n - d] = error[..., d:]
+        learning = np.einsum("ap,kpt->kat", self.p2, advanced)
+        return self.R.apply(self._filter(x, adjoint=False) - self.P1Gz.apply(x)), self.R.apply(learning)
+
+    def adjoint(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(M0^T y, M1^T y)``."""
+        d, n = self.lead, y.shape[-1]
+        back = self.R.adjoint(y)
+        delayed = np.zeros((*back.shape[:-2], self.p2.shape[1], n))
+        delayed[..., d:] = np.einsum("ap,kat->kpt", self.p2, back)[..., : n - d]
+        learning = self.Gy.adjoint(self._fractional(delayed, adjoint=True))
+        return self._filter(back, adjoint=True) - self.P1Gz.adjoint(back), learning
+
+
+# --- the Toeplitz part and the known corner spaces -------------------------------------------------------------------
+
+
+def _two_sided_conv(causal: np.ndarray, two_sided: np.ndarray) -> np.ndarray:
+    """``(causal * two_sided)_k`` for ``|k| < N`` (both ``(2N - 1, m, m)``, ``two_sided`` at ``k + N - 1``)."""
+    from scipy.fft import irfft, next_fast_len, rfft
+
+    length = causal.shape[0]
+    nfft = int(next_fast_len(2 * length - 1, real=True))
+    left = rfft(causal, n=nfft, axis=0)
+    right = rfft(two_sided, n=nfft, axis=0)
+    return np.asarray(irfft(np.einsum("fab,fbc->fac", left, right), n=nfft, axis=0)[:length])
+
+
+def _filter_coefficients(q: TrialQFilter) -> np.ndarray:
+    """``q_k``, ``|k| < N``, at ``k + N - 1``: ``h`` (causal) or ``sum_j h_j h_(j+|k|)`` (zero phase: from the
+    controllability Gramian ``W`` of one pass, ``q_0 = D^2 + C W C^T``, ``q_k = C A^(k-1) (B D + A W C^T)``)."""
+    from scipy.linalg import solve_discrete_lyapunov
+
+    n = q.n_samples
+    system = q.filter.realization()
+    A, B, C, D = system.A, system.B, system.C, system.D
+    out = np.zeros(2 * n - 1)
+    if q.phase is QFilterPhase.CAUSAL:
+        out[n - 1] = D[0, 0]
+        out[n:] = markov_blocks(A, B, C, 0, n - 1)[:, 0, 0]
+        return out
+    gramian = solve_discrete_lyapunov(A, B @ B.T)
+    out[n - 1] = D[0, 0] ** 2 + float((C @ gramian @ C.T)[0, 0])
+    out[n:] = markov_blocks(A, B * D[0, 0] + A @ gramian @ C.T, C, 0, n - 1)[:, 0, 0]
+    out[: n - 1] = out[n:][::-1]
+    return out
+
+
+def _learning_weights(law: LawStructure) -> tuple[np.ndarray, int] | None:
+    """The fractional operator's Toeplitz weights on ``N`` samples and its correction columns' count, or ``None``
+    when it has no such form (a Caputo operator that failed the decomposition probe)."""
+    n = law.n_samples
+    if law.fractional_memory is FractionalMemory.CONTROLLABLE:
+        # the window's weights on N - d samples are the first N - d of these; rows past N - d are the
+        # correction's (they are zeroed by the advance), so any continuation serves
+        return zero_history_filter(law.kp, law.r, law.sample_time, n).weights, 0
+    filt = law.filter()
+    columns = filt.corrections.shape[1]
+    return (filt.weights, columns) if columns < n // 4 else None
+
+
+def _toeplitz_parts(loop: LoopPlant, law: LawStructure, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The coefficients of ``T_N(a0)`` and ``T_N(a1)`` with ``a(s) = a0 - s a1`` (module notes), ``(2N-1, m, m)``."""
+    from scipy.signal import fftconvolve
+
+    assert law.q_filter is not None
+    n, d = law.n_samples, law.lead
+    m = loop.B.shape[1]
+    A_cl = loop.A + loop.B @ loop.p1
+    r = np.zeros((2 * n - 1, m, m))
+    r[0] = np.eye(m)
+    r[1:] = markov_blocks(A_cl, loop.B, loop.p1, 0, 2 * n - 2)
+    x0 = np.zeros((2 * n - 1, m, m))
+    x0[:] = np.eye(m) * _filter_coefficients(law.q_filter)[:, None, None]
+    x0[n:] -= markov_blocks(loop.A, loop.B, loop.p1, 0, n - 1)
+    ahead = markov_blocks(loop.A, loop.B, loop.C_measured, 0, n + d)  # g_(k+d), k = -d .. N-1
+    c = fftconvolve(weights[:, None, None], ahead, axes=0)[: n + d]
+    x1 = np.zeros((2 * n - 1, m, m))
+    x1[n - 1 - d :] = np.einsum("ap,kpb->kab", loop.p2, c)
+    return _two_sided_conv(r, x0), _two_sided_conv(r, x1)
+
+
+def _orthonormal(columns: np.ndarray) -> np.ndarray:
+    """An orthonormal basis of the span of ``columns`` (``(K, m, N)``), numerically dependent ones dropped."""
+    from scipy.linalg import qr
+
+    k, m, n = columns.shape
+    if k == 0:
+        return columns
+    flat = columns.reshape(k, m * n).T
+    basis, triangle, _ = qr(flat, mode="economic", pivoting=True)
+    diagonal = np.abs(np.diag(triangle))
+    kept = int(np.sum(diagonal > 1e-13 * diagonal[0])) if diagonal.size and diagonal[0] > 0 else 0
+    return np.ascontiguousarray(basis[:, :kept].T).reshape(kept, m, n)
+
+
+def _units(samples: range, m: int, n: int) -> np.ndarray:
+    """Unit signals at the given samples, every channel: ``(len(samples) m, m, N)``."""
+    out = np.zeros((len(samples) * m, m, n))
+    for index, (t, a) in enumerate((t, a) for t in samples for a in range(m)):
+        out[index, a, t] = 1.0
+    return out
+
+
+def _corner_spaces(
+    loop: LoopPlant, law: LawStructure, anticausal: bool, corrections: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Orthonormal ``U`` (known ranges of ``E``) and ``V`` (known co-ranges), module notes."""
+    assert law.q_filter is not None
+    n, d = law.n_samples, law.lead
+    ns, m = loop.B.shape
+    ranges = [_units(range(n - d, n), m, n)]
+    if anticausal:
+        A_cl = loop.A + loop.B @ loop.p1
+        ranges.append(markov_blocks(A_cl, np.eye(ns), loop.p1, 0, n).transpose(2, 1, 0))  # i -> p1 A_cl^i
+    coranges = [_units(range(max(d, corrections)), m, n)]
+    if law.q_filter.phase is QFilterPhase.ZERO:
+        system = law.q_filter.filter.realization()
+        order = system.A.shape[0]
+        tail = markov_blocks(system.A, system.B, np.eye(order), 0, n)[::-1, :, 0]  # j -> A^(N-1-j) B
+        per_channel = np.zeros((order * m, m, n))
+        for a in range(m):
+            per_channel[a * order : (a + 1) * order, a, :] = tail.T
+        coranges.append(per_channel)
+    return _orthonormal(np.concatenate(ranges)), _orthonormal(np.concatenate(coranges))
+
+
+def _flat(x: np.ndarray) -> np.ndarray:
+    """``(K, m, N)`` signals as the columns of an ``(m N) x K`` matrix."""
+    return x.reshape(x.shape[0], -1).T
+
+
+def _project_out(basis: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``(I - P_basis) x`` for an orthonormal ``basis`` (both ``(K, m, N)``)."""
+    if basis.shape[0] == 0:
+        return x
+    coefficients = _flat(basis).T @ _flat(x)
+    return x - (_flat(basis) @ coefficients).T.reshape(x.shape)
+
+
+def _centered_moments(coefficients: np.ndarray) -> tuple[float, float, float]:
+    """``S_j = sum_k |k|^j ||a_k||_2`` over ``|k| < N`` (two-sided, at ``k + N - 1``): the widening of the symbol's
+    grid sup (:func:`~foilc_hil.design.lifted.grid_bound` holds for any integer indices)."""
+    length = coefficients.shape[0]
+    lag = np.abs(np.arange(length) - (length - 1) // 2).astype(float)
+    if coefficients.shape[1] == coefficients.shape[2] == 1:
+        magnitudes = np.abs(coefficients[:, 0, 0])
+    else:
+        magnitudes = np.linalg.norm(coefficients, ord=2, axis=(1, 2))
+    return float(np.sum(magnitudes)), float(np.sum(lag * magnitudes)), float(np.sum(lag * lag * magnitudes))
+
+
+def _wrapped(coefficients: np.ndarray, points: int) -> np.ndarray:
+    """Two-sided coefficients folded onto ``points`` (index ``k mod points``): their DFT is the symbol there."""
+    length = coefficients.shape[0]
+    n = (length + 1) // 2
+    out = np.zeros((points, *coefficients.shape[1:]))
+    np.add.at(out, (np.arange(length) - (n - 1)) % points, coefficients)
+    return out
+
+
+@dataclass(frozen=True)
+class _Symbol:
+    """The symbol ``a0 - s a1`` on a grid, for every scale ``s`` in ``[0, 1]`` at once (single channel: the three
+    real arrays of ``|a0 - s a1|^2 = |a0|^2 - 2 s Re(a0 a1*) + s^2 |a1|^2``; several: the complex blocks)."""
+
+    grid: int
+    moments0: tuple[float, float, float]
+    moments1: tuple[float, float, float]
+    parts: tuple[np.ndarray, ...]
+
+    @classmethod
+    def of(cls, a0: np.ndarray, a1: np.ndarray) -> _Symbol:
+        from scipy.fft import fft
+
+        m0, m1 = _centered_moments(a0), _centered_moments(a1)
+        joint = (m0[0] + m1[0], m0[1] + m1[1], m0[2] + m1[2])
+        length = a0.shape[0]
+        if a0.shape[1] == 1:
+            grid = symbol_grid(length, joint, SYMBOL_GRID_CAP)
+            s0, s1 = fft(_wrapped(a0, grid)[:, 0, 0]), fft(_wrapped(a1, grid)[:, 0, 0])
+            half = grid // 2 + 1  # real coefficients: |a| is even in theta
+            parts: tuple[np.ndarray, ...] = (
+                np.abs(s0[:half]) ** 2,
+                np.real(s0[:half] * np.conj(s1[:half])),
+                np.abs(s1[:half]) ** 2,
+            )
+        else:
+            grid = max(SYMBOL_GRID_CAP_MIMO, 1 << math.ceil(math.log2(length)))
+            parts = (fft(_wrapped(a0, grid), axis=0), fft(_wrapped(a1, grid), axis=0))
+        return cls(grid, m0, m1, parts)
+
+    def bound(self, scale: float) -> tuple[float, float]:
+        """A rigorous bound on ``sup |a0 - s a1|`` (the 2-norm of ``T_N(a0 - s a1)`` is at most that), and the
+        grid frequency of the peak."""
+        mom = tuple(a + scale * b for a, b in zip(self.moments0, self.moments1, strict=True))
+        moments3 = (mom[0], mom[1], mom[2])
+        if len(self.parts) == 3:
+            values = self.parts[0] - 2.0 * scale * self.parts[1] + scale * scale * self.parts[2]
+            peak_index = int(np.argmax(values))
+            peak = math.sqrt(max(0.0, float(values[peak_index])))
+            return grid_bound(peak, self.grid, moments3), 2.0 * math.pi * peak_index / self.grid
+        singular = np.linalg.svd(self.parts[0] - scale * self.parts[1], compute_uv=False)[:, 0]
+        peak_index = int(np.argmax(singular))
+        widened = float(singular[peak_index]) + moments3[1] * math.pi / self.grid
+        return min(widened, moments3[0]), 2.0 * math.pi * peak_index / self.grid
+
+
+# --- the exact test ||T + U_E V_E^T|| < gamma ------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _TestOutcome:
+    """One structured test: passed (``||M|| < gamma``), the smallest eigenvalue of ``G^-1 - C`` for the bound of
+    ``G`` (increasing in ``gamma``; negative where the test fails), whether the failure is beyond the bound's slack
+    (then ``||M|| >= gamma``: a lower bound), the solution to warm-start the next test from, and the direction
+    ``x = Z G^-1 y`` of that smallest eigenvalue's ``y`` (``x^T (gamma^2 I - M^T M) x = y^T (G^-1 - C) y``: the
+    edge singular vector's approximation, whose ``||M x|| / ||x||`` is a lower bound)."""
+
+    gamma: float
+    passed: bool
+    margin: float
+    refuted: bool
+    solution: np.ndarray
+    direction: np.ndarray
+
+
+@dataclass(frozen=True)
+class _NormTest:
+    """The structured test of one map at one scale (module notes): ``T``, the rank-``2k`` correction
+    ``W C W^T = M^T M - T^T T`` with ``W`` orthonormal, ``tau >= ||T||`` and the circulant preconditioner's
+    symbol values."""
+
+    T: ToeplitzSection
+    W: np.ndarray  # (kw, m, N), orthonormal
+    C: np.ndarray  # (kw, kw)
+    tau: float
+    circulant: np.ndarray  # (N, m, m): the symbol at the N-th roots of unity
+
+    @classmethod
+    def of(cls, T: ToeplitzSection, Ue: np.ndarray, Ve: np.ndarray, tau: float, circulant: np.ndarray) -> _NormTest:
+        k = Ue.shape[0]
+        W = np.concatenate([Ve, T.adjoint(Ue)])
+        flat_u = _flat(Ue)
+        C = np.block([[flat_u.T @ flat_u, np.eye(k)], [np.eye(k), np.zeros((k, k))]])
+        basis, triangle = np.linalg.qr(_flat(W))
+        kw, m, n = W.shape
+        return cls(T, np.ascontiguousarray(basis.T).reshape(kw, m, n), triangle @ C @ triangle.T, tau, circulant)
+
+    def _operator(self, gamma: float, x: np.ndarray) -> np.ndarray:
+        return gamma * gamma * x - self.T.adjoint(self.T.apply(x))
+
+    def _preconditioner(self, gamma: float) -> Callable[[np.ndarray], np.ndarray]:
+        """``(gamma^2 I - C^T C)^-1`` for the circulant ``C`` with the symbol's values (floored: it only steers)."""
+        from scipy.fft import fft, ifft
+
+        m = self.circulant.shape[1]
+        blocks = gamma * gamma * np.eye(m) - np.einsum("fba,fbc->fac", self.circulant.conj(), self.circulant)
+        floor = 1e-12 * gamma * gamma
+        if m == 1:
+            inverse = 1.0 / np.maximum(blocks[:, 0, 0].real, floor)
+
+            def apply_scalar(x: np.ndarray) -> np.ndarray:
+                return np.real(ifft(fft(x, axis=-1) * inverse, axis=-1))
+
+            return apply_scalar
+        inverse_blocks = np.linalg.inv(blocks + floor * np.eye(m))
+
+        def apply_blocks(x: np.ndarray) -> np.ndarray:
+            mixed = np.einsum("fab,kbf->kaf", inverse_blocks, fft(x, axis=-1))
+            return np.real(ifft(mixed, axis=-1))
+
+        return apply_blocks
+
+    def run(self, gamma: float, start: np.ndarray | None = None) -> _TestOutcome:
+        """Decide ``||M|| < gamma`` (``gamma > tau``) by conjugate gradients on ``D Z = W`` and the Loewner
+        bound of ``G`` (module notes)."""
+        gap = gamma * gamma - self.tau * self.tau
+        precondition = self._preconditioner(gamma)
+        Z = np.zeros_like(self.W) if start is None else start.copy()
+        residual = self.W - self._operator(gamma, Z)
+        direction = precondition(residual)
+        rz = np.einsum("kat,kat->k", residual, direction)
+        for _ in range(CG_STEPS):
+            if float(np.einsum("kat,kat->", residual, residual)) <= 1e-9 * gap * gap:
+                break
+            image = self._operator(gamma, direction)
+            alpha = rz / np.maximum(np.einsum("kat,kat->k", direction, image), 1e-300)
+            Z += alpha[:, None, None] * direction
+            residual -= alpha[:, None, None] * image
+            preconditioned = precondition(residual)
+            rz_next = np.einsum("kat,kat->k", residual, preconditioned)
+            direction = preconditioned + (rz_next / np.maximum(rz, 1e-300))[:, None, None] * direction
+            rz = rz_next
+        residual = self.W - self._operator(gamma, Z)  # recomputed: the recurrence's residual drifts
+        passed, margin, refuted, combination = self._decide(gamma, Z, residual, gap)
+        direction = np.einsum("k,kat->at", combination, Z)[None]
+        return _TestOutcome(gamma, passed, margin, refuted, Z, direction)
+
+    def _decide(
+        self, gamma: float, Z: np.ndarray, residual: np.ndarray, gap: float
+    ) -> tuple[bool, float, bool, np.ndarray]:
+        """``G^-1 - C > 0`` with ``G`` replaced by its bound ``G_hat`` from above (module notes); refuted when the
+        smallest eigenvalue is below ``-2 slack ||G_hat^-1||^2`` (``G^-1 - G_hat^-1`` is at most about
+        ``slack ||G_hat^-1||^2``: then ``G^-1 - C`` is not positive definite either)."""
+        from scipy.linalg import LinAlgError, cho_factor, cho_solve
+
+        flat_w, flat_z, flat_r = _flat(self.W), _flat(Z), _flat(residual)
+        size = flat_w.shape[0]
+        z_norm = float(np.linalg.norm(flat_z))
+        fft_error = (3 * 12.0 * math.log2(self.T.nfft) + 4) * UNIT_ROUNDOFF * (gamma**2 + self.T.l1() ** 2) * z_norm
+        rho = float(np.linalg.norm(flat_r)) + fft_error
+        product = flat_w.T @ flat_z + flat_z.T @ flat_r
+        slack = rho * rho / gap + 4.0 * size * UNIT_ROUNDOFF * z_norm * (math.sqrt(flat_w.shape[1]) + rho)
+        bound = 0.5 * (product + product.T) + slack * np.eye(product.shape[0])
+        try:
+            factor = cho_factor(bound)
+        except LinAlgError:
+            return False, -math.inf, False, np.zeros(bound.shape[0])
+        inverse = cho_solve(factor, np.eye(bound.shape[0]))
+        X = inverse - self.C
+        eigenvalues, vectors = np.linalg.eigh(0.5 * (X + X.T))
+        tolerance = 1e-12 * (float(np.max(np.abs(eigenvalues))) + float(np.max(np.abs(self.C), initial=0.0)))
+        margin = float(eigenvalues[0])
+        inverse_norm = float(np.linalg.norm(inverse, 2))
+        refuted = margin < -2.0 * slack * inverse_norm * inverse_norm - tolerance
+        return margin > tolerance, margin, refuted, inverse @ vectors[:, 0]
+
+
+# --- one plant's map for every scale of p2 ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class StructuredNorm:
+    """The 2-norm of ``M`` bracketed: ``lower <= ||M||_2 <= upper`` (rigorous; ``upper`` ``inf`` when no test
+    passed), ``tau`` the symbol's bound, ``tests`` the structured tests run, and whether the upper bound is the
+    symbol's (the first test, at ``tau`` widened, passed with ``tau`` above the lower bound) or the edge's."""
+
+    upper: float
+    lower: float
+    tau: float
+    tests: int
+    by_symbol: bool
+
+
+@dataclass(frozen=True)
+class StructuredInputMap:
+    """``M(s) = T_N(a0 - s a1) + E(s)`` of one plant (module notes), precomputed for every scale ``s``.
+
+    ``U``/``V``: orthonormal bases of ``E``'s known ranges and co-ranges; ``EtU``, ``EV``: ``E_j^T U`` and
+    ``(I - P_U) E_j V`` for ``E(s) = E0 - s E1``, so ``E(s) = [U, EV0 - s EV1] [EtU0 - s EtU1, V]^T``.
+    """
+
+    operator: InputOperator
+    a0: np.ndarray
+    a1: np.ndarray
+    symbol: _Symbol
+    circulant: tuple[np.ndarray, np.ndarray]
+    U: np.ndarray
+    V: np.ndarray
+    EtU: tuple[np.ndarray, np.ndarray]
+    EV: tuple[np.ndarray, np.ndarray]
+    structure_residual: float
+    triangular: bool
+
+    @property
+    def n_samples(self) -> int:
+        return (self.a0.shape[0] + 1) // 2
+
+    def toeplitz(self, scale: float) -> ToeplitzSection:
+        return ToeplitzSection.of(self.a0 - scale * self.a1)
+
+    def factors(self, scale: float) -> tuple[np.ndarray, np.ndarray]:
+        """``U_E``, ``V_E`` with ``E(s) = U_E V_E^T`` (``(k, m, N)`` each)."""
+        Ue = np.concatenate([self.U, self.EV[0] - scale * self.EV[1]])
+        Ve = np.concatenate([self.EtU[0] - scale * self.EtU[1], self.V])
+        return Ue, Ve
+
+    def apply(self, scale: float, x: np.ndarray) -> np.ndarray:
+        """``M(s) x`` as the law runs it."""
+        first, second = self.operator.apply(x)
+        return first - scale * second
+
+    def adjoint(self, scale: float, y: np.ndarray) -> np.ndarray:
+        """``M(s)^T y``."""
+        first, second = self.operator.adjoint(y)
+        return first - scale * second
+
+    def _ratio(self, scale: float, x: np.ndarray) -> float:
+        """A lower bound on the 2-norm from ``x``: the best ``||M(s) v|| / ||v||`` over ``v = x`` and
+        :data:`RATIO_STEPS` power steps of ``M^T M`` from it, widened down for rounding (0 for ``x = 0``)."""
+        best = 0.0
+        for _ in range(RATIO_STEPS + 1):
+            size = float(np.linalg.norm(x))
+            if not (size > 0.0 and math.isfinite(size)):
+                break
+            x = x / size
+            image = self.apply(scale, x)
+            value = float(np.linalg.norm(image))
+            if not math.isfinite(value):
+                break
+            best = max(best, value)
+            x = self.adjoint(scale, image)
+        return best * (1.0 - ROUNDING_MARGIN)
+
+    def lower_bound(self, scale: float, frequency: float) -> float:
+        """A rigorous lower bound on ``||M(s)||_2``: ``sigma_max(M X)`` for ``X`` the orthonormalised windowed
+        sinusoids (cosine and sine, every channel) at the symbol's peak ``frequency`` (the interior's top singular
+        vectors; the edges' come from the structured tests' directions)."""
+        m, n = self.U.shape[1], self.n_samples
+        window = np.sin(np.pi * (np.arange(n) + 0.5) / n) ** 2
+        waves = np.zeros((2 * m, m, n))
+        for a in range(m):
+            waves[2 * a, a] = window * np.cos(frequency * np.arange(n))
+            waves[2 * a + 1, a] = window * np.sin(frequency * np.arange(n))
+        image = _flat(self.apply(scale, _orthonormal(waves)))
+        top = float(np.linalg.norm(image, 2)) if image.size else 0.0
+        return top * (1.0 - ROUNDING_MARGIN) if math.isfinite(top) else math.inf
+
+    def norm(self, scale: float, *, exact: bool = False, tests: int = FAST_TESTS) -> StructuredNorm:
+        """``||M(s)||_2`` bracketed (module notes): the first test at ``max(tau, lower)`` widened by
+        :data:`FIRST_WIDENING`, then a secant on the test's margin; ``exact`` narrows the bracket to
+        :data:`EXACT_TOLERANCE` (more tests, with progress)."""
+        tau, frequency = self.symbol.bound(scale)
+        lower = self.lower_bound(scale, frequency)
+        if not (math.isfinite(tau) and math.isfinite(lower)):
+            return StructuredNorm(math.inf, lower, tau, 0, False)
+        circulant = self.circulant[0] - scale * self.circulant[1]
+        test = _NormTest.of(self.toeplitz(scale), *self.factors(scale), tau, circulant)
+        first = max(tau, lower) * (1.0 + (EXACT_TOLERANCE / 2 if exact else FIRST_WIDENING))
+        search = _Secant(test, lambda x: self._ratio(scale, x), lower, exact, tests if not exact else 60)
+        upper, lower = search.run(first)
+        residual = self.structure_residual * max(upper, 1.0) if math.isfinite(upper) else 0.0
+        upper = upper * (1.0 + ROUNDING_MARGIN) + residual
+        return StructuredNorm(upper, lower, tau, search.count, search.count == 1 and tau >= lower)
+
+
+class _Secant:
+    """The smallest ``gamma`` the structured test passes at. After each test the direction of its smallest margin
+    gives a lower bound (``||M x|| / ||x||``, by ``ratio``: at the edge singular value when the test ran near it);
+    the next ``gamma`` is that lower bound widened, or a secant step up on the margin (which grows like
+    ``2 gamma (gamma - ||M||)``), until the bracket is :data:`EXACT_TOLERANCE` (exact) or ``1e-5`` (fast) wide or
+    ``budget`` tests have run."""
+
+    def __init__(
+        self, test: _NormTest, ratio: Callable[[np.ndarray], float], lower: float, exact: bool, budget: int
+    ) -> None:
+        self.test = test
+        self.ratio = ratio
+        self.lower = lower
+        self.tolerance = EXACT_TOLERANCE if exact else FAST_TOLERANCE
+        self.budget = budget
+        self.count = 0
+        self._solution: np.ndarray | None = None
+
+    def _run(self, gamma: float, advance: Callable[[int], None]) -> _TestOutcome:
+        outcome = self.test.run(gamma, self._solution)
+        self._solution = outcome.solution
+        self.count += 1
+        advance(self.count)
+        self.lower = max(self.lower, gamma if outcome.refuted else 0.0, self.ratio(outcome.direction))
+        return outcome
+
+    def _next(self, outcome: _TestOutcome, low: float, high: float) -> float | None:
+        """The next ``gamma``, strictly between the largest failed one (or ``tau``) and the smallest passed one: a
+        Newton step on the test's margin (its derivative in ``gamma`` is ``2 gamma ||x||^2`` for the direction ``x``
+        of the smallest eigenvalue), overshooting a little up from a failure, else just above the lower bound, else
+        the bracket's middle; ``None`` when the bracket has no room left."""
+        floor = max(low, self.test.tau * (1.0 + 1e-12))
+        slope = 2.0 * outcome.gamma * float(np.sum(outcome.direction**2))
+        newton = outcome.gamma - outcome.margin / slope if slope > 0 and math.isfinite(outcome.margin) else math.nan
+        candidates = [self.lower * (1.0 + self.tolerance / 2.0)]
+        if math.isfinite(newton):
+            width = abs(newton - outcome.gamma)
+            candidates.insert(0, newton + (0.05 * width if not outcome.passed else 0.0) + self.tolerance * newton / 4)
+        for guess in candidates:
+            if floor < guess < high:
+                return guess
+        middle = 0.5 * (floor + high) if math.isfinite(high) else floor * (1.0 + 1e-3)
+        return middle if floor < middle < high else None
+
+    def run(self, first: float) -> tuple[float, float]:
+        """``(upper, lower)``: the smallest passing ``gamma`` (``inf`` if none) and the best lower bound. The
+        bracket counts as closed at ``max(lower, tau)`` (no test runs at or below the symbol's bound)."""
+        with step("structured 2-norm test", total=self.budget) as advance:
+            gamma: float | None = first
+            high, low = math.inf, 0.0
+            while gamma is not None and self.count < self.budget:
+                outcome = self._run(gamma, advance)
+                if outcome.passed:
+                    high = gamma
+                else:
+                    low = gamma
+                if high <= max(self.lower, self.test.tau) * (1.0 + self.tolerance):
+                    break
+                gamma = self._next(outcome, low, high)
+            return high, self.lower
+
+
+def _structure_residual(
+    operator: InputOperator, T: tuple[ToeplitzSection, ToeplitzSection], U: np.ndarray, V: np.ndarray
+) -> float:
+    """``max ||(I - P_U) E_j (I - P_V) x|| / (||M_j x'|| + ||T_j x'||)`` over two random probes ``x`` and both
+    parts ``j`` (``x' = (I - P_V) x``): zero in exact arithmetic when the module notes' structure holds."""
+    m, n = U.shape[1], U.shape[2]
+    probes = _project_out(V, np.random.default_rng(20260).standard_normal((2, m, n)))
+    images = operator.apply(probes)
+    worst = 0.0
+    for part in (0, 1):
+        toeplitz = T[part].apply(probes)
+        scale = float(np.linalg.norm(images[part])) + float(np.linalg.norm(toeplitz))
+        left = _project_out(U, images[part] - toeplitz)
+        worst = max(worst, float(np.linalg.norm(left)) / max(scale, 1e-300))
+    return worst if math.isfinite(worst) else math.inf
+
+
+def structured_input_map(loop: LoopPlant, law: LawStructure) -> StructuredInputMap | None:
+    """The input map of ``loop`` under ``law`` (with its Q-filter) in the structured form of the module notes, for
+    every scale of ``p2``; ``None`` when the map does not have that form (a fractional operator without a
+    Toeplitz decomposition, an overflowing plant, or a structure probe above :data:`STRUCTURE_TOLERANCE`)."""
+    from scipy.fft import fft
+
+    assert law.q_filter is not None
+    n, d = law.n_samples, law.lead
+    learning = _learning_weights(law)
+    if learning is None:
+        return None
+    weights, corrections = learning
+    a0, a1 = _toeplitz_parts(loop, law, weights)
+    if not (np.all(np.isfinite(a0)) and np.all(np.isfinite(a1))):
+        return None
+    ahead = markov_blocks(loop.A, loop.B, loop.C_measured, 0, max(d, 1))[:d]
+    anticausal = law.q_filter.phase is QFilterPhase.ZERO or bool(np.any(ahead))
+    if not anticausal:  # T and M are causal: the anticausal coefficients are rounding noise, exactly zero
+        a0[: n - 1] = 0.0
+        a1[: n - 1] = 0.0
+    U, V = _corner_spaces(loop, law, anticausal, corrections)
+    operator = _operator(loop, law)
+    T = (ToeplitzSection.of(a0), ToeplitzSection.of(a1))
+    residual = _structure_residual(operator, T, U, V)
+    if not residual <= STRUCTURE_TOLERANCE:
+        return None
+    mt_u, m_v = operator.adjoint(U), operator.apply(V)
+    EtU = (mt_u[0] - T[0].adjoint(U), mt_u[1] - T[1].adjoint(U))
+    EV = (_project_out(U, m_v[0] - T[0].apply(V)), _project_out(U, m_v[1] - T[1].apply(V)))
+    circulant = (fft(_wrapped(a0, n), axis=0), fft(_wrapped(a1, n), axis=0))
+    return StructuredInputMap(operator, a0, a1, _Symbol.of(a0, a1), circulant, U, V, EtU, EV, residual, not anticausal)
+
+
+def _operator(loop: LoopPlant, law: LawStructure) -> InputOperator:
+    """The exact input map's factors (:class:`InputOperator`)."""
+    assert law.q_filter is not None
+    n, d = law.n_samples, law.lead
+    m = loop.B.shape[1]
+    A_cl = loop.A + loop.B @ loop.p1
+    r = np.zeros((n, m, m))
+    r[0] = np.eye(m)
+    r[1:] = markov_blocks(A_cl, loop.B, loop.p1, 0, n - 1)
+    z = np.zeros((n, m, m))
+    z[1:] = markov_blocks(loop.A, loop.B, loop.p1, 0, n - 1)
+    y = markov_blocks(loop.A, loop.B, loop.C_measured, 0, n)
+    return InputOperator(
+        CausalToeplitz.of(r), CausalToeplitz.of(z), CausalToeplitz.of(y), law.filter(), law.q_filter, loop.p2, d
+    )
+
+
+# --- the certificate -------------------------------------------------------------------------------------------------
+
+#: ``PlantCertificate.map`` of every Q-filtered certificate.
+INPUT_MAP = "input (Q-filter)"
+
+
+def _verdict(norm: StructuredNorm) -> MonotoneVerdict:
+    if norm.upper <= CONTRACTION_LIMIT:
+        return MonotoneVerdict.MONOTONE
+    if norm.lower > CONTRACTION_LIMIT:
+        return MonotoneVerdict.NOT_MONOTONE
+    return MonotoneVerdict.INCONCLUSIVE
+
+
+def _norm_text(norm: StructuredNorm, verdict: MonotoneVerdict, claim: BoundClaim) -> str:
+    """``norm_2_method``: the method, what the number is, and the bracket behind it."""
+    method = CertificateMethod.SYMBOL if norm.by_symbol or not norm.tests else CertificateMethod.STRUCTURED
+    bracket = f"{norm.lower:.9g} <= ||M|| <= {norm.upper:.9g}; symbol bound {norm.tau:.9g}; {norm.tests} test(s)"
+    if verdict is MonotoneVerdict.INCONCLUSIVE:
+        return f"inconclusive at bound {norm.upper:.6g} ({method}; {bracket})"
+    return f"{claim} ({method}; {bracket})"
+
+
+def triangular_radius(smap: StructuredInputMap, scale: float) -> float:
+    """The exact spectral radius of a lower block-triangular ``M``: the largest over its diagonal blocks."""
+    Ue, Ve = smap.factors(scale)
+    n = smap.n_samples
+    blocks = np.einsum("kat,kbt->tab", Ue, Ve) + (smap.a0[n - 1] - scale * smap.a1[n - 1])
+    values = np.linalg.eigvals(blocks)
+    return float(np.max(np.abs(values))) if np.all(np.isfinite(values)) else math.inf
+
+
+def _dense_radius(smap: StructuredInputMap, scale: float) -> float:
+    """The exact spectral radius of ``M`` from its dense matrix (the exact mode's, short trials only)."""
+    m, n = smap.U.shape[1], smap.n_samples
+    with step("dense spectral radius of the input map", total=2) as advance:
+        identity = np.eye(m * n).reshape(m * n, m, n)
+        dense = _flat(smap.apply(scale, identity))
+        advance(1)
+        values = np.linalg.eigvals(dense)
+        advance(2)
+    return float(np.max(np.abs(values))) if np.all(np.isfinite(values)) else math.inf
+
+
+def _triangle_bound(smap: StructuredInputMap, scale: float, tau: float) -> float:
+    """``tau + ||E(s)||_2``: rigorous and cheap (``E = U_E V_E^T`` through two small QR factors), and loose."""
+    Ue, Ve = smap.factors(scale)
+    left, right = np.linalg.qr(_flat(Ue))[1], np.linalg.qr(_flat(Ve))[1]
+    return (tau + float(np.linalg.norm(left @ right.T, 2))) * (1.0 + ROUNDING_MARGIN)
+
+
+def _quick_norm(smap: StructuredInputMap, scale: float, exact: bool) -> StructuredNorm | None:
+    """The 2-norm without a structured test when a lower bound above the contraction limit settles the verdict
+    (not monotone) and the exact mode is off; ``None`` otherwise."""
+    if exact:
+        return None
+    tau, frequency = smap.symbol.bound(scale)
+    lower = smap.lower_bound(scale, frequency)
+    if not lower > CONTRACTION_LIMIT:
+        return None
+    return StructuredNorm(max(_triangle_bound(smap, scale, tau), lower), lower, tau, 0, False)
+
+
+def input_map_certificate(smap: StructuredInputMap, scale: float, *, exact: bool = False) -> PlantCertificate:
+    """The certificate of ``M(s)`` (module notes): the 2-norm bracketed by the structured test (a lower bound above
+    the contraction limit settles "not monotone" without one; the upper bound is then ``tau + ||E||``), the
+    spectral radius exact for a causal filter and bounded by the 2-norm otherwise (exact and dense when ``exact``
+    and the trial is short enough)."""
+    m = smap.U.shape[1]
+    norm = _quick_norm(smap, scale, exact) or smap.norm(scale, exact=exact)
+    if smap.triangular:
+        radius, radius_claim = triangular_radius(smap, scale), BoundClaim.EXACT
+        radius_text = "exact (lower block-triangular map: its diagonal blocks)"
+    elif exact and smap.n_samples * m <= EXACT_RADIUS_DENSE_LIMIT:
+        radius, radius_claim, radius_text = _dense_radius(smap, scale), BoundClaim.EXACT, "dense (exact)"
+    else:
+        radius, radius_claim, radius_text = norm.upper, BoundClaim.UPPER, "upper bound: the induced 2-norm"
+        if not radius < 1.0:
+            radius_text = f"inconclusive at bound {radius:.6g} (the induced 2-norm)"
+    verdict = _verdict(norm)
+    exact_norm = norm.upper <= norm.lower * (1.0 + EXACT_TOLERANCE) * (1.0 + 2 * ROUNDING_MARGIN)
+    if verdict is MonotoneVerdict.NOT_MONOTONE:
+        value, claim = norm.lower, BoundClaim.LOWER
+    else:
+        value, claim = norm.upper, BoundClaim.EXACT if exact_norm else BoundClaim.UPPER
+    method = CertificateMethod.SYMBOL if norm.by_symbol or not norm.tests else CertificateMethod.STRUCTURED
+    proof = Proof(claim, radius_claim, verdict, method)
+    text = _norm_text(norm, verdict, claim)
+    return PlantCertificate("", INPUT_MAP, radius, value, text, radius_text, norm_2_symbol=norm.tau, proof=proof)
+
+
+# --- the rescale search's estimate -----------------------------------------------------------------------------------
+
+#: Samples of the short trial whose map stands in for the full one's edges in the rescale search.
+PROXY_SAMPLES = 256
+#: Power steps per estimate of the short map's norm (warm-started from the previous scale's vector).
+PROXY_STEPS = 12
+
+
+class EdgeProxy:
+    """An estimate of ``||M(s)||_2`` for the rescale search, cheap at every scale: the larger of the symbol's bound
+    ``tau(s)`` of the full trial (its interior) and the norm of the same law's map on a short trial of
+    :data:`PROXY_SAMPLES` samples (its edges, which do not depend on the trial's length), by power iteration on
+    its dense matrix warm-started from the last scale's vector. Not a certificate: the scale it picks is
+    certified on the full trial (:func:`input_map_certificate`)."""
+
+    def __init__(self, smap: StructuredInputMap, loop: LoopPlant, law: LawStructure) -> None:
+        assert law.q_filter is not None
+        self.symbol = smap.symbol
+        short = min(law.n_samples, PROXY_SAMPLES)
+        short_law = LawStructure(
+            law.kp, law.r, law.sample_time, short, law.lead, law.fractional_memory, law.q_filter.filter.on(short)
+        )
+        m = loop.B.shape[1]
+        identity = np.eye(m * short).reshape(m * short, m, short)
+        first, second = _operator(loop, short_law).apply(identity)
+        self.dense = (_flat(first), _flat(second))
+        self.vector = np.random.default_rng(7).standard_normal(m * short)
+
+    def estimate(self, scale: float) -> float:
+        """``max(tau(s), ||M_short(s) v||)`` after :data:`PROXY_STEPS` power steps (``inf`` if not finite)."""
+        matrix = self.dense[0] - scale * self.dense[1]
+        value = 0.0
+        for _ in range(PROXY_STEPS):
+            size = float(np.linalg.norm(self.vector))
+            if not (size > 0 and math.isfinite(size)):
+                return math.inf
+            image = matrix @ (self.vector / size)
+            value = float(np.linalg.norm(image))
+            self.vector = matrix.T @ image
+        return max(self.symbol.bound(scale)[0], value)
