@@ -79,6 +79,13 @@ def _when_trials_on_disk(process: subprocess.Popen[str], out: Path, trials: int)
 @pytest.fixture
 def running(tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str], Path]]:
     """A long run on the embedded emulator, two trials on disk; killed with its writer if a test fails."""
+    with long_run(tmp_path) as run:
+        yield run
+
+
+@contextlib.contextmanager
+def long_run(tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str], Path]]:
+    """A long run on the embedded emulator, two trials on disk; killed with its writer on the way out."""
     out = tmp_path / "run.mcap"
     process = _start(_command(bench_config(tmp_path), out, trials=100_000))
     writers: list[int] = []

@@ -132,7 +132,8 @@ def execute(args: argparse.Namespace) -> CommandResult:
     )
     report = run_rig(request)
     document = {**report.to_json(), "bus_load": load.to_json()}
-    text = f"{render_text(document)}\n{load.describe()}"
+    # the confirmed stop ends every run's text, as it ends every failed run's one line
+    text = "\n".join([render_text(document), load.describe(), *report.stop_lines])
     if report.outcome.diverged:
         return CommandResult(
             document, text, exit_code=ExitCode.RUNTIME_FAILURE, message=report.outcome.stopped or "learning diverged"

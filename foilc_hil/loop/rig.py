@@ -114,6 +114,7 @@ class RunReport:
     drive_stop: StopReport
     injected: list[InjectionReport] = field(default_factory=list)  # what each ``inject:`` fault did
     axes: list[AxisOutcome] = field(default_factory=list)
+    stop_lines: list[str] = field(default_factory=list)  # each drive's stop as read back, one line per axis
 
     def to_json(self) -> dict[str, Any]:
         timing = self.outcome.timing.to_json() if self.outcome.timing is not None else {}
@@ -291,6 +292,9 @@ class Rig:
             outer.enter_context(self._partial_on_error())
             outer.enter_context(_truth_about_the_stops(self.stops, plan.node_ids))
             stack = outer.enter_context(contextlib.ExitStack())
+            # first in, last out: from here to the closed log a signal is a stop request, never an exception that
+            # would cut the stop short (a second Ctrl-C during the disable lost the stop report)
+            stop = stack.enter_context(StopRequest())
             sink = _open_log(stack, request, plan)
             self.sinks.extend([sink] if sink is not None else [])
             bus_cfg, self.emulators = _start_emulators(stack, plan)
@@ -301,7 +305,6 @@ class Rig:
             self.drives, self._faulty = _open_drives(stack, plan, bus_cfg, sink, self.stops, self.emulators)
             progress = request.progress or _progress(plan, request.quiet)
             stack.callback(progress.close)
-            stop = stack.enter_context(StopRequest())
             if sink is not None:
                 sink.stop_on_failure(stop)
             # the loop and the host setup before the drives are enabled: from its first SYNC in OPERATIONAL a drive
@@ -348,6 +351,7 @@ class Rig:
             drive_stop=_worst(self.stops, plan.node_ids),
             injected=[report for wrapper in self._faulty for report in wrapper.reports()],
             axes=_axis_outcomes(plan, self.stops) if plan.several else [],
+            stop_lines=[self.stops[node].describe(node) for node in plan.node_ids if node in self.stops],
         )
 
 

@@ -200,15 +200,20 @@ class StopRequest:
     """SIGINT/SIGTERM as a flag polled by the loop (a context manager installing the handlers).
 
     Inside the context, the first SIGINT or SIGTERM sets :attr:`requested` (and :attr:`signal_name`); the loop
-    checks it once per cycle and stops the drive itself. A second signal falls back to the default behaviour
-    (``KeyboardInterrupt`` for SIGINT), so a wedged run can still be killed. Outside the main thread signals
-    cannot be handled; the context then does nothing and the flag can only be set with :meth:`request`.
+    checks it once per cycle and stops the drive itself. Later signals are counted (:attr:`repeated`) and change
+    nothing: the stop already under way (the quick stop, the disable read back, the log closed) must finish and be
+    reported. Why not the default behaviour for a second signal: a ``KeyboardInterrupt`` raised inside the stop lost
+    its report (``drive_stop: null``, no trials) and, across processes, ended python-can's receive thread in a
+    traceback. Every wait of the stop is bounded, so nothing wedges; ``SIGKILL`` still ends the process (the drive's
+    heartbeat consumer then stops the axis). Outside the main thread signals cannot be handled; the context then
+    does nothing and the flag can only be set with :meth:`request`.
     """
 
     def __init__(self) -> None:
         self.requested = False
         self.signal_name = ""
         self.failure: FoilcHilError | None = None
+        self.repeated = 0  # signals after the first: counted, not acted on
         self._previous: dict[int, Callable[[int, FrameType | None], Any] | int | None] = {}
 
     def request(self, reason: str = "stop requested") -> None:
@@ -233,11 +238,8 @@ class StopRequest:
 
     def _handle(self, signum: int, frame: FrameType | None) -> None:
         if self.requested:
-            previous = self._previous.get(signum)
-            if callable(previous):
-                previous(signum, frame)
-                return
-            raise KeyboardInterrupt
+            self.repeated += 1
+            return
         self.request(signal.Signals(signum).name)
 
     def __enter__(self) -> StopRequest:
