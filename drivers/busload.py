@@ -178,7 +178,8 @@ class BusLoad:
 
     def describe(self) -> str:
         """One line with the figures: load, limit, bits per cycle, and the shortest period that would fit."""
-        return (f"bus load {self.load:.1%} of {self.bitrate / 1e3:g} kbit/s at a {self.period * 1e3:g} ms period "
+        load = f"{self.load:.1%}" if self.load < 100 else f"{100 * self.load:.3g}%"  # 1e300 % as a number
+        return (f"bus load {load} of {self.bitrate / 1e3:g} kbit/s at a {self.period * 1e3:g} ms period "
                 f"(limit {self.limit:.0%}): {self.bits_per_cycle:g} worst-case bits per cycle in "
                 f"{sum(f.per_cycle for f in self.frames):g} frames; a period of at least "
                 f"{math.ceil(self.min_period * 1e6) / 1e3:g} ms would fit")

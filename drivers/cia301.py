@@ -181,6 +181,7 @@ class EmcyCode(IntEnum):
     SYNC_LOSS = 0x8700  # sync controller error (CiA 402: 0x8700 "sync controller")
     PDO_LENGTH = 0x8210  # PDO not processed due to length error
     COMMUNICATION = 0x8100
+    INTERNAL_SOFTWARE = 0x6100  # internal software error (the emulator: its plant's physics diverged)
 
 
 EMCY_TEXT: dict[int, str] = {
@@ -192,6 +193,7 @@ EMCY_TEXT: dict[int, str] = {
     EmcyCode.SYNC_LOSS: "SYNC loss",
     EmcyCode.PDO_LENGTH: "PDO not processed due to length error",
     EmcyCode.COMMUNICATION: "communication error",
+    EmcyCode.INTERNAL_SOFTWARE: "internal software error",
 }
 
 

@@ -22,8 +22,11 @@ import numpy as np
 from foilc_hil.config import ReferenceConfig
 from foilc_hil.errors import ConfigError
 
-__all__ = ["reference_profile", "sample_times", "trial_duration", "trial_samples"]
+__all__ = ["MAX_TRIAL_SAMPLES", "reference_profile", "sample_times", "trial_duration", "trial_samples"]
 
+#: the most samples a trial may have: 200 s at 1 kHz, ten times the longest trial the design is measured at (a
+#: trial's arrays, its design and its certificates grow with N; a segment of 1e12 s asked for 7 PiB)
+MAX_TRIAL_SAMPLES = 200_000
 #: eq. (49): 1 on (0, 10] s, 0 on (10, 20] s.
 _EQ49_DURATION = 20.0
 #: eq. (52) is printed in milliseconds over (0, 6000]; with ``time_scale = 1`` a trial lasts 6 s.
@@ -48,12 +51,19 @@ def trial_samples(cfg: ReferenceConfig, sample_time: float) -> int:
     Raises
     ------
     foilc_hil.errors.ConfigError
-        Naming ``sample_time`` when the trial is not a whole number of samples, or is shorter than one.
+        Naming ``sample_time`` when the trial is not a whole number of samples, or is shorter than one; naming the
+        longest segment (or ``sample_time``) when it has more than :data:`MAX_TRIAL_SAMPLES`.
     """
     if not (sample_time > 0 and math.isfinite(sample_time)):
         raise ConfigError("must be positive and finite", key="sample_time")
     duration = trial_duration(cfg)
     ratio = duration / sample_time
+    if not ratio <= MAX_TRIAL_SAMPLES:  # NaN and inf too
+        raise ConfigError(
+            f"a trial of {duration:g} s at sample_time {sample_time:g} s is {ratio:.3g} samples; at most "
+            f"{MAX_TRIAL_SAMPLES} (shorten the trial or lengthen sample_time)",
+            key=_longest_segment(cfg),
+        )
     n = round(ratio)
     if n < 1 or abs(ratio - n) > 1e-6 * max(1.0, ratio):
         raise ConfigError(
@@ -62,6 +72,14 @@ def trial_samples(cfg: ReferenceConfig, sample_time: float) -> int:
             key="sample_time",
         )
     return int(n)
+
+
+def _longest_segment(cfg: ReferenceConfig) -> str:
+    """The key a too-long trial is named by: its longest piecewise segment, else ``sample_time``."""
+    if cfg.profile != "piecewise" or not cfg.segments:
+        return "sample_time"
+    longest = max(range(len(cfg.segments)), key=lambda k: cfg.segments[k].duration)  # type: ignore[index]
+    return f"reference.segments[{longest}].duration"
 
 
 def sample_times(cfg: ReferenceConfig, sample_time: float) -> np.ndarray:

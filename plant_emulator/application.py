@@ -38,6 +38,7 @@ class FaultKind(StrEnum):
     SYNC_LOSS = "sync-loss"
     NMT_LEFT_OPERATIONAL = "nmt-left-operational"
     GENERIC = "generic"
+    PLANT_DIVERGED = "plant-diverged"  # the emulated physics gave a non-finite output
 
 
 # fault -> (EMCY error code, error register bits besides "generic")
@@ -48,6 +49,7 @@ FAULT_CODES: dict[FaultKind, tuple[EmcyCode, int]] = {
     FaultKind.SYNC_LOSS: (EmcyCode.SYNC_LOSS, ErrorRegister.COMMUNICATION),
     FaultKind.NMT_LEFT_OPERATIONAL: (EmcyCode.COMMUNICATION, ErrorRegister.COMMUNICATION),
     FaultKind.GENERIC: (EmcyCode.GENERIC, 0),
+    FaultKind.PLANT_DIVERGED: (EmcyCode.INTERNAL_SOFTWARE, ErrorRegister.MANUFACTURER),
 }
 _COMMUNICATION_FAULTS = frozenset({FaultKind.HEARTBEAT_LOSS, FaultKind.SYNC_LOSS, FaultKind.NMT_LEFT_OPERATIONAL})
 # the power stage may produce torque in these states: an abort-connection event must act on them

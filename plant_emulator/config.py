@@ -89,6 +89,10 @@ class SaturationConfig(Section):
         return self
 
 
+#: the largest ``internal_step (velocity_kp + viscous) / J`` a PMSM axis may have (see ``PmsmConfig._step_is_stable``)
+MAX_STEP_GAIN = 0.25
+
+
 class PmsmSpread(Section):
     """Relative bounds of the per-run random parameter draws: each parameter is scaled by a factor drawn
     uniformly from ``[1 - spread, 1 + spread]`` (seeded by ``plant.seed``, so runs reproduce)."""
@@ -161,6 +165,23 @@ class PmsmConfig(Section):
             raise ValueError("torque_limit must be at least rated_torque")
         if self.speed_limit < self.rated_speed:
             raise ValueError("speed_limit must be at least rated_speed")
+        return self
+
+    @model_validator(mode="after")
+    def _step_is_stable(self) -> PmsmConfig:
+        """The mechanics and the drive's velocity loop advance by explicit internal steps: with a step long against
+        the axis's mechanical time constant they oscillate and then diverge (measured on the demo's axis: a limit
+        cycle from ``internal_step (velocity_kp + viscous) / J`` of about 0.5, NaN from about 25). Refused above
+        :data:`MAX_STEP_GAIN`, at the smallest inertia the spread and the drift reach."""
+        smallest = self.inertia * (1.0 - self.spread.inertia) * (1.0 - self.drift.amplitude)
+        gain = self.internal_step * (self.velocity_kp + self.viscous) / smallest
+        if gain > MAX_STEP_GAIN:
+            raise ValueError(
+                f"inertia {self.inertia:g} kg m^2 (down to {smallest:g} with spread and drift) is too small for "
+                f"internal_step {self.internal_step:g} s and velocity_kp + viscous {self.velocity_kp + self.viscous:g}"
+                f": the emulated axis would diverge (internal_step (velocity_kp + viscous) / inertia = {gain:.3g}, at "
+                f"most {MAX_STEP_GAIN}); raise inertia or lower internal_step"
+            )
         return self
 
 

@@ -99,6 +99,7 @@ class AxisPhysics:
         self._brake_closed = False  # a plant starts with its brake open (set_brake is called on a change only)
         # the object dictionary never changes while the drive runs: whether it has 0x1006 is asked once
         self._has_cycle_period = node.has(Obj.COMMUNICATION_CYCLE_PERIOD)
+        self._trial = 1  # the trial whose initial condition the plant restarts from after a divergence
 
     @property
     def cycle_period(self) -> float:
@@ -129,6 +130,8 @@ class AxisPhysics:
             # a 1-d float array (every plant here) is read as it is; anything else is converted first
             y = float(out[0]) if type(out) is np.ndarray and out.ndim == 1 else float(
                 np.asarray(out, dtype=float).reshape(-1)[0])
+        if not math.isfinite(y):
+            y = self._diverged()
         axis = self.axis
         axis.cycles += 1
         axis.velocity = units.counts(y)
@@ -201,8 +204,18 @@ class AxisPhysics:
         rate = float(self.node.read(index)) if self.node.has(index) else 0.0
         return rate if rate > 0 else math.inf
 
+    def _diverged(self) -> float:
+        """The plant's output is not finite (its physics diverged: a config the checks let through, a drift): the
+        drive faults as a real one does on an impossible measurement (EMCY 0x6100, torque off), and the plant
+        starts again from the current trial's initial condition, so the drive stays readable and can be stopped.
+        Why not raise: inside the bus's send it reached the bench as a traceback, again in its stop."""
+        self.application.raise_fault(FaultKind.PLANT_DIVERGED)
+        self.plant.reset(self._trial)
+        return float(np.asarray(self.plant.output(), dtype=float).reshape(-1)[0])
+
     def begin_trial(self, trial: int) -> None:
         """``plant.reset(trial)`` and the feedback of the plant's initial condition (see ``VirtualDrive``)."""
+        self._trial = trial
         self.plant.reset(trial)
         y = np.asarray(self.plant.output(), dtype=float).reshape(-1)
         axis = self.axis

@@ -120,6 +120,9 @@ def execute(args: argparse.Namespace) -> CommandResult:
 
     bus = resolve_bus(bus_options(args), config.bus)  # precedence: drivers.bus.resolve_bus
     check_bus(bus)  # before the design, which may take minutes
+    from foilc_hil.references import trial_samples
+
+    trial_samples(config.reference, config.sample_time)  # a trial the run cannot hold names its field first
     load = check_bus_load(config, bus)
     request = RunRequest(
         config=config,

@@ -52,6 +52,10 @@ def execute(args: argparse.Namespace) -> CommandResult:
         raise ConfigError(f"must be >= 1, got {args.trials}", key="--trials")
     if args.input_delay < 0:
         raise InputError(f"--input-delay: must be >= 0, got {args.input_delay}")
+    if args.out is not None:
+        from foilc_hil.io.mcap_writer import check_log_path
+
+        check_log_path(args.out)  # before the (possibly slow) design
     result = simulate(config, law=config.law.kind, trials=config.trials, input_delay=args.input_delay, out=args.out)
     document = result.to_json()
     if args.out is not None:

@@ -20,6 +20,7 @@ import time
 from abc import ABC, abstractmethod
 from collections.abc import Iterable, Mapping, Sequence
 from itertools import chain, repeat
+from pathlib import Path
 from types import TracebackType
 from typing import IO, Any, Final, Literal, Self
 
@@ -51,6 +52,7 @@ __all__ = [
     "FrameFields",
     "LogWriteError",
     "McapFileWriter",
+    "check_log_path",
     "classic_frames_documents",
     "classic_frames_records",
     "encode_design",
@@ -83,6 +85,28 @@ _TIMESTAMP_TYPES: Final = frozenset({float, int})
 
 class LogWriteError(FoilcHilError, OSError):
     """Writing the log failed at run time (disk full, file gone). Exit 1."""
+
+
+def check_log_path(path: str | os.PathLike[str]) -> None:
+    """Refuse (:class:`LogFormatError`, exit 2) a log path that cannot be created or written, without creating
+    anything: a directory, a missing directory, a read-only file system, no permission. Why before anything else:
+    found at the file's creation, after the design, a bad ``--out`` cost the design's minutes."""
+    target = Path(path)
+    parent = target.resolve().parent
+    if target.is_dir():
+        raise LogFormatError(f"{path}: cannot create: is a directory")
+    if not parent.is_dir():
+        raise LogFormatError(f"{path}: cannot create: no such directory {parent}")
+    if os.statvfs(parent).f_flag & os.ST_RDONLY:
+        raise LogFormatError(f"{path}: cannot create: read-only file system")
+    # a probe, as the writer will open it: the existing file without truncating it, else a scratch file beside it
+    probe = target if target.exists() else parent / f".{target.name}.{os.getpid()}.probe"
+    try:
+        os.close(os.open(probe, os.O_WRONLY | (0 if probe == target else os.O_CREAT | os.O_EXCL), 0o600))
+    except OSError as exc:
+        raise LogFormatError(f"{path}: cannot create: {exc.strerror or exc}") from None
+    if probe != target:
+        probe.unlink(missing_ok=True)
 
 
 # --- JSON encoding --------------------------------------------------------------------------------------------

@@ -187,15 +187,14 @@ def plan_run(request: RunRequest) -> RunPlan:
     limits, and the reference (one column per axis). Bad input (an output directory that does not exist, an
     injection naming no axis, axes whose trials differ in length) is found here, before the (possibly slow)
     design."""
-    from pathlib import Path
-
     from foilc_hil.config import axis_configs
-    from foilc_hil.errors import ConfigError, LogFormatError
+    from foilc_hil.errors import ConfigError
+    from foilc_hil.io.mcap_writer import check_log_path
     from foilc_hil.references import reference_profile
 
     config = request.config
-    if request.out is not None and not Path(request.out).resolve().parent.is_dir():
-        raise LogFormatError(f"{request.out}: cannot create: no such directory {Path(request.out).resolve().parent}")
+    if request.out is not None:
+        check_log_path(request.out)  # before the (possibly slow) design
     configs = tuple(axis_configs(config)) if config.axes else (config,)
     if request.design is not None and len(configs) > 1:
         # one Design is one axis's model; applying it to every axis would run the others on the wrong model
