@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed-stamp
 # hundred MB: 2 per core on a 64-core host would be 128 of them)
 WORKERS ?= $(shell n=$$((2 * $$(getconf _NPROCESSORS_ONLN 2>/dev/null || echo 1))); echo $$((n > 16 ? 16 : n)))
 
-.PHONY: demo test lint typecheck pytest bench bench-realtime soak clean
+.PHONY: demo test lint typecheck pytest docs bench bench-realtime soak clean
 
 # Bytecode caching on, whatever the shell says: a run starts many Python processes (the log writer, emulators, the
 # CLI in tests) and with PYTHONDONTWRITEBYTECODE set each one compiled every module it imports from source again,
@@ -29,10 +29,11 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/foilc-hil demo
 
-# the three at once: mypy's cold run (half a minute on a fresh clone) fills the time pytest's workers spend waiting
+# the four at once: mypy's cold run (half a minute on a fresh clone) fills the time pytest's workers spend waiting
 # on subprocesses and timeouts; each target's output is printed whole when it ends, and any failure fails the test
+# (docs: a pdoc warning too)
 test: $(STAMP)
-	$(MAKE) --no-print-directory -j3 --output-sync=target lint typecheck pytest
+	$(MAKE) --no-print-directory -j3 --output-sync=target lint typecheck pytest docs
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
@@ -52,6 +53,14 @@ typecheck: $(STAMP)
 pytest: $(STAMP)
 	$(BIN)/python -m tests.warm_caches
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/pytest -n $(WORKERS) --dist worksteal --durations=15
+
+# The API reference (docs/api.md) from the docstrings: the public package tops only (every other module is
+# internal), into build/api/ (git-ignored). -W error: any warning of pdoc's (a name of __all__ that does not resolve,
+# a docstring it cannot parse) fails the build
+docs: $(STAMP)
+	rm -rf build/api
+	$(BIN)/python -W error -m pdoc --docformat numpy --output-directory build/api \
+	    foilc_hil drivers plant_emulator '!foilc_hil\..*' '!drivers\..*' '!plant_emulator\..*'
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks.run --out benchmarks/results.json --doc docs/benchmarks.md

@@ -188,6 +188,16 @@ def is_simulated_bus(interface: str) -> bool:
 def open_bus(cfg: BusConfig) -> can.BusABC:
     """Open the python-can bus ``cfg`` describes.
 
+    Parameters
+    ----------
+    cfg
+        The ``bus:`` section: python-can's interface and channel, bitrate, options.
+
+    Returns
+    -------
+    can.BusABC
+        The open bus (the caller shuts it down; it is a context manager).
+
     Raises
     ------
     DriveError

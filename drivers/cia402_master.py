@@ -144,6 +144,21 @@ class Cia402Drive(Drive):
     heartbeat producer and the frame tap, never the bus; a drive on a shared network only leaves it (the network's
     owner closes it).
 
+    Parameters
+    ----------
+    bus
+        The python-can bus the drive is on.
+    cfg
+        The ``drive:`` section (node id, mode, scales, limits, heartbeats, EDS).
+    sample_time
+        The cycle period in seconds (SYNC, 0x1006).
+    od
+        The drive's object dictionary (:func:`drivers.od.load_od`).
+    network
+        A shared :class:`~drivers.network.DriveNetwork` on ``bus``; ``None``: a private one.
+    receiver
+        A private network's cyclic receiver (realtime); ``None``: the Notifier dispatches the TPDOs.
+
     Attributes
     ----------
     link, inbox, sdo, nmt, supervision, emcy, cyclic, startup, power, stopper
@@ -248,6 +263,18 @@ class Cia402Drive(Drive):
         Starts the listening side first (:meth:`listen`). If the drive never answered (no boot-up), a failed connect
         stops it again, so no thread outlives the failure; once it answered, the listening side stays for
         :meth:`safe_stop` (the drive is there to be stopped) until :meth:`close`.
+
+        Returns
+        -------
+        DeviceInfo
+            Identity (0x1018), device type (0x1000, a 402 drive), NMT state and supported modes (0x6502).
+
+        Raises
+        ------
+        DriveTimeoutError
+            No boot-up or no SDO answer: no drive with this node id on the bus.
+        DriveError
+            Not a CiA 402 drive, or an SDO abort on a mandatory object.
         """
         self.listen()
         try:
@@ -318,7 +345,20 @@ class Cia402Drive(Drive):
         return self.startup.preflight(mode, cycle_period)
 
     def configure(self, mode: OperationMode, cycle_period: float) -> None:
-        """Configure PDOs, mode, timing and heartbeats over SDO, verify by reading back, then NMT start."""
+        """Configure PDOs, mode, timing and heartbeats over SDO, verify by reading back, then NMT start.
+
+        Parameters
+        ----------
+        mode
+            The CiA 402 mode of operation (``drive_cfg.operation_mode``: CSV, CST or PV).
+        cycle_period
+            The SYNC period in seconds (the config's ``sample_time``).
+
+        Raises
+        ------
+        DriveError
+            The drive lacks the mode or an object the plan maps, refuses a write, or reads back another value.
+        """
         self.startup.configure(mode, cycle_period)
 
     def settings(self, mode: OperationMode, cycle_period: float) -> list[tuple[int, int, int, bool]]:
@@ -366,7 +406,14 @@ class Cia402Drive(Drive):
 
     def safe_stop(self) -> StopReport:
         """Quick stop, zero target, disable voltage, confirmed by reading the drive's statusword; never raises
-        (:mod:`drivers.master.safe_stop`)."""
+        (:mod:`drivers.master.safe_stop`).
+
+        Returns
+        -------
+        StopReport
+            Whether the stop was commanded and confirmed, the state and statusword read back, the path it took
+            (PDO or SDO) and any fault the drive reported.
+        """
         return self.stopper.run()
 
     # --- SDO access for commissioning (not for the cyclic path) ----------------------------------------------

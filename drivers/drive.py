@@ -133,7 +133,21 @@ class Feedback:
 
 @dataclass(frozen=True)
 class DeviceInfo:
-    """What :meth:`Drive.connect` learned about the drive (identity object 0x1018, 0x1000, 0x6502)."""
+    """What :meth:`Drive.connect` learned about the drive (identity object 0x1018, 0x1000, 0x6502).
+
+    Attributes
+    ----------
+    node_id
+        The drive's CANopen node id.
+    vendor_id, product_code, revision, serial
+        The identity object 0x1018:1..4.
+    device_type
+        0x1000 (its low 16 bits: the device profile, 402 for a drive).
+    nmt_state
+        The NMT state the drive reported after connect (pre-operational).
+    supported_modes
+        The CiA 402 modes 0x6502 lists.
+    """
 
     node_id: int
     vendor_id: int

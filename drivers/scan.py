@@ -58,7 +58,24 @@ class SdoCommand(IntEnum):
 
 @dataclass(frozen=True)
 class NodeReport:
-    """One node found on the bus."""
+    """One node found on the bus.
+
+    Attributes
+    ----------
+    node_id
+        Its CANopen node id.
+    found_by
+        How it was found: ``"heartbeat"``, ``"boot-up"``, ``"sdo"``.
+    nmt_state
+        The NMT state its heartbeat reported (a :class:`~drivers.cia301.NmtState` name), or ``"unknown"`` (found by
+        SDO only).
+    device_type, profile
+        0x1000 and its low 16 bits (402 for a drive); ``None`` where the read failed.
+    vendor_id, product_code, revision, serial
+        The identity object 0x1018:1..4; ``None`` where a read failed.
+    errors
+        What failed while identifying it (SDO aborts, no answer).
+    """
 
     node_id: int
     found_by: tuple[str, ...]  # "heartbeat", "boot-up", "sdo"
@@ -90,7 +107,19 @@ class NodeReport:
 
 @dataclass(frozen=True)
 class ScanResult:
-    """All nodes found, sorted by node id."""
+    """All nodes found, sorted by node id.
+
+    Attributes
+    ----------
+    nodes
+        One :class:`NodeReport` per node found.
+    node_range
+        The lowest and highest node id looked for.
+    listened
+        Seconds spent listening to heartbeats.
+    nmt_reset
+        Whether NMT reset communication was broadcast first.
+    """
 
     nodes: tuple[NodeReport, ...]
     node_range: tuple[int, int]
@@ -153,6 +182,16 @@ def scan_bus(
         Broadcast NMT reset communication first (resets every node's communication parameters).
     sdo_timeout
         Seconds to wait for SDO answers of the probe and of each identity read.
+
+    Returns
+    -------
+    ScanResult
+        The nodes found, sorted by node id.
+
+    Raises
+    ------
+    DriveError
+        A frame cannot be sent.
     """
     discovery = _Discovery(nodes=tuple(nodes))
     network = canopen.Network(bus)

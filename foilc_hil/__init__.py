@@ -36,10 +36,10 @@ if TYPE_CHECKING:
     from typing import Any
 
     from foilc_hil import errors
-    from foilc_hil.api.bench import Bench, design, simulate
+    from foilc_hil.api.bench import Bench, design, load_config, simulate
     from foilc_hil.api.log import Log, open_log
     from foilc_hil.api.results import TrialResult
-    from foilc_hil.config import Config, load_config
+    from foilc_hil.config import Config
     from foilc_hil.design.record import Design
 
 __version__ = "0.1.0"
@@ -67,7 +67,7 @@ _SOURCES = {
     "open_log": "foilc_hil.api.log",
     "TrialResult": "foilc_hil.api.results",
     "Config": "foilc_hil.config",
-    "load_config": "foilc_hil.config",
+    "load_config": "foilc_hil.api.bench",
     "Design": "foilc_hil.design.record",
 }
 

@@ -3,16 +3,15 @@
 
 from __future__ import annotations
 
-from collections.abc import Generator, Iterator
+from collections.abc import Generator, Iterator, Mapping
+from pathlib import Path
 from types import TracebackType
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from foilc_hil.api.results import TrialResult
 from foilc_hil.errors import ConfigError, InputError
 
 if TYPE_CHECKING:
-    from pathlib import Path
-
     from drivers.config import BusConfig
     from drivers.drive import StopReport
     from foilc_hil.config import Config
@@ -21,7 +20,7 @@ if TYPE_CHECKING:
     from foilc_hil.loop.rig import Rig, RunReport
     from plant_emulator.embedded import EmbeddedEmulator
 
-__all__ = ["Bench", "design", "simulate"]
+__all__ = ["Bench", "design", "load_config", "simulate"]
 
 #: the CAN loop applies a command one SYNC after it computes it (foilc_hil.loop.bench.CAN_INPUT_DELAY)
 _BENCH_INPUT_DELAY = 1
@@ -34,6 +33,32 @@ def _one_axis(config: Config, what: str) -> int:
     if config.axes:
         raise ConfigError(f"{what} runs one axis; a run of several is `foilc-hil run`'s", key="axes")
     return trial_samples(config.reference, config.sample_time)
+
+
+def load_config(path: str | Path | None, overrides: Mapping[str, Any] | None = None) -> Config:
+    """Load and validate a configuration file, with dotted-key overrides on top (as ``--set`` gives them).
+
+    Parameters
+    ----------
+    path
+        The YAML file (``configs/demo.yaml``); ``None``: the defaults alone.
+    overrides
+        ``{"trials": 3, "law.kind": "ioilc", "reference.segments": [...]}``: each key a dotted path into the
+        document (``docs/config-reference.md`` lists every field).
+
+    Returns
+    -------
+    Config
+        The resolved configuration (a validated pydantic model: ``cfg.sample_time``, ``cfg.law.kind``, ...).
+
+    Raises
+    ------
+    ConfigError
+        The first bad value, naming the file and the key (exit code 2).
+    """
+    from foilc_hil.config import load_config as load
+
+    return load(path, overrides)
 
 
 def design(config: Config, *, law: str | None = None, input_delay: int = _BENCH_INPUT_DELAY) -> Design:

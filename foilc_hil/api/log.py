@@ -49,6 +49,13 @@ def open_log(path: str | Path) -> Log:
 class Log:
     """A log's contents (:func:`open_log` makes it).
 
+    Parameters
+    ----------
+    path
+        The file.
+    contents
+        What :func:`foilc_hil.io.mcap_log.read_log` read of it (the samples and trial records).
+
     Attributes
     ----------
     path
