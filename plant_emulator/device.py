@@ -75,7 +75,7 @@ from plant_emulator.pdo_engine import PDO_AREAS, PdoEngine
 from plant_emulator.physics.base import Plant
 from plant_emulator.sdo_guard import SdoGuard
 from plant_emulator.settings import EmulatorConfig
-from plant_emulator.state_machine import PowerStateMachine
+from plant_emulator.state_machine import MotionKind, PowerStateMachine
 from plant_emulator.supervision import MONITOR_PERIOD, Supervisor
 from plant_emulator.sync_rx import SyncAnticipatingNotifier
 
@@ -173,7 +173,7 @@ class VirtualDrive:
                                    default_cycle_period=float(cycle_period))
         realtime = self.timing is TimingMode.REALTIME
         self.supervisor = Supervisor(
-            self.node, self._lock, self.pdos, on_loss=self.application.detect,
+            self.node, self._lock, self.pdos, on_loss=self._on_loss,
             cycle_period=lambda: self.physics.cycle_period,
             sync_loss_cycles=self.settings.sync_loss_cycles if realtime else None,
         )
@@ -184,6 +184,7 @@ class VirtualDrive:
         self._threads: list[threading.Thread] = []
         self._poll_timer: Callable[[], None] | None = None  # cancels the supervision timer (lockstep bus)
         self._stop_event = threading.Event()
+        self._in_process_clock = False  # a lockstep in-process bus: its simulated time is the only clock
         self.sync_count = 0
         self.trace: Callable[[DriveSnapshot], None] | None = None  # called after every cycle, if set
         self._reset_application()
@@ -216,6 +217,7 @@ class VirtualDrive:
             self.pdos.rebuild()
             self.supervisor.rebuild_heartbeat_consumer()
             self._boot()
+        self._in_process_clock = isinstance(clock, LockstepClock)
         if isinstance(clock, LockstepClock):
             self._poll_timer = clock.every(MONITOR_PERIOD, self.supervisor.poll).cancel
         else:
@@ -261,6 +263,38 @@ class VirtualDrive:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+    def _on_loss(self, fault: FaultKind) -> None:
+        """The supervision found the master's heartbeat (or SYNC) gone: the 0x6007 reaction, and in lockstep on a
+        wall-clock bus the drive's own clock from then on, until the reaction is done or SYNC comes back.
+
+        Why: in lockstep the physics advances with each SYNC, and a lost master sends none: the quick-stop ramp of
+        the reaction waited for SYNCs that never came, and the drive stayed in QUICK STOP ACTIVE with its power stage
+        on (measured after a SIGKILL of the bench: 15 s and counting). A real drive runs its own clock. The same
+        after NMT took the drive out of OPERATIONAL (in STOPPED no SYNC reaches it)."""
+        self.application.detect(fault)
+        self._own_clock_for_the_reaction()
+
+    def _own_clock_for_the_reaction(self) -> None:
+        """Lockstep on a wall-clock bus: run the reaction just begun on the drive's own clock (see
+        :meth:`_on_loss`); once at a time."""
+        lockstep = self.timing is TimingMode.LOCKSTEP and self._running and not self._in_process_clock
+        if lockstep and not any(thread.name.startswith("drive-fault-reaction") and thread.is_alive()
+                                for thread in self._threads):
+            self._start_thread(self._finish_reaction, "drive-fault-reaction")
+
+    def _finish_reaction(self) -> None:
+        """Tick the physics on the wall clock (one cycle period a tick) while the reaction ramps the axis down or
+        holds it, until the power stage is off, SYNC comes back (the master is there again: SYNC is the clock) or
+        the drive stops."""
+        syncs = self.sync_count
+        motion = self.application.machine.motion
+        while not self._stop_event.wait(self.physics.cycle_period):
+            with self._lock:
+                if self.sync_count != syncs or motion() is MotionKind.TORQUE_OFF:
+                    return
+                self.physics.tick(self.physics.cycle_period)
+                self.pdos.send_event_driven()
 
     def _start_thread(self, target: Callable[[], None], name: str) -> None:
         thread = threading.Thread(target=target, name=f"{name}-{self.node_id}", daemon=True)
@@ -394,6 +428,7 @@ class VirtualDrive:
                     self.pdos.drop_pending()
                     if was_operational:
                         self.application.left_operational()  # the 0x6007 reaction, see there
+                        self._own_clock_for_the_reaction()
 
     def _after_reset(self) -> None:
         self._subscribe_sync()

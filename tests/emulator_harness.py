@@ -30,7 +30,8 @@ ABORT_REACTIONS = [
     (AbortConnectionOption.NO_ACTION, State402.OPERATION_ENABLED),
     (AbortConnectionOption.FAULT, State402.FAULT),
     (AbortConnectionOption.DISABLE_VOLTAGE, State402.SWITCH_ON_DISABLED),
-    (AbortConnectionOption.QUICK_STOP, State402.QUICK_STOP_ACTIVE),
+    # quick stop with the EDS's 0x605A = 2: the ramp, then switch on disabled (in lockstep on the drive's own clock)
+    (AbortConnectionOption.QUICK_STOP, State402.SWITCH_ON_DISABLED),
 ]
 
 

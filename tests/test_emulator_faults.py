@@ -149,7 +149,31 @@ def test_heartbeat_loss_reacts_per_0x6007(option: int, state_after: State402) ->
         frames = h.recorder.wait_count(h.emcy, 1, timeout=2.0)
         assert _emcy(frames[0])[0] == EmcyCode.HEARTBEAT_LOSS
         assert h.node.sdo[Obj.ERROR_REGISTER].raw & ErrorRegister.COMMUNICATION
-        assert h.drive.state is state_after
+        _wait_for_state(h, state_after)
+
+
+def _wait_for_state(h: Harness, state: State402) -> None:
+    """Liveness, not speed: the state is reached, however slowly the machine runs."""
+    deadline = time.monotonic() + 30.0
+    while h.drive.state is not state and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert h.drive.state is state
+
+
+def test_a_lost_master_in_lockstep_ends_the_quick_stop_on_the_drives_own_clock() -> None:
+    """Lockstep on a wall-clock bus, the axis moving, the master gone (no heartbeat, no SYNC): the drive's 0x6007
+    quick stop ramps the axis down and, with 0x605A = 2, ends in SWITCH ON DISABLED with its power stage off --
+    it no longer waits for SYNCs that never come (before: QUICK STOP ACTIVE, powered, for good)."""
+    with Harness() as h:
+        h.node.sdo[Obj.ABORT_CONNECTION_OPTION].raw = AbortConnectionOption.QUICK_STOP
+        h.node.sdo[Obj.CONSUMER_HEARTBEAT_TIME][1].raw = HeartbeatConsumerEntry(MASTER_ID, 300).encode()
+        _enable_csv(h)
+        h.send(cob_id(FunctionCode.HEARTBEAT, MASTER_ID), bytes([0x05]))
+        _run(h, 40, target_counts=300 * COUNTS_PER_RPM)  # the axis speeds up towards 300 rpm
+        assert abs(h.drive.snapshot().velocity) > 50 * COUNTS_PER_RPM
+        h.recorder.wait_count(h.emcy, 1, timeout=10.0)
+        _wait_for_state(h, State402.SWITCH_ON_DISABLED)
+        assert abs(h.drive.snapshot().velocity) < 20 * COUNTS_PER_RPM  # ramped down, not cut off at speed
 
 
 class _SteppedClock:
