@@ -38,48 +38,42 @@ map is the bound that counts and is marked on the picture beside the curve.
 
 from __future__ import annotations
 
-import enum
 import math
 from dataclasses import dataclass
-from enum import StrEnum
 from typing import Any
 
 import numpy as np
 
-from foilc_hil.config import LawKind
+from foilc_hil.config import LawKind, QFilterConfig, QFilterPhase
 from foilc_hil.design.fractional import gl_weights
 from foilc_hil.design.models import uncertainty_vertices
 from foilc_hil.design.record import Design
 from foilc_hil.errors import InputError
 
-__all__ = ["ConvergenceCurve", "ConvergencePicture", "QFilterPhase", "QFilterSpec", "convergence_picture", "law_symbol"]
+__all__ = ["ConvergenceCurve", "ConvergencePicture", "QFilterSpec", "convergence_picture", "law_symbol"]
 
 #: frequencies drawn, log-spaced from the lowest a trial resolves (pi / L rad/sample) to Nyquist
 POINTS = 600
 
 
-@enum.unique
-class QFilterPhase(StrEnum):
-    """How the Q-filter runs: forward and backward over the trial (``|H|^2``, no phase) or one causal pass (``H``)."""
-
-    ZERO = "zero-phase"
-    CAUSAL = "causal"
-
-
 @dataclass(frozen=True)
 class QFilterSpec:
-    """The Q-filter the law runs with: Butterworth ``order``, one pass's -3 dB ``cutoff`` (rad/s), its ``phase``."""
+    """The Q-filter the law runs with: Butterworth ``order``, one pass's -3 dB ``cutoff`` (rad/s), its ``phase``
+    (:class:`~foilc_hil.config.QFilterPhase`: forward-backward, ``|H|^2`` with no phase, or one causal pass, ``H``)."""
 
     cutoff: float
     order: int
     phase: QFilterPhase = QFilterPhase.ZERO
 
     @classmethod
-    def from_settings(cls, settings: Any) -> QFilterSpec:
-        """From ``law.q_filter``; a config without ``phase`` (the zero-phase filter only) reads as zero-phase."""
-        phase = getattr(settings, "phase", None)
-        causal = phase is not None and str(getattr(phase, "value", phase)).startswith("causal")
-        return cls(float(settings.cutoff), int(settings.order), QFilterPhase.CAUSAL if causal else QFilterPhase.ZERO)
+    def from_settings(cls, settings: QFilterConfig) -> QFilterSpec:
+        """From the ``law.q_filter`` section the law runs (:meth:`foilc_hil.design.qfilter.QFilter.of`'s)."""
+        return cls(float(settings.cutoff), int(settings.order), QFilterPhase(settings.phase))
+
+    @property
+    def label(self) -> str:
+        """``"zero-phase"`` or ``"causal"``, for a picture's legend."""
+        return "zero-phase" if self.phase is QFilterPhase.ZERO else "causal"
 
     def response(self, w: np.ndarray, sample_time: float) -> np.ndarray:
         """``Q(e^jw)`` at ``w`` rad/sample: ``|H|^2`` (zero-phase) or ``H`` (causal), ``H`` the Butterworth of

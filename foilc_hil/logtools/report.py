@@ -356,7 +356,7 @@ def plot_convergence(picture: ConvergencePicture, path: str | Path) -> Path:
     if picture.q_filter is not None:
         q = picture.q_filter
         ax.axvline(q.cutoff, color="tab:green", linestyle="-.", linewidth=1.2,
-                   label=f"Q-filter cutoff {q.cutoff:.4g} rad/s (order {q.order}, {q.phase})")
+                   label=f"Q-filter cutoff {q.cutoff:.4g} rad/s (order {q.order}, {q.label})")
     worst = picture.worst
     at = float(f[int(np.argmax(worst.magnitude))])
     ax.plot([at], [worst.peak], "o", color="tab:red" if worst.peak >= 1 else "tab:blue", markersize=5,
