@@ -34,6 +34,7 @@ RANKS: dict[str, int] = {
     "foilc_hil.loop": 9,
     "foilc_hil.logtools": 10,
     "foilc_hil.commission": 10,
+    "foilc_hil.live": 10,  # the live view (run --live, replay --live): beside the log tools, over io and loop
     "foilc_hil.commands": 11,
     "foilc_hil.api": 11,
     "foilc_hil.cli": 12,

@@ -2,7 +2,8 @@
 
 ``foilc-hil run --config C [--bus SPEC | -i INTERFACE -c CHANNEL | --emulator embedded] [-b BPS] [--trials N]
 [--mode lockstep|realtime] [--law foilc|ioilc|p-type|noilc|gradient] [--inject KIND@WHEN[:KEY=VALUE,...]]...
---out F.mcap [--json] [--quiet]``
+--out F.mcap [--json] [--quiet] [--live [HOST:]PORT [--live-wait S] [--live-linger S] [--live-can-rate F]
+[--live-rows N]]``
 
 JSON: ``{"law", "trials": [{"trial", "sse", "rmse", "max_abs_error"}, ...], "timing": {"period", "cycles",
 "missed_deadlines", "jitter_p99_us", ...}, "log", "design": {"kp", "r", "certificates", ...}, "stopped",
@@ -16,6 +17,9 @@ the shortest period that would fit.
 Exit 0 when every trial ran; 1 for a drive fault, a bus timeout or learning that diverged and was stopped (the
 JSON document and the log are still written for a divergence stop); 2 for bad input; 130 for Ctrl-C / SIGTERM.
 
+``--live`` serves the run to Foxglove while it runs (:mod:`foilc_hil.live`, docs/live-view.md; 127.0.0.1:8765 unless an
+address is given); the JSON document then has ``"live"``: the options and what was published and dropped.
+
 ``--inject`` (repeatable) adds faults to the config's ``inject:`` list (:mod:`drivers.faults`, docs/reliability.md),
 e.g. ``--inject drop-tpdo@2+10:count=3`` or ``--inject emulator-kill@3+25``.
 """
@@ -27,6 +31,7 @@ from typing import Any
 
 from foilc_hil.commands import CommandResult, add_bus_options, bus_options
 from foilc_hil.errors import ExitCode
+from foilc_hil.live.options import add_live_options, live_options
 
 HELP = "run learning trials over CAN against a drive"
 
@@ -60,6 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--out", required=True, metavar="F.mcap", help="MCAP log to write")
     parser.add_argument("--quiet", action="store_true", help="no progress view on stderr")
+    add_live_options(parser, rows=True)
 
 
 def check_bus(bus: Any) -> None:
@@ -108,6 +114,7 @@ def execute(args: argparse.Namespace) -> CommandResult:
 
     if args.trials is not None and args.trials < 1:
         raise InputError(f"--trials: must be >= 1, got {args.trials}")
+    live = live_options(args)  # a bad --live value: exit 2 before anything is designed or opened
     # --law overrides law.kind (also in the logged config, so the log says which law ran); RunRequest.law carries
     # it to each axis of an axes: run, whose own law sections the top-level key does not reach
     config = load_config(args.config, {"law.kind": args.law})
@@ -133,8 +140,19 @@ def execute(args: argparse.Namespace) -> CommandResult:
         bus=bus,
         quiet=bool(args.quiet or args.json),
     )
-    report = run_rig(request)
-    document = {**report.to_json(), "bus_load": load.to_json()}
+    if live is None:
+        report = run_rig(request)
+        document = {**report.to_json(), "bus_load": load.to_json()}
+    else:
+        from dataclasses import replace
+
+        from foilc_hil.config import dump_config
+        from foilc_hil.live.publisher import live_run
+
+        with live_run(live, name="foilc-hil run", config_yaml=dump_config(config)) as publisher:
+            report = run_rig(replace(request, live=publisher))
+        document = {**report.to_json(), "bus_load": load.to_json(),
+                    "live": {**live.to_json(), **publisher.stats.to_json()}}
     # the confirmed stop ends every run's text, as it ends every failed run's one line
     text = "\n".join([render_text(document), load.describe(), *report.stop_lines])
     if report.outcome.diverged:

@@ -20,9 +20,12 @@ import yaml
 __all__ = [
     "CAN_FRAME_SCHEMA",
     "DIRECTIONS",
+    "DRIVE_STATES",
+    "DRIVE_STATE_SCHEMA",
     "ILC_SAMPLE_SCHEMA",
     "ILC_TRIAL_SCHEMA",
     "JSON_SCHEMA_DIALECT",
+    "LIVE_TOPICS",
     "MESSAGE_ENCODING",
     "METADATA_AXIS_PREFIX",
     "METADATA_CLOSING",
@@ -35,6 +38,7 @@ __all__ = [
     "TIMING_SCHEMA",
     "TOPICS",
     "TOPIC_CAN",
+    "TOPIC_DRIVE_STATE",
     "TOPIC_SAMPLE",
     "TOPIC_TIMING",
     "TOPIC_TRIAL",
@@ -50,6 +54,8 @@ TOPIC_CAN: Final = "/can"
 TOPIC_SAMPLE: Final = "/ilc/sample"
 TOPIC_TRIAL: Final = "/ilc/trial"
 TOPIC_TIMING: Final = "/timing"
+#: the live view's drive state (``run --live``, ``replay --live``); never written to a log: see :data:`LIVE_TOPICS`
+TOPIC_DRIVE_STATE: Final = "/drive/state"
 
 #: metadata record holding ``{"yaml": <the resolved config as YAML text>}``
 METADATA_CONFIG: Final = "foilc_hil.config"
@@ -193,12 +199,44 @@ TIMING_SCHEMA: Final[dict[str, Any]] = {
     "required": ["cycle", "trial", "sample", "lateness_us", "period_us", "feedback_latency_us", "missed"],
 }
 
-#: topic -> (schema name, schema)
+#: the CiA 402 states ``/drive/state`` names (``drivers.cia402.State402``'s names, in its order)
+DRIVE_STATES: Final = (
+    "NOT_READY_TO_SWITCH_ON", "SWITCH_ON_DISABLED", "READY_TO_SWITCH_ON", "SWITCHED_ON", "OPERATION_ENABLED",
+    "QUICK_STOP_ACTIVE", "FAULT_REACTION_ACTIVE", "FAULT",
+)
+
+DRIVE_STATE_SCHEMA: Final[dict[str, Any]] = {
+    "$schema": JSON_SCHEMA_DIALECT,
+    "title": "foilc_hil.DriveState",
+    "description": "One axis's drive as the bench last saw it: the CiA 402 state of its statusword and its "
+    "feedback (live view only: run --live polls the master, replay --live decodes the logged TPDOs).",
+    "type": "object",
+    "properties": {
+        "node": {"type": "integer", "minimum": 1, "maximum": 127, "description": "the drive's node id"},
+        "cycle": {"type": "integer", "minimum": 0, "description": "the SYNC this feedback answered (the master's "
+                  "SYNC counter; replay: the count of logged SYNCs)"},
+        "state": {"type": "string", "enum": list(DRIVE_STATES), "description": "decoded from the statusword"},
+        "statusword": {"type": "integer", "minimum": 0, "maximum": 65535, "description": "0x6041"},
+        "controlword": {"type": ["integer", "null"], "minimum": 0, "maximum": 65535,
+                        "description": "0x6040 the master sends; null where not known (replay)"},
+        "velocity": {"type": ["number", "null"], "description": "0x606C in plant units (velocity_unit); null where "
+                     "not mapped"},
+    },
+    "required": ["node", "cycle", "state", "statusword", "controlword", "velocity"],
+}
+
+#: topic -> (schema name, schema): what every log registers (the MCAP layout)
 TOPICS: Final[dict[str, tuple[str, dict[str, Any]]]] = {
     TOPIC_CAN: ("foilc_hil.CanFrame", CAN_FRAME_SCHEMA),
     TOPIC_SAMPLE: ("foilc_hil.IlcSample", ILC_SAMPLE_SCHEMA),
     TOPIC_TRIAL: ("foilc_hil.IlcTrial", ILC_TRIAL_SCHEMA),
     TOPIC_TIMING: ("foilc_hil.CycleTiming", TIMING_SCHEMA),
+}
+
+#: topic -> (schema name, schema): the live view's channels (``foilc_hil.io.live``): the log's, and ``/drive/state``
+LIVE_TOPICS: Final[dict[str, tuple[str, dict[str, Any]]]] = {
+    **TOPICS,
+    TOPIC_DRIVE_STATE: ("foilc_hil.DriveState", DRIVE_STATE_SCHEMA),
 }
 
 

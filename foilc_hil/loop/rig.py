@@ -84,6 +84,9 @@ class RunRequest:
     progress
         The view to report to instead of the stderr one ``quiet`` decides (the demo's runs, in worker processes,
         forward to the parent's view).
+    live
+        A live view (``foilc_hil.live.publisher.LivePublisher``, ``run --live``): its ``attach(loop, drives)`` is
+        called once the loop exists; it sees what the log sees and never holds the loop. ``None``: none.
     """
 
     config: Any
@@ -96,6 +99,7 @@ class RunRequest:
     design: Any = None
     title: str = ""
     progress: ProgressView | None = None
+    live: Any = None
 
 
 @dataclass(frozen=True)
@@ -310,6 +314,8 @@ class Rig:
             # supervises SYNC, so nothing slow may run between the enable's last SYNC and the loop's first
             hook = trial_hook([*self.emulators, *self._faulty])
             self._loop = _trial_loop(plan, self.drives, sink, progress, stop, hook=hook)
+            if request.live is not None:  # beside the log sink and on the frame tap; a rank above: duck-typed
+                request.live.attach(self._loop, self.drives)
             _commission(self.drives, plan, sink, self._session)
             self._open = outer.pop_all()
         return self
