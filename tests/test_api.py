@@ -181,3 +181,13 @@ def test_design_stays_the_function_when_the_subpackage_is_imported() -> None:
                   "from foilc_hil.design import record\n"
                   "print(json.dumps([callable(foilc_hil.design), foilc_hil.design.__module__, record.__name__]))"
                   ) == [True, "foilc_hil.api.bench", "foilc_hil.design.record"]
+
+
+def test_a_new_iteration_ends_a_suspended_one(config: Any, design: Any, tmp_path: Path) -> None:
+    out = tmp_path / "run.mcap"
+    with fh.Bench(config, design=design, out=out) as bench:
+        suspended = bench.trials(3)  # kept in a variable: not closed when the script moves on
+        assert next(suspended).index == 1
+        assert [trial.index for trial in bench.trials(1)] == [2]
+    assert [trial.index for trial in fh.open_log(out).trials()] == [1, 2]
+    assert bench.emulator is not None and bench.emulator.drive.state is State402.SWITCH_ON_DISABLED

@@ -193,11 +193,20 @@ class Bench:
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  traceback: TracebackType | None) -> None:
-        if self._running is not None:  # the body left a trial loop mid-way: end it before the drives stop
-            self._running.close()
-            self._running = None
-        if self._rig is not None:
-            self._rig.__exit__(exc_type, exc, traceback)
+        if self._rig is None:
+            return
+        try:
+            self._end_trials()  # the body left a trial loop mid-way: end it before the drives stop
+        except BaseException as error:  # the drives are stopped all the same, and the error is what the run says
+            self._rig.__exit__(type(error), error, error.__traceback__)
+            raise
+        self._rig.__exit__(exc_type, exc, traceback)
+
+    def _end_trials(self) -> None:
+        """End the trial loop a ``trials`` iteration left suspended (its log and counts finished)."""
+        running, self._running = self._running, None
+        if running is not None:
+            running.close()
 
     def trials(self, count: int | None = None) -> Iterator[TrialResult]:
         """Run ``count`` more trials, yielding each as it finishes.
@@ -224,6 +233,7 @@ class Bench:
         count = rig.plan.trials if count is None else count
         if count < 1:
             raise ConfigError(f"must be >= 1, got {count}", key="trials")
+        self._end_trials()  # a previous iteration still suspended (kept in a variable): it ends here
         running = rig.loop.iter_trials(count)
         self._running = running
         try:
@@ -231,7 +241,8 @@ class Bench:
                 yield TrialResult.from_record(record)
         finally:
             running.close()
-            self._running = None
+            if self._running is running:
+                self._running = None
 
     def _open_rig(self) -> Rig:
         if self._rig is None:
