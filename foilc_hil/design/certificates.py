@@ -113,6 +113,7 @@ from foilc_hil.design.qmap import (
     input_map_certificate,
     structured_input_map,
     triangular_radius,
+    unstructured_certificate,
 )
 from foilc_hil.design.record import (
     BoundClaim,
@@ -639,8 +640,7 @@ def _input_map_certificate(
         return _dense_input_certificate(loop.scaled(scale), law)
     structured = scaled if scaled is not None else structured_input_map(loop, law)
     if structured is None:
-        method = "inconclusive at bound inf (the input map has no Toeplitz-plus-low-rank form to certify)"
-        return PlantCertificate("", INPUT_MAP, math.inf, math.inf, method, method)
+        return unstructured_certificate(loop.scaled(scale), law)
     return input_map_certificate(structured, scale, exact=law.exact)
 
 

@@ -93,6 +93,7 @@ __all__ = [
     "input_map_certificate",
     "structured_input_map",
     "triangular_radius",
+    "unstructured_certificate",
 ]
 
 #: Relative margin added to every structured upper bound for the FFT products' rounding (module notes).
@@ -238,6 +239,8 @@ class InputOperator:
 
     def apply(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(M0 x, M1 x)``."""
+        if x.shape[0] == 0:
+            return x.copy(), x.copy()
         d, n = self.lead, x.shape[-1]
         error = self._fractional(self.Gy.apply(x), adjoint=False)
         advanced = np.zeros_like(error)
@@ -247,6 +250,8 @@ class InputOperator:
 
     def adjoint(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(M0^T y, M1^T y)``."""
+        if y.shape[0] == 0:
+            return y.copy(), y.copy()
         d, n = self.lead, y.shape[-1]
         back = self.R.adjoint(y)
         delayed = np.zeros((*back.shape[:-2], self.p2.shape[1], n))
@@ -370,7 +375,7 @@ def _corner_spaces(
 
 def _flat(x: np.ndarray) -> np.ndarray:
     """``(K, m, N)`` signals as the columns of an ``(m N) x K`` matrix."""
-    return x.reshape(x.shape[0], -1).T
+    return x.reshape(x.shape[0], x.shape[1] * x.shape[2]).T
 
 
 def _project_out(basis: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -394,11 +399,13 @@ def _centered_moments(coefficients: np.ndarray) -> tuple[float, float, float]:
 
 
 def _wrapped(coefficients: np.ndarray, points: int) -> np.ndarray:
-    """Two-sided coefficients folded onto ``points`` (index ``k mod points``): their DFT is the symbol there."""
+    """Two-sided coefficients folded onto ``points >= N`` (``a_k`` at ``k mod points``): their DFT is the symbol
+    at the ``points``-th roots of unity (``points = N``: the lags ``k`` and ``k - N`` share a point)."""
     length = coefficients.shape[0]
     n = (length + 1) // 2
     out = np.zeros((points, *coefficients.shape[1:]))
-    np.add.at(out, (np.arange(length) - (n - 1)) % points, coefficients)
+    out[:n] = coefficients[n - 1 :]
+    out[points - (n - 1) :] += coefficients[: n - 1]
     return out
 
 
@@ -414,20 +421,16 @@ class _Symbol:
 
     @classmethod
     def of(cls, a0: np.ndarray, a1: np.ndarray) -> _Symbol:
-        from scipy.fft import fft
+        from scipy.fft import fft, rfft
 
         m0, m1 = _centered_moments(a0), _centered_moments(a1)
         joint = (m0[0] + m1[0], m0[1] + m1[1], m0[2] + m1[2])
         length = a0.shape[0]
         if a0.shape[1] == 1:
             grid = symbol_grid(length, joint, SYMBOL_GRID_CAP)
-            s0, s1 = fft(_wrapped(a0, grid)[:, 0, 0]), fft(_wrapped(a1, grid)[:, 0, 0])
-            half = grid // 2 + 1  # real coefficients: |a| is even in theta
-            parts: tuple[np.ndarray, ...] = (
-                np.abs(s0[:half]) ** 2,
-                np.real(s0[:half] * np.conj(s1[:half])),
-                np.abs(s1[:half]) ** 2,
-            )
+            # real coefficients: |a| is even in theta, half the grid (rfft) covers it
+            s0, s1 = rfft(_wrapped(a0, grid)[:, 0, 0]), rfft(_wrapped(a1, grid)[:, 0, 0])
+            parts: tuple[np.ndarray, ...] = (np.abs(s0) ** 2, np.real(s0 * np.conj(s1)), np.abs(s1) ** 2)
         else:
             grid = max(SYMBOL_GRID_CAP_MIMO, 1 << math.ceil(math.log2(length)))
             parts = (fft(_wrapped(a0, grid), axis=0), fft(_wrapped(a1, grid), axis=0))
@@ -668,8 +671,11 @@ class StructuredInputMap:
         lower = self.lower_bound(scale, frequency)
         if not (math.isfinite(tau) and math.isfinite(lower)):
             return StructuredNorm(math.inf, lower, tau, 0, False)
+        Ue, Ve = self.factors(scale)
+        if Ue.shape[0] == 0:  # no correction: M is the Toeplitz section itself
+            return StructuredNorm(tau * (1.0 + ROUNDING_MARGIN), min(lower, tau), tau, 0, True)
         circulant = self.circulant[0] - scale * self.circulant[1]
-        test = _NormTest.of(self.toeplitz(scale), *self.factors(scale), tau, circulant)
+        test = _NormTest.of(self.toeplitz(scale), Ue, Ve, tau, circulant)
         first = max(tau, lower) * (1.0 + (EXACT_TOLERANCE / 2 if exact else FIRST_WIDENING))
         search = _Secant(test, lambda x: self._ratio(scale, x), lower, exact, tests if not exact else 60)
         upper, lower = search.run(first)
@@ -938,3 +944,36 @@ class EdgeProxy:
             value = float(np.linalg.norm(image))
             self.vector = matrix.T @ image
         return max(self.symbol.bound(scale)[0], value)
+
+
+#: Power steps behind the lower bound of a map without the structured form.
+UNSTRUCTURED_STEPS = 8
+
+
+def unstructured_certificate(loop: LoopPlant, law: LawStructure) -> PlantCertificate:
+    """The certificate of a Q-filtered map without the structured form (e.g. an in-trial feedback ``p1`` that
+    makes ``A + B p1`` unstable: the map then grows like its powers): a power iteration's lower bound on the exact
+    operator settles "not monotone" when it is above the contraction limit; otherwise "inconclusive at bound inf"."""
+    assert law.q_filter is not None
+    operator = _operator(loop, law)
+    x = np.random.default_rng(0).standard_normal((1, loop.B.shape[1], law.n_samples))
+    lower = 0.0
+    for _ in range(UNSTRUCTURED_STEPS):
+        size = float(np.linalg.norm(x))
+        if not (size > 0 and math.isfinite(size)):
+            break
+        first, second = operator.apply(x / size)
+        image = first - second
+        value = float(np.linalg.norm(image))
+        if not math.isfinite(value):
+            lower = math.inf
+            break
+        lower = max(lower, value * (1.0 - ROUNDING_MARGIN))
+        first, second = operator.adjoint(image)
+        x = first - second
+    if lower > CONTRACTION_LIMIT:
+        text = f"lower bound (power iteration on the exact map; it has no structured form): {lower:.6g}"
+        proof = Proof(BoundClaim.LOWER, BoundClaim.UPPER, MonotoneVerdict.NOT_MONOTONE, CertificateMethod.SYMBOL)
+        return PlantCertificate("", INPUT_MAP, math.inf, lower, text, "not computed (no structured form)", proof=proof)
+    text = "inconclusive at bound inf (the input map has no Toeplitz-plus-low-rank form to certify)"
+    return PlantCertificate("", INPUT_MAP, math.inf, math.inf, text, text)
