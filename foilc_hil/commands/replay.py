@@ -1,5 +1,9 @@
 """``foilc-hil replay F.mcap [--bus SPEC | -i INTERFACE -c CHANNEL] [-b BPS] [--rate X] [--verify]
-[--allow-real-bus] [--json]``.
+[--allow-real-bus] [--live [HOST:]PORT [--live-wait S] [--live-linger S] [--live-can-rate F]] [--json]``.
+
+``--live`` streams the whole log to a Foxglove live view (:mod:`foilc_hil.live.replay`, docs/live-view.md) at
+``--rate`` times its recorded pace, on the channels of ``run --live``; the JSON document then has ``"live"``: the
+options and what was streamed. It replays onto no bus (``--bus`` with it is exit 2).
 
 JSON: ``{"log", "frames_selected", "frames_sent", "duration", "verified", "first_divergence", "samples_checked",
 "trials_checked", "truncated", "damage"}``; ``verified`` is ``null`` without ``--verify``. A divergence exits 1
@@ -13,10 +17,15 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from foilc_hil.commands import CommandResult, add_bus_options, bus_options
 from foilc_hil.errors import ExitCode, InputError
+from foilc_hil.live.options import add_live_options, live_options
+
+if TYPE_CHECKING:
+    from foilc_hil.live.options import LiveOptions
+    from foilc_hil.live.replay import StreamReport
 
 HELP = "play a log back onto a bus, or verify it bit for bit"
 
@@ -43,6 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--ids", type=_id, nargs="+", metavar="ID", help="re-emit only these arbitration ids")
     parser.add_argument("--verify", action="store_true", help="re-run the learning law and check every command")
+    add_live_options(parser, rows=False)
     parser.add_argument(
         "--allow-real-bus",
         action="store_true",
@@ -91,13 +101,39 @@ def _verify(contents: Any, document: dict[str, Any]) -> None:
         document["first_divergence"] = verification.first_divergence.to_json()
 
 
+def _stream(log: str, live: LiveOptions, rate: float, document: dict[str, Any]) -> str:
+    """``--live``: the log streamed to a live view at ``rate`` times its pace (:mod:`foilc_hil.live.replay`), what
+    was sent put into ``document``; returns the line that says it."""
+    report = _streamed(log, live, rate)
+    options = {key: value for key, value in live.to_json().items() if key != "rows"}  # rows: run's only
+    document["live"] = {**options, **report.to_json()}
+    return f"{log}: streamed {sum(report.published.values())} messages to the live view in {report.duration:.1f} s"
+
+
+def _streamed(log: str, live: LiveOptions, rate: float) -> StreamReport:
+    from foilc_hil.live.replay import stream_log
+    from foilc_hil.live.server import LiveServer
+
+    with LiveServer(live.address, name=f"foilc-hil replay {log}") as server:
+        sys.stderr.write(f"foilc-hil replay: live view on {live.address.host}:{server.port}\n")
+        if live.wait > 0 and not server.wait_for_viewer(live.wait):
+            sys.stderr.write(f"foilc-hil replay: no viewer subscribed within {live.wait:g} s; streaming anyway\n")
+        try:
+            return stream_log(log, server, rate=rate, can_rate=live.can_rate)
+        finally:
+            server.close(live.linger)
+
+
 def execute(args: argparse.Namespace) -> CommandResult:
     from foilc_hil.io.mcap_log import read_log
     from foilc_hil.logtools.replay import play_frames, select_frames
 
     if not args.rate > 0:
         raise InputError(f"--rate: must be > 0, got {args.rate}")
+    live = live_options(args)
     bus_cfg = _check_bus(args)
+    if live is not None and bus_cfg is not None:
+        raise InputError("--live: streams the log to a viewer; replay it onto a bus in another run (without --live)")
     contents = read_log(args.log)
     if contents.truncated and not args.verify:
         sys.stderr.write(f"foilc-hil replay: {args.log}: {contents.damage}; using what was read before it\n")
@@ -130,6 +166,8 @@ def execute(args: argparse.Namespace) -> CommandResult:
         document["duration"] = playback.duration
         document["max_lateness"] = playback.max_lateness
     lines = _frame_lines(args, len(frames), document["frames_sent"], replayed=bus_cfg is not None)
+    if live is not None:
+        lines.append(_stream(args.log, live, args.rate, document))
     if contents.truncated:
         lines.append(f"truncated: {contents.damage}")
     if args.verify:
