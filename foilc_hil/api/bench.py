@@ -165,6 +165,9 @@ class Bench:
     stop is raised as a :class:`~foilc_hil.errors.DriveError` when nothing else is. Between two trials no cycle runs
     while the loop body works: in realtime keep it short (the drive supervises SYNC).
 
+    Inside the block, SIGINT and SIGTERM are the bench's stop request (as in ``foilc-hil run``): the trial loop ends
+    at its next cycle with :class:`~foilc_hil.errors.RunInterruptedError`; a signal never cuts the stop short.
+
     Examples
     --------
     >>> with fh.Bench(cfg, design=fh.design(cfg), out="run.mcap") as bench:   # doctest: +SKIP
