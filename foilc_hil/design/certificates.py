@@ -87,6 +87,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from foilc_hil.config import DivergentFilterPolicy, FractionalMemory, LawKind
+from foilc_hil.design.convolution import fft_convolve
 from foilc_hil.design.lifted import (
     SYMBOL_GRID_CAP,
     SYMBOL_GRID_CAP_MIMO,
@@ -247,11 +248,9 @@ class LiftedErrorMap:
 
     def _taus(self) -> np.ndarray:
         """The Toeplitz blocks ``tau_j = delta_j I - sum_l h_l w_(j-l)`` of ``T`` (without correction columns)."""
-        from scipy.signal import fftconvolve
-
         assert self.F is not None
         length = self.length
-        taus = -np.asarray(fftconvolve(self.H.blocks, self.F.weights[:length, None, None], axes=0)[:length])
+        taus = -np.asarray(fft_convolve(self.H.blocks, self.F.weights[:length, None, None])[:length])
         taus[0] += np.eye(self.n_outputs)
         return taus
 

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from foilc_hil.config import FractionalMemory
+from foilc_hil.design.convolution import fft_convolve
 from foilc_hil.design.fractional import FractionalPD, gl_weights
 from foilc_hil.design.qfilter import TrialQFilter
 from foilc_hil.errors import ConfigError, InputError
@@ -112,14 +113,12 @@ class ScalarFilter:
         return np.asarray(matrix)
 
     def matvec(self, x: np.ndarray) -> np.ndarray:
-        from scipy.signal import fftconvolve
-
         if self.window:
             out = np.array(x, dtype=float, copy=True)
             out[self.window :] = self._unwindowed().matvec(x[self.window :])
             return out
         n = self.weights.shape[0]
-        out = np.asarray(fftconvolve(self.weights[:, None], x, axes=0)[:n])
+        out = np.asarray(fft_convolve(self.weights[:, None], x)[:n])
         k = self.corrections.shape[1]
         if k:
             out = out + self.corrections @ x[:k]
@@ -129,14 +128,12 @@ class ScalarFilter:
         return ScalarFilter(self.weights, self.corrections)
 
     def rmatvec(self, y: np.ndarray) -> np.ndarray:
-        from scipy.signal import fftconvolve
-
         if self.window:
             out = np.array(y, dtype=float, copy=True)
             out[self.window :] = self._unwindowed().rmatvec(y[self.window :])
             return out
         n = self.weights.shape[0]
-        out = np.asarray(fftconvolve(self.weights[:, None], y[::-1], axes=0)[:n][::-1])
+        out = np.asarray(fft_convolve(self.weights[:, None], y[::-1])[:n][::-1])
         k = self.corrections.shape[1]
         if k:
             out[:k] += self.corrections.T @ y

@@ -68,6 +68,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from foilc_hil.config import FractionalMemory, QFilterPhase
+from foilc_hil.design.convolution import fft_convolve
 from foilc_hil.design.lifted import (
     SYMBOL_GRID_CAP,
     SYMBOL_GRID_CAP_MIMO,
@@ -309,8 +310,6 @@ def _learning_weights(law: LawStructure) -> tuple[np.ndarray, int] | None:
 
 def _toeplitz_parts(loop: LoopPlant, law: LawStructure, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The coefficients of ``T_N(a0)`` and ``T_N(a1)`` with ``a(s) = a0 - s a1`` (module notes), ``(2N-1, m, m)``."""
-    from scipy.signal import fftconvolve
-
     assert law.q_filter is not None
     n, d = law.n_samples, law.lead
     m = loop.B.shape[1]
@@ -322,7 +321,7 @@ def _toeplitz_parts(loop: LoopPlant, law: LawStructure, weights: np.ndarray) -> 
     x0[:] = np.eye(m) * _filter_coefficients(law.q_filter)[:, None, None]
     x0[n:] -= markov_blocks(loop.A, loop.B, loop.p1, 0, n - 1)
     ahead = markov_blocks(loop.A, loop.B, loop.C_measured, 0, n + d)  # g_(k+d), k = -d .. N-1
-    c = fftconvolve(weights[:, None, None], ahead, axes=0)[: n + d]
+    c = fft_convolve(weights[:, None, None], ahead)[: n + d]
     x1 = np.zeros((2 * n - 1, m, m))
     x1[n - 1 - d :] = np.einsum("ap,kpb->kab", loop.p2, c)
     return _two_sided_conv(r, x0), _two_sided_conv(r, x1)
