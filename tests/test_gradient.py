@@ -9,12 +9,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from foilc_hil.config import LawKind, load_config
+from foilc_hil.design.gradient import gradient_step, gradient_update
+from foilc_hil.design.noilc import plant_norm
 from foilc_hil.design.pipeline import build_design
 from foilc_hil.design.record import Design
 from foilc_hil.laws.learning import Gradient, make_law
 from foilc_hil.loop.simulation import simulate
+from tests.fuzz_settings import fuzz_settings
+from tests.lifted_reference import config_plants, lifted, random_model
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 #: paper_sim's plant, variation and uncertainty on a 0.8 s trial.
@@ -82,6 +88,52 @@ def test_gradient_law_applies_beta_g_transpose() -> None:
     G = _lifted(-1.23, 1.68, n)
     np.testing.assert_allclose(u, G.T @ error / np.linalg.norm(G, 2) ** 2, rtol=1e-9, atol=1e-14)
     assert Design.from_json(design.to_json()).to_json() == design.to_json()
+
+
+@given(seed=st.integers(0, 2**32 - 1), length=st.integers(2, 150), states=st.integers(1, 3),
+       channels=st.integers(1, 2), delay=st.integers(0, 2))
+@fuzz_settings(40)
+def test_the_step_and_the_adjoint_pass_are_the_dense_ones(seed: int, length: int, states: int, channels: int,
+                                                          delay: int) -> None:
+    """``||G||_2`` (the structured test, bisected) against the SVD to 1e-11, and the update ``beta G^T e`` (one
+    adjoint pass) against the dense product to 1e-12 relative, on random stable plants behind ``delay`` samples."""
+    rng = np.random.default_rng(seed)
+    model = random_model(rng, states, channels, delay)
+    G = lifted(model.A, model.B, model.measured_output, delay, length)
+    sigma = float(np.linalg.norm(G, 2))
+    assert plant_norm(model, length + delay) == pytest.approx(sigma, rel=1e-11)
+    step = gradient_step(model, length + delay)
+    assert step.beta == pytest.approx(1.0 / sigma**2, rel=3e-11)
+    error = rng.standard_normal((length, channels))
+    truth = step.beta * G.T @ error.ravel()
+    got = gradient_update(model, step, length + delay).apply(error).ravel()
+    assert np.linalg.norm(got - truth) <= 1e-12 * np.linalg.norm(truth)
+
+
+@pytest.mark.parametrize("config_name", ["paper_sim.yaml", "demo.yaml"])
+def test_gradient_law_update_at_2000_samples_is_the_dense_one(config_name: str) -> None:
+    """The law as it runs on a shipped config at N = 2000 behind the CAN loop's delay: one learning step
+    ``u_2 = u_1 + beta G^T e_1`` against the dense product on the lifted plant built here (1e-9 relative, 2-norm
+    and max-abs; ``beta`` is the recorded step, checked against the SVD above)."""
+    n = 2000
+    config = load_config(CONFIGS / config_name)
+    design = build_design(config, "gradient", n, input_delay=1)
+    assert design.certificates is not None and design.certificates.gradient is not None
+    beta = design.certificates.gradient.beta
+    model, plants = config_plants(config, 1, n)
+    d, G = model.input_delay, plants[0]
+    law = make_law(design, config.law, n)
+    law.begin_trial()
+    for t in range(n):
+        law.command(t, np.zeros(1))
+    error = np.cos(np.linspace(0.0, 30.0, n)) * np.linspace(1.0, 0.2, n)
+    law.end_trial(error, np.zeros(n))
+    law.begin_trial()
+    u = np.array([law.command(t, np.zeros(1))[0] for t in range(n)])
+    truth = beta * G.T @ error[d:]
+    assert np.linalg.norm(u[: n - d] - truth) <= 1e-9 * np.linalg.norm(truth)
+    assert np.max(np.abs(u[: n - d] - truth)) <= 1e-9 * np.max(np.abs(truth))
+    np.testing.assert_array_equal(u[n - d :], 0.0)
 
 
 def test_gradient_converges_monotonically_on_paper_sim() -> None:

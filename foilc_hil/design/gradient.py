@@ -97,7 +97,7 @@ def certify_gradient(
 
     lifted = LiftedDesign(
         LawKind.GRADIENT,
-        base.scaled,
+        base,
         lambda scale: {"gradient": scaled(scale)},
         policy,
         require_monotonic,

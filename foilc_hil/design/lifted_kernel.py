@@ -56,26 +56,50 @@ def apply_operator(
     """``Y = T W`` for ``W`` of shape ``(L, m, K)`` (``K`` signals at once): one backward pass, then one forward pass.
 
     ``y_i = Cf_i x_i + Cb_i z_(i+1) + D_i w_i`` with ``x_0 = 0``, ``x_(i+1) = Af_i x_i + Bf_i w_i`` and ``z_L = 0``,
-    ``z_i = Ab_i z_(i+1) + Bb_i w_i`` (:class:`foilc_hil.design.trial_operator.TrialOperator`).
+    ``z_i = Ab_i z_(i+1) + Bb_i w_i`` (:class:`foilc_hil.design.trial_operator.TrialOperator`). Written out index by
+    index (no views of the generators: this is the inner loop of every norm estimate).
     """
-    length, _, columns = W.shape
-    p = D.shape[1]
+    length, m, columns = W.shape
+    p, nf, nb = D.shape[1], Af.shape[1], Ab.shape[1]
     out = np.zeros((length, p, columns))
-    z = np.zeros((Ab.shape[1], columns))
-    scratch = np.zeros((Ab.shape[1], columns))
+    state = np.zeros((nb, columns))
+    scratch = np.zeros((nb, columns))
     for i in range(length - 1, -1, -1):
-        _accumulate(Cb[i], z, out[i])  # z is z_(i+1) here
-        _product(Ab[i], z, scratch)
-        _accumulate(Bb[i], W[i], scratch)
-        z[:, :] = scratch
-    x = np.zeros((Af.shape[1], columns))
-    scratch = np.zeros((Af.shape[1], columns))
+        for c in range(columns):
+            for row in range(p):  # state is z_(i+1) here
+                total = 0.0
+                for k in range(nb):
+                    total += Cb[i, row, k] * state[k, c]
+                out[i, row, c] = total
+            for row in range(nb):
+                total = 0.0
+                for k in range(nb):
+                    total += Ab[i, row, k] * state[k, c]
+                for k in range(m):
+                    total += Bb[i, row, k] * W[i, k, c]
+                scratch[row, c] = total
+            for row in range(nb):
+                state[row, c] = scratch[row, c]
+    state = np.zeros((nf, columns))
+    scratch = np.zeros((nf, columns))
     for i in range(length):
-        _accumulate(Cf[i], x, out[i])
-        _accumulate(D[i], W[i], out[i])
-        _product(Af[i], x, scratch)
-        _accumulate(Bf[i], W[i], scratch)
-        x[:, :] = scratch
+        for c in range(columns):
+            for row in range(p):
+                total = out[i, row, c]
+                for k in range(nf):
+                    total += Cf[i, row, k] * state[k, c]
+                for k in range(m):
+                    total += D[i, row, k] * W[i, k, c]
+                out[i, row, c] = total
+            for row in range(nf):
+                total = 0.0
+                for k in range(nf):
+                    total += Af[i, row, k] * state[k, c]
+                for k in range(m):
+                    total += Bf[i, row, k] * W[i, k, c]
+                scratch[row, c] = total
+            for row in range(nf):
+                state[row, c] = scratch[row, c]
     return out
 
 
@@ -130,30 +154,6 @@ def _cholesky(M: np.ndarray, out: np.ndarray) -> bool:
 
 
 @njit(cache=True)
-def _step_generators(
-    i: int, Af: np.ndarray, Bf: np.ndarray, Cf: np.ndarray, Ab: np.ndarray, Bb: np.ndarray, Cb: np.ndarray,
-    P: np.ndarray, a: np.ndarray, q: np.ndarray,
-) -> None:
-    """The dilation's generators at sample ``i`` (:func:`dilation_positive`); the zero blocks stay zero."""
-    nf, nb, p = Af.shape[1], Ab.shape[1], Cf.shape[1]
-    for row in range(p):
-        for col in range(nf):
-            P[row, col] = Cf[i, row, col]
-        for col in range(nb):
-            P[p + row, nf + col] = Bb[i, col, row]
-    for row in range(nf):
-        for col in range(nf):
-            a[row, col] = Af[i, row, col]
-        for col in range(p):
-            q[row, p + col] = Bf[i, row, col]
-    for row in range(nb):
-        for col in range(nb):
-            a[nf + row, nf + col] = Ab[i, col, row]
-        for col in range(p):
-            q[nf + row, col] = Cb[i, col, row]
-
-
-@njit(cache=True)
 def dilation_positive(
     Af: np.ndarray,
     Bf: np.ndarray,
@@ -172,16 +172,14 @@ def dilation_positive(
     ``Q_j = [[0, Bf_j], [Cb_j^T, 0]]``, and its diagonal block ``[[rho I, D_i], [D_i^T, rho I]]``. Its LDL^T
     (Eidelman and Gohberg's recursion) is ``Delta_j = d_j - P_j F_j P_j^T``, ``G_j = Q_j - a_j F_j P_j^T``,
     ``F_(j+1) = a_j F_j a_j^T + G_j Delta_j^-1 G_j^T`` (``F_0 = 0``): ``K`` is positive definite exactly when every
-    pivot ``Delta_j`` is, which a Cholesky factorisation of each decides. ``O(L (r + 2p)^3)`` for ``r`` states in
-    all. A non-finite number fails the test.
+    pivot ``Delta_j`` is, which a Cholesky factorisation of each decides. The products are written out block by
+    block (the zero blocks of ``P``, ``a``, ``Q`` skipped): ``O(L r^2 (r + p))`` for ``r`` states in all. A
+    non-finite number fails the test.
     """
     length, p = D.shape[0], D.shape[1]
     nf, nb = Af.shape[1], Ab.shape[1]
     r, s = nf + nb, 2 * p
     F = np.zeros((r, r))
-    P = np.zeros((s, r))
-    a = np.zeros((r, r))
-    q = np.zeros((r, s))
     FP = np.zeros((r, s))
     pivot = np.zeros((s, s))
     factor = np.zeros((s, s))
@@ -189,18 +187,27 @@ def dilation_positive(
     H = np.zeros((s, r))
     aF = np.zeros((r, r))
     for i in range(length):
-        _step_generators(i, Af, Bf, Cf, Ab, Bb, Cb, P, a, q)
-        for row in range(r):  # FP = F P^T
+        for row in range(r):  # FP = F P^T = [F[:, :nf] Cf^T, F[:, nf:] Bb]
+            for col in range(p):
+                total = 0.0
+                for k in range(nf):
+                    total += F[row, k] * Cf[i, col, k]
+                FP[row, col] = total
+                total = 0.0
+                for k in range(nb):
+                    total += F[row, nf + k] * Bb[i, k, col]
+                FP[row, p + col] = total
+        for row in range(p):  # pivot = d - P F P^T
             for col in range(s):
                 total = 0.0
-                for k in range(r):
-                    total += F[row, k] * P[col, k]
-                FP[row, col] = total
-        _product(P, FP, pivot)
-        for row in range(s):
-            for col in range(s):
-                pivot[row, col] = -pivot[row, col]
-        for row in range(p):
+                for k in range(nf):
+                    total += Cf[i, row, k] * FP[k, col]
+                pivot[row, col] = -total
+                total = 0.0
+                for k in range(nb):
+                    total += Bb[i, k, row] * FP[nf + k, col]
+                pivot[p + row, col] = -total
+        for row in range(p):  # + d, once every entry of P F P^T is in
             pivot[row, row] += rho
             pivot[p + row, p + row] += rho
             for col in range(p):
@@ -208,25 +215,49 @@ def dilation_positive(
                 pivot[p + col, row] += D[i, row, col]
         if not _cholesky(pivot, factor):
             return False
-        _product(a, FP, G)  # G = Q - a F P^T
-        for row in range(r):
-            for col in range(s):
-                G[row, col] = q[row, col] - G[row, col]
+        for col in range(s):  # G = Q - a F P^T
+            for row in range(nf):
+                total = 0.0
+                for k in range(nf):
+                    total += Af[i, row, k] * FP[k, col]
+                G[row, col] = (Bf[i, row, col - p] if col >= p else 0.0) - total
+            for row in range(nb):
+                total = 0.0
+                for k in range(nb):
+                    total += Ab[i, k, row] * FP[nf + k, col]
+                G[nf + row, col] = (Cb[i, col, row] if col < p else 0.0) - total
         for col in range(r):  # H = factor^-1 G^T (forward substitution), so G Delta^-1 G^T = H^T H
             for row in range(s):
                 value = G[col, row]
                 for k in range(row):
                     value -= factor[row, k] * H[k, col]
                 H[row, col] = value / factor[row, row]
-        _product(a, F, aF)
-        for row in range(r):  # F = a F a^T + H^T H
-            for col in range(r):
+        for col in range(r):  # aF = a F
+            for row in range(nf):
                 total = 0.0
-                for k in range(r):
-                    total += aF[row, k] * a[col, k]
+                for k in range(nf):
+                    total += Af[i, row, k] * F[k, col]
+                aF[row, col] = total
+            for row in range(nb):
+                total = 0.0
+                for k in range(nb):
+                    total += Ab[i, k, row] * F[nf + k, col]
+                aF[nf + row, col] = total
+        for row in range(r):  # F = aF a^T + H^T H
+            for col in range(nf):
+                total = 0.0
+                for k in range(nf):
+                    total += aF[row, k] * Af[i, col, k]
                 for k in range(s):
                     total += H[k, row] * H[k, col]
                 F[row, col] = total
+            for col in range(nb):
+                total = 0.0
+                for k in range(nb):
+                    total += aF[row, nf + k] * Ab[i, k, col]
+                for k in range(s):
+                    total += H[k, row] * H[k, nf + col]
+                F[row, nf + col] = total
     return True
 
 
@@ -246,18 +277,21 @@ def noilc_riccati(
     gains = np.zeros((length, m, n))
     inverses = np.zeros((length, m, m))
     P = np.zeros((n, n))
+    Bt, Dt = np.ascontiguousarray(B.T), np.ascontiguousarray(D.T)
+    DtD, DtC = Dt @ D, Dt @ C
     for i in range(length - 1, -1, -1):
         PB = P @ B
-        W = q * (D.T @ D) + B.T @ PB
+        W = q * DtD + Bt @ PB
         for k in range(m):
             W[k, k] += r
-        W = 0.5 * (W + W.T)
+        W = 0.5 * (W + np.ascontiguousarray(W.T))
         inverse = np.linalg.inv(W)
-        K = inverse @ (q * (D.T @ C) + PB.T @ A)
+        K = inverse @ (q * DtC + np.ascontiguousarray(PB.T) @ A)
         closed = A - B @ K
         output = C - D @ K
-        P = closed.T @ P @ closed + q * (output.T @ output) + r * (K.T @ K)
-        P = 0.5 * (P + P.T)
+        P = np.ascontiguousarray(closed.T) @ P @ closed + q * (np.ascontiguousarray(output.T) @ output)
+        P = P + r * (np.ascontiguousarray(K.T) @ K)
+        P = 0.5 * (P + np.ascontiguousarray(P.T))
         gains[i] = K
         inverses[i] = inverse
     return gains, inverses

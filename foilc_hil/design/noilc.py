@@ -38,7 +38,11 @@ the update's scale, 1 unless :mod:`foilc_hil.design.admission` had to shrink it)
   norm, and when that is not below one by the 2-norm of a similar map, ``X = I - s q (G Fi)^T G_v Fi`` (the
   spectrum of ``I - G_v L`` is that of ``I - L G_v``, similar to ``X`` through ``Fi``; on the nominal plant ``X`` is
   symmetric and its norm the exact radius); where neither is below one the radius says "inconclusive at bound X".
-* With a Q-filter: dense up to :data:`Q_FILTER_DENSE_LIMIT` samples, beyond that not computed (inconclusive).
+* With a Q-filter, the input map ``M = Q_f - L_full G_y`` on all ``N`` inputs the same way: dense up to
+  :data:`DENSE_LIMIT`, structured beyond (the filter's state-space form, ``Q_f = H^T H`` zero-phase or ``H``
+  causal, from :meth:`~foilc_hil.design.qfilter.QFilter.realization`; a filter without one is certified densely up
+  to :data:`Q_FILTER_DENSE_LIMIT` samples, and "inconclusive" beyond); its spectral radius bounded by its 2-norm,
+  "inconclusive at bound X" where that is not below one.
 
 The weight ``r`` is set relative to the plant, ``r = r_relative ||G||_2^2 q`` (``law.noilc.r_relative``), so one
 default fits plants of any gain: the direction of the largest plant gain contracts by
@@ -62,6 +66,7 @@ import numpy as np
 from foilc_hil.config import DivergentFilterPolicy, FractionalMemory, LawKind, NoilcConfig
 from foilc_hil.design.admission import ScaledVerdict, admit
 from foilc_hil.design.certificates import (
+    CONTRACTION_LIMIT,
     DENSE_LIMIT,
     LawStructure,
     dense_block_toeplitz,
@@ -106,8 +111,10 @@ STRUCTURED_METHOD = "structured exact (Cholesky test of the dilation through the
 BY_NORM = "upper bound: the induced 2-norm"
 #: ``spectral_radius_method`` when the 2-norm of the similar map bounds it (module notes).
 BY_SIMILAR = "upper bound: the induced 2-norm of a similar map"
-#: Largest trial a lifted law's Q-filter input map is certified for (densely).
+#: Largest trial whose Q-filter input map is certified densely when the filter has no state-space form.
 Q_FILTER_DENSE_LIMIT = 2000
+#: Lanczos steps of :meth:`_PlantMaps.estimate`.
+ESTIMATE_STEPS = 6
 #: Relative width of :func:`plant_norm`'s bisection: the weights and the step come from it.
 PLANT_NORM_TOLERANCE = 1e-13
 
@@ -222,16 +229,6 @@ class LiftedUpdate:
         """``scale L``."""
         return LiftedUpdate(self.left.scaled(scale), self.right)
 
-    def trial_map(self, plant: TrialOperator) -> TrialOperator:
-        """``I - G_v L`` for the lifted plant ``G_v`` (``plant``)."""
-        step = plant.product(self.operator())
-        return TrialOperator.identity(self.length, step.shape[0]).plus(step.scaled(-1.0))
-
-    def similar_map(self, plant: TrialOperator) -> TrialOperator:
-        """``I - left G_v right``: the spectrum of :meth:`trial_map` (class notes)."""
-        step = self.left.product(plant.product(self.right))
-        return TrialOperator.identity(self.length, step.shape[0]).plus(step.scaled(-1.0))
-
 
 def noilc_weights(model: DiscreteModel, config: NoilcConfig, n_samples: int) -> NoilcWeights:
     """The absolute weights of ``law.noilc`` on ``model`` for trials of ``n_samples`` (module notes)."""
@@ -245,21 +242,25 @@ def noilc_update(model: DiscreteModel, weights: NoilcWeights, n_samples: int) ->
 
     length = _length(n_samples, model.input_delay)
     system = plant_realization(model.A, model.B, model.measured_output, model.input_delay)
-    gains, inverses = noilc_riccati(system.A, system.B, system.C, system.D, weights.q, weights.r, length)
+    A, B, C, D = (np.ascontiguousarray(X, dtype=float) for X in (system.A, system.B, system.C, system.D))
+    gains, inverses = noilc_riccati(A, B, C, D, weights.q, weights.r, length)
     # any S with S S^T = W^-1 factors M^-1 = F^-1 W^-1 F^-T = Fi Fi^T with Fi = F^-1 S: the Cholesky factor of W^-1
     root = np.linalg.cholesky(inverses)
-    closed = system.A - system.B @ gains
-    Fi = TrialOperator(
-        np.ascontiguousarray(closed),
-        np.ascontiguousarray(system.B @ root),
-        np.ascontiguousarray(-gains),
-        np.zeros((length, 0, 0)),
-        np.zeros((length, 0, root.shape[2])),
-        np.zeros((length, gains.shape[1], 0)),
-        np.ascontiguousarray(root),
-    )
-    G = TrialOperator.causal(system.A, system.B, system.C, system.D, length)
-    return LiftedUpdate(G.product(Fi).transpose().scaled(weights.q * weights.scale), Fi)
+    closed = np.ascontiguousarray(system.A - system.B @ gains)
+    driven = np.ascontiguousarray(system.B @ root)
+
+    def causal(C: np.ndarray, D: np.ndarray) -> TrialOperator:
+        m = root.shape[2]
+        return TrialOperator(
+            closed, driven, np.ascontiguousarray(C), np.zeros((length, 0, 0)), np.zeros((length, 0, m)),
+            np.zeros((length, C.shape[1], 0)), np.ascontiguousarray(D),
+        )
+
+    # Fi: x_(i+1) = (A - B K_i) x_i + B S_i v_i, du_i = -K_i x_i + S_i v_i. G Fi runs the plant on du from the same
+    # zero state, so its state IS x (the plant's state under du): one state, output (C - D K_i) x_i + D S_i v_i.
+    Fi = causal(-gains, root)
+    plant_fi = causal(system.C - system.D @ gains, system.D @ root)
+    return LiftedUpdate(plant_fi.transpose().scaled(weights.q * weights.scale), Fi)
 
 
 def noilc_gain(model: DiscreteModel, weights: NoilcWeights, n_samples: int) -> np.ndarray:
@@ -283,34 +284,131 @@ def trial_map(
     return np.kron(law.q_filter, np.eye(m)) - full @ G_y, "input (Q-filter)"
 
 
-def _structured_certificate(update: LiftedUpdate, plant: TrialOperator) -> PlantCertificate:
-    """A long trial's error map: the structured norm, and the radius by it or by the similar map (module notes)."""
-    norm = update.trial_map(plant).norm_bound().upper
-    if norm < 1.0:
-        return PlantCertificate("", "error", norm, norm, STRUCTURED_METHOD, BY_NORM)
-    similar = update.similar_map(plant).norm_bound(stop_below=0.5).upper
-    radius, method = (norm, BY_NORM) if norm <= similar else (similar, BY_SIMILAR)
-    if not radius < 1.0:
-        method = f"inconclusive at bound {radius:.6g} ({method})"
-    return PlantCertificate("", "error", radius, norm, STRUCTURED_METHOD, method)
+def _q_filter_operator(q_filter: object, n_samples: int, channels: int) -> TrialOperator | None:
+    """The law's Q-filter on the trial as a trial operator, each channel filtered alike: ``H^T H`` (zero phase) or
+    ``H`` (causal) with ``H`` the state-space form of one pass; ``None`` when the filter has none."""
+    realization = getattr(getattr(q_filter, "filter", None), "realization", None)
+    if realization is None:
+        return None
+    system = realization()
+    eye = np.eye(channels)
+    H = TrialOperator.causal(
+        np.kron(eye, system.A), np.kron(eye, system.B), np.kron(eye, system.C), np.kron(eye, system.D), n_samples
+    )
+    return H if str(getattr(q_filter, "phase", "zero")) == "causal" else H.transpose().product(H)
 
 
-def plant_certificate(
-    update: LiftedUpdate, model: DiscreteModel, A: np.ndarray, B: np.ndarray, law: LawStructure,
-    dense_gain: Callable[[], np.ndarray],
-) -> PlantCertificate:
-    """The certificate of the lifted law ``update`` at the plant ``(A, B)`` (module notes: dense, structured, or
-    with a Q-filter dense up to :data:`Q_FILTER_DENSE_LIMIT`); ``dense_gain()``: ``update`` as a matrix."""
-    length = law.n_samples - law.lead
-    if law.q_filter is not None:
-        if law.n_samples > Q_FILTER_DENSE_LIMIT:
-            method = f"inconclusive at bound inf (a Q-filter's input map is certified up to N = {Q_FILTER_DENSE_LIMIT})"
-            return PlantCertificate("", "input (Q-filter)", math.inf, math.inf, method, method)
-        return matrix_certificate(*trial_map(A, B, model, dense_gain(), law))
-    if length <= DENSE_LIMIT:
-        return matrix_certificate(*trial_map(A, B, model, dense_gain(), law))
-    plant = plant_operator(A, B, model.measured_output, law.n_samples, law.lead)
-    return _structured_certificate(update, plant)
+def _padded(X: TrialOperator, total: int) -> TrialOperator:
+    """``X`` on the first ``X.length`` samples of a trial of ``total``, zero on the rest (inputs and outputs)."""
+    extra = total - X.length
+
+    def grow(Y: np.ndarray) -> np.ndarray:
+        return np.ascontiguousarray(np.concatenate([Y, np.zeros((extra, *Y.shape[1:]))]))
+
+    return TrialOperator(*(grow(Y) for Y in (X.Af, X.Bf, X.Cf, X.Ab, X.Bb, X.Cb, X.D)))
+
+
+class _PlantMaps:
+    """The trial maps of a lifted law at one plant ``(A, B)``, for every scale ``s`` of its update ``L``.
+
+    The maps are affine in ``s`` -- ``I - s G_v L`` (error map), ``Q_f - s L_full G_y`` (input map with a Q-filter),
+    ``I - s left G_v right`` (similar to the error map) -- so their ``s``-free parts are composed once, here, and a
+    scale costs a sum, not a product of operators. Short trials take the dense path (module notes).
+    """
+
+    def __init__(
+        self, update: LiftedUpdate, model: DiscreteModel, A: np.ndarray, B: np.ndarray, law: LawStructure,
+        shared: _Shared,
+    ) -> None:
+        self.update, self.model, self.A, self.B, self.law, self.shared = update, model, A, B, law, shared
+
+    @property
+    def dense(self) -> bool:
+        """Whether the trial is short enough for dense maps (:data:`DENSE_LIMIT`)."""
+        return self.law.n_samples - self.law.lead <= DENSE_LIMIT
+
+    @functools.cached_property
+    def plant(self) -> TrialOperator:
+        """``G_v``."""
+        return plant_operator(self.A, self.B, self.model.measured_output, self.law.n_samples, self.law.lead)
+
+    @functools.cached_property
+    def step(self) -> TrialOperator:
+        """``G_v L`` (no Q-filter) or ``L_full G_y`` padded to the whole trial (with one)."""
+        if self.law.q_filter is None:
+            return self.plant.product(self.shared.operator)
+        return _padded(self.shared.operator.product(self.plant), self.law.n_samples)
+
+    @functools.cached_property
+    def similar_step(self) -> TrialOperator:
+        """``left G_v right`` (module notes: the spectrum of the error map)."""
+        return self.update.left.product(self.plant.product(self.update.right))
+
+    def trial(self, scale: float) -> TrialOperator | None:
+        """The map at ``scale``; ``None`` when the Q-filter has no state-space form."""
+        first = self.shared.first
+        return None if first is None else first.plus(self.step.scaled(-scale))
+
+    def certificate(self, scale: float) -> PlantCertificate:
+        """Spectral radius and 2-norm at ``scale`` (module notes)."""
+        trial = None if self.dense else self.trial(scale)
+        if self.dense or (trial is None and self.law.n_samples <= Q_FILTER_DENSE_LIMIT):
+            return matrix_certificate(*trial_map(self.A, self.B, self.model, scale * self.shared.dense_gain, self.law))
+        kind = "error" if self.law.q_filter is None else "input (Q-filter)"
+        if trial is None:
+            method = "inconclusive at bound inf (a Q-filter without a state-space form, on a long trial)"
+            return PlantCertificate("", kind, math.inf, math.inf, method, method)
+        norm = trial.norm_bound(decide_at=CONTRACTION_LIMIT).upper
+        if norm < 1.0:
+            return PlantCertificate("", kind, norm, norm, STRUCTURED_METHOD, BY_NORM)
+        radius, method = norm, BY_NORM
+        if self.law.q_filter is None:
+            similar = self.shared.identity.plus(self.similar_step.scaled(-scale)).norm_bound(decide_at=1.0).upper
+            radius, method = (norm, BY_NORM) if norm <= similar else (similar, BY_SIMILAR)
+        if not radius < 1.0:
+            method = f"inconclusive at bound {radius:.6g} ({method})"
+        return PlantCertificate("", kind, radius, norm, STRUCTURED_METHOD, method)
+
+    def estimate(self, scale: float) -> PlantCertificate:
+        """:meth:`certificate`'s numbers, cheaply, for the search of a scale (:func:`~foilc_hil.design.admission.
+        admit`): a long trial's 2-norm from below by :data:`ESTIMATE_STEPS` Lanczos steps (within about 1 % on these
+        maps: enough to place the minimum of a convex function of the scale); a short trial's certificate."""
+        trial = None if self.dense else self.trial(scale)
+        if trial is None:
+            return self.certificate(scale)
+        norm = trial.lanczos_lower(ESTIMATE_STEPS)
+        return PlantCertificate("", "estimate", norm, norm, "lower bound (Lanczos)")
+
+
+class _Shared:
+    """What the plants' maps of one law share: ``L`` as one operator, the identity or the Q-filter the maps start
+    from, and ``L`` dense for short trials (each made on first use)."""
+
+    def __init__(self, update: LiftedUpdate, law: LawStructure, channels: int) -> None:
+        self.update, self.law, self.channels = update, law, channels
+
+    @functools.cached_property
+    def operator(self) -> TrialOperator:
+        """``L``."""
+        return self.update.operator()
+
+    @functools.cached_property
+    def identity(self) -> TrialOperator:
+        """``I`` on the learnable samples."""
+        return TrialOperator.identity(self.update.length, self.channels)
+
+    @functools.cached_property
+    def first(self) -> TrialOperator | None:
+        """What the map is before the learning term: ``I``, or the Q-filter on the whole trial (``None``: it has
+        no state-space form)."""
+        if self.law.q_filter is None:
+            return self.identity
+        return _q_filter_operator(self.law.q_filter, self.law.n_samples, self.channels)
+
+    @functools.cached_property
+    def dense_gain(self) -> np.ndarray:
+        """``L`` dense."""
+        return self.update.dense()
 
 
 def _certificates(
@@ -340,11 +438,12 @@ def _certificates(
 
 @dataclass(frozen=True)
 class LiftedDesign:
-    """What :func:`certify_lifted` needs of a lifted law: its update at scale ``s``, what its certificates add at
-    that scale (``{"noilc": weights}``, ``{"gradient": step}``), its kind, and the rule's settings."""
+    """What :func:`certify_lifted` needs of a lifted law: its update ``L`` (the law runs ``s L``), what its
+    certificates add at scale ``s`` (``{"noilc": weights}``, ``{"gradient": step}``), its kind, and the rule's
+    settings."""
 
     kind: LawKind
-    update: Callable[[float], LiftedUpdate]
+    update: LiftedUpdate
     addition: Callable[[float], Mapping[str, Any]]
     policy: DivergentFilterPolicy = DivergentFilterPolicy.RESCALE
     require_monotonic: bool = True
@@ -368,12 +467,16 @@ def certify_lifted(model: DiscreteModel, uncertainty: Uncertainty, lifted: Lifte
         (f"vertex {i}", model.A + dA, model.B + dB) for i, (dA, dB) in enumerate(uncertainty_vertices(uncertainty), 1)
     ]
 
+    shared = _Shared(lifted.update, law, model.n_outputs)
+    maps = [(name, _PlantMaps(lifted.update, model, A_v, B_v, law, shared)) for name, A_v, B_v in plants]
+
     @functools.cache
     def evaluate(scale: float) -> ScaledVerdict:
-        update = lifted.update(scale)
-        dense = functools.cache(update.dense)
-        entries = [plant_certificate(update, model, A_v, B_v, law, dense).named(name) for name, A_v, B_v in plants]
-        return ScaledVerdict(scale, tuple(entries))
+        return ScaledVerdict(scale, tuple(each.certificate(scale).named(name) for name, each in maps))
+
+    @functools.cache
+    def estimate(scale: float) -> ScaledVerdict:
+        return ScaledVerdict(scale, tuple(each.estimate(scale).named(name) for name, each in maps))
 
     admission = admit(
         evaluate,
@@ -381,6 +484,7 @@ def certify_lifted(model: DiscreteModel, uncertainty: Uncertainty, lifted: Lifte
         policy=lifted.policy,
         require_monotonic=lifted.require_monotonic,
         growth_horizon=lifted.growth_horizon,
+        estimate=estimate,
     )
     designed = evaluate(1.0)
     chosen = admission.verdict
@@ -421,7 +525,7 @@ def certify_noilc(
     base = noilc_update(model, weights, law.n_samples)
     lifted = LiftedDesign(
         LawKind.NOILC,
-        base.scaled,
+        base,
         lambda scale: {"noilc": replace(weights, scale=scale)},
         policy,
         require_monotonic,
