@@ -123,3 +123,15 @@ def test_physics_that_diverge_mid_run_fault_the_drive_and_the_stop_is_reported(
     line = _one_line(capsys, "run")
     assert "EMCY 0x6100" in line and f"drive {NODE} confirmed disabled" in line, line
     assert calls[0] >= 350
+
+
+def test_a_drive_fault_is_one_stderr_line_at_the_default_log_level(tmp_path: Path) -> None:
+    """In a process (a logging handler made before pytest's capture would hide a second line in process): the
+    EMCY was printed twice, once as the master's log warning and once as the result."""
+    command = [sys.executable, "-m", "foilc_hil.cli", "run", "--config", str(bench_config(tmp_path)), "--trials",
+               "3", "--out", str(tmp_path / "f.mcap"), "--quiet", "--inject", "emcy-over-current@2+20"]
+    result = subprocess.run(command, capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)},
+                            cwd=ROOT, check=False, timeout=120)
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert result.returncode == 1 and len(lines) == 1, lines
+    assert "EMCY 0x2310" in lines[0] and f"drive {NODE} confirmed disabled" in lines[0]

@@ -213,7 +213,8 @@ class CyclicPath:
             link.send(data_frame(self.rpdo_cob(), self.rpdo_codec.encode(self.controlword, 0)))
             self.sync()
         except Exception as exc:  # called while another error propagates; must not replace it
-            logger.warning("could not command %s on node %d: %s", command.name, link.node_id, exc)
+            # info: the stop that follows reads the drive back and says what it reached, in the command's one line
+            logger.info("could not command %s on node %d: %s", command.name, link.node_id, exc)
 
     # --- the wait ------------------------------------------------------------------------------------------------
 

@@ -45,4 +45,5 @@ class EmcyConsumer:
                 inbox.heartbeat_fault = True
             inbox.errors.append(emergency.error())
             inbox.cv.notify_all()
-        logger.warning("node %d: %s", self._node_id, emergency.error())
+        # info, not warning: the EMCY is raised to whoever waits on the drive, and the command's one line says it
+        logger.info("node %d: %s", self._node_id, emergency.error())
