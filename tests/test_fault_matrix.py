@@ -200,7 +200,7 @@ def one_design() -> Iterator[dict[tuple[str, int], Any]]:
 @pytest.fixture
 def emulators(monkeypatch: pytest.MonkeyPatch, one_design: dict[tuple[str, int], Any]) -> list[Any]:
     """Every embedded emulator a run creates (to read its drive's state afterwards); designs shared across rows."""
-    import foilc_hil.loop.bench as bench
+    from foilc_hil.design import pipeline
     from plant_emulator.embedded import EmbeddedEmulator
 
     created: list[Any] = []
@@ -211,15 +211,18 @@ def emulators(monkeypatch: pytest.MonkeyPatch, one_design: dict[tuple[str, int],
         created.append(emulator)
         return emulator
 
-    design = bench.build_design
+    design = pipeline.build_design
 
-    def shared_design(config: Any, law: str, n_samples: int) -> Any:
+    def shared_design(config: Any, law: str, n_samples: int, **kwargs: Any) -> Any:
         if (law, n_samples) not in one_design:
-            one_design[(law, n_samples)] = design(config, law, n_samples)
+            one_design[(law, n_samples)] = design(config, law, n_samples, **kwargs)
         return one_design[(law, n_samples)]
 
     monkeypatch.setattr(EmbeddedEmulator, "from_config", classmethod(recording))
-    monkeypatch.setattr(bench, "build_design", shared_design)
+    # the pipeline's attribute, which the bench reads at each call: a name bound at another module's import (the
+    # rig's, imported during the first row) would keep the shared design after this test (the next test's axes
+    # all got the first axis's design)
+    monkeypatch.setattr(pipeline, "build_design", shared_design)
     return created
 
 
