@@ -32,6 +32,7 @@ from drivers.pdo import MappedVariable
 
 __all__ = [
     "DEFAULT_EDS",
+    "MAX_EDS_BYTES",
     "PARSED_CACHE_SIZE",
     "REQUIRED_OBJECTS",
     "STANDARD_TYPES",
@@ -87,6 +88,10 @@ _UNSIGNED_BITS = {
 }
 
 
+#: the largest EDS accepted: a drive's is tens of kilobytes (the shipped one 40 kB), as a config is at most 1 MiB
+MAX_EDS_BYTES = 1 << 20
+
+
 def load_od(path: str | Path | None = None, node_id: int | None = None) -> ObjectDictionary:
     """Load an EDS (or DCF) with canopen's parser and check it describes a CiA 402 drive.
 
@@ -100,15 +105,23 @@ def load_od(path: str | Path | None = None, node_id: int | None = None) -> Objec
     Raises
     ------
     EdsError
-        Naming the file: it is missing, unreadable, malformed, or lacks one of :data:`REQUIRED_OBJECTS`.
+        Naming the file: it is missing, not a regular file, larger than :data:`MAX_EDS_BYTES`, unreadable,
+        malformed, or lacks one of :data:`REQUIRED_OBJECTS`.
     """
     source = Path(path) if path is not None else DEFAULT_EDS
     try:
         status = source.stat()  # one stat: whether it is a file, and the kept parse's key
     except (OSError, ValueError):
         status = None
-    if status is None or not stat.S_ISREG(status.st_mode):
+    if status is None:
         raise EdsError("EDS file not found", source=str(source))
+    if not stat.S_ISREG(status.st_mode):
+        kind = "a directory" if stat.S_ISDIR(status.st_mode) else "not a regular file (a device, FIFO or socket)"
+        raise EdsError(f"is {kind}: an EDS is a file", source=str(source))
+    if status.st_size > MAX_EDS_BYTES:
+        # Why: canopen's parser read a 50 MB EDS-syntax file for 30 s in 1.7 GB; configs are capped the same way
+        raise EdsError(f"is {status.st_size} bytes; an EDS is at most {MAX_EDS_BYTES} (a drive's is tens of kB)",
+                       source=str(source))
     key = (str(source.resolve()), status.st_mtime_ns, status.st_size, node_id)
     with _parsed_lock:
         parsed = _parsed.get(key)

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 from canopen.objectdictionary import ObjectDictionary, ODRecord, ODVariable, datatypes
 
 from drivers.cia402 import SUPPORTED_MODE_BITS, Obj, OperationMode
-from drivers.od import DEFAULT_EDS, REQUIRED_OBJECTS, load_od, mapped_variable
+from drivers.od import DEFAULT_EDS, MAX_EDS_BYTES, REQUIRED_OBJECTS, load_od, mapped_variable
 from drivers.pdo import PDO_DISABLED, MappedVariable
 from foilc_hil.errors import EdsError
 
@@ -85,6 +86,26 @@ def test_missing_file_names_it(tmp_path: Path) -> None:
     missing = tmp_path / "nope.eds"
     with pytest.raises(EdsError, match=f"{missing}: EDS file not found"):
         load_od(missing)
+
+
+def test_special_files_are_refused_with_their_cause(tmp_path: Path) -> None:
+    """/dev/zero, a FIFO or a directory named as the EDS: refused at once with what it is (it was "not found", and a
+    FIFO would have blocked the read)."""
+    fifo = tmp_path / "drive.eds"
+    os.mkfifo(fifo)
+    for path, kind in ((Path("/dev/zero"), "not a regular file"), (fifo, "not a regular file"),
+                       (tmp_path, "a directory")):
+        with pytest.raises(EdsError, match=f"{path}: is {kind}"):
+            load_od(path)
+
+
+def test_an_eds_past_the_cap_is_refused_before_it_is_read(tmp_path: Path) -> None:
+    """A 50 MB EDS-syntax file took canopen's parser 30 s and 1.7 GB; the size is checked before any read."""
+    big = tmp_path / "big.eds"
+    with big.open("wb") as stream:
+        stream.truncate(MAX_EDS_BYTES + 1)  # sparse: the test writes nothing
+    with pytest.raises(EdsError, match=f"{big}: is {MAX_EDS_BYTES + 1} bytes; an EDS is at most {MAX_EDS_BYTES}"):
+        load_od(big)
 
 
 @pytest.mark.filterwarnings("ignore:The 'warn' method is deprecated:DeprecationWarning")  # canopen's own logger
