@@ -8,6 +8,7 @@ run sample by sample on the plant.
 from __future__ import annotations
 
 import itertools
+import json
 import math
 
 import numpy as np
@@ -15,13 +16,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from foilc_hil.config import FractionalMemory, LawConfig, QFilterConfig, QFilterPhase
+from foilc_hil.config import Config, FractionalMemory, LawConfig, QFilterConfig, QFilterPhase, load_config
 from foilc_hil.design import qmap
 from foilc_hil.design.certificates import CONTRACTION_LIMIT, certify_as_given, dense_input_map, law_filter_matrix
 from foilc_hil.design.lifted import LawStructure, LoopPlant
 from foilc_hil.design.models import DiscreteModel, Uncertainty, augment_input_delay, discretize
+from foilc_hil.design.pipeline import build_design
 from foilc_hil.design.qfilter import QFilter
-from foilc_hil.design.record import BoundClaim, CertificateMethod, MonotoneVerdict
+from foilc_hil.design.record import BoundClaim, CertificateMethod, Design, MonotoneVerdict
 from foilc_hil.laws.learning import make_law
 from plant_emulator.linear import ContinuousModel
 from tests.designs import plain_design
@@ -223,3 +225,50 @@ def test_a_monotone_certificate_bounds_the_growth_of_the_input_from_trial_to_tri
     assert changes[0] > 0
     for before, after in itertools.pairwise(changes[1:]):  # from trial 2 on: trial 1 only measured
         assert after <= nominal.norm_2 * before * (1 + 1e-9)
+
+
+def _paper_config(n: int, phase: str, *, exact: bool = False) -> Config:
+    """The paper's plant (10 ms) with a P-type law, a Q-filter at 20 % of Nyquist and trials of ``n`` samples."""
+    return load_config(
+        None,
+        {
+            "plant.a": -1.23,
+            "plant.b": 1.68,
+            "sample_time": TS,
+            "reference.profile": "piecewise",
+            "reference.segments": [{"duration": n * TS, "start": 1.0}],
+            "law.kind": "p-type",
+            "law.q_filter": {"cutoff": 0.2 * math.pi / TS, "order": 2, "phase": phase},
+            "synthesis.exact_certificates": exact,
+        },
+    )
+
+
+def test_the_proof_reads_back_from_the_design_record() -> None:
+    design = build_design(_paper_config(700, "causal"), "p-type", 700, input_delay=1)
+    assert design.certificates is not None
+    proofs = [plant.proof for plant in design.certificates.plants]
+    assert all(proof is not None for proof in proofs)
+    again = Design.from_json(json.loads(json.dumps(design.to_json())))
+    assert again.certificates is not None
+    assert [plant.proof for plant in again.certificates.plants] == proofs
+    assert json.dumps(again.to_json()) == json.dumps(design.to_json())
+
+
+def test_the_exact_mode_from_the_config_gives_the_dense_radius_of_a_zero_phase_map() -> None:
+    """``synthesis.exact_certificates``: the zero-phase map's spectral radius densely (the fast mode bounds it by the
+    2-norm), and the 2-norm's bracket around the dense SVD's value."""
+    n = 700
+    fast = build_design(_paper_config(n, "zero"), "p-type", n, input_delay=1)
+    exact = build_design(_paper_config(n, "zero", exact=True), "p-type", n, input_delay=1)
+    assert fast.certificates is not None and exact.certificates is not None
+    fast_nominal, exact_nominal = fast.certificates.plants[0], exact.certificates.plants[0]
+    assert fast_nominal.proof is not None and fast_nominal.proof.spectral_radius is BoundClaim.UPPER
+    assert exact_nominal.proof is not None and exact_nominal.proof.spectral_radius is BoundClaim.EXACT
+    law = LawStructure(
+        0.0, 1.0, TS, n, exact.input_delay, FractionalMemory.CONTROLLABLE, QFilter(0.2 * math.pi / TS, 2, TS).on(n)
+    )
+    M = _dense(LoopPlant(exact.A, exact.B, exact.measured_output, exact.p1, exact.p2), law, 1.0)
+    assert exact_nominal.spectral_radius == pytest.approx(float(np.max(np.abs(np.linalg.eigvals(M)))), rel=1e-3)
+    assert exact_nominal.spectral_radius < fast_nominal.spectral_radius
+    assert float(np.linalg.norm(M, 2)) <= exact_nominal.norm_2 <= float(np.linalg.norm(M, 2)) * (1 + 1e-4)

@@ -69,13 +69,17 @@ What is exact and what is estimated
   and a scale costs one pass over the grid -- the same bounds, not an approximation of them.
 * ``norm_2_symbol``: the sup over a frequency grid of the Toeplitz symbol of ``T`` (the long-trial limit of the
   2-norm of the Toeplitz part), for information.
-* With a Q-filter: spectral radius by ARPACK ``eigs`` (an estimate; dense ``eigvals`` for small trials), 2-norm
-  by ``svds``.
+* With a Q-filter: up to :data:`DENSE_LIMIT` rows the dense map (exact); beyond, the structured certificate of
+  :mod:`foilc_hil.design.qmap` in bounded time (a symbol bound plus an exact test of the finite-length
+  correction; the exact radius of a causal filter's map; each plant's ``proof`` says what is proved and how;
+  ``docs/certificates.md``). The rescale search runs on that module's cheap estimates and certifies the scale it
+  picks on the whole trial.
 * Uncertainty vertices are FROZEN (constant ``Delta``) plants; a time-varying ``Delta(t)`` makes the map
   non-Toeplitz and is covered only by the LMI of Theorem 1 and by simulation.
 
 Module order: after :mod:`foilc_hil.design.record` (whose typed :class:`~foilc_hil.design.record.Certificates`
-this module fills in), before :mod:`foilc_hil.design.lmi` (which certifies the gain it solves for).
+this module fills in), :mod:`foilc_hil.design.lifted` and :mod:`foilc_hil.design.qmap`, before
+:mod:`foilc_hil.design.lmi` (which certifies the gain it solves for).
 """
 
 from __future__ import annotations
