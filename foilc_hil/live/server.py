@@ -76,12 +76,10 @@ class LiveServer:
             raise InputError("--live: needs foxglove-sdk (pip install 'foilc-hil[live]')") from None
         self.address = address
         self._context = foxglove.Context()
-        try:
-            self._server = foxglove.start_server(name=name, host=address.host, port=address.port,
-                                                 context=self._context, message_backlog_size=BACKLOG)
-        except Exception as exc:  # foxglove-sdk raises its own RuntimeError/OSError kinds for a bind failure
-            raise InputError(f"--live: cannot serve on {address}: {exc}") from None
         metadata = live_channel_metadata(config_yaml)
+        # the channels before the server: a viewer then gets them in its first advertisement. Created after it, a
+        # viewer connecting meanwhile was advertised a channel the server then called unknown when it subscribed
+        # (foxglove-sdk 0.30.3: "attempted to subscribe to unknown channel"), and never got its messages
         self._channels: dict[str, Any] = {
             topic: foxglove.Channel(
                 topic,
@@ -90,6 +88,13 @@ class LiveServer:
             )
             for topic, (schema_name, schema) in LIVE_TOPICS.items()
         }
+        try:
+            self._server = foxglove.start_server(name=name, host=address.host, port=address.port,
+                                                 context=self._context, message_backlog_size=BACKLOG)
+        except Exception as exc:  # foxglove-sdk raises its own RuntimeError/OSError kinds for a bind failure
+            for channel in self._channels.values():
+                channel.close()
+            raise InputError(f"--live: cannot serve on {address}: {exc}") from None
         self._closed = False
 
     @property
