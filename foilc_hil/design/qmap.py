@@ -129,6 +129,7 @@ CONTRACTION_LIMIT = 1.0 - 1e-9
 
 
 def _fft_length(n: int) -> int:
+    """The FFT length of a linear convolution of two ``n``-sample signals (``next_fast_len(2n - 1)``)."""
     from scipy.fft import next_fast_len
 
     return int(next_fast_len(2 * n - 1, real=True))
@@ -151,6 +152,7 @@ class CausalToeplitz:
 
     @classmethod
     def of(cls, blocks: np.ndarray) -> CausalToeplitz:
+        """The section of ``blocks`` (``(L, rows, cols)``), transformed once."""
         from scipy.fft import rfft
 
         n = blocks.shape[0]
@@ -158,6 +160,7 @@ class CausalToeplitz:
         return cls(rfft(np.ascontiguousarray(blocks.transpose(1, 2, 0)), n=nfft, axis=-1), n, nfft)
 
     def apply(self, x: np.ndarray) -> np.ndarray:
+        """``T x`` for ``(K, cols, N)`` signals."""
         from scipy.fft import irfft, rfft
 
         mixed = _mix(self.spectrum, rfft(x, n=self.nfft, axis=-1))
@@ -182,6 +185,7 @@ class ToeplitzSection:
 
     @classmethod
     def of(cls, coefficients: np.ndarray) -> ToeplitzSection:
+        """The section of ``coefficients``, transformed once."""
         from scipy.fft import next_fast_len, rfft
 
         nfft = int(next_fast_len(coefficients.shape[0], real=True))
@@ -190,6 +194,7 @@ class ToeplitzSection:
 
     @property
     def n_samples(self) -> int:
+        """``N``."""
         return (self.coefficients.shape[0] + 1) // 2
 
     def apply(self, x: np.ndarray) -> np.ndarray:
@@ -424,6 +429,7 @@ class _Symbol:
 
     @classmethod
     def of(cls, a0: np.ndarray, a1: np.ndarray) -> _Symbol:
+        """The symbol of ``a0 - s a1`` on a grid fine enough for :func:`~foilc_hil.design.lifted.grid_bound`."""
         from scipy.fft import fft, rfft
 
         m0, m1 = _centered_moments(a0), _centered_moments(a1)
@@ -488,6 +494,7 @@ class _NormTest:
 
     @classmethod
     def of(cls, T: ToeplitzSection, Ue: np.ndarray, Ve: np.ndarray, tau: float, circulant: np.ndarray) -> _NormTest:
+        """The test of the map ``T + U_E V_E^T`` (``W`` orthonormalised: ``C`` carries its triangle)."""
         k = Ue.shape[0]
         W = np.concatenate([Ve, T.adjoint(Ue)])
         flat_u = _flat(Ue)
@@ -497,6 +504,7 @@ class _NormTest:
         return cls(T, np.ascontiguousarray(basis.T).reshape(kw, m, n), triangle @ C @ triangle.T, tau, circulant)
 
     def _operator(self, gamma: float, x: np.ndarray) -> np.ndarray:
+        """``D x = gamma^2 x - T^T T x``."""
         return gamma * gamma * x - self.T.adjoint(self.T.apply(x))
 
     def _preconditioner(self, gamma: float) -> Callable[[np.ndarray], np.ndarray]:
@@ -614,9 +622,11 @@ class StructuredInputMap:
 
     @property
     def n_samples(self) -> int:
+        """``N``."""
         return (self.a0.shape[0] + 1) // 2
 
     def toeplitz(self, scale: float) -> ToeplitzSection:
+        """``T_N(a0 - s a1)``."""
         return ToeplitzSection.of(self.a0 - scale * self.a1)
 
     def factors(self, scale: float) -> tuple[np.ndarray, np.ndarray]:
@@ -708,6 +718,7 @@ class _Secant:
         self._solution: np.ndarray | None = None
 
     def _run(self, gamma: float, advance: Callable[[int], None]) -> _TestOutcome:
+        """One structured test at ``gamma``, warm-started; the lower bound from its direction."""
         outcome = self.test.run(gamma, self._solution)
         self._solution = outcome.solution
         self.count += 1
@@ -825,6 +836,7 @@ INPUT_MAP = "input (Q-filter)"
 
 
 def _verdict(norm: StructuredNorm) -> MonotoneVerdict:
+    """Monotone, not monotone, or neither, from the bracket (module notes)."""
     if norm.upper <= CONTRACTION_LIMIT:
         return MonotoneVerdict.MONOTONE
     if norm.lower > CONTRACTION_LIMIT:
