@@ -16,7 +16,7 @@ reason when it could not be applied (never fatal: a run without a privilege stil
   :data:`HELPER_PRIORITY_OFFSET` below it. A FIFO thread preempts every normal process, so a busy host no longer
   delays its wake-up. The helpers must be real-time too, only lower: they share the GIL with the cyclic threads,
   and a normal thread that holds the GIL when the busy host preempts it for a scheduler time slice (milliseconds)
-  stalls the cyclic thread waiting for the GIL just as long (measured: SYNC gaps of 40 ms at load 8).
+  stalls the cyclic thread waiting for the GIL just as long (SYNC gaps of tens of milliseconds on a loaded host).
 - **timer slack** (``prctl(PR_SET_TIMERSLACK, 1)``) of the calling thread: a normal thread's sleeps end up to 50 us
   late by design; FIFO threads have none.
 - **CPU affinity** (``os.sched_setaffinity``) of the whole process.
@@ -24,9 +24,8 @@ reason when it could not be applied (never fatal: a run without a privilege stil
 - **CPU idle-state latency** (PM QoS: the microseconds written to ``/dev/cpu_dma_latency``, in force while the
   session holds the file open, as ``cyclictest`` does by default): the CPUs stay out of idle states slower to leave
   than that. Why: an idle CPU (a virtual one, halted and woken by its hypervisor) wakes a sleeping cyclic thread
-  late; with 0 the idle loop polls instead. Measured on the 2-core virtual test machine (6 alternated rounds of
-  8 s of the host-floor probe, :mod:`benchmarks.host_floor`): wake-up lateness p50 66-87 -> 32-38 us, p99 median
-  about 900 -> 160 us, wake-ups later than 0.5 ms 0.33-8.97 % -> 0.18-0.85 %. It costs power: the idle CPUs spin.
+  late; with 0 the idle loop polls instead (:mod:`benchmarks.host_floor` measures the wake-ups, ``docs/benchmarks.md``
+  has the figures). It costs power: the idle CPUs spin.
 
 :class:`RealtimeSession` applies the request and restores everything it changed on exit.
 """
@@ -119,7 +118,8 @@ class BenchRealtimeConfig(RealtimeConfig):
     cyclic_receive: CyclicReceive = CyclicReceive.LOOP
     # seconds from the start of each wait for feedback spent polling without blocking before blocking receives
     # (loop only): the emulator's answer comes within 0.3 ms mostly; a blocking receive is woken by the kernel
-    # and then waits for the GIL the Notifier took for the same frame (measured: no faster than the Notifier path)
+    # and then waits for the GIL the Notifier took for the same frame (no faster than the Notifier path)
+
     receive_spin: float = Field(default=0.0003, ge=0, le=0.01)
 
 
