@@ -13,8 +13,9 @@ bus's ``can_filters``: on interfaces that filter in software (``udp_multicast``,
 
 Polling: ``recv`` is called non-blocking for the first ``spin`` seconds of a wait (the thread stays on the CPU and
 keeps the GIL, so a frame arriving then costs no wake-up), then blocking for the rest (the kernel wakes the thread,
-and it may then wait for the GIL the Notifier took to show the same frame to the tap: measured no faster than the
+and it may then wait for the GIL the Notifier took to show the same frame to the tap: no faster than the
 Notifier's hand-off, so a realtime bench spins). Frames still queued when the next SYNC is sent (they arrived after
+
 their wait gave up) are dispatched first by :meth:`CyclicReceiver.drain`, so they answer the cycle they belong to,
 never the next one.
 
