@@ -739,7 +739,8 @@ PMSM_STEP_SIGNATURE = (
 )
 #: :func:`pmsm_step`'s machine code for :data:`PMSM_STEP_SIGNATURE`, called without numba's dispatcher. The
 #: dispatcher works out the types of all nine arguments on every call to pick an overload, which for the plant's
-#: per-step call is always this one (about a tenth of a 1 ms step's Python time). Scalars are converted as by
+#: per-step call is always this one (a sizeable share of a cycle's Python time). Scalars are converted as by
+
 #: ``float()`` / ``int()``; the two vectors must be C-contiguous ``float64`` (the plant's own).
 # (numba's CompileResult declares its fields at run time, so mypy does not see entry_point)
 pmsm_step_compiled: Callable[..., float] = pmsm_step.overloads[PMSM_STEP_SIGNATURE].entry_point  # type: ignore[attr-defined]
