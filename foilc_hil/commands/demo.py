@@ -12,14 +12,14 @@ After the runs it draws ``comparison.png`` (:func:`foilc_hil.logtools.report.wri
 side) and ends with a one-line verdict (:func:`verdict`) pointing to ``docs/paper-reproduction.md``.
 
 The paper's scale: ``Ts = 1 ms``, 6000 samples per 6 s trial (eq. 52 is in milliseconds), 2 x 30 x (6001 trial
-+ ~200 settle) = 372k lockstep cycles. What made 1 ms fail before (the drive faulted on its torque limit, EMCY
-0x2310, in the second trial): the axis answers a velocity command about 1 ms late (current loop, the velocity
-loop's filter, the speed measured as an angle difference over one period; a step at 1 ms moves the first sample by
-0.018 of the step where the first-order model says 0.095). At 10 ms that is a tenth of a sample; at 1 ms a whole
-one, and the LMI's in-trial feedback ``p1``, tuned to the model's first Markov parameter, then drives the learned
-command at the Nyquist frequency (+3800 / -850 rpm on alternate samples in trial 2) into the torque limit. The
-config now states that lag (``plant.delay: 0.001``) and the design looks one sample further ahead
++ ~200 settle) = 372k lockstep cycles. Why the config states the drive's lag (``plant.delay: 0.001``): the axis
+answers a velocity command about 1 ms late (current loop, the velocity loop's filter, the speed measured as an angle
+difference over one period; a step at 1 ms moves the first sample by 0.018 of the step where the first-order model
+says 0.095). At 10 ms that is a tenth of a sample; at 1 ms a whole one, and without the lag the LMI's in-trial
+feedback ``p1``, tuned to the model's first Markov parameter, drives the learned command at the Nyquist frequency
+into the torque limit (the drive faults, EMCY 0x2310). With it the design looks one sample further ahead
 (:func:`foilc_hil.design.pipeline.model_delay_samples`; ``input_delay`` 2 = the CAN cycle + the drive's lag).
+
 
 Left as it is: the axis starts every trial at rest while eq. (52) starts at 400 rpm. At 1 ms the first milliseconds of
 that step are beyond the drive's torque (3.8 N m on 5e-4 kg m^2: at most 73 rpm per sample), so their error is
