@@ -37,7 +37,8 @@ HTTP_ADDRESS = f"{LOOPBACK}:0"
 #: Dask's default environment for a worker process it spawns, changed for the local cluster: ``None`` unsets the
 #: variable. Dask sets ``MALLOC_TRIM_THRESHOLD_`` (64 KiB) to hand freed memory back at once; any such setting also
 #: turns off glibc's dynamic mmap threshold, so every array of a NOILC draw (a few 32 MB ones) was mapped afresh and
-#: faulted in page by page: the draw's certificate took 0.31 s instead of 0.14 s (measured in a thread, load 7).
+#: faulted in page by page, which made a draw's certificate about twice as slow.
+
 WORKER_ENVIRONMENT: dict[str, str | None] = {"MALLOC_TRIM_THRESHOLD_": None}
 #: The laws compared beside the config's ``law.kind`` when ``--laws`` is not given.
 DEFAULT_LAWS = (LawKind.FOILC, LawKind.IOILC, LawKind.NOILC)
