@@ -717,7 +717,8 @@ def frame_fields(msg: can.Message) -> FrameFields:
     is_extended_id, dlc, data, then the rarer remote, error, fd, brs, esi and channel.
 
     Plain attribute loads, not ``operator.attrgetter``: on ``can.Message``'s slots the interpreter's specialised
-    loads take 0.14 us for the eleven, the attrgetter 0.33 us (four frames a cycle on the logged hot path).
+    loads are cheaper than the attrgetter's call (four frames a cycle on the logged hot path).
+
     """
     return (msg.timestamp, msg.arbitration_id, msg.is_extended_id, msg.dlc, msg.data, msg.is_remote_frame,
             msg.is_error_frame, msg.is_fd, msg.bitrate_switch, msg.error_state_indicator, msg.channel)
