@@ -1,8 +1,8 @@
 """A chunked MCAP writer whose per-message cost is one ``struct.pack`` and two ``bytearray`` appends.
 
 Why not ``mcap.writer.Writer``: its ``add_message`` builds a ``Message`` dataclass, updates the statistics and writes
-the record field by field through a ``BytesIO`` -- about 5 us per message, more than python-can's whole
-``BLFWriter`` pipeline per frame, and the bench logs four frames, a sample and a timing record per cycle. This
+the record field by field through a ``BytesIO`` -- more per message than python-can's whole ``BLFWriter`` pipeline
+per frame, and the bench logs four frames, a sample and a timing record per cycle. This
 writer produces the same kind of file (MCAP v0: header, schemas and channels, metadata, compressed chunks each
 followed by its message indexes, data end, a summary with schemas, channels, statistics, chunk and metadata indexes
 and summary offsets, footer with the summary CRC), using ``mcap.records`` for every record except the hot
@@ -56,8 +56,9 @@ def compressor(compression: str) -> Callable[[bytes], bytes]:
             import zstandard
         except ImportError:
             raise LogFormatError("zstd compression needs the zstandard package") from None
-        # level 1, not the default 3: on the bench's chunks (JSON frames and samples) 1.4x faster (473 against 332
-        # MB/s) for the same ratio (9.2 against 9.1), and the writer process shares two cores with the loop
+        # level 1, not the default 3: on the bench's chunks (JSON frames and samples) faster for about the same
+        # ratio, and the writer process shares two cores with the loop
+
         return zstandard.ZstdCompressor(level=1).compress
     if compression == "lz4":
         try:
