@@ -2,7 +2,8 @@
 
 python-can's ``virtual`` interface puts every frame on a queue per receiver; a :class:`can.Notifier` thread per
 bus takes it off again. A lockstep loop between the bench and the embedded emulator therefore hands every frame
-to another thread and waits for the answer: a profile put about 88 % of a lockstep cycle in those hand-offs. This
+to another thread and waits for the answer, and those hand-offs were most of a lockstep cycle. This
+
 interface (``inprocess``) keeps the frames, python-can's bus API and the CAN semantics, and removes the hand-offs:
 
 - :class:`InProcessBus` is a ``BusABC``: the shared work (filters, ``recv``, periodic tasks, ``shutdown``) is
