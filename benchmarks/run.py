@@ -60,6 +60,7 @@ def collect(repeats: int = 3) -> dict[str, Any]:
 
     from benchmarks import (
         bench_axes,
+        bench_live,
         bench_lockstep,
         bench_logging,
         bench_loop,
@@ -81,6 +82,8 @@ def collect(repeats: int = 3) -> dict[str, Any]:
     science_rows = bench_science.science_comparisons(repeats)
     robustness = robustness_comparisons()  # root: Dask's loopback TCP inside `unshare --net`
     axes, axes_rows = bench_axes.collect(repeats)
+    # at least 11 pairs: the ratio's pairs spread 0.4x..1.7x at a load of 8-9 on 2 cores (a goal of 0.9x)
+    live, live_row = bench_live.live_comparison(max(repeats, 11))  # root: a private network namespace
     with tempfile.TemporaryDirectory() as directory:
         logging_costs = bench_logging.per_call_costs(Path(directory))
         # at least 5: this row's ratio was 1.20x, 1.33x and 0.95x in three runs of 3 (a goal of 1x)
@@ -95,13 +98,16 @@ def collect(repeats: int = 3) -> dict[str, Any]:
             "load_average_1min": started_load,
         },
         "comparisons": comparisons_json(
-            [*physics, *simulated, lockstep_row, *lockstep_rows, *axes_rows, *writers, *science_rows, *robustness]
+            [*physics, *simulated, lockstep_row, live_row, *lockstep_rows, *axes_rows, *writers, *science_rows,
+             *robustness]
         ),
         "physics": {"jit": bench_physics.jit_cost()},
         "logging_per_call": logging_costs,
         "science": bench_science.collect(),
         "loop_only": bench_loop.loop_only(),
         "can_lockstep_virtual": lockstep,
+        # the same logged lockstep run with and without --live (a viewer process subscribed to every channel)
+        "live_view": live,
         # foilc-hil run on the embedded emulator (in-process transport and, for contrast, python-can virtual
         # buses), first-order and PMSM plant, against a hand-written python-can lockstep loop, interleaved
         "lockstep_vs_handwritten": lockstep_peer,
