@@ -40,15 +40,21 @@ What is computed
   above in the Loewner order by the residual: ``G <= sym(W^T Z + Z^T R) + ||R||^2 / (gamma^2 - tau^2) I`` for
   any ``Z`` with residual ``R = W - D Z``; a bound above ``G`` keeps the test one-sided (it can only fail where
   the exact test passes). The first ``gamma`` tried is ``max(tau, lower)`` widened by ``1e-6`` (``lower``: the
-  rigorous lower bound below); when it fails, a secant on the test's smallest eigenvalue (increasing in
-  ``gamma``) finds the edge singular value within a few tests.
-* Lower bounds (rigorous: ``||M x|| / ||x||``): a windowed sinusoid at the symbol's peak (the interior), and
+  rigorous lower bound below); when it fails, Newton steps on the test's smallest eigenvalue (increasing in
+  ``gamma``, with derivative ``2 gamma ||x||^2`` for its direction ``x``) find the edge singular value within a few
+  tests (at most :data:`FAST_TESTS`; the answer is then the smallest ``gamma`` that passed).
+* Lower bounds (rigorous: ``||M x|| / ||x||``): half-sine windowed sinusoids at the symbol's peak (the interior), and
   each test's direction of its smallest margin refined by a few power steps (the edge singular vector when the
   test ran near it): ``x^T (gamma^2 I - M^T M) x = y^T (G^-1 - C) y`` for ``x = D^-1 W G^-1 y``.
 * Spectral radius. A CAUSAL Q-filter keeps ``M`` lower triangular (block: ``m x m``) whenever the plant's first
   ``d`` Markov parameters vanish (the delay-augmented design models): its spectrum is that of its diagonal blocks,
   EXACT. A zero-phase filter makes ``M`` non-triangular: ``rho(M) <= ||M||_2`` (an upper bound, said so); the
   exact value is computed densely only when asked (``LawStructure.exact``) and the trial is short enough.
+
+The rescale search does not run tests: :class:`EdgeProxy` estimates the 2-norm at every scale from the symbol's bound
+of the whole trial and the dense map of a short one (its edges); the scale it picks is certified. A map without the
+structure (an in-trial loop ``A + B p1`` that is unstable) gets a power iteration's lower bound
+(:func:`unstructured_certificate`).
 
 Rounding: the test is exact in exact arithmetic; the residual term of ``G`` is rigorous, the FFT products that
 form ``E`` and ``D Z`` carry relative errors of a few ``1e-15`` (Higham's FFT bound), covered by
