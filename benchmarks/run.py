@@ -60,6 +60,7 @@ def collect(repeats: int = 3) -> dict[str, Any]:
 
     from benchmarks import (
         bench_axes,
+        bench_foxglove_writer,
         bench_live,
         bench_lockstep,
         bench_logging,
@@ -88,6 +89,8 @@ def collect(repeats: int = 3) -> dict[str, Any]:
         logging_costs = bench_logging.per_call_costs(Path(directory))
         # at least 5: this row's ratio was 1.20x, 1.33x and 0.95x in three runs of 3 (a goal of 1x)
         writers = bench_logging.writer_comparisons(Path(directory), repeats=max(repeats, 5))
+        # issue 29 target 5: ours against foxglove-sdk's MCAPWriter on the same documents (the faster one stays)
+        foxglove_writer, foxglove_rows = bench_foxglove_writer.writer_comparisons(Path(directory), max(repeats, 5))
     return {
         "date": date,
         "repeats": repeats,
@@ -98,8 +101,8 @@ def collect(repeats: int = 3) -> dict[str, Any]:
             "load_average_1min": started_load,
         },
         "comparisons": comparisons_json(
-            [*physics, *simulated, lockstep_row, live_row, *lockstep_rows, *axes_rows, *writers, *science_rows,
-             *robustness]
+            [*physics, *simulated, lockstep_row, live_row, *lockstep_rows, *axes_rows, *writers, *foxglove_rows,
+             *science_rows, *robustness]
         ),
         "physics": {"jit": bench_physics.jit_cost()},
         "logging_per_call": logging_costs,
@@ -108,6 +111,7 @@ def collect(repeats: int = 3) -> dict[str, Any]:
         "can_lockstep_virtual": lockstep,
         # the same logged lockstep run with and without --live (a viewer process subscribed to every channel)
         "live_view": live,
+        "foxglove_writer": foxglove_writer,
         # foilc-hil run on the embedded emulator (in-process transport and, for contrast, python-can virtual
         # buses), first-order and PMSM plant, against a hand-written python-can lockstep loop, interleaved
         "lockstep_vs_handwritten": lockstep_peer,
