@@ -357,3 +357,49 @@ def test_decimated_rows_are_the_logs_rows() -> None:
     assert full is not None and documents == full[::11]
     assert [json.loads(document)["sample"] for document in documents] == list(range(0, n, 11))
     assert sample_documents(samples, 0) == full
+
+
+# --- the Foxglove layout of docs/ ---------------------------------------------------------------------------------
+
+_PATH = r"(/[\w/]+)(?:\{(\w+)==(\$\w+|\d+)\})?\.(\w+)"
+
+
+def _panel_ids(node: Any) -> list[str]:
+    """The panels of a layout's mosaic tree (a panel id, or a split of two subtrees)."""
+    if isinstance(node, str):
+        return [node]
+    return [*_panel_ids(node["first"]), *_panel_ids(node["second"])]
+
+
+def test_the_shipped_layout_plots_the_ilc_view_from_live_channels() -> None:
+    """docs/foxglove-ilc-layout.json: every panel placed and configured, every message path a live topic's schema
+    field (its filter too), the trial variable set by a slider; reference and output, the learned input, SSE by
+    trial."""
+    import re
+
+    layout = json.loads((ROOT / "docs" / "foxglove-ilc-layout.json").read_text(encoding="utf-8"))
+    panels = layout["configById"]
+    placed = _panel_ids(layout["layout"])
+    assert sorted(placed) == sorted(panels) and len(set(placed)) == len(placed)
+    assert {panel.split("!")[0] for panel in panels} == {"Plot", "VariableSlider", "StateTransitions"}
+    sliders = {config["globalVariableName"] for panel, config in panels.items() if panel.startswith("VariableSlider!")}
+    plotted: dict[str, set[str]] = {}
+    for panel, config in panels.items():
+        paths = [path["value"] for path in config.get("paths", [])]
+        if "xAxisPath" in config:
+            paths.append(config["xAxisPath"]["value"])
+        for path in paths:
+            match = re.fullmatch(_PATH, path)
+            assert match is not None, path
+            topic, key, value, name = match.groups()
+            properties = LIVE_TOPICS[topic][1]["properties"]
+            assert name in properties, path
+            if key is not None:
+                assert key in properties, path
+                if value.startswith("$"):
+                    assert value[1:] in layout["globalVariables"] and value[1:] in sliders, path
+            plotted.setdefault(panel, set()).add(f"{topic}.{name}")
+    assert {"/ilc/sample.reference", "/ilc/sample.output", "/ilc/sample.t"} <= plotted["Plot!ilc-reference-output"]
+    assert "/ilc/sample.control" in plotted["Plot!ilc-learned-input"]
+    assert {"/ilc/trial.sse", "/ilc/trial.trial"} <= plotted["Plot!ilc-sse-by-trial"]
+    assert "/drive/state.state" in plotted["StateTransitions!drive-state"]
