@@ -67,12 +67,17 @@ def inner(repeats: int) -> dict[str, Any]:
                 raise RuntimeError("the viewer did not subscribe within 60 s")
             time.sleep(0.2)  # every channel's subscription in
             for _ in range(repeats):  # alternated: a load change on the shared machine hits both alike
+                cpu = time.process_time()
                 without.append(_run(None)[0])
+                cpu_without = time.process_time() - cpu
+                cpu = time.process_time()
                 with LivePublisher(server, options) as publisher:
                     rate, seconds = _run(publisher)
                 with_live.append(rate)
-                # the thread's CPU counts the whole run_rig (design, commissioning), the seconds the cycles only
-                stats.append({**publisher.stats.to_json(), "loop_seconds": seconds})
+                # the thread's CPU counts the whole run_rig (design, commissioning), the seconds the cycles only;
+                # the process's CPU (every thread: the loop, the publisher, foxglove-sdk's server) of each side
+                stats.append({**publisher.stats.to_json(), "loop_seconds": seconds, "process_cpu_without": cpu_without,
+                              "process_cpu_with": time.process_time() - cpu})
         finally:
             server.close()
             received, _ = viewer.communicate(timeout=60)
@@ -106,6 +111,7 @@ async def _view() -> dict[str, int]:
             counts[topics[subscription]] = counts.get(topics[subscription], 0) + 1
     except websockets.ConnectionClosed:
         pass
+    counts["cpu_ms"] = round(time.process_time() * 1e3)
     return counts
 
 

@@ -403,3 +403,39 @@ def test_the_shipped_layout_plots_the_ilc_view_from_live_channels() -> None:
     assert "/ilc/sample.control" in plotted["Plot!ilc-learned-input"]
     assert {"/ilc/trial.sse", "/ilc/trial.trial"} <= plotted["Plot!ilc-sse-by-trial"]
     assert "/drive/state.state" in plotted["StateTransitions!drive-state"]
+
+
+def test_rows_keep_to_the_row_rate_budget() -> None:
+    """--live-row-rate: a trial gets the rows the budget saved (every k-th), none when it saved none; the budget
+    refills at the rate, up to its cap. A fake clock: no wall time."""
+    from foilc_hil.live.publisher import ROW_SAVE, LivePublisher
+
+    class Watched(_StuckServer):
+        def __init__(self) -> None:
+            super().__init__()
+            self.release.set()
+
+    now = [0.0]
+    server = Watched()
+    publisher = LivePublisher(server, LiveOptions(rows=0, row_rate=100.0), clock=lambda: now[0])  # type: ignore[arg-type]
+    record = _record(1)
+
+    def rows_of(n: int, at: float) -> int:
+        from dataclasses import replace
+
+        import numpy as np
+
+        now[0] = at
+        trial = replace(record, reference=np.zeros(n), seen=np.zeros(n + 1), control=np.zeros(n),
+                        applied=np.zeros(n), output=np.zeros(n), error=np.zeros(n), E=np.zeros(n))
+        before = publisher.stats.samples
+        publisher._publish_rows(trial, 0)
+        return publisher.stats.samples - before
+
+    cap = int(ROW_SAVE * 100)
+    assert rows_of(600, 9.0) == 600  # a second's worth to start with, and 9 s of rate: the cap of 1000
+    assert rows_of(600, 9.0) == 300  # 1000 - 600 = 400 left: every 2nd row
+    assert rows_of(600, 9.0) == 100  # 100 left: every 6th
+    assert rows_of(600, 9.005) == 0  # half a row saved: none
+    assert rows_of(2 * cap, 109.0) == cap  # refilled to the cap, not beyond
+    assert publisher.stats.trials_thinned == 4

@@ -105,7 +105,7 @@ def _stream(log: str, live: LiveOptions, rate: float, document: dict[str, Any]) 
     """``--live``: the log streamed to a live view at ``rate`` times its pace (:mod:`foilc_hil.live.replay`), what
     was sent put into ``document``; returns the line that says it."""
     report = _streamed(log, live, rate)
-    options = {key: value for key, value in live.to_json().items() if key != "rows"}  # rows: run's only
+    options = {key: value for key, value in live.to_json().items() if key not in ("rows", "row_rate")}  # run's
     document["live"] = {**options, **report.to_json()}
     return f"{log}: streamed {sum(report.published.values())} messages to the live view in {report.duration:.1f} s"
 

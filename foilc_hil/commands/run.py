@@ -3,7 +3,7 @@
 ``foilc-hil run --config C [--bus SPEC | -i INTERFACE -c CHANNEL | --emulator embedded] [-b BPS] [--trials N]
 [--mode lockstep|realtime] [--law foilc|ioilc|p-type|noilc|gradient] [--inject KIND@WHEN[:KEY=VALUE,...]]...
 --out F.mcap [--json] [--quiet] [--live [HOST:]PORT [--live-wait S] [--live-linger S] [--live-can-rate F]
-[--live-rows N]]``
+[--live-rows N] [--live-row-rate R]]``
 
 JSON: ``{"law", "trials": [{"trial", "sse", "rmse", "max_abs_error"}, ...], "timing": {"period", "cycles",
 "missed_deadlines", "jitter_p99_us", ...}, "log", "design": {"kp", "r", "certificates", ...}, "stopped",

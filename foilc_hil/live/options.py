@@ -21,6 +21,7 @@ __all__ = [
     "DEFAULT_LINGER",
     "DEFAULT_PORT",
     "DEFAULT_ROWS",
+    "DEFAULT_ROW_RATE",
     "LiveAddress",
     "LiveOptions",
     "add_live_options",
@@ -33,12 +34,17 @@ DEFAULT_HOST: Final = "127.0.0.1"
 DEFAULT_PORT: Final = 8765
 """Foxglove's own default WebSocket port."""
 DEFAULT_ADDRESS: Final = f"{DEFAULT_HOST}:{DEFAULT_PORT}"
-DEFAULT_CAN_RATE: Final = 500.0
+DEFAULT_CAN_RATE: Final = 200.0
 """``/can`` frames a second at most. Why a limit: a 1 kHz bench puts 4,000 frames a second on the bus; a viewer
-wants a sample of the traffic, and every frame published is work on the bench's process."""
+wants a sample of the traffic, and every message costs the server and the viewer CPU time (tens of microseconds
+each, measured: on a busy 2-core host that is the loop's time)."""
 DEFAULT_ROWS: Final = 2000
 """``/ilc/sample`` rows of a trial at most (every ``k``-th row beyond it): a plot of a trial needs no more, and the
 rows are the bulk of what a run publishes (the demo's trials have 6,000)."""
+DEFAULT_ROW_RATE: Final = 1000.0
+"""``/ilc/sample`` rows a second at most, over the run: a lockstep run ends trials faster than real time (the ``make
+bench`` run: 14 trials of 400 rows a second), and its every row sent cost the loop's 2-core host a fifth of its
+throughput in the server's and the viewer's work (measured); a realtime 1 kHz run offers 1,000 a second."""
 DEFAULT_LINGER: Final = 2.0
 """Seconds the server stays up after the run while a viewer is still subscribed: what was published last is
 delivered (stopping the server drops what its per-viewer queue still holds)."""
@@ -84,6 +90,8 @@ class LiveOptions:
         ``/can`` frames a second at most (:data:`DEFAULT_CAN_RATE`).
     rows
         ``/ilc/sample`` rows per trial at most (``run`` only; :data:`DEFAULT_ROWS`); 0: every row.
+    row_rate
+        ``/ilc/sample`` rows per second at most (``run`` only; :data:`DEFAULT_ROW_RATE`); 0: no limit.
     """
 
     address: LiveAddress = LiveAddress()
@@ -91,10 +99,11 @@ class LiveOptions:
     linger: float = DEFAULT_LINGER
     can_rate: float = DEFAULT_CAN_RATE
     rows: int = DEFAULT_ROWS
+    row_rate: float = DEFAULT_ROW_RATE
 
     def to_json(self) -> dict[str, object]:
         return {"address": str(self.address), "wait": self.wait, "linger": self.linger, "can_rate": self.can_rate,
-                "rows": self.rows}
+                "rows": self.rows, "row_rate": self.row_rate}
 
 
 def parse_address(text: str, option: str = "--live") -> LiveAddress:
@@ -133,18 +142,21 @@ def add_live_options(parser: argparse.ArgumentParser, *, rows: bool) -> None:
         parser.add_argument("--live-rows", type=int, default=DEFAULT_ROWS, metavar="N",
                             help=f"with --live: /ilc/sample rows per trial at most, every k-th beyond (default "
                             f"{DEFAULT_ROWS}; 0: every row)")
+        parser.add_argument("--live-row-rate", type=float, default=DEFAULT_ROW_RATE, metavar="R",
+                            help=f"with --live: /ilc/sample rows per second at most over the run (default "
+                            f"{DEFAULT_ROW_RATE:g}; 0: no limit)")
 
 
 def live_options(args: argparse.Namespace) -> LiveOptions | None:
     """The checked :class:`LiveOptions` of ``args``; ``None`` without ``--live``."""
     if args.live is None:
         return None
-    for name in ("live_wait", "live_linger", "live_can_rate"):
-        value = getattr(args, name)
+    for name in ("live_wait", "live_linger", "live_can_rate", "live_row_rate"):
+        value = getattr(args, name, 0.0)
         if not (math.isfinite(value) and value >= 0):
             raise InputError(f"--{name.replace('_', '-')}: must be a finite number >= 0, got {value:g}")
     rows = getattr(args, "live_rows", DEFAULT_ROWS)
     if rows < 0:
         raise InputError(f"--live-rows: must be >= 0, got {rows}")
     return LiveOptions(parse_address(args.live), float(args.live_wait), float(args.live_linger),
-                       float(args.live_can_rate), int(rows))
+                       float(args.live_can_rate), int(rows), float(getattr(args, "live_row_rate", DEFAULT_ROW_RATE)))

@@ -14,9 +14,12 @@ Where it takes the run from (:meth:`LivePublisher.attach`, the rig's one hook, `
 
 One publisher thread builds the JSON (:mod:`foilc_hil.live.messages`: the log's own documents) and hands it to the
 server, only for channels a viewer is subscribed to; ``/ilc/sample`` is at most :attr:`LiveOptions.rows` rows of a
-trial. The thread shares the loop's GIL: a row costs it about 2 us (0.7 to build its JSON, 1 to 1.5 to hand it to
-foxglove-sdk), a round a few tens; :attr:`LiveStats.cpu_seconds` says what it took, and ``make bench``'s ``--live``
-row what a lockstep run with a viewer connected loses.
+trial and :attr:`LiveOptions.row_rate` rows a second (a trial gets what the budget holds when it ends, every
+``k``-th row; none when it holds none: :attr:`LiveStats.trials_thinned` counts the trials sent with fewer rows than
+they have). The thread shares the loop's GIL: a row costs it about 2 us (0.7 to build its JSON, 1 to 1.5 to hand it
+to foxglove-sdk), a round a few tens; :attr:`LiveStats.cpu_seconds` says what it took. The server's threads and the
+viewer take tens of microseconds of CPU per message besides (measured): that, on a host without a free core, is what
+the budgets bound; ``make bench``'s ``--live`` row says what a lockstep run with a viewer connected loses.
 """
 
 from __future__ import annotations
@@ -52,7 +55,7 @@ if TYPE_CHECKING:
     from foilc_hil.loop.bench import LogSink, TrialLoop, TrialRecord
     from foilc_hil.loop.scheduler import CycleTiming
 
-__all__ = ["QUEUE_ITEMS", "STATE_PERIOD", "TICK", "LivePublisher", "LiveSink", "LiveStats"]
+__all__ = ["QUEUE_ITEMS", "ROW_SAVE", "STATE_PERIOD", "TICK", "LivePublisher", "LiveSink", "LiveStats", "live_run"]
 
 logger = logging.getLogger(__name__)
 
@@ -64,6 +67,8 @@ STATE_PERIOD: Final = 0.1
 QUEUE_ITEMS: Final = 16
 """Trials and ``/timing`` blocks waiting for the publisher thread; past them new ones are dropped, counted."""
 CLOSE_TIMEOUT: Final = 10.0
+ROW_SAVE: Final = 10.0
+"""Seconds of ``row_rate`` the row budget saves when trials have no row limit (``--live-rows 0``)."""
 _time_ns: Final = time.time_ns
 
 
@@ -77,6 +82,8 @@ class LiveStats:
         Messages handed to the server: ``/ilc/trial``, ``/ilc/sample``, ``/can``, ``/timing``, ``/drive/state``.
     trials_dropped, timing_dropped
         Trials and ``/timing`` blocks dropped because the publisher's queue was full.
+    trials_thinned
+        Trials whose rows were sent decimated (or not at all) to keep to ``rows`` and ``row_rate``.
     cpu_seconds
         CPU time the publisher thread used (its share of the loop process's GIL, at most).
     error
@@ -90,6 +97,7 @@ class LiveStats:
     states: int = 0
     trials_dropped: int = 0
     timing_dropped: int = 0
+    trials_thinned: int = 0
     cpu_seconds: float = 0.0
     error: str = ""
 
@@ -159,7 +167,7 @@ class LivePublisher:
     server
         The server (owned by the caller).
     options
-        ``can_rate`` and ``rows`` apply here (:class:`~foilc_hil.live.options.LiveOptions`).
+        ``can_rate``, ``rows`` and ``row_rate`` apply here (:class:`~foilc_hil.live.options.LiveOptions`).
     clock
         ``time.monotonic`` (tests inject one).
     """
@@ -167,6 +175,12 @@ class LivePublisher:
     def __init__(self, server: LiveServer, options: LiveOptions, clock: Callable[[], float] = time.monotonic) -> None:
         self._server = server
         self._rows = options.rows
+        self._row_rate = options.row_rate
+        # rows a trial may take: row_rate a second, saved up to `rows` or a second's worth (ten without `rows`),
+        # a second's worth to start with: a long realtime trial gets `rows` rows, a lockstep burst of trials is thinned
+        self._row_cap = max(options.row_rate, float(options.rows)) if options.rows else ROW_SAVE * options.row_rate
+        self._row_credit = min(options.row_rate, self._row_cap)
+        self._row_time = clock()
         self._can_rate = options.can_rate
         self._clock = clock
         self.stats = LiveStats()
@@ -275,10 +289,27 @@ class LivePublisher:
             return
         record, limits, log_time = item
         if server.wanted(TOPIC_SAMPLE):
-            self.stats.samples += server.log_all(TOPIC_SAMPLE, sample_documents(record.samples(), self._rows), log_time)
+            self._publish_rows(record, log_time)
         if server.wanted(TOPIC_TRIAL):
             server.log(TOPIC_TRIAL, trial_document(record, limits), log_time)
             self.stats.trials += 1
+
+    def _publish_rows(self, record: TrialRecord, log_time: int) -> None:
+        """The trial's rows within :attr:`LiveOptions.rows` and the ``row_rate`` budget saved since the last."""
+        now = self._clock()
+        if self._row_rate > 0:
+            self._row_credit = min(self._row_credit + self._row_rate * (now - self._row_time), self._row_cap)
+        self._row_time = now
+        limit = min(self._rows or math.inf, self._row_credit if self._row_rate > 0 else math.inf)
+        rows = len(record.control)
+        if limit < rows:
+            self.stats.trials_thinned += 1
+        if limit < 1:
+            return
+        documents = sample_documents(record.samples(), 0 if math.isinf(limit) else int(limit))
+        self.stats.samples += self._server.log_all(TOPIC_SAMPLE, documents, log_time)
+        if self._row_rate > 0:
+            self._row_credit -= len(documents)
 
     def _publish_frames(self) -> None:
         frames = self._frames
