@@ -26,12 +26,15 @@ from plant_emulator.settings import EmulatorConfig
 NODE_ID = 3
 
 #: the state each abort-connection option (0x6007) leaves an OPERATION ENABLED drive in
+#: the state each reaction ends in once its ramp is done: quick stop with the EDS's 0x605A = 2 ramps to standstill
+#: and then switches the power stage off (in lockstep after the master is lost, on the drive's own clock)
+AFTER_THE_RAMP = {State402.QUICK_STOP_ACTIVE: State402.SWITCH_ON_DISABLED}
+#: 0x6007 option -> the state the reaction enters at once
 ABORT_REACTIONS = [
     (AbortConnectionOption.NO_ACTION, State402.OPERATION_ENABLED),
     (AbortConnectionOption.FAULT, State402.FAULT),
     (AbortConnectionOption.DISABLE_VOLTAGE, State402.SWITCH_ON_DISABLED),
-    # quick stop with the EDS's 0x605A = 2: the ramp, then switch on disabled (in lockstep on the drive's own clock)
-    (AbortConnectionOption.QUICK_STOP, State402.SWITCH_ON_DISABLED),
+    (AbortConnectionOption.QUICK_STOP, State402.QUICK_STOP_ACTIVE),
 ]
 
 

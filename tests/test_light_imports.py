@@ -74,11 +74,6 @@ def test_the_design_path_does_not_load(loaded: set[str], module: str) -> None:
     assert module not in loaded, f"{module} was imported by the design path of synthesize"
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="foilc_hil/design/certificates.py (owned by the certificates work of issue 26) still imports "
-    "scipy.signal.fftconvolve; foilc_hil.design.convolution.fft_convolve is its drop-in with the same bits",
-)
 def test_the_design_path_does_not_load_scipy_signal(loaded: set[str]) -> None:
     assert "scipy.signal" not in loaded
 
