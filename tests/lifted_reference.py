@@ -37,13 +37,18 @@ def lifted(A: np.ndarray, B: np.ndarray, C: np.ndarray, delay: int, length: int)
     return np.asarray(tiles.transpose(0, 2, 1, 3).reshape(length * p, length * m))
 
 
-def config_plants(config: Config, input_delay: int, n_samples: int) -> tuple[DiscreteModel, list[np.ndarray]]:
+def config_plants(
+    config: Config, input_delay: int, n_samples: int, *, whole: bool = False
+) -> tuple[DiscreteModel, list[np.ndarray]]:
     """The design model of ``config`` behind ``input_delay`` cycles (plus the plant's own delay) and its lifted
-    plants on the ``n_samples - d`` learnable samples of a trial: nominal first, then the uncertainty vertices (as the
-    design orders them)."""
+    plants on the ``n_samples - d`` learnable samples of a trial (``G``; ``whole``: all inputs to all outputs of the
+    trial, ``G_y``, blocks ``C A^k B`` from ``k = 0``): nominal first, then the uncertainty vertices (as the design
+    orders them)."""
     model, uncertainty = design_model(config, input_delay=input_delay + model_delay_samples(config))
     C, d = model.measured_output, model.input_delay
     length = n_samples - d
+    if whole:
+        d, length = 0, n_samples
     plants = [lifted(model.A, model.B, C, d, length)]
     plants += [lifted(model.A + dA, model.B + dB, C, d, length) for dA, dB in uncertainty_vertices(uncertainty)]
     return model, plants

@@ -40,6 +40,8 @@ __all__ = ["Admission", "ScaledVerdict", "admit"]
 SMALLEST_SCALE = 1e-3
 #: Width of the search's final bracket, in ``log s`` (5 % of the scale: the worst-case norm is flat at its minimum).
 SCALE_TOLERANCE = 0.05
+#: Scales tried, relative to the estimated minimum, when that one is not certified (:func:`_search`).
+BACKOFF = (0.9, 0.75, 1.1, 0.5, 1.3, 0.25, 0.1)
 
 
 @dataclass(frozen=True)
@@ -113,7 +115,24 @@ def _search(
     found = minimize_scalar(
         objective, bounds=(math.log(SMALLEST_SCALE), 0.0), method="bounded", options={"xatol": SCALE_TOLERANCE}
     )
-    return evaluate(math.exp(float(found.x)))
+    scale = math.exp(float(found.x))
+    best = evaluate(scale)
+    if estimate is None or _passes(best, key):
+        return best
+    # The estimate's minimum missed the certified set (the estimates are biased low by up to about 1e-3, and the
+    # worst-case norm can rise steeply past its minimum: gradient ILC's does). The set is an interval of scales
+    # (the norm is convex in s), so look on either side, nearest first, certified every time.
+    for factor in BACKOFF:
+        candidate = evaluate(min(1.0, max(SMALLEST_SCALE, scale * factor)))
+        if _passes(candidate, key):
+            return candidate
+        best = min(best, candidate, key=lambda verdict: float(getattr(verdict, key)))
+    return best
+
+
+def _passes(verdict: ScaledVerdict, key: str) -> bool:
+    """Whether ``verdict`` meets what a search on ``key`` looks for (monotonic for the norm, else asymptotic)."""
+    return verdict.monotonic if key == "norm_2" else verdict.asymptotic
 
 
 def admit(

@@ -154,6 +154,91 @@ def _cholesky(M: np.ndarray, out: np.ndarray) -> bool:
 
 
 @njit(cache=True)
+def _pivot(i: int, F: np.ndarray, Cf: np.ndarray, Bb: np.ndarray, D: np.ndarray, rho: float, FP: np.ndarray,
+           pivot: np.ndarray) -> None:
+    """Sample ``i``'s ``FP = F P_i^T`` and pivot ``Delta_i = d_i - P_i F P_i^T`` (:func:`dilation_positive`)."""
+    p, nf, nb = D.shape[1], Cf.shape[2], Bb.shape[1]
+    for row in range(nf + nb):  # FP = F P^T = [F[:, :nf] Cf^T, F[:, nf:] Bb]
+        for col in range(p):
+            total = 0.0
+            for k in range(nf):
+                total += F[row, k] * Cf[i, col, k]
+            FP[row, col] = total
+            total = 0.0
+            for k in range(nb):
+                total += F[row, nf + k] * Bb[i, k, col]
+            FP[row, p + col] = total
+    for row in range(p):  # - P F P^T
+        for col in range(2 * p):
+            total = 0.0
+            for k in range(nf):
+                total += Cf[i, row, k] * FP[k, col]
+            pivot[row, col] = -total
+            total = 0.0
+            for k in range(nb):
+                total += Bb[i, k, row] * FP[nf + k, col]
+            pivot[p + row, col] = -total
+    for row in range(p):  # + d, once every entry of P F P^T is in
+        pivot[row, row] += rho
+        pivot[p + row, p + row] += rho
+        for col in range(p):
+            pivot[row, p + col] += D[i, row, col]
+            pivot[p + col, row] += D[i, row, col]
+
+
+@njit(cache=True)
+def _next_state(i: int, Af: np.ndarray, Bf: np.ndarray, Ab: np.ndarray, Cb: np.ndarray, F: np.ndarray,
+                FP: np.ndarray, factor: np.ndarray, G: np.ndarray, H: np.ndarray, aF: np.ndarray) -> None:
+    """``F <- a_i F a_i^T + G Delta_i^-1 G^T`` with ``G = Q_i - a_i F P_i^T`` (``factor``: ``Delta_i``'s Cholesky
+    factor), in place (:func:`dilation_positive`)."""
+    nf, nb, s = Af.shape[1], Ab.shape[1], factor.shape[0]
+    p, r = s // 2, nf + nb
+    for col in range(s):  # G = Q - a F P^T
+        for row in range(nf):
+            total = 0.0
+            for k in range(nf):
+                total += Af[i, row, k] * FP[k, col]
+            G[row, col] = (Bf[i, row, col - p] if col >= p else 0.0) - total
+        for row in range(nb):
+            total = 0.0
+            for k in range(nb):
+                total += Ab[i, k, row] * FP[nf + k, col]
+            G[nf + row, col] = (Cb[i, col, row] if col < p else 0.0) - total
+    for col in range(r):  # H = factor^-1 G^T (forward substitution), so G Delta^-1 G^T = H^T H
+        for row in range(s):
+            value = G[col, row]
+            for k in range(row):
+                value -= factor[row, k] * H[k, col]
+            H[row, col] = value / factor[row, row]
+    for col in range(r):  # aF = a F
+        for row in range(nf):
+            total = 0.0
+            for k in range(nf):
+                total += Af[i, row, k] * F[k, col]
+            aF[row, col] = total
+        for row in range(nb):
+            total = 0.0
+            for k in range(nb):
+                total += Ab[i, k, row] * F[nf + k, col]
+            aF[nf + row, col] = total
+    for row in range(r):  # F = aF a^T + H^T H
+        for col in range(nf):
+            total = 0.0
+            for k in range(nf):
+                total += aF[row, k] * Af[i, col, k]
+            for k in range(s):
+                total += H[k, row] * H[k, col]
+            F[row, col] = total
+        for col in range(nb):
+            total = 0.0
+            for k in range(nb):
+                total += aF[row, nf + k] * Ab[i, k, col]
+            for k in range(s):
+                total += H[k, row] * H[k, nf + col]
+            F[row, nf + col] = total
+
+
+@njit(cache=True)
 def dilation_positive(
     Af: np.ndarray,
     Bf: np.ndarray,
@@ -177,8 +262,7 @@ def dilation_positive(
     non-finite number fails the test.
     """
     length, p = D.shape[0], D.shape[1]
-    nf, nb = Af.shape[1], Ab.shape[1]
-    r, s = nf + nb, 2 * p
+    r, s = Af.shape[1] + Ab.shape[1], 2 * p
     F = np.zeros((r, r))
     FP = np.zeros((r, s))
     pivot = np.zeros((s, s))
@@ -187,77 +271,10 @@ def dilation_positive(
     H = np.zeros((s, r))
     aF = np.zeros((r, r))
     for i in range(length):
-        for row in range(r):  # FP = F P^T = [F[:, :nf] Cf^T, F[:, nf:] Bb]
-            for col in range(p):
-                total = 0.0
-                for k in range(nf):
-                    total += F[row, k] * Cf[i, col, k]
-                FP[row, col] = total
-                total = 0.0
-                for k in range(nb):
-                    total += F[row, nf + k] * Bb[i, k, col]
-                FP[row, p + col] = total
-        for row in range(p):  # pivot = d - P F P^T
-            for col in range(s):
-                total = 0.0
-                for k in range(nf):
-                    total += Cf[i, row, k] * FP[k, col]
-                pivot[row, col] = -total
-                total = 0.0
-                for k in range(nb):
-                    total += Bb[i, k, row] * FP[nf + k, col]
-                pivot[p + row, col] = -total
-        for row in range(p):  # + d, once every entry of P F P^T is in
-            pivot[row, row] += rho
-            pivot[p + row, p + row] += rho
-            for col in range(p):
-                pivot[row, p + col] += D[i, row, col]
-                pivot[p + col, row] += D[i, row, col]
+        _pivot(i, F, Cf, Bb, D, rho, FP, pivot)
         if not _cholesky(pivot, factor):
             return False
-        for col in range(s):  # G = Q - a F P^T
-            for row in range(nf):
-                total = 0.0
-                for k in range(nf):
-                    total += Af[i, row, k] * FP[k, col]
-                G[row, col] = (Bf[i, row, col - p] if col >= p else 0.0) - total
-            for row in range(nb):
-                total = 0.0
-                for k in range(nb):
-                    total += Ab[i, k, row] * FP[nf + k, col]
-                G[nf + row, col] = (Cb[i, col, row] if col < p else 0.0) - total
-        for col in range(r):  # H = factor^-1 G^T (forward substitution), so G Delta^-1 G^T = H^T H
-            for row in range(s):
-                value = G[col, row]
-                for k in range(row):
-                    value -= factor[row, k] * H[k, col]
-                H[row, col] = value / factor[row, row]
-        for col in range(r):  # aF = a F
-            for row in range(nf):
-                total = 0.0
-                for k in range(nf):
-                    total += Af[i, row, k] * F[k, col]
-                aF[row, col] = total
-            for row in range(nb):
-                total = 0.0
-                for k in range(nb):
-                    total += Ab[i, k, row] * F[nf + k, col]
-                aF[nf + row, col] = total
-        for row in range(r):  # F = aF a^T + H^T H
-            for col in range(nf):
-                total = 0.0
-                for k in range(nf):
-                    total += aF[row, k] * Af[i, col, k]
-                for k in range(s):
-                    total += H[k, row] * H[k, col]
-                F[row, col] = total
-            for col in range(nb):
-                total = 0.0
-                for k in range(nb):
-                    total += aF[row, nf + k] * Ab[i, k, col]
-                for k in range(s):
-                    total += H[k, row] * H[k, nf + col]
-                F[row, nf + col] = total
+        _next_state(i, Af, Bf, Ab, Cb, F, FP, factor, G, H, aF)
     return True
 
 

@@ -67,7 +67,6 @@ from foilc_hil.config import DivergentFilterPolicy, FractionalMemory, LawKind, N
 from foilc_hil.design.admission import ScaledVerdict, admit
 from foilc_hil.design.certificates import (
     CONTRACTION_LIMIT,
-    DENSE_LIMIT,
     LawStructure,
     dense_block_toeplitz,
     markov_blocks,
@@ -105,6 +104,9 @@ __all__ = [
 
 #: ``r`` recorded by a NOILC design: the law has no fractional term.
 UNUSED_ORDER = 1.0
+#: Up to this many learnable samples the trial maps are certified densely (exact eigenvalues and SVD, a few
+#: milliseconds); beyond, by the structured test, cheaper already at a few hundred samples.
+DENSE_LIMIT = 150
 #: ``norm_2_method`` of a certificate from the structured test (module notes).
 STRUCTURED_METHOD = "structured exact (Cholesky test of the dilation through the state-space form; upper bound)"
 #: ``spectral_radius_method`` when the 2-norm bounds the radius.
