@@ -20,6 +20,8 @@ from foilc_hil.errors import ConvergenceCertificateError
 from foilc_hil.laws.learning import make_law
 from tests.lifted_reference import config_plants
 
+pytestmark = pytest.mark.slow
+
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 #: paper_sim's plant on a 3 s trial (300 samples): long enough that its lifted laws feel the low frequencies.
 LONG = {

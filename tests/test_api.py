@@ -40,6 +40,7 @@ def design(config: Any) -> Any:
     return fh.design(config)
 
 
+@pytest.mark.slow
 def test_a_trial_read_back_from_the_log_equals_the_live_one(config: Any, design: Any, tmp_path: Path) -> None:
     out = tmp_path / "run.mcap"
     with fh.Bench(config, design=design, out=out) as bench:
@@ -87,6 +88,7 @@ def test_the_bench_is_left_stopped_when_the_block_raises(config: Any, design: An
     assert report is not None and report.confirmed and report.state is State402.SWITCH_ON_DISABLED
 
 
+@pytest.mark.slow
 def test_breaking_out_stops_the_drive_and_the_log_holds_what_ran(config: Any, design: Any, tmp_path: Path) -> None:
     out = tmp_path / "run.mcap"
     with fh.Bench(config, design=design, out=out) as bench:
@@ -175,6 +177,7 @@ def test_import_foilc_hil_loads_nothing_else() -> None:
                                          "print(json.dumps(sorted(sys.modules)))")
 
 
+@pytest.mark.slow
 def test_design_stays_the_function_when_the_subpackage_is_imported() -> None:
     # the import system binds a subpackage to its parent's attribute of the same name
     assert _fresh("import json, foilc_hil, foilc_hil.design.pipeline\n"

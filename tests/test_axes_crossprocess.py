@@ -21,6 +21,8 @@ from foilc_hil.config import axis_configs, dump_config, load_config
 from tests.test_bench_crossprocess import NETNS_SETUP
 from tests.test_crossprocess_emulator import _namespaces_allowed
 
+pytestmark = [pytest.mark.netns, pytest.mark.slow]
+
 ROOT = Path(__file__).resolve().parents[1]
 SCARA = ROOT / "configs" / "scara_4axis.yaml"
 GROUP = "239.74.163.6"

@@ -23,6 +23,8 @@ from drivers.cia301 import SYNC_COB_ID, FunctionCode, cob_id
 from foilc_hil.cli import main
 from foilc_hil.io.mcap_log import read_log
 
+pytestmark = pytest.mark.slow
+
 ROOT = Path(__file__).resolve().parents[1]
 SCARA = ROOT / "configs" / "scara_4axis.yaml"
 NODES = (1, 2, 3, 4)

@@ -92,6 +92,7 @@ def test_noilc_law_applies_the_lifted_gain() -> None:
     np.testing.assert_allclose(u, expected[0], rtol=1e-8, atol=1e-12)
 
 
+@pytest.mark.slow
 @given(seed=st.integers(0, 2**32 - 1), length=st.integers(2, 120), states=st.integers(1, 3),
        channels=st.integers(1, 2), delay=st.integers(0, 2), q=st.floats(0.1, 10.0), relative=st.floats(1e-4, 1.0))
 @fuzz_settings(40)
@@ -113,6 +114,7 @@ def test_noilc_update_is_the_normal_equations(seed: int, length: int, states: in
     assert np.linalg.norm(scaled - 0.25 * truth) <= 1e-9 * np.linalg.norm(truth)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("config_name", ["paper_sim.yaml", "demo.yaml"])
 def test_noilc_law_update_at_2000_samples_is_the_normal_equations(config_name: str) -> None:
     """The law as it runs on a shipped config at N = 2000, behind the CAN loop's delay (demo: and the drive's own
@@ -208,6 +210,7 @@ def test_certificates_recomputed_on_the_lifted_map_at_every_vertex(
     assert certificates.monotonic == (max(norms) < 1) and certificates.monotonic
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("states", "inputs", "outputs", "delay"), [(1, 1, 1, 0), (3, 1, 1, 2), (4, 2, 2, 1)])
 def test_the_p_type_bound_sees_the_plant_python_control_sees(states: int, inputs: int, outputs: int,
                                                              delay: int) -> None:

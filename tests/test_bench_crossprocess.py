@@ -22,6 +22,8 @@ import pytest
 import yaml
 from mcap.reader import make_reader
 
+pytestmark = [pytest.mark.netns, pytest.mark.slow]
+
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED = ROOT / "configs" / "realtime_1khz.yaml"
 GROUP = "239.74.163.2"

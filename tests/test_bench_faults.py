@@ -141,6 +141,7 @@ def run_cli(config_path: Path, channel: str, out: Path, trials: int, *extra: str
     )
 
 
+@pytest.mark.slow
 def test_emulator_stops_responding_mid_trial(
     emulator_on_channel: tuple[Any, str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -188,6 +189,7 @@ def test_drive_fault_mid_trial(
     assert decode_state(last_word(topics["/can"], cob_id(FunctionCode.TPDO1, NODE))) != State402.OPERATION_ENABLED
 
 
+@pytest.mark.slow
 def test_sigint_mid_trial_in_a_subprocess(tmp_path: Path) -> None:
     config_path = bench_config(tmp_path)
     out = tmp_path / "interrupted.mcap"

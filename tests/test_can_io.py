@@ -66,6 +66,7 @@ def test_can_logger_writes_mcap_that_reads_back(tmp_path: Path) -> None:
         _same(a, b)
 
 
+@pytest.mark.slow
 def test_writer_listens_on_a_virtual_bus(tmp_path: Path) -> None:
     channel = f"test-{uuid.uuid4()}"
     path = tmp_path / "bus.mcap"

@@ -187,6 +187,7 @@ def test_spectral_radius_is_read_off_the_block_triangular_structure() -> None:
     assert T.spectral_radius() == pytest.approx(expected, rel=1e-10)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("memory", MEMORIES)
 def test_iterative_norm_matches_dense_svd(memory: FractionalMemory) -> None:
     model = discretize(ContinuousModel(np.array([[-1.23]]), np.array([[1.68]]), np.array([[1.0]])), 0.01)
@@ -235,6 +236,7 @@ def test_symbol_bound_holds_for_several_outputs() -> None:
         assert float(np.linalg.norm(T.to_dense(), 2)) <= T.symbol_upper_bound()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("memory", MEMORIES)
 def test_q_filter_input_map_matches_brute_force_and_the_operator(memory: FractionalMemory) -> None:
     A, B, C = _plant(2, 1, 1, seed=8)
@@ -369,6 +371,7 @@ def _decaying_map(size: int, seed: int) -> np.ndarray:
     return np.eye(size) - G @ (0.05 * rng.standard_normal((size, size)) / np.sqrt(size))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("size", "seed"), [(30, 1), (60, 2), (DENSE_LIMIT + 50, 3)])
 def test_cholesky_norm_bound_is_above_numpys_norm_and_tight(size: int, seed: int) -> None:
     T = _decaying_map(size, seed)

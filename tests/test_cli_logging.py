@@ -29,6 +29,7 @@ def test_levels(level: LogLevel) -> None:
     assert library == (numeric if level is LogLevel.DEBUG else logging.CRITICAL)
 
 
+@pytest.mark.slow
 def test_a_bad_level_is_a_usage_error() -> None:
     done = subprocess.run([sys.executable, "-m", "foilc_hil.cli", "--log-level", "loud", "synthesize"],
                           capture_output=True, text=True, timeout=120)

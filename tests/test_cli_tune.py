@@ -23,6 +23,7 @@ PAPER_PLANT = "plant: {a: -1.23, b: 1.68, c: 1}\n"
 DELAYED_PLANT = "plant: {a: -1.23, b: 1.68, c: 1, delay: 0.01}\n"
 
 
+@pytest.mark.slow
 def test_json_success_with_cli_overrides(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     config = _write(tmp_path, DELAYED_PLANT)
     code = main(["tune", "--config", str(config), "--crossover", "70", "--phase-margin", "70", "--json"])

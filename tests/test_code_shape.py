@@ -57,6 +57,7 @@ def crowded_classes(source: str, limit: int = MAX_METHODS) -> list[tuple[str, in
     return found
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", SOURCES, ids=lambda path: str(path.relative_to(ROOT)))
 def test_no_class_over_40_methods(path: Path) -> None:
     assert crowded_classes(path.read_text(encoding="utf-8")) == []

@@ -80,6 +80,7 @@ def _plants(config: Config) -> list[tuple[np.ndarray, np.ndarray]]:
     return plants
 
 
+@pytest.mark.slow
 def test_codesigned_foilc_is_certified_no_worse_than_ioilc() -> None:
     config = _paper_sim()
     foilc = build_design(config, "foilc", N, input_delay=0)
@@ -102,6 +103,7 @@ def test_codesigned_foilc_is_certified_no_worse_than_ioilc() -> None:
     assert all(later < earlier for earlier, later in itertools.pairwise(sse)), sse
 
 
+@pytest.mark.slow
 def test_the_paper_method_stays_available_and_labelled() -> None:
     config = _paper_sim(**{"synthesis.design": "paper", "tuning.kp": 0.05, "tuning.r": 0.5})
     design = build_design(config, "foilc", N, input_delay=0)
@@ -126,6 +128,7 @@ def test_time_varying_map_with_a_constant_delta_is_the_frozen_dense_map() -> Non
     np.testing.assert_allclose(T, expected[1:, 1:], atol=1e-12)
 
 
+@pytest.mark.slow
 def test_noise_gain_matches_the_lifted_stationary_covariance() -> None:
     """The symbol-based noise gain against the stationary covariance of the lifted recursion (Lyapunov)."""
     config = _paper_sim()
@@ -237,6 +240,7 @@ def test_the_grid_search_returns_the_exhaustive_optimum_of_the_whole_grid() -> N
     assert best.kappa > 0 and best.value < integer.value  # on this plant the two differ: both paths are checked
 
 
+@pytest.mark.slow
 def test_screened_finalists_choose_what_certifying_every_finalist_chooses(monkeypatch: pytest.MonkeyPatch) -> None:
     """Finalists whose time-varying norm already exceeds the best objective skip the exact certificate; the
     design is the one certifying every finalist gives, and its 2-norm and spectral radius are recomputed here."""

@@ -80,6 +80,7 @@ def _synthetic_record(a: float, b: float, noise: float, seed: int = 0, delay: fl
     return identify.StepRecord(command, output, TS)
 
 
+@pytest.mark.slow
 def test_fit_recovers_an_exact_first_order_plant() -> None:
     fit = identify.fit_model(_synthetic_record(-3.0, 4.5, noise=0.0), "first-order")
     assert fit.theta == pytest.approx([-3.0, 4.5], rel=1e-5)
@@ -87,11 +88,13 @@ def test_fit_recovers_an_exact_first_order_plant() -> None:
     assert len(fit.steps) == 16  # 2 amplitudes x (up, down, negative up, back) x 2 repetitions
 
 
+@pytest.mark.slow
 def test_fit_with_delay_recovers_the_delay() -> None:
     fit = identify.fit_model(_synthetic_record(-3.0, 4.5, noise=0.0, delay=0.025), "first-order-delay")
     assert fit.theta == pytest.approx([-3.0, 4.5, 0.025], rel=1e-3)
 
 
+@pytest.mark.slow
 def test_noisy_fit_is_within_its_standard_errors() -> None:
     fit = identify.fit_model(_synthetic_record(-3.0, 4.5, noise=1.0, seed=4), "first-order")
     errors = np.abs(fit.theta - np.array([-3.0, 4.5]))
@@ -99,6 +102,7 @@ def test_noisy_fit_is_within_its_standard_errors() -> None:
     assert np.all(fit.standard_errors > 0)
 
 
+@pytest.mark.slow
 def test_uncertainty_covers_every_step_model_and_loads_in_the_synthesis() -> None:
     fit = identify.fit_model(_synthetic_record(-3.0, 4.5, noise=2.0, seed=2), "first-order")
     bounds = identify.uncertainty_bounds(fit, margin=1.25)
@@ -117,6 +121,7 @@ def test_uncertainty_covers_every_step_model_and_loads_in_the_synthesis() -> Non
     assert not loaded.is_zero
 
 
+@pytest.mark.slow
 def test_second_order_uncertainty_shapes_fit_the_synthesis() -> None:
     # a second-order truth, poles -3 and -30, DC gain 1.5 (a first-order truth leaves the second pole free: the fits
     # of single steps then ran to least_squares' evaluation limit)
@@ -135,6 +140,7 @@ def test_second_order_uncertainty_shapes_fit_the_synthesis() -> None:
     assert fit.r2 > 0.999
 
 
+@pytest.mark.slow
 def test_a_fit_stopped_at_the_evaluation_limit_is_flagged_and_warned(monkeypatch: pytest.MonkeyPatch) -> None:
     import scipy.optimize
 
@@ -190,6 +196,7 @@ def _write(path: Path, document: dict[str, object]) -> str:
     return str(path)
 
 
+@pytest.mark.slow
 def test_identify_recovers_a_known_first_order_plant(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     config = _write(tmp_path / "plant.yaml", {
         "plant": {"model": "first_order", "a": -3.0, "b": 4.5, "output_noise": 0.5, "seed": 11},
@@ -355,6 +362,7 @@ def _coloured_record(seed: int, a: float = -3.0, b: float = 4.5, ar1: float = 0.
     return identify.StepRecord(command, output + noise, TS)
 
 
+@pytest.mark.slow
 def test_the_95_percent_intervals_cover_the_true_plant_under_coloured_noise() -> None:
     """20 seeded campaigns with AR(1) noise (coefficient 0.9): the reported 95 % intervals hold the true ``a`` and
     ``b`` together in at least 18 runs, and are not merely wide: the standard errors are within a factor 2 of the

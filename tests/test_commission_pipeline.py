@@ -106,6 +106,7 @@ def test_synthesize_command_accepts_the_fragment(identified: tuple[Path, dict[st
     assert code == 0 and "P" in document
 
 
+@pytest.mark.slow
 def test_run_on_the_emulator_learns_with_the_identified_design(identified: tuple[Path, dict[str, object]],
                                                                 tmp_path: Path) -> None:
     out, _ = identified

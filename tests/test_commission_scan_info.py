@@ -35,6 +35,7 @@ def test_scan_finds_silent_drives_by_sdo(capsys: pytest.CaptureFixture[str]) -> 
         assert node["identity"] == EDS_IDENTITY
 
 
+@pytest.mark.slow
 def test_scan_reads_nmt_states_from_heartbeats(capsys: pytest.CaptureFixture[str]) -> None:
     with emulated_bus(NODES) as bus:
         # node 17 operational, 99 stopped (no SDO answers in stopped: only its heartbeat can reveal it)

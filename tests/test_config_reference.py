@@ -5,8 +5,12 @@ from __future__ import annotations
 
 from typing import Any
 
+import pytest
+
 from foilc_hil.config import Config
 from tests.config_reference import DOC, render
+
+pytestmark = pytest.mark.slow
 
 
 def _keys(document: dict[str, Any], prefix: str = "") -> list[str]:

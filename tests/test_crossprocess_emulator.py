@@ -15,6 +15,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = [pytest.mark.netns, pytest.mark.slow]
+
 ROOT = Path(__file__).resolve().parents[1]
 GROUP = "239.74.163.2"
 NODE_ID = 4

@@ -15,6 +15,8 @@ import pytest
 
 from tests.test_crossprocess_emulator import _namespaces_allowed
 
+pytestmark = [pytest.mark.netns, pytest.mark.slow]
+
 ROOT = Path(__file__).resolve().parents[1]
 GROUP = "239.74.163.5"
 NODES = (1, 2, 3, 4)

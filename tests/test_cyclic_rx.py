@@ -132,6 +132,7 @@ def _close(network: DriveNetwork, drives: list[Cia402Drive]) -> None:
     network.bus.shutdown()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", ["notifier", "loop", "loop-spin"])
 def test_both_receive_paths_give_the_same_feedback_counters_and_log(emulator: EmbeddedEmulator, path: str) -> None:
     receiver = None if path == "notifier" else open_cyclic_receiver(emulator.bus_config, 0.001 * (path == "loop-spin"))
@@ -165,6 +166,7 @@ def test_both_receive_paths_give_the_same_feedback_counters_and_log(emulator: Em
         _close(network, drives)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("loop", [False, True])
 def test_a_drive_fault_is_raised_by_the_wait_on_either_path(emulator: EmbeddedEmulator, loop: bool) -> None:
     network, drives = _masters(emulator, open_cyclic_receiver(emulator.bus_config, 0.0) if loop else None)

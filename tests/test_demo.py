@@ -16,6 +16,7 @@ from foilc_hil.progress import ProgressEvent, QueueProgress, RichRunsProgress
 ROOT = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 def test_demo_runs_both_laws_and_writes_their_logs_reports_and_the_comparison(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -250,6 +250,7 @@ def _design_imports(name: str) -> set[str]:
     return found
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", DESIGN_ORDER)
 def test_design_modules_import_only_earlier_ones(name: str) -> None:
     """models < fractional, qfilter, ptype < record < certificates < noilc < lmi < codesign < tuning < pipeline: no

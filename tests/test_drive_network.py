@@ -142,6 +142,7 @@ def test_the_emulator_cli_refuses_injection_into_several_nodes(capsys: pytest.Ca
     assert "give one --node-id" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(60)
 def test_two_realtime_drives_share_one_notifier_thread() -> None:
     """The threaded receive path: a realtime emulator (python-can ``virtual``, wall clock), one Notifier for both."""

@@ -97,6 +97,7 @@ def test_cli_bad_config_key(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     assert "emulator.sync_loss_cycle" in err and "sync_loss_cycles" in err and len(err.splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_console_script_runs_until_sigterm() -> None:
     """A virtual bus in a child process reaches nothing outside it; the process boots, says ready, stops on TERM."""
     process = subprocess.Popen(

@@ -160,6 +160,7 @@ def _wait_for_state(h: Harness, state: State402) -> None:
     assert h.drive.state is state
 
 
+@pytest.mark.slow
 def test_a_lost_master_in_lockstep_ends_the_quick_stop_on_the_drives_own_clock() -> None:
     """Lockstep on a wall-clock bus, the axis moving, the master gone (no heartbeat, no SYNC): the drive's 0x6007
     quick stop ramps the axis down and, with 0x605A = 2, ends in SWITCH ON DISABLED with its power stage off --
@@ -186,6 +187,7 @@ class _SteppedClock:
         return self.now
 
 
+@pytest.mark.slow
 def test_sync_loss_in_realtime_mode() -> None:
     settings = EmulatorConfig(timing="realtime", sync_loss_cycles=20)
     with Harness(settings=settings) as h:

@@ -180,6 +180,7 @@ def test_nmt_states_gate_pdo_and_sdo() -> None:
         assert h.node.sdo[Obj.DEVICE_TYPE].raw == 0x00020192
 
 
+@pytest.mark.slow
 def test_heartbeat_producer_follows_0x1017() -> None:
     with Harness() as h:
         heartbeat = cob_id(FunctionCode.HEARTBEAT, NODE_ID)

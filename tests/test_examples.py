@@ -52,6 +52,7 @@ def test_comparing_two_laws_on_a_piecewise_reference(where: tuple[str, ...], mon
     assert "lowest RMSE in the last trial:" in out
 
 
+@pytest.mark.slow
 def test_the_log_analysis_script(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                  capsys: pytest.CaptureFixture[str]) -> None:
     config = fh.load_config(bench_config(tmp_path), overrides={"law.kind": "p-type"})

@@ -40,6 +40,8 @@ from foilc_hil.cli import main
 from tests.test_bench_e2e import read_mcap
 from tests.test_bench_faults import read_log
 
+pytestmark = pytest.mark.slow
+
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "reliability.md"
 BEGIN = "<!-- fault-matrix: generated from tests/test_fault_matrix.py; do not edit by hand -->"

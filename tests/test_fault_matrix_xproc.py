@@ -36,6 +36,8 @@ from tests.test_bench_crossprocess import NETNS_SETUP, _unshare_available
 from tests.test_bench_faults import completed_trials_on_disk
 from tests.test_fault_matrix import STOPPED_STATES, Outcome, Stop, bench_document, check_log
 
+pytestmark = [pytest.mark.netns, pytest.mark.slow]
+
 ROOT = Path(__file__).resolve().parents[1]
 GROUP = "239.74.163.9"
 XPROC_TRIALS = 2000  # the run is ended by the fault long before; lockstep trials over UDP take ~0.1 s

@@ -21,6 +21,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from foilc_hil.config import Config
 from foilc_hil.design.fractional import FFT_THRESHOLD
@@ -30,6 +31,8 @@ from foilc_hil.logtools.replay import verify_log
 from foilc_hil.loop.simulation import simulate
 from foilc_hil.references import trial_samples
 from foilc_hil.schema import load_yaml_text, validate
+
+pytestmark = pytest.mark.slow
 
 OLD_LOG = Path(__file__).parent / "data" / "foilc_fft_near_field.mcap"
 

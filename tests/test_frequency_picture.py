@@ -227,6 +227,7 @@ def _tiny_config(tmp_path: Path, **law: Any) -> Path:
     return path
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "q_filter",
     [None, {"cutoff": 30.0, "order": 2}, {"cutoff": 30.0, "order": 2, "phase": "causal"}],
@@ -253,6 +254,7 @@ def test_synthesize_plots_draws_the_picture(
     assert phase == (None if q_filter is None else q_filter.get("phase", "zero"))
 
 
+@pytest.mark.slow
 def test_report_draws_the_logged_designs_picture_with_its_q_filter(tmp_path: Path) -> None:
     design = _foilc(30)
     log = tmp_path / "run.mcap"

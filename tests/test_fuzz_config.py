@@ -17,6 +17,8 @@ from foilc_hil.config import load_config
 from foilc_hil.errors import ConfigError
 from tests.fuzz_settings import fuzz_settings
 
+pytestmark = pytest.mark.slow
+
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 SHIPPED = {name: yaml.safe_load((CONFIGS / name).read_text(encoding="utf-8")) for name in ("demo.yaml",
                                                                                          "paper_sim.yaml")}

@@ -102,6 +102,7 @@ def harness() -> Iterator[Harness]:
 # download segment with no transfer open failed on canopen's missing buffer and then on its abort's missing index
 # (both logged by canopen's listener, the request unanswered); the emulator now ignores a request whose DLC is not 8,
 # as CANopenNode does, and aborts a segment of no transfer
+@pytest.mark.slow
 @example(sent=[(cob_id(FunctionCode.SDO_RX, NODE_ID), b"")])
 @example(sent=[(cob_id(FunctionCode.SDO_RX, NODE_ID), b"\x40\x00\x10")])  # a short upload request
 @example(sent=[(cob_id(FunctionCode.SDO_RX, NODE_ID), bytes(8))])  # a download segment of no transfer

@@ -133,6 +133,7 @@ COMMANDS = {
 }
 
 
+@pytest.mark.slow
 @example(command="replay", spec=("cut", 0.6, b"\x00"))
 @example(command="report", spec=("flip", 0.5, b"\xff" * 8))
 @example(command="export", spec=("flip", 1.0, b"\x00"))  # the footer damaged: exit 0 and one line

@@ -110,6 +110,7 @@ def test_the_step_and_the_adjoint_pass_are_the_dense_ones(seed: int, length: int
     assert np.linalg.norm(got - truth) <= 1e-12 * np.linalg.norm(truth)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("config_name", ["paper_sim.yaml", "demo.yaml"])
 def test_gradient_law_update_at_2000_samples_is_the_dense_one(config_name: str) -> None:
     """The law as it runs on a shipped config at N = 2000 behind the CAN loop's delay: one learning step

@@ -85,6 +85,7 @@ def test_a_bad_out_is_refused_before_the_design(
     assert not list(tmp_path.glob(".*.probe"))  # the probe leaves nothing behind
 
 
+@pytest.mark.slow
 def test_an_out_on_a_read_only_file_system_is_refused_before_the_design(tmp_path: Path) -> None:
     probe = subprocess.run(["unshare", "--mount", "--", "true"], capture_output=True, check=False)
     if os.geteuid() != 0 or probe.returncode != 0:
@@ -125,6 +126,7 @@ def test_physics_that_diverge_mid_run_fault_the_drive_and_the_stop_is_reported(
     assert calls[0] >= 350
 
 
+@pytest.mark.slow
 def test_a_drive_fault_is_one_stderr_line_at_the_default_log_level(tmp_path: Path) -> None:
     """In a process (a logging handler made before pytest's capture would hide a second line in process): the
     EMCY was printed twice, once as the master's log warning and once as the result."""

@@ -24,6 +24,8 @@ from plant_emulator.config import PlantConfig
 from plant_emulator.device import VirtualDrive
 from plant_emulator.physics import build_plant
 
+pytestmark = pytest.mark.slow
+
 NODE_ID = 5
 PERIOD = 0.01  # s
 COUNTS_PER_RPM = 1000  # 0x2000 of the shipped EDS

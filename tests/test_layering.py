@@ -135,6 +135,7 @@ def test_every_module_has_a_rank() -> None:
     assert not unranked, f"give these a rank in RANKS (and docs/architecture.md): {unranked}"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("module", sorted(MODULES))
 def test_imports_point_down(module: str) -> None:
     own = rank(module)

@@ -64,6 +64,7 @@ def loaded(tmp_path_factory: pytest.TempPathFactory) -> set[str]:
     return set(result["modules"])
 
 
+@pytest.mark.slow
 def test_the_probe_sees_what_the_design_loads(loaded: set[str]) -> None:
     """The probe is not blind: the modules the design does use are in its list."""
     assert {"numpy", "scipy.linalg", "foilc_hil.design.certificates", "foilc_hil.commands.synthesize"} <= loaded

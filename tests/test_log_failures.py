@@ -28,6 +28,8 @@ from foilc_hil.io.mcap_log import McapLogReader
 from tests.test_bench_e2e import NODE, bench_config
 from tests.test_bench_faults import completed_trials_on_disk
 
+pytestmark = pytest.mark.slow
+
 ROOT = Path(__file__).resolve().parents[1]
 #: a generous bound for anything a test waits for: a loaded 2-core machine is slow, never wrong
 PATIENCE = 120.0

@@ -113,6 +113,7 @@ def _process_alive(pid: int) -> bool:
         return stat.read().split(")")[-1].split()[0] != "Z"
 
 
+@pytest.mark.slow
 def test_a_killed_bench_leaves_a_complete_file_and_no_writer_process(tmp_path: Path) -> None:
     path = tmp_path / "killed.mcap"
     script = textwrap.dedent(
@@ -148,6 +149,7 @@ def test_a_killed_bench_leaves_a_complete_file_and_no_writer_process(tmp_path: P
     assert contents.config_yaml == "x: 1\n"
 
 
+@pytest.mark.slow
 def test_a_full_disk_is_raised_on_the_bench_side() -> None:
     # the header does not fit: said at once, by the constructor (which waits for the child's first write)
     with pytest.raises(LogWriteError, match="No space left on device"):
@@ -317,6 +319,7 @@ def test_the_child_labels_the_channels_with_the_units_the_loop_worked_out(tmp_pa
     assert read_log(tmp_path / "probe.mcap").truncated is False
 
 
+@pytest.mark.slow
 def test_a_stopped_child_never_blocks_the_producer_and_is_reported(tmp_path: Path) -> None:
     """A writer process stopped (a hung disk) mid-run: every logging call still returns, the stall is handed to
     ``on_failure`` once as a LogWriteError naming the file, and the child, once continued, finishes the file."""

@@ -144,6 +144,7 @@ def test_heartbeat_loss_is_detected_and_fault_reset_restores_communication(
     cycle(drive)
 
 
+@pytest.mark.slow
 def test_heartbeat_watchdog_reports_without_polling(rig: tuple[MiniServo, Cia402Drive, TxRecorder]) -> None:
     servo, drive, recorder = rig
     servo.stop_heartbeat()
@@ -168,6 +169,7 @@ def test_missing_tpdo_raises_feedback_timeout_and_keeps_the_command(
     cycle(drive)  # the next SYNC is answered as usual
 
 
+@pytest.mark.slow
 def test_state_that_never_changes_names_the_stuck_state(rig: tuple[MiniServo, Cia402Drive, TxRecorder]) -> None:
     servo, drive, recorder = rig
     drive.disable()
@@ -177,6 +179,7 @@ def test_state_that_never_changes_names_the_stuck_state(rig: tuple[MiniServo, Ci
     recorder.assert_commanded_safe()
 
 
+@pytest.mark.slow
 def test_wrong_dlc_tpdo_is_a_runtime_bad_frame_error(rig: tuple[MiniServo, Cia402Drive, TxRecorder]) -> None:
     servo, drive, recorder = rig
     servo.short_tpdo = True
@@ -207,6 +210,7 @@ def test_wrong_dlc_emcy_is_a_bad_frame_error(rig: tuple[MiniServo, Cia402Drive, 
     recorder.assert_commanded_safe()
 
 
+@pytest.mark.slow
 def test_drive_leaving_nmt_operational_is_a_typed_error(rig: tuple[MiniServo, Cia402Drive, TxRecorder]) -> None:
     servo, drive, recorder = rig
     cycle(drive)

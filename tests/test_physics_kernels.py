@@ -170,6 +170,7 @@ def test_the_voltage_limit_is_hypots_decision_near_and_far_from_it(
     assert (int_d, int_q) == voltages  # zero errors: the integrators hold, limited or not
 
 
+@pytest.mark.slow
 def test_the_drift_phasor_follows_the_phase_of_each_internal_step() -> None:
     """The inertia drift's sine is turned by ``drift_frequency h`` per internal step instead of recomputed; over a
     caller step's internal steps it stays within a few ulps of ``sin`` of each step's midpoint phase."""

@@ -68,6 +68,7 @@ def test_a_step_shows_on_a_terminal_only_and_not_when_quiet(monkeypatch: pytest.
     assert terminal.getvalue() == ""
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("argv", "names"),
     [
@@ -99,6 +100,7 @@ def test_json_and_quiet_show_no_progress(tmp_path: Path, monkeypatch: pytest.Mon
     assert code == 0 and done == []
 
 
+@pytest.mark.slow
 def test_identification_and_the_report_show_their_steps(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     config = _config(tmp_path, law={"kind": "p-type"})
     code, done = _on_terminal(monkeypatch, "commission", "identify", "--config", config, "--amplitudes", "20",

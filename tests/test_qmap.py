@@ -95,6 +95,7 @@ def _cases(draw: st.DrawFn) -> tuple[LoopPlant, LawStructure, float]:
     return LoopPlant(model.A, model.B, model.measured_output, p1, p2), law, draw(st.sampled_from([1.0, 0.3, 0.05]))
 
 
+@pytest.mark.slow
 @settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(_cases())
 def test_the_certificate_brackets_the_dense_norm_and_radius(case: tuple[LoopPlant, LawStructure, float]) -> None:
@@ -265,6 +266,7 @@ def test_the_proof_reads_back_from_the_design_record() -> None:
     assert json.dumps(again.to_json()) == json.dumps(design.to_json())
 
 
+@pytest.mark.slow
 def test_the_exact_mode_from_the_config_gives_the_dense_radius_of_a_zero_phase_map() -> None:
     """``synthesis.exact_certificates``: the zero-phase map's spectral radius densely (the fast mode bounds it by the
     2-norm), and the 2-norm's bracket around the dense SVD's value."""

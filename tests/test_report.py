@@ -89,6 +89,7 @@ def test_report_without_timing_and_with_vector_signals(tmp_path: Path) -> None:
     assert (out / "outputs.png").read_bytes()[:8] == PNG_MAGIC
 
 
+@pytest.mark.slow
 def test_report_of_a_truncated_log_reports_what_it_has(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     log = tmp_path / "run.mcap"
     _write(log, trials=4)
@@ -170,6 +171,7 @@ def test_neither_trial_1_nor_the_unlearnable_sample_sets_the_zoomed_scale() -> N
     assert -2.0 > low > -3.0 and 2.0 < high < 3.0  # the range of trials 2..3 after sample 0, plus 8 % padding
 
 
+@pytest.mark.slow
 def test_summary_has_learnable_metrics_certificate_tables_and_the_step_note(tmp_path: Path) -> None:
     log = tmp_path / "f.mcap"
     _stepped_log(log, "foilc")

@@ -149,6 +149,7 @@ def test_one_and_two_workers_agree_and_figures_match_a_direct_simulation(config:
     assert outcome["noise_floor"] > 0.002 * 0.5 and not outcome["diverged"]
 
 
+@pytest.mark.slow
 def test_cli_twenty_draws_three_laws_json_plots_and_bad_input(
     tmp_path: Path, client: Any, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -16,6 +16,8 @@ import pytest
 
 from tests.test_log_failures import _assert_confirmed_stop, _finish, _logged_trials, long_run
 
+pytestmark = pytest.mark.slow
+
 
 @pytest.mark.parametrize(("follow_up", "delay"), [(signal.SIGINT, 0.001), (signal.SIGTERM, 0.03)])
 def test_a_second_signal_during_the_stop_loses_nothing(

@@ -127,6 +127,7 @@ def test_divergence_stops_the_run(tmp_path: Path) -> None:
     assert result.outputs.shape[0] == len(result.metrics)
 
 
+@pytest.mark.slow
 def test_mcap_log_and_plots(tmp_path: Path) -> None:
     from foilc_hil.io.mcap_log import read_log
 

@@ -94,6 +94,7 @@ def test_the_mutation_removes_only_the_named_objects(tmp_path: Path) -> None:
     assert set(full.indices) - set(od.indices) == {Obj.TORQUE_ACTUAL_VALUE, 0x1801, 0x1A01}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "removed",
     [(Obj.COMMUNICATION_CYCLE_PERIOD,), (Obj.CONSUMER_HEARTBEAT_TIME,), (Obj.TORQUE_ACTUAL_VALUE,), (0x1801, 0x1A01)],

@@ -24,6 +24,8 @@ from foilc_hil.config import load_config
 from foilc_hil.loop.rig import RunRequest, run_rig
 from tests.test_bench_e2e import NODE, bench_config
 
+pytestmark = pytest.mark.slow
+
 TRIALS = 4
 Edit = Callable[[str, dict[str, Any]], dict[str, Any] | None]
 MetaEdit = Callable[[str, dict[str, str]], dict[str, str]]
