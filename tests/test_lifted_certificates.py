@@ -17,7 +17,7 @@ from foilc_hil.config import load_config
 from foilc_hil.design.noilc import DENSE_LIMIT, STRUCTURED_METHOD, noilc_update, plant_operator
 from foilc_hil.design.pipeline import build_design
 from foilc_hil.design.qfilter import QFilter
-from foilc_hil.design.record import Design, NoilcWeights
+from foilc_hil.design.record import BoundClaim, CertificateMethod, Design, MonotoneVerdict, NoilcWeights
 from foilc_hil.design.trial_operator import TrialOperator
 from foilc_hil.loop.simulation import simulate
 from tests.fuzz_settings import fuzz_settings
@@ -58,9 +58,11 @@ def test_structured_certificates_bound_the_dense_maps(config_name: str, override
     for G_v, certificate in zip(plants, design.certificates.plants, strict=True):
         T = np.eye(G_v.shape[0]) - G_v @ L
         norm = float(np.linalg.norm(T, 2))
-        assert certificate.norm_2_method == STRUCTURED_METHOD
+        assert STRUCTURED_METHOD in certificate.norm_2_method and certificate.proof is not None
+        assert certificate.proof.method is CertificateMethod.STRUCTURED and certificate.proof.norm_2 is BoundClaim.UPPER
         assert norm <= certificate.norm_2 <= norm * (1 + 2e-6), certificate.plant
         assert max(abs(np.linalg.eigvals(T))) <= certificate.spectral_radius * (1 + 1e-12)
+        assert norm < 1 and certificate.proof.monotone is MonotoneVerdict.MONOTONE  # these designs are monotonic
 
 
 @pytest.mark.parametrize("phase", ["zero", "causal"])
@@ -82,7 +84,7 @@ def test_the_q_filter_input_map_is_certified_structurally(phase: str, law: str) 
         learning[: N - d] = L @ G_y[d:]  # L acts on e[d:] = (G_y u)[d:] and fills u[:N-d]
         M = Q - learning
         norm = float(np.linalg.norm(M, 2))
-        assert certificate.map == "input (Q-filter)" and certificate.norm_2_method == STRUCTURED_METHOD
+        assert certificate.map == "input (Q-filter)" and STRUCTURED_METHOD in certificate.norm_2_method
         assert norm <= certificate.norm_2 <= norm * (1 + 2e-6), certificate.plant
 
 

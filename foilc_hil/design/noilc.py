@@ -74,12 +74,16 @@ from foilc_hil.design.certificates import (
 )
 from foilc_hil.design.models import DiscreteModel, Uncertainty, uncertainty_vertices
 from foilc_hil.design.record import (
+    BoundClaim,
     Bounds,
     CertificateAction,
+    CertificateMethod,
     Certificates,
     Design,
+    MonotoneVerdict,
     NoilcWeights,
     PlantCertificate,
+    Proof,
 )
 from foilc_hil.design.trial_operator import TrialOperator
 from foilc_hil.errors import InputError
@@ -107,8 +111,8 @@ UNUSED_ORDER = 1.0
 #: Up to this many learnable samples the trial maps are certified densely (exact eigenvalues and SVD, a few
 #: milliseconds); beyond, by the structured test, cheaper already at a few hundred samples.
 DENSE_LIMIT = 150
-#: ``norm_2_method`` of a certificate from the structured test (module notes).
-STRUCTURED_METHOD = "structured exact (Cholesky test of the dilation through the state-space form; upper bound)"
+#: How the structured test computes a norm (module notes); a certificate's ``norm_2_method`` names it with the bracket.
+STRUCTURED_METHOD = "structured exact, Cholesky test of the dilation through the state-space form"
 #: ``spectral_radius_method`` when the 2-norm bounds the radius.
 BY_NORM = "upper bound: the induced 2-norm"
 #: ``spectral_radius_method`` when the 2-norm of the similar map bounds it (module notes).
@@ -352,24 +356,31 @@ class _PlantMaps:
         return None if first is None else first.plus(self.step.scaled(-scale))
 
     def certificate(self, scale: float) -> PlantCertificate:
-        """Spectral radius and 2-norm at ``scale`` (module notes)."""
+        """Spectral radius and 2-norm at ``scale``, with what they prove (module notes)."""
         trial = None if self.dense else self.trial(scale)
         if self.dense or (trial is None and self.law.n_samples <= Q_FILTER_DENSE_LIMIT):
-            return matrix_certificate(*trial_map(self.A, self.B, self.model, scale * self.shared.dense_gain, self.law))
+            entry = matrix_certificate(*trial_map(self.A, self.B, self.model, scale * self.shared.dense_gain, self.law))
+            verdict = _verdict(entry.norm_2, entry.norm_2)
+            exact = BoundClaim.EXACT if entry.norm_2_method == "dense" else BoundClaim.UPPER
+            return replace(entry, proof=Proof(exact, exact, verdict, CertificateMethod.DENSE))
         kind = "error" if self.law.q_filter is None else "input (Q-filter)"
         if trial is None:
             method = "inconclusive at bound inf (a Q-filter without a state-space form, on a long trial)"
-            return PlantCertificate("", kind, math.inf, math.inf, method, method)
-        norm = trial.norm_bound(decide_at=CONTRACTION_LIMIT).upper
-        if norm < 1.0:
-            return PlantCertificate("", kind, norm, norm, STRUCTURED_METHOD, BY_NORM)
-        radius, method = norm, BY_NORM
-        if self.law.q_filter is None:
+            proof = Proof(BoundClaim.UPPER, BoundClaim.UPPER, MonotoneVerdict.INCONCLUSIVE, CertificateMethod.DENSE)
+            return PlantCertificate("", kind, math.inf, math.inf, method, method, proof=proof)
+        bound = trial.norm_bound(decide_at=CONTRACTION_LIMIT)
+        norm, radius, method = bound.upper, bound.upper, BY_NORM
+        if not norm < 1.0 and self.law.q_filter is None:
             similar = self.shared.identity.plus(self.similar_step.scaled(-scale)).norm_bound(decide_at=1.0).upper
             radius, method = (norm, BY_NORM) if norm <= similar else (similar, BY_SIMILAR)
         if not radius < 1.0:
             method = f"inconclusive at bound {radius:.6g} ({method})"
-        return PlantCertificate("", kind, radius, norm, STRUCTURED_METHOD, method)
+        norm_method = (
+            f"upper bound ({STRUCTURED_METHOD}: {bound.lower:.9g} <= ||T|| <= {bound.upper:.9g}; {bound.tests} tests)"
+        )
+        verdict = _verdict(bound.upper, bound.lower)
+        proof = Proof(BoundClaim.UPPER, BoundClaim.UPPER, verdict, CertificateMethod.STRUCTURED)
+        return PlantCertificate("", kind, radius, norm, norm_method, method, proof=proof)
 
     def estimate(self, scale: float) -> PlantCertificate:
         """:meth:`certificate`'s numbers, cheaply, for the search of a scale (:func:`~foilc_hil.design.admission.
@@ -380,6 +391,14 @@ class _PlantMaps:
             return self.certificate(scale)
         norm = trial.lanczos_lower(ESTIMATE_STEPS)
         return PlantCertificate("", "estimate", norm, norm, "lower bound (Lanczos)")
+
+
+def _verdict(upper: float, lower: float) -> MonotoneVerdict:
+    """Monotone when the upper bound is at most the contraction limit, not monotone when the lower bound is above
+    it, else inconclusive."""
+    if upper <= CONTRACTION_LIMIT:
+        return MonotoneVerdict.MONOTONE
+    return MonotoneVerdict.NOT_MONOTONE if lower > CONTRACTION_LIMIT else MonotoneVerdict.INCONCLUSIVE
 
 
 class _Shared:
