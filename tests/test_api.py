@@ -186,6 +186,7 @@ def test_design_stays_the_function_when_the_subpackage_is_imported() -> None:
                   ) == [True, "foilc_hil.api.bench", "foilc_hil.design.record"]
 
 
+@pytest.mark.slow
 def test_a_new_iteration_ends_a_suspended_one(config: Any, design: Any, tmp_path: Path) -> None:
     out = tmp_path / "run.mcap"
     with fh.Bench(config, design=design, out=out) as bench:

@@ -26,6 +26,8 @@ from drivers.cia301 import SYNC_COB_ID, FunctionCode, cob_id
 from drivers.cia402 import Command402, State402, decode_state
 from foilc_hil.cli import main
 
+pytestmark = pytest.mark.slow
+
 NODE = 1
 SAMPLE_TIME = 0.005
 SAMPLES = 200  # 1 s trials

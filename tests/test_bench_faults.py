@@ -161,6 +161,7 @@ def test_emulator_stops_responding_mid_trial(
     assert last_word(topics["/can"], cob_id(FunctionCode.RPDO1, NODE)) in SAFE_CONTROLWORDS
 
 
+@pytest.mark.slow
 def test_drive_fault_mid_trial(
     emulator_on_channel: tuple[Any, str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -251,6 +252,7 @@ def completed_trials_on_disk(path: Path) -> int:
         return 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", [NmtCommand.STOP, NmtCommand.ENTER_PRE_OPERATIONAL])
 @pytest.mark.parametrize("abort_option", [0, 3])
 def test_third_party_nmt_mid_trial_ends_confirmed_disabled(

@@ -50,6 +50,7 @@ def test_json_success_with_cli_overrides(tmp_path: Path, capsys: pytest.CaptureF
     assert abs(loop) == pytest.approx(1.0, rel=1e-6)
 
 
+@pytest.mark.slow
 def test_flat_phase_flag_solves_k(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     config = _write(tmp_path, DELAYED_PLANT + "tuning: {crossover: 70, phase_margin_deg: 70}\n")
     assert main(["tune", "--config", str(config), "--flat-phase", "--json"]) == 0

@@ -123,6 +123,7 @@ def test_info_dbc_loads_in_canmatrix_with_the_mapping_run_installs(capsys: pytes
     assert velocity.is_signed and velocity.start_bit == 16 and velocity.unit == "rpm"
 
 
+@pytest.mark.slow
 def test_info_text_and_bad_dbc_suffix(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     code, out, _ = run_cli(capsys, "commission", "info")
     assert code == 0 and "supported modes" in out and "TPDO1" in out and "SWITCH_ON_DISABLED" in out

@@ -259,6 +259,7 @@ def test_design_modules_import_only_earlier_ones(name: str) -> None:
     assert _design_imports(name) <= earlier, f"{name} imports {_design_imports(name) - earlier}"
 
 
+@pytest.mark.slow
 def test_the_order_check_can_fail() -> None:
     assert "certificates" in _design_imports("lmi")
     assert "lmi" not in _design_imports("certificates")

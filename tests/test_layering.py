@@ -145,6 +145,7 @@ def test_imports_point_down(module: str) -> None:
     assert not upward, f"{module} (rank {own}) imports up: {upward}"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("module", sorted(m for m in MODULES if m.split(".")[0] in STANDALONE))
 def test_stand_alone_packages_import_nothing_of_foilc_hil(module: str) -> None:
     """``drivers`` and ``plant_emulator`` stand alone: no import of theirs, function-local ones included, reaches

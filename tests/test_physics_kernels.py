@@ -141,6 +141,7 @@ def test_a_bad_single_input_is_refused_as_check_input_refuses_it(u: object) -> N
         check_scalar_input(u)  # type: ignore[arg-type]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("voltages", "v_max"),
     [

@@ -94,6 +94,7 @@ def test_fifo_for_the_cyclic_threads_and_below_for_the_helpers_then_restored() -
         worker.join()
 
 
+@pytest.mark.slow
 def test_affinity_is_set_and_restored_and_a_bad_cpu_is_reported() -> None:
     before = os.sched_getaffinity(0)
     cpu = min(before)

@@ -196,6 +196,7 @@ def test_no_step_note_when_the_reference_starts_where_the_axis_is(tmp_path: Path
     assert summarize(read_log(log))["notes"] == []
 
 
+@pytest.mark.slow
 def test_the_comparison_figure_draws_both_laws(tmp_path: Path) -> None:
     from foilc_hil.logtools.report import write_comparison
 
@@ -246,6 +247,7 @@ def test_trial_signals_are_the_logged_values_in_sample_order() -> None:
     np.testing.assert_array_equal(signals[1]["control"], [[9.0]])
 
 
+@pytest.mark.slow
 def test_the_report_counts_the_frames_it_does_not_keep(tmp_path: Path) -> None:
     """``summary.json``'s frames by direction, from a read that only counts them, against a read that keeps every
     frame; a frame whose JSON is damaged stops the counting read where it stops the full one."""
