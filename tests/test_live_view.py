@@ -293,7 +293,7 @@ def test_a_stuck_viewer_never_holds_the_loop_side() -> None:
     from foilc_hil.live.publisher import QUEUE_ITEMS, LivePublisher, LiveSink
 
     server = _StuckServer()
-    publisher = LivePublisher(server, LiveOptions(rows=0))  # type: ignore[arg-type]
+    publisher = LivePublisher(server, LiveOptions(rows=0, row_rate=0.0))  # type: ignore[arg-type]
     sink = LiveSink(publisher, (-1.0, 1.0))
     with publisher:
         sink.trial_finished(_record(1))
@@ -433,9 +433,10 @@ def test_rows_keep_to_the_row_rate_budget() -> None:
         return publisher.stats.samples - before
 
     cap = int(ROW_SAVE * 100)
-    assert rows_of(600, 9.0) == 600  # a second's worth to start with, and 9 s of rate: the cap of 1000
-    assert rows_of(600, 9.0) == 300  # 1000 - 600 = 400 left: every 2nd row
-    assert rows_of(600, 9.0) == 100  # 100 left: every 6th
-    assert rows_of(600, 9.005) == 0  # half a row saved: none
-    assert rows_of(2 * cap, 109.0) == cap  # refilled to the cap, not beyond
-    assert publisher.stats.trials_thinned == 4
+    assert rows_of(600, 5.0) == 300  # empty at the start, 5 s of rate: 500 rows saved, so every 2nd row
+    assert rows_of(600, 20.0) == 600  # 200 left + 15 s of rate, saved up to the cap of 1000
+    assert rows_of(600, 20.0) == 300  # 400 left: every 2nd row
+    assert rows_of(600, 20.0) == 100  # 100 left: every 6th
+    assert rows_of(600, 20.005) == 0  # half a row saved: none
+    assert rows_of(2 * cap, 120.0) == cap  # refilled to the cap, not beyond
+    assert publisher.stats.trials_thinned == 5

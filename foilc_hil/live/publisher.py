@@ -176,10 +176,10 @@ class LivePublisher:
         self._server = server
         self._rows = options.rows
         self._row_rate = options.row_rate
-        # rows a trial may take: row_rate a second, saved up to `rows` or a second's worth (ten without `rows`),
-        # a second's worth to start with: a long realtime trial gets `rows` rows, a lockstep burst of trials is thinned
+        # rows a trial may take: row_rate a second from the run's start (attach), saved up to `rows` or a second's
+        # worth (ten without `rows`): a long realtime trial gets `rows` rows, a lockstep burst of trials is thinned
         self._row_cap = max(options.row_rate, float(options.rows)) if options.rows else ROW_SAVE * options.row_rate
-        self._row_credit = min(options.row_rate, self._row_cap)
+        self._row_credit = 0.0
         self._row_time = clock()
         self._can_rate = options.can_rate
         self._clock = clock
@@ -208,6 +208,7 @@ class LivePublisher:
         if isinstance(loop.law, AxisLaws):  # one record per axis, as the log gets them
             live = AxesSink(cast(Any, live), loop.law, cast(AxisLimiter, limiter), [d.node_id for d in drives])
         loop.log = _Both(loop.log, live)
+        self._row_time = self._clock()  # the row budget fills from the run's start
         if drives and hasattr(drives[0], "add_frame_listener"):
             drives[0].add_frame_listener(self.log_frame)
         self._drives = tuple(drives)
