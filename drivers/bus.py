@@ -19,7 +19,10 @@ shows a SYNC before the TPDOs that answer it.
 from __future__ import annotations
 
 import configparser
+import contextlib
 import errno
+import os
+import socket
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -217,7 +220,10 @@ def open_bus(cfg: BusConfig) -> can.BusABC:
     if cfg.interface == INPROCESS_INTERFACE:  # in this process: no registry needed (see drivers.inprocess)
         return InProcessBus(cfg.channel, receive_own_messages=cfg.receive_own_messages)
     try:
-        return can.Bus(**kwargs)
+        bus = can.Bus(**kwargs)
+        if cfg.interface == "udp_multicast":
+            _enlarge_receive_buffer(bus)
+        return bus
     except can.CanInterfaceNotImplementedError as exc:
         raise InputError(f"--bus: interface {cfg.interface!r} is not available in python-can: {exc}") from exc
     except (can.CanError, OSError, ValueError) as exc:
@@ -232,6 +238,23 @@ def open_bus(cfg: BusConfig) -> can.BusABC:
                 then = hint.replace(";", ", then", 1)
                 hint = f"; this kernel has no SocketCAN: load it with `sudo modprobe can-raw vcan`{then}"
         raise DriveError(f"cannot open CAN bus {where}: {exc}{hint}") from exc
+
+
+#: bytes of socket receive buffer asked for a ``udp_multicast`` bus: the default (about 208 KiB) holds some 0.05 s of
+#: a 1 kHz bench's traffic (every datagram costs about 900 bytes of buffer), so a stall of the receiving process
+#: longer than that dropped frames on the floor of its socket
+UDP_RECEIVE_BUFFER = 1 << 23
+_SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)  # Linux's; Python names it from 3.12 on
+
+
+def _enlarge_receive_buffer(bus: can.BusABC) -> None:
+    """Best effort: :data:`UDP_RECEIVE_BUFFER` for the bus's socket (past ``net.core.rmem_max`` where privileged)."""
+    with contextlib.suppress(OSError, AttributeError, ValueError), \
+            socket.socket(fileno=os.dup(bus.fileno())) as sock:
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, _SO_RCVBUFFORCE, UDP_RECEIVE_BUFFER)
+        except OSError:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RECEIVE_BUFFER)
 
 
 class FrameTap(can.Listener):

@@ -107,7 +107,7 @@ from drivers.master.sdo_client import U32, SdoClient
 from drivers.master.startup import CIA402_PROFILE, MASTER_HEARTBEATS_PER_CONSUMER_TIME, StartUp
 from drivers.master.state402 import PowerStateCommands
 from drivers.master.supervision import DriveSupervision
-from drivers.network import DriveNetwork
+from drivers.network import DriveNetwork, SyncSeen
 from drivers.od import load_od, object_address
 from drivers.pdo import PdoCodec
 
@@ -403,6 +403,41 @@ class Cia402Drive(Drive):
     def wait_feedback(self, timeout: float) -> Feedback:
         """Block until the TPDO set answering the last SYNC arrived (see :class:`~drivers.drive.Drive`)."""
         return self.cyclic.wait_feedback(timeout)
+
+    # --- SYNC from a clock (realtime; drivers.sync_clock) -------------------------------------------------------
+
+    def start_clock(self, *, spin_margin: float = 0.0002) -> str | None:
+        """SYNC from a clock on this drive's network from now on (:meth:`DriveNetwork.start_clock`, at the cycle
+        period ``configure`` set); the clock's name (``"thread"``, ``"bcm"``), or None where the network has no
+        cyclic receiver to read the bus on (the loop then sends SYNC itself)."""
+        net = self.link.net
+        if net.receiver is None:
+            return None
+        return net.start_clock(self.cyclic.cycle_period, self.cyclic.clock_routes(), spin_margin=spin_margin).name
+
+    def stop_clock(self) -> None:
+        """Stop the network's SYNC clock (idempotent)."""
+        self.link.net.stop_clock()
+
+    def await_sync(self, after: int, timeout: float) -> SyncSeen:
+        """The next SYNC of the clock after SYNC ``after``, read from the bus (:meth:`DriveNetwork.await_sync`)."""
+        return self.link.net.await_sync(after, timeout)
+
+    @property
+    def latched(self) -> float:
+        """The target the drive latched at the last SYNC read from the bus, plant units (SYNC from a clock)."""
+        return self.cyclic.latched
+
+    @property
+    def rpdo_sync_count(self) -> int:
+        """The network's count of SYNCs sent when the last RPDO went out."""
+        return self.cyclic.rpdo_sync_count
+
+    @property
+    def syncs_seen(self) -> int:
+        """SYNC from a clock: the network's count of the SYNCs read from the bus so far (the number
+        :meth:`await_sync` counts from)."""
+        return self.link.net.syncs_seen
 
     def safe_stop(self) -> StopReport:
         """Quick stop, zero target, disable voltage, confirmed by reading the drive's statusword; never raises

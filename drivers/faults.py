@@ -55,6 +55,7 @@ from drivers.errors import ConfigError
 from drivers.injection import (
     EMULATOR_KINDS,
     FIXED_FRAMES,
+    LOOP_KINDS,
     FrameClass,
     Injection,
     InjectionReport,
@@ -66,6 +67,7 @@ from drivers.injection import (
 
 __all__ = [
     "EMULATOR_KINDS",
+    "LOOP_KINDS",
     "FaultyBus",
     "FrameClass",
     "InjectKind",
@@ -179,6 +181,8 @@ class FaultyBus(can.BusABC):
         for injection in injections:
             if injection.kind is InjectKind.FOREIGN_NODE and injection.node == node_id:
                 raise ConfigError(f"must differ from the drive's node id {node_id}", key="inject.node")
+            if injection.kind in LOOP_KINDS:  # the loop's own (foilc_hil.loop.stalls): nothing a bus can do
+                raise ConfigError(f"'{injection.kind}' acts in the bench's loop, not on the bus", key="inject.kind")
         self._inner = inner
         self._node_id = node_id
         self._role = role

@@ -25,6 +25,7 @@ __all__ = [
     "DEFAULT_FRAMES",
     "EMULATOR_KINDS",
     "FIXED_FRAMES",
+    "LOOP_KINDS",
     "FrameClass",
     "InjectKind",
     "Injection",
@@ -55,7 +56,11 @@ class InjectKind(StrEnum):
     EMCY_OVER_SPEED = "emcy-over-speed"  # the emulated drive detects over-speed (EMCY, FAULT)
     HEARTBEAT_STOP = "heartbeat-stop"  # the emulated drive's heartbeat producer stops, the rest goes on
     DRIFT = "drift"  # the plant's input gain multiplied by ``factor`` from then on
+    STALL = "stall"  # the bench's loop thread alone sleeps ``duration`` seconds in the cycle (its command goes late)
 
+
+#: kinds carried out by the bench's trial loop itself (``foilc_hil.loop.stalls``), neither by the bus nor the emulator
+LOOP_KINDS = frozenset({InjectKind.STALL})
 
 #: kinds carried out by the emulator (:func:`plant_emulator.faults.emulator_actions`), not by the bus
 EMULATOR_KINDS = frozenset(
@@ -123,6 +128,10 @@ class Injection(Section):
     axis
         The node id of the axis it acts on (its frames, its emulated drive); ``None``: the first axis (the only
         one of a single-axis run). :func:`split_by_axis` refuses a node id that is not one of the run's axes.
+    duration
+        ``stall``: seconds the loop thread sleeps in each stalled cycle, between the law's command and its RPDO
+        (the SYNC clock goes on meanwhile: the command misses its SYNC). A stall needs a trial
+        (``stall@TRIAL+CYCLE``: ``cycle`` is the trial's sample); ``count`` cycles in a row stall.
     """
 
     kind: InjectKind
@@ -136,11 +145,16 @@ class Injection(Section):
     node: int = Field(default=0x7E, ge=1, le=127)
     factor: float = 2.0
     axis: int | None = Field(default=None, ge=1, le=127)
+    duration: float = Field(default=0.005, gt=0, le=1.0)  # seconds (kind stall)
 
     @model_validator(mode="after")
     def _frames_fit_the_kind(self) -> Injection:
         if self.kind in FIXED_FRAMES and self.frames not in (None, DEFAULT_FRAMES[self.kind]):
             raise ValueError(f"'{self.kind}' hits {DEFAULT_FRAMES[self.kind]} frames; drop 'frames'")
+        if self.kind in LOOP_KINDS and self.trial is None:
+            raise ValueError(f"'{self.kind}' acts in a trial's cycle: give it as {self.kind}@TRIAL+CYCLE")
+        if self.kind in LOOP_KINDS and self.count < 1:
+            raise ValueError(f"'{self.kind}' lasts count >= 1 cycles")
         return self
 
     @property

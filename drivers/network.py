@@ -17,6 +17,16 @@ SYNC: :meth:`DriveNetwork.sync` first starts a new cycle on every member (each d
 it), then sends one SYNC frame. On a synchronous (lockstep) bus one cycle period of simulated time passes since the
 previous SYNC first, as for a single drive.
 
+SYNC from a clock (realtime, :mod:`drivers.sync_clock`): between :meth:`DriveNetwork.start_clock` and
+:meth:`DriveNetwork.stop_clock` a producer of its own sends SYNC (the kernel's broadcast manager on ``socketcan``, a
+thread elsewhere) and :meth:`DriveNetwork.sync` sends none. The control thread reads the bus instead, on its cyclic
+receiver, in the order the bus delivered it: each SYNC's echo starts a new cycle on every member (so a TPDO answers
+the SYNC before it on the wire, as ``replay --verify`` cuts the log), and each member's own RPDO echo is what the
+drive latches at the next SYNC (:attr:`drivers.master.cyclic.CyclicPath.latched`). :meth:`DriveNetwork.await_sync`
+waits for the next SYNC's echo. Every SYNC goes out under canopen's send lock, as every RPDO of the master does, and
+is counted there (:attr:`DriveNetwork.syncs_sent`): the count an RPDO was sent at says whether it went out before or
+after the next SYNC.
+
 Thread safety: :meth:`join`, :meth:`sync`, :meth:`listen` and :meth:`close` are called from the one control thread;
 the receive callbacks run on the Notifier thread and belong to the drives (see ``drivers.cia402_master``).
 """
@@ -24,7 +34,9 @@ the receive callbacks run on the Notifier thread and belong to the drives (see `
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+import time
+from collections.abc import Callable, Mapping, Sequence
+from typing import NamedTuple
 
 import can
 import canopen
@@ -36,8 +48,11 @@ from drivers.errors import ConfigError, DriveError
 from drivers.heartbeat import HeartbeatProducer
 from drivers.inprocess import connect_network, subscribe_cyclic, timebase_of
 from drivers.scan import ScanResult, scan_bus
+from drivers.sync_clock import BroadcastSync, SyncClock, SyncProducer
 
-__all__ = ["DriveNetwork", "UnknownFrameCounter", "received_elsewhere"]
+__all__ = ["DriveNetwork", "SyncSeen", "UnknownFrameCounter", "received_elsewhere"]
+
+Callback = Callable[[int, bytearray, float], None]
 
 NOTIFIER_CYCLE = 0.1  # s the Notifier blocks in recv(): bounds how long close() waits for its thread
 
@@ -45,6 +60,27 @@ NOTIFIER_CYCLE = 0.1  # s the Notifier blocks in recv(): bounds how long close()
 def received_elsewhere(can_id: int, data: bytearray, timestamp: float) -> None:
     """The Notifier's subscriber of a COB-ID the cyclic receiver owns: the frame is known (not counted as
     unknown) and handled on the control thread, not here."""
+
+
+class SyncSeen(NamedTuple):
+    """One SYNC of the clock, as the control thread read it from the bus (:meth:`DriveNetwork.await_sync`).
+
+    Attributes
+    ----------
+    number
+        The network's count of SYNCs, this one included (the members' cycle it began).
+    time
+        When it went out (``perf_counter`` seconds): the producer's record, else its echo's bus timestamp.
+    due
+        Its deadline (``perf_counter``); NaN where the producer keeps none (the broadcast manager).
+    skipped
+        Slots the producer passed over just before it.
+    """
+
+    number: int
+    time: float
+    due: float
+    skipped: int
 
 
 class UnknownFrameCounter(can.Listener):
@@ -91,6 +127,14 @@ class DriveNetwork:
         self._sync_at = -math.inf  # lockstep: the simulated time of the last SYNC
         self._producer: HeartbeatProducer | None = None
         self._master_node_id: int | None = None
+        #: SYNCs sent on this network (by :meth:`sync` or the clock), counted under canopen's send lock
+        self.syncs_sent = 0
+        #: SYNC echoes the control thread read while the clock runs, on the numbering of :attr:`syncs_sent`
+        self.syncs_seen = 0
+        self._clock: SyncClock | None = None
+        self._echo_routes: tuple[int, ...] = ()
+        self._seen_time = math.nan  # the last SYNC echo's time (perf_counter), from its bus timestamp
+        self._spin = 0.0
 
     @property
     def listening(self) -> bool:
@@ -189,6 +233,8 @@ class DriveNetwork:
         On a synchronous bus ``cycle_period`` seconds of simulated time pass since the previous SYNC first (the
         drives' and the master's heartbeat timers fire on the way), and the answering TPDOs are in on return.
         """
+        if self._clock is not None:  # the clock sends SYNC: its next one latches what was sent meanwhile
+            return
         timebase = self.timebase
         if timebase.synchronous:
             timebase.sleep(self._sync_at + cycle_period - timebase.now())
@@ -201,9 +247,123 @@ class DriveNetwork:
         # another thread's pump, whose listeners take the drives' locks
         with self.network.send_lock:
             self.bus.send(self._sync_message)
+            self.syncs_sent += 1
+
+    # --- SYNC from a clock (realtime) --------------------------------------------------------------------------
+
+    @property
+    def clock(self) -> SyncClock | None:
+        """The running SYNC clock, or None."""
+        return self._clock
+
+    def start_clock(self, period: float, echoes: Mapping[int, Callback], *, spin_margin: float = 0.0002) -> SyncClock:
+        """SYNC from a clock from now on (module docstring): the broadcast manager on ``socketcan``, else a thread.
+
+        Parameters
+        ----------
+        period
+            Seconds between SYNCs.
+        echoes
+            The members' RPDO COB-IDs and each one's echo handler (what its drive latches at the next SYNC).
+        spin_margin
+            The producer's and :meth:`await_sync`'s spin before each SYNC is due, seconds.
+
+        Raises
+        ------
+        DriveError
+            Without a cyclic receiver (the control thread reads the bus on it), or with a clock already running.
+        """
+        receiver = self.receiver
+        if receiver is None:
+            raise DriveError("SYNC from a clock needs the control thread's own receiver "
+                             "(bench.realtime.cyclic_receive: loop, and no injected bus fault)")
+        if self._clock is not None:
+            raise DriveError("the SYNC clock is already running")
+        receiver.drain()  # what came before is the old cycles' (the echoes of the SYNCs sent so far are dropped)
+        receiver.route(SYNC_COB_ID, self._on_sync_echo)
+        for cob, callback in echoes.items():
+            receiver.route(cob, callback)
+        self._echo_routes = tuple(echoes)
+        self.syncs_seen = self.syncs_sent
+        self._spin = spin_margin
+        clock: SyncClock
+        if type(self.bus).__name__ == "SocketcanBus":  # python-can's socketcan bus: the kernel holds the period
+            clock = BroadcastSync(self.bus, self._sync_message, period)
+        else:
+            producer = SyncProducer(self._clock_send, period, spin_margin=spin_margin)
+            producer.start()
+            clock = producer
+        self._clock = clock
+        return clock
+
+    def stop_clock(self) -> None:
+        """Stop the clock (idempotent): no SYNC goes out after this returns, and :meth:`sync` sends them again."""
+        clock, self._clock = self._clock, None
+        if clock is None:
+            return
+        clock.stop()
+        receiver = self.receiver
+        if receiver is not None:
+            receiver.unroute(SYNC_COB_ID)
+            for cob in self._echo_routes:
+                receiver.unroute(cob)
+        self._echo_routes = ()
+
+    def await_sync(self, after: int, timeout: float) -> SyncSeen:
+        """The SYNC after SYNC ``after``, read from the bus on the control thread (frames before it dispatched in
+        order: the members' TPDOs and RPDO echoes). Blocks in the receive until shortly before it is due, then
+        spins, where the producer says when that is.
+
+        Raises :class:`DriveError` when none came within ``timeout`` seconds (the clock stopped; its error if it
+        failed).
+        """
+        clock, receiver = self._clock, self.receiver
+        if clock is None or receiver is None:
+            raise DriveError("await_sync: the SYNC clock is not running")
+        start = time.perf_counter()
+        due = clock.next_due(after)
+        spin_until = -math.inf if due is None else due + 2.0 * self._spin
+        while self.syncs_seen <= after:
+            now = time.perf_counter()
+            left = start + timeout - now
+            if left <= 0.0:
+                failed = getattr(clock, "error", None)
+                why = f": the producer failed: {failed}" if failed is not None else ""
+                raise DriveError(f"no SYNC on the bus for {timeout:.3f} s after SYNC {after}{why}")
+            if due is not None and now < due - self._spin:  # the kernel wakes us for a frame, or shortly before
+                receiver.poll(min(due - self._spin - now, left))
+            else:  # around the due time: poll without blocking (perf_counter and monotonic are one clock here)
+                receiver.poll(left, time.monotonic() + (spin_until - now))
+        number = after + 1
+        record = clock.record(number)
+        if record is None:
+            return SyncSeen(number, self._seen_time, math.nan, 0)
+        return SyncSeen(number, record.sent, record.due, record.skipped)
+
+    def _clock_send(self, stamp: Callable[[int], None]) -> int:
+        """The producer's send: one SYNC under canopen's send lock, counted there."""
+        with self.network.send_lock:
+            number = self.syncs_sent + 1
+            stamp(number)
+            self.bus.send(self._sync_message)
+            self.syncs_sent = number
+        return number
+
+    def _on_sync_echo(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        """A SYNC on the bus (control thread): every member's new cycle begins."""
+        self.syncs_seen += 1
+        if isinstance(self._clock, BroadcastSync):  # the kernel sent it: counted as it is seen
+            with self.network.send_lock:
+                self.syncs_sent += 1
+        # its bus timestamp is wall-clock (python-can): only its age is used, on this process's perf_counter
+        self._seen_time = time.perf_counter() - max(0.0, time.time() - timestamp)
+        for begin_cycle in self._members:
+            begin_cycle()
 
     def close(self) -> None:
-        """Stop the master heartbeat and the receive path, detach the tap (idempotent); the bus stays open."""
+        """Stop the SYNC clock, the master heartbeat and the receive path, detach the tap (idempotent); the bus
+        stays open."""
+        self.stop_clock()
         if self._producer is not None:
             self._producer.stop()
             self._producer = None

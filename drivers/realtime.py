@@ -59,6 +59,7 @@ __all__ = [
     "RealtimeConfig",
     "RealtimeReport",
     "RealtimeSession",
+    "SyncSource",
     "collect_young",
     "demote_current_thread",
 ]
@@ -83,6 +84,14 @@ class CyclicReceive(StrEnum):
 
     LOOP = "loop"  # the loop thread, on a bus object of its own (CyclicReceiver)
     NOTIFIER = "notifier"  # the Notifier thread, handing each to the loop through a condition variable
+
+
+class SyncSource(StrEnum):
+    """Where a realtime run's SYNC comes from (``bench.realtime.sync``; :mod:`drivers.sync_clock`, which re-exports
+    it: that module imports python-can, and every config load imports this one)."""
+
+    CLOCK = "clock"  # a clock of its own: the kernel's broadcast manager on socketcan, else a producer thread
+    LOOP = "loop"  # the loop sends each SYNC on its deadline after the previous cycle's work
 
 
 class GcPolicy(StrEnum):
@@ -119,8 +128,12 @@ class BenchRealtimeConfig(RealtimeConfig):
     # seconds from the start of each wait for feedback spent polling without blocking before blocking receives
     # (loop only): the emulator's answer comes within 0.3 ms mostly; a blocking receive is woken by the kernel
     # and then waits for the GIL the Notifier took for the same frame (no faster than the Notifier path)
-
     receive_spin: float = Field(default=0.0003, ge=0, le=0.01)
+    # clock: SYNC from a clock of its own (the kernel's broadcast manager on socketcan, a producer thread elsewhere),
+    # the loop runs on the SYNCs it reads from the bus and a missed cycle never delays the next SYNC; it needs
+    # cyclic_receive: loop (and no injected bus fault), else the loop sends SYNC (and says so). loop: the loop sends
+    # each SYNC on its deadline, after the previous cycle's command
+    sync: SyncSource = SyncSource.CLOCK
 
 
 @dataclass(frozen=True)

@@ -262,7 +262,7 @@ class _RecordingLaw:
         self.given.append(float(output[0]))
         return np.zeros(1)
 
-    def end_trial(self, reference: np.ndarray, output: np.ndarray) -> Any:
+    def end_trial(self, reference: np.ndarray, output: np.ndarray, applied: np.ndarray | None = None) -> Any:
         from foilc_hil.laws.learning import TrialUpdate
         from foilc_hil.metrics import TrialMetrics
 

@@ -356,7 +356,7 @@ def test_schemas_name_their_dialect_and_channels_carry_units(tmp_path: Path) -> 
     McapLogWriter(path, config_yaml=CONFIG_YAML + drive).close()
     units = _channel_units(path)
     assert units["/ilc/sample"] == {"t": "s", "reference": "rad/s", "output": "rad/s", "error": "rad/s",
-                                    "E": "rad/s", "control": "Nm"}
+                                    "E": "rad/s", "control": "Nm", "latched": "Nm"}
     assert units["/ilc/trial"] == {"sse": "rad/s^2", "rmse": "rad/s", "max_abs_error": "rad/s"}
     assert units["/timing"]["lateness_us"] == "us" and units["/can"] == {"timestamp": "s"}
     # the defaults of the drive section when the config names none (rpm: drive.velocity_unit's default)

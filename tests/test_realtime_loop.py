@@ -81,7 +81,7 @@ class ZeroLaw:
     def command(self, t: int, output: np.ndarray) -> np.ndarray:
         return np.zeros(1)
 
-    def end_trial(self, reference: np.ndarray, output: np.ndarray) -> Any:
+    def end_trial(self, reference: np.ndarray, output: np.ndarray, applied: np.ndarray | None = None) -> Any:
         from foilc_hil.laws.learning import TrialUpdate
         from foilc_hil.metrics import TrialMetrics
 

@@ -39,7 +39,7 @@ class FakeLaw:
         self.u[t] = self.feedforward[t] + 0.4 * self.learned[t] - 0.05 * (self.y[t] - self.y_prev[t])
         return self.u[t : t + 1]
 
-    def end_trial(self, reference: np.ndarray, output: np.ndarray) -> Any:
+    def end_trial(self, reference: np.ndarray, output: np.ndarray, applied: np.ndarray | None = None) -> Any:
         error = np.asarray(reference, dtype=float).ravel() - np.asarray(output, dtype=float).ravel()
         self.learned = error.copy()
         self.feedforward = self.u.copy()

@@ -9,6 +9,12 @@ received and decoded on the control thread inside the wait (same decoding, count
 On a synchronous (lockstep) bus frames are delivered inside ``send``: an unanswered SYNC is known when ``sync``
 returns, and the wait raises :class:`~drivers.errors.FeedbackTimeoutError` at once, with no deadline.
 
+SYNC from a clock (:meth:`drivers.network.DriveNetwork.start_clock`): a SYNC's echo begins the cycle
+(:meth:`CyclicPath.begin_cycle`, on the control thread as it reads the bus), a wait for feedback ends with a
+:class:`~drivers.errors.FeedbackTimeoutError` when the next SYNC came first (a TPDO after it answers that SYNC, as on
+the wire), and the echo of the drive's own RPDO (:meth:`CyclicPath.on_rpdo_echo`) is what the drive latches at the
+next SYNC: :attr:`CyclicPath.latched`, from the bus, for the bench's log and law.
+
 Errors: before any error but ``FeedbackTimeoutError`` leaves :meth:`CyclicPath.wait_feedback`, the path commands quick
 stop (controlword 0x02, target 0, one SYNC); one unanswered SYNC leaves the command as it was, for the caller to judge.
 """
@@ -18,7 +24,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
 import can
 
@@ -77,6 +83,11 @@ class CyclicPath:
         What the next RPDO carries.
     tpdo_frames
         TPDOs decoded (under ``inbox.lock``).
+    rpdo_sync_count
+        The network's count of SYNCs sent when the last RPDO went out (in the bus object's send order).
+    latched_raw
+        The target of the last RPDO echo before the last SYNC echo: what the drive latched at that SYNC (SYNC from
+        a clock only; the control thread writes it).
     """
 
     def __init__(self, link: MasterLink, inbox: Inbox, monitor: HeartbeatMonitor, *, cycle_period: float) -> None:
@@ -99,6 +110,9 @@ class CyclicPath:
         self._target_limits = (0, 0)
         self.controlword = int(Command402.DISABLE_VOLTAGE)
         self.target_raw = 0
+        self.rpdo_sync_count = 0
+        self.latched_raw = 0
+        self._echoed_raw = 0  # the target of the last RPDO echo seen on the bus
 
     # --- set-up (configure) -------------------------------------------------------------------------------------
 
@@ -154,7 +168,7 @@ class CyclicPath:
         raw = round(clamped * scale)
         raw = low if raw < low else high if raw > high else raw
         self.target_raw = raw
-        link.send(data_frame(cob, codec.encode(self.controlword, raw)))
+        self.rpdo_sync_count = link.send(data_frame(cob, codec.encode(self.controlword, raw)))
         return raw / scale
 
     def sync(self) -> int:
@@ -171,6 +185,7 @@ class CyclicPath:
         with self._lock:
             self.cycle += 1
             self._parts.clear()
+            self.latched_raw = self._echoed_raw  # SYNC from a clock: the last RPDO on the bus before this SYNC
 
     def wait_feedback(self, timeout: float) -> Feedback:
         """The TPDO set answering the last SYNC (see :meth:`drivers.drive.Drive.wait_feedback`)."""
@@ -253,6 +268,9 @@ class CyclicPath:
                 feedback = self._answer(cycle, raise_on_fault=raise_on_fault, raise_errors=raise_errors)
             if feedback is not None:
                 return feedback
+            if self.cycle != cycle:  # SYNC from a clock: the next SYNC came first; what follows answers it
+                with self._lock:
+                    raise self._no_answer(cycle, "before the next SYNC")
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 if receiver.drain():  # frames already received count, as the Notifier would have dispatched them
@@ -346,6 +364,32 @@ class CyclicPath:
             position=position,
             timestamp=received,
         )
+
+    # --- SYNC from a clock: what the drive latched ---------------------------------------------------------------
+
+    def clock_routes(self) -> dict[int, Callable[[int, bytearray, float], None]]:
+        """The RPDO's echo handler by COB-ID, for :meth:`drivers.network.DriveNetwork.start_clock`; the drive holds
+        the last RPDO sent until an echo says otherwise."""
+        self._echoed_raw = self.latched_raw = self.target_raw
+        return {self.rpdo_cob(): self.on_rpdo_echo}
+
+    def on_rpdo_echo(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        """The echo of this master's RPDO on the bus (control thread): its target is what the drive latches at the
+        next SYNC, unless another RPDO follows before it."""
+        codec = self.rpdo_codec
+        if codec is None:
+            return
+        try:
+            self._echoed_raw = codec.decode(data)[1]
+        except ProtocolError:  # not ours to judge (the tap logged it): the drive keeps what it had
+            return
+
+    @property
+    def latched(self) -> float:
+        """:attr:`latched_raw` in plant units (the scale of the mode's target, as :meth:`set_target` divides)."""
+        cfg = self._link.cfg
+        scale = cfg.torque_scale if self.mode is OperationMode.CYCLIC_SYNC_TORQUE else cfg.velocity_scale
+        return self.latched_raw / scale
 
     # --- the RPDO ------------------------------------------------------------------------------------------------
 

@@ -60,12 +60,15 @@ class MasterLink:
         self.connected = False
         self.operational = False
 
-    def send(self, message: can.Message) -> None:
-        """Send ``message`` under canopen's send lock (shared with canopen's own sends); a bus failure is a
-        :class:`DriveError`."""
+    def send(self, message: can.Message) -> int:
+        """Send ``message`` under canopen's send lock (shared with canopen's own sends, and with every SYNC); a bus
+        failure is a :class:`DriveError`. Returns the network's count of SYNCs sent before it
+        (:attr:`drivers.network.DriveNetwork.syncs_sent`, read under the same lock)."""
+        net = self.net
         try:
             with self.network.send_lock:
                 self.bus.send(message)
+                return net.syncs_sent
         except can.CanError as exc:
             raise DriveError(f"cannot send 0x{message.arbitration_id:03X} on the bus: {exc}") from exc
 

@@ -160,7 +160,8 @@ def _apply(writer: McapFileWriter, item: tuple[Any, ...]) -> None:
         writer.write_sample(SampleRecord(*item[2]), item[1])
     elif op == WireOp.TRIAL_SAMPLES:
         reference, output, control, error, big_e = (np.frombuffer(column, dtype=np.float64) for column in item[5:10])
-        samples = TrialSamples(item[2], item[3], reference, output, control, error, big_e, item[4])
+        latched = None if item[10] is None else np.frombuffer(item[10], dtype=np.float64)
+        samples = TrialSamples(item[2], item[3], reference, output, control, error, big_e, item[4], latched)
         writer.write_trial_samples(samples, item[1])
     elif op == WireOp.TIMING:
         writer.write_timing(TimingRecord(*item[2]), item[1])

@@ -258,7 +258,10 @@ class ProcessLogWriter(_ClosingListener):
         """
         axis = None if samples.axis is None else int(samples.axis)
         columns = tuple(column.tobytes() for column in samples.columns())
-        self._put((_TRIAL_SAMPLES, time.time_ns(), int(samples.trial), float(samples.sample_time), axis, *columns))
+        latched = samples.latched_column()
+        held = None if latched is None else latched.tobytes()  # after the five columns (log_child reads it there)
+        self._put((_TRIAL_SAMPLES, time.time_ns(), int(samples.trial), float(samples.sample_time), axis, *columns,
+                   held))
 
     def write_timing(self, record: TimingRecord) -> None:
         """Log one ``/timing`` message (see :meth:`McapLogWriter.write_timing`)."""

@@ -597,9 +597,17 @@ def trial_samples_documents(samples: TrialSamples) -> list[bytes] | None:
     # row i's instant as records() computes it, (i + 1) * Ts: an int times a float, exact either way
     instants = (np.arange(1, count + 1, dtype=np.float64) * float(samples.sample_time)).tolist()
     axis = b"" if samples.axis is None else b',"axis":%d' % int(samples.axis)
-    template = (b'{"trial":%d,"t":%%s,"reference":%%s,"output":%%s,"control":%%s,"error":%%s,"E":%%s,"sample":%%d%s}'
-                % (int(samples.trial), axis))
-    values = zip(*map(_json_texts, [instants, *(column.tolist() for column in columns)]), range(count), strict=True)
+    latched = samples.latched_column()
+    texts = [instants, *(column.tolist() for column in columns)]
+    held = b""
+    if latched is not None:  # after E, as SampleRecord.to_json writes it
+        if latched.ndim != 1:
+            return None
+        texts.append(latched.tolist())
+        held = b',"latched":%s'
+    template = (b'{"trial":%d,"t":%%s,"reference":%%s,"output":%%s,"control":%%s,"error":%%s,"E":%%s%s,"sample":%%d%s}'
+                % (int(samples.trial), held, axis))
+    values = zip(*map(_json_texts, texts), range(count), strict=True)
     return list(map(template.__mod__, values))
 
 

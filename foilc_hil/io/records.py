@@ -48,11 +48,15 @@ class SampleRecord(NamedTuple):
         The reference, the measured output, ``reference - output`` and the learning signal at ``t``; ``E`` may be
         ``None``.
     control
-        The law's command ``u(i)``, applied from ``t``.
+        The law's command ``u(i)``, applied from ``t`` when its RPDO reached the drive before the SYNC at ``t``.
     sample
         The index ``i`` within the trial; ``None`` writes no ``sample`` field (logs of other tools).
     axis
         The axis's node id in a run of several axes (``axes:``); ``None`` writes no ``axis`` field (one axis).
+    latched
+        The command the drive latched at the SYNC starting the sample (at ``t``), as sent (clamped, quantised, plant
+        units): ``control`` as sent when its RPDO came before that SYNC, else the last RPDO before it; ``None``
+        writes no ``latched`` field (logs of other tools; logs written before it existed have none).
     """
 
     trial: int
@@ -64,6 +68,7 @@ class SampleRecord(NamedTuple):
     E: Signal = None
     sample: int | None = None
     axis: int | None = None
+    latched: Signal = None
 
     def to_json(self) -> dict[str, Any]:
         """The ``/ilc/sample`` document (:data:`foilc_hil.io.schemas.ILC_SAMPLE_SCHEMA`); values are not rounded."""
@@ -76,6 +81,8 @@ class SampleRecord(NamedTuple):
             "error": _scalar_or_list(self.error),
             "E": _scalar_or_list(self.E),
         }
+        if self.latched is not None:
+            document["latched"] = _scalar_or_list(self.latched)
         if self.sample is not None:
             document["sample"] = self.sample
         if self.axis is not None:
@@ -102,6 +109,9 @@ class TrialSamples(NamedTuple):
         ``control[i] = u_i``, applied from ``(i + 1) Ts``.
     axis
         The axis's node id in a run of several axes; ``None``: the only axis.
+    latched
+        ``(N,)``: ``latched[i]``, the command the drive latched at the SYNC at ``(i + 1) Ts`` (see
+        :class:`SampleRecord`); ``None``: no ``latched`` field.
     """
 
     trial: int
@@ -112,6 +122,7 @@ class TrialSamples(NamedTuple):
     error: np.ndarray
     E: np.ndarray
     axis: int | None = None
+    latched: np.ndarray | None = None
 
     def columns(self) -> tuple[np.ndarray, ...]:
         """``reference, output, control, error, E`` as ``N`` contiguous float64 values each."""
@@ -121,12 +132,20 @@ class TrialSamples(NamedTuple):
             for column in (self.reference, self.output, self.control, self.error, self.E)
         )
 
+    def latched_column(self) -> np.ndarray | None:
+        """``latched`` as ``N`` contiguous float64 values (``None``: none)."""
+        if self.latched is None:
+            return None
+        return np.ascontiguousarray(np.asarray(self.latched, dtype=np.float64)[: len(self.control)])
+
     def records(self) -> Iterator[SampleRecord]:
         """The trial's :class:`SampleRecord` messages, in sample order (each value the Python float of its row)."""
         trial, sample_time, axis = self.trial, self.sample_time, self.axis
         rows = zip(*(column.tolist() for column in self.columns()), strict=True)
-        for i, (reference, output, control, error, big_e) in enumerate(rows):
-            yield SampleRecord(trial, (i + 1) * sample_time, reference, output, control, error, big_e, i, axis)
+        latched = self.latched_column()
+        held = latched.tolist() if latched is not None else [None] * len(self.control)
+        for i, ((reference, output, control, error, big_e), value) in enumerate(zip(rows, held, strict=True)):
+            yield SampleRecord(trial, (i + 1) * sample_time, reference, output, control, error, big_e, i, axis, value)
 
 
 class TimingRecord(NamedTuple):

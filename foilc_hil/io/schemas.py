@@ -143,7 +143,11 @@ ILC_SAMPLE_SCHEMA: Final[dict[str, Any]] = {
         "axis": {"type": "integer", "minimum": 1, "maximum": 127, "description": "the axis's node id (axes: runs)"},
         "reference": {**_SIGNAL, "description": "y_r(t)"},
         "output": {**_SIGNAL, "description": "measured feedback y(t, k)"},
-        "control": {**_SIGNAL, "description": "command u(t, k) the law produced, applied from t"},
+        "control": {**_SIGNAL, "description": "command u(t, k) the law produced, applied from t when its RPDO came "
+                    "before the SYNC at t (see latched)"},
+        "latched": {**_SIGNAL, "description": "the command the drive latched at the SYNC at t, as sent (clamped, "
+                    "quantised, plant units): control when its RPDO came before that SYNC, else the last RPDO before "
+                    "it (a missed deadline); known from the bus. Absent in logs written before it"},
         "error": {**_SIGNAL, "description": "e = y_r - y"},
         "E": {
             "oneOf": [*_SIGNAL["oneOf"], {"type": "null"}],
@@ -270,15 +274,15 @@ def channel_metadata(config_yaml: str | None) -> dict[str, dict[str, str]]:
     """Channel metadata per topic: ``{"units": <JSON object field -> unit>}``.
 
     Time fields always carry their unit; ``/ilc/sample`` signals and ``/ilc/trial`` errors carry the plant units of
-    the logged ``drive:`` section (``velocity_unit``; ``control`` in ``torque_unit`` in ``cst`` mode) when
-    ``config_yaml`` loads. Metadata only: the schemas and messages are unchanged.
+    the logged ``drive:`` section (``velocity_unit``; ``control`` and ``latched`` in ``torque_unit`` in ``cst``
+    mode) when ``config_yaml`` loads. Metadata only: the schemas and messages are unchanged.
     """
     units = {topic: dict(fixed) for topic, fixed in _FIXED_UNITS.items()}
     signal = _signal_units(config_yaml)
     if signal is not None:
         output, command = signal
         units[TOPIC_SAMPLE].update({"reference": output, "output": output, "error": output, "E": output,
-                                    "control": command})
+                                    "control": command, "latched": command})
         units[TOPIC_TRIAL].update({"sse": f"{output}^2", "rmse": output, "max_abs_error": output})
     return {topic: {"units": json.dumps(fields, sort_keys=True)} for topic, fields in units.items()}
 

@@ -41,6 +41,9 @@ Given command ``limits`` (``make_law(..., limits=(lower, upper))``, the bench's 
 clamps each command before storing it, so the feedforward learned for the next trial is the input that was
 applied, not a command the drive never executed (anti-windup: without it the stored feedforward can keep
 growing while the drive saturates). The bench's limiter stays as the safety layer with the same limits.
+For the same reason the bench hands :meth:`LearningLaw.end_trial` the input the drive latched at each SYNC
+(``/ilc/sample.latched``: as sent, and the previous command where an RPDO missed its SYNC), and the law stores that
+as ``u_{k-1}``: the law learns from the input that ran, never from a command the drive did not execute.
 
 P-type (Arimoto): ``u_k(t) = u_{k-1}(t) + Gamma e_{k-1}[t + d]``, the 2D law with ``p1 = 0`` and ``E = e``; its
 design (gain, model, certificates) comes from the same pipeline (:mod:`foilc_hil.design.pipeline`).
@@ -248,13 +251,18 @@ class LearningLaw(ABC):
         self._next_sample = 0
         self._in_trial = True
 
-    def end_trial(self, reference: np.ndarray, output: np.ndarray) -> TrialUpdate:
-        """Learn from the finished trial: ``e = y_r - y``, ``E``, optional Q-filter; ``u_k`` becomes ``u_{k-1}``.
+    def end_trial(self, reference: np.ndarray, output: np.ndarray, applied: np.ndarray | None = None) -> TrialUpdate:
+        """Learn from the finished trial: ``e = y_r - y``, ``E``, optional Q-filter; the input that ran becomes
+        ``u_{k-1}``.
 
         Parameters
         ----------
         reference, output
             ``y_r`` and ``y`` at ``t = (i+1) Ts``, ``i = 0 .. N-1``; ``(N,)`` or ``(N, p)``.
+        applied
+            ``(N,)`` or ``(N, m)``: the input the plant ran in each sample, when it is known and may differ from the
+            law's commands (the bench's ``latched``: a command whose RPDO missed its SYNC never ran, and the drive
+            held the previous one; the commands as sent are quantised). ``None``: the law's own commands ran.
 
         Raises
         ------
@@ -275,11 +283,15 @@ class LearningLaw(ABC):
         learned = self._learning_signal(error)
         if not np.all(np.isfinite(learned)):
             raise LearningDivergedError(f"trial {self.trial + 1}: the learning signal E is not finite")
+        ran = self._u if applied is None else _as_trial_array(applied, self.n_samples, self.n_inputs, "applied")
+        if not np.all(np.isfinite(ran)):
+            raise InputError("applied: must be finite")
         np.copyto(self._learned, learned)
+        # u_{k-1} is what ran (module notes): the law's commands, or the input the bench knows the drive latched
         if self.q_filter is not None:
-            np.copyto(self._feedforward, self.q_filter.apply(self._u))
+            np.copyto(self._feedforward, self.q_filter.apply(ran))
         else:
-            np.copyto(self._feedforward, self._u)
+            np.copyto(self._feedforward, ran)
         np.copyto(self._x_prev, self._x)  # this trial's state becomes the previous trial's
         self._has_record = True
         self._in_trial = False

@@ -168,7 +168,7 @@ class LawLike(Protocol):
 
     def command(self, t: int, output: np.ndarray) -> np.ndarray: ...
 
-    def end_trial(self, reference: np.ndarray, output: np.ndarray) -> Any: ...
+    def end_trial(self, reference: np.ndarray, output: np.ndarray, applied: np.ndarray | None = None) -> Any: ...
 
 
 @dataclass(frozen=True)
@@ -387,7 +387,7 @@ def _checks(contents: LogContents, config: Any, layout: int) -> _Checks:
     several = any("axis" in record for record in contents.trials)  # an axis's records carry no noise floor
     mapping = contents.metadata.get(METADATA_PDO_MAPPING)
     wire = wire_map(mapping, config.drive) if mapping is not None else None
-    windows = sync_windows(contents.frames) if wire is not None else []
+    windows = sync_windows(contents.frames, frozenset({wire.target.cob_id})) if wire is not None else []
     return _Checks(records=True, tracker=None if several else NoiseFloorTracker(), wire=wire, windows=windows)
 
 
@@ -476,7 +476,9 @@ def _verify_trial(trial: int, rows: Sequence[Mapping[str, Any]], record: Mapping
         reference, output, problem, at = _trial_arrays(rows, record, layout)
         if problem:
             return len(rows), Divergence(trial, at, rows[at].get("t"), None, None, problem), False
-        update = law.end_trial(reference, output)
+        # the bench's law learned from what the drive latched (u_{k-1} is what ran): the log's latched, where it has
+        latched = _latched(rows)
+        update = law.end_trial(reference, output) if latched is None else law.end_trial(reference, output, latched)
     except FoilcHilError as exc:
         return position, Divergence(trial, position, None, None, None, f"the law refused: {exc}"), False
     finding = _trial_finding(trial, rows, record, inputs, update, output, checks)
@@ -503,10 +505,21 @@ def _trial_finding(trial: int, rows: Sequence[Mapping[str, Any]], record: Mappin
         return finding
     feedback = [_as_float(value) for value in inputs] + [float(output[-1].ravel()[0])]
     controls = [_as_float(row["control"]) for row in rows]
-    mismatch = check_trial_wire(checks.windows, record, feedback, controls, checks.wire)
+    latched = [_as_float(row["latched"]) for row in rows] if all("latched" in row for row in rows) else None
+    mismatch = check_trial_wire(checks.windows, record, feedback, controls, checks.wire, latched)
     if mismatch is None:
         return None
     return Finding("/can", mismatch.trial, mismatch.sample, mismatch.reason, mismatch.logged, mismatch.on_wire)
+
+
+def _latched(rows: Sequence[Mapping[str, Any]]) -> np.ndarray | None:
+    """The trial's ``latched`` column, ``(N, m)``; ``None`` for a log without it (written before it existed)."""
+    if not rows or any("latched" not in row for row in rows):
+        return None
+    values = [_as_vector(row["latched"]) for row in rows]
+    if any(value is None for value in values):
+        return None
+    return np.array(values, dtype=np.float64)
 
 
 def _record_limits(record: Mapping[str, Any]) -> tuple[float, float] | None:

@@ -9,9 +9,14 @@ drive section of the logged config:
 - the velocity in cycle ``i``'s TPDO is the feedback the law was given at sample ``i`` (``initial_output`` for
   ``i = 0``, the previous row's ``output`` after it): ``raw / drive.velocity_scale``, bit for bit; a cycle with no
   TPDO is a lost feedback, for which the law was given the last good value again (``lost_feedback`` counts them);
-- the target in cycle ``i``'s RPDO (``i < N``) is the row's ``control`` as the bench sent it: clamped to
-  ``/ilc/trial`` ``command_limits`` and to the drive's limit, scaled and rounded (the master's ``set_target``);
-  cycle ``N``'s is the zero command that ends the trial;
+- the bench sends one RPDO per cycle, in order, each after its cycle's SYNC: the ``j``-th of the node's RPDOs from
+  the trial's first SYNC on is cycle ``j``'s, never in a window before its own (SYNC from a clock: a late one lands
+  in a later window, a missed deadline); its target (``j < N``) is the row's ``control`` as the bench sent it:
+  clamped to ``/ilc/trial`` ``command_limits`` and to the drive's limit, scaled and rounded (the master's
+  ``set_target``); cycle ``N``'s is the zero command that ends the trial;
+- ``latched`` (where the log has it): row ``i``'s is the target of the last RPDO before SYNC ``i + 1`` of the trial
+  (the end of cycle ``i``'s window), in plant units (``raw / scale``, as the bench divides), bit for bit: the
+  command the drive latched at that SYNC;
 - a frame of the node's TPDOs whose length is not the mapping's is a bad frame (``bad_frames`` counts them).
 
 Logs without ``first_sync`` (offline runs, logs written before it) have no wire to check; the caller says so.
@@ -20,9 +25,10 @@ Logs without ``first_sync`` (offline runs, logs written before it) have no wire 
 from __future__ import annotations
 
 import base64
+import itertools
 import math
 import struct
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -115,12 +121,24 @@ class _Frame:
     data: bytes
 
 
-def sync_windows(frames: Sequence[Mapping[str, Any]]) -> list[list[_Frame]]:
-    """The log's frames cut at each SYNC the bench sent: window ``k - 1`` starts with the ``k``-th SYNC."""
+def sync_windows(frames: Sequence[Mapping[str, Any]], own: frozenset[int] = frozenset()) -> list[list[_Frame]]:
+    """The log's frames cut at each SYNC the bench sent: window ``k - 1`` starts with the ``k``-th SYNC.
+
+    Where the log holds the bus's echo of the bench's own frames (``udp_multicast`` delivers them back, and a bus
+    opened with ``receive_own_messages``), the windows are the received frames alone, cut at the SYNC echoes, and
+    the echoes of the COB-IDs in ``own`` (the node's RPDO) count as the bench's: one stream, in the order the bus
+    delivered it (the frames the bench sent are logged by the sending thread, the ones received by the receive
+    thread: two threads, whose order in the log is not the bus's when a SYNC comes from a clock of its own).
+    """
+    echoed = any(frame.get("dir") == "rx" and int(frame["id"]) == SYNC_COB_ID for frame in frames)
     windows: list[list[_Frame]] = []
     for frame in frames:
         cob, tx = int(frame["id"]), frame.get("dir") == "tx"
-        if tx and cob == SYNC_COB_ID:
+        if echoed:
+            if tx:
+                continue
+            tx = cob in own
+        if cob == SYNC_COB_ID and (tx or echoed):
             windows.append([])
         elif windows:
             windows[-1].append(_Frame(cob, tx, base64.b64decode(frame.get("data") or "")))
@@ -139,12 +157,11 @@ def _sent_raw(control: float, limits: tuple[float, float] | None, wire: WireMap)
 
 def check_trial_wire(
     windows: Sequence[Sequence[_Frame]], record: Mapping[str, Any], inputs: Sequence[float],
-    controls: Sequence[float], wire: WireMap,
+    controls: Sequence[float], wire: WireMap, latched: Sequence[float] | None = None,
 ) -> WireMismatch | None:
-    """Hold one trial's ``N + 1`` cycles on the wire against the law's inputs (``N + 1``: ``y_0 .. y_N``) and its
-    ``N`` commands; the first disagreement, or ``None``."""
+    """Hold one trial's ``N + 1`` cycles on the wire against the law's inputs (``N + 1``: ``y_0 .. y_N``), its
+    ``N`` commands and (given) the ``N`` commands the drive latched; the first disagreement, or ``None``."""
     trial, first = int(record["trial"]), int(record["first_sync"])
-    limits = tuple(record["command_limits"]) if "command_limits" in record else None
     n = len(controls)
     if first < 1 or first + n > len(windows):
         return WireMismatch(trial, 0, f"/can holds {len(windows)} SYNCs, not the trial's from SYNC {first}",
@@ -164,21 +181,69 @@ def check_trial_wire(
         if not (math.isnan(y) and not answers) and _bits(y) != _bits(inputs[i]):
             what = "the TPDO's velocity" if answers else "the value held for a lost TPDO"
             return WireMismatch(trial, i, f"{what} is not the feedback the law was given", inputs[i], y)
-        commands = [f for f in window if f.tx and f.cob_id == wire.target.cob_id]
-        expected = _sent_raw(controls[i], limits, wire) if i < n else 0
-        if i == n:  # after the last trial's zero command the stop's own RPDOs may follow before any SYNC
-            commands = commands[:1]
-        if len(commands) != 1:
-            return WireMismatch(trial, i, f"{len(commands)} RPDOs in the cycle, not one", expected, len(commands))
-        sent = wire.target.decode(commands[0].data)
-        if sent != expected:
-            logged = controls[i] if i < n else 0.0
-            return WireMismatch(trial, i, "the RPDO's target is not the logged control as the bench sends it",
-                                logged, sent / wire.target_scale)
+    mismatch = _check_commands(windows, record, controls, wire, latched)
+    if mismatch is not None:
+        return mismatch
     for key, count in (("lost_feedback", lost), ("bad_frames", bad)):
         if key in record and int(record[key]) != count:
             return WireMismatch(trial, n, f"/ilc/trial {key} is {record[key]}, the wire shows {count}",
                                 record[key], count)
+    return None
+
+
+def _rpdos(windows: Sequence[Sequence[_Frame]], wire: WireMap, start: int) -> Iterator[tuple[int, int]]:
+    """``(window, target)`` of the node's RPDOs the bench sent, from window ``start`` on, in order."""
+    cob, target = wire.target.cob_id, wire.target
+    return ((w, target.decode(f.data)) for w in range(start, len(windows)) for f in windows[w]
+            if f.tx and f.cob_id == cob and len(f.data) == target.size)
+
+
+def _check_commands(windows: Sequence[Sequence[_Frame]], record: Mapping[str, Any], controls: Sequence[float],
+                    wire: WireMap, latched: Sequence[float] | None) -> WireMismatch | None:
+    """The trial's ``N + 1`` RPDOs (module docstring) against its commands, and its ``latched`` column against the
+    last RPDO before each SYNC."""
+    trial, first = int(record["trial"]), int(record["first_sync"])
+    limits = tuple(record["command_limits"]) if "command_limits" in record else None
+    n, start = len(controls), first - 1
+    # after the last trial's zero command the stop's own RPDOs may follow: only the trial's N + 1 count
+    sent = list(itertools.islice(_rpdos(windows, wire, start), n + 1))
+    if len(sent) != n + 1:
+        return WireMismatch(trial, len(sent), f"/can holds {len(sent)} RPDOs from the trial's first SYNC on, not "
+                            f"{n + 1}", n + 1, len(sent))
+    for j, (window, raw) in enumerate(sent):
+        if window < start + j:  # before its own SYNC: not this cycle's (an RPDO too many)
+            return WireMismatch(trial, j, "an RPDO in the cycle before its command's SYNC", start + j, window)
+        expected = _sent_raw(controls[j], limits, wire) if j < n else 0
+        if raw != expected:
+            logged = controls[j] if j < n else 0.0
+            return WireMismatch(trial, j, "the RPDO's target is not the logged control as the bench sends it",
+                                logged, raw / wire.target_scale)
+    return None if latched is None else _check_latched(windows, trial, start, latched, wire)
+
+
+def _last_rpdo(window: Sequence[_Frame], wire: WireMap, last: int | None) -> int | None:
+    """The target of the node's last RPDO in ``window``; ``last`` when it has none."""
+    cob, target = wire.target.cob_id, wire.target
+    for frame in window:
+        if frame.tx and frame.cob_id == cob and len(frame.data) == target.size:
+            last = target.decode(frame.data)
+    return last
+
+
+def _check_latched(windows: Sequence[Sequence[_Frame]], trial: int, start: int, latched: Sequence[float],
+                   wire: WireMap) -> WireMismatch | None:
+    """Row ``i``'s ``latched`` against the last RPDO in the windows up to ``start + i`` (before SYNC ``i + 1``)."""
+    last: int | None = None
+    for w in range(start):  # the RPDO the drive held when the trial began
+        last = _last_rpdo(windows[w], wire, last)
+    for i, logged in enumerate(latched):
+        last = _last_rpdo(windows[start + i], wire, last)
+        if last is None:
+            continue  # no RPDO before the trial in the log: nothing to hold it against
+        on_wire = last / wire.target_scale
+        if _bits(on_wire) != _bits(float(logged)):
+            return WireMismatch(trial, i, "latched is not the last RPDO's target before the sample's SYNC", logged,
+                                on_wire)
     return None
 
 

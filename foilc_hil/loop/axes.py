@@ -111,6 +111,38 @@ class AxisGroup:
             applied[k] = drive.set_target(target)
         return applied.copy()
 
+    # -- SYNC from a clock (realtime): one clock for the one network, every axis's RPDO echo ------------------
+
+    def start_clock(self, *, spin_margin: float = 0.0002) -> str | None:
+        """SYNC from a clock on the axes' one network (every drive's RPDO echo routed); the clock's name, or None
+        where the network cannot (no cyclic receiver)."""
+        first = self.drives[0]
+        net = first.link.net
+        if net.receiver is None:
+            return None
+        echoes = {cob: callback for drive in self.drives for cob, callback in drive.cyclic.clock_routes().items()}
+        return cast(str, net.start_clock(first.cyclic.cycle_period, echoes, spin_margin=spin_margin).name)
+
+    def stop_clock(self) -> None:
+        self.drives[0].stop_clock()
+
+    def await_sync(self, after: int, timeout: float) -> Any:
+        return self.drives[0].await_sync(after, timeout)
+
+    @property
+    def latched(self) -> np.ndarray:
+        """What each axis's drive latched at the last SYNC read from the bus, ``(m,)``."""
+        return np.array([drive.latched for drive in self.drives])
+
+    @property
+    def syncs_seen(self) -> int:
+        return cast(int, self.drives[0].syncs_seen)
+
+    @property
+    def rpdo_sync_count(self) -> int:
+        """The SYNCs sent when the last axis's RPDO (the cycle's last) went out."""
+        return cast(int, self.drives[-1].rpdo_sync_count)
+
     def quick_stop(self) -> None:
         """Quick-stop EVERY axis, each tried even when another fails; then raise the first failure."""
         failures: list[Exception] = []
@@ -156,9 +188,11 @@ class AxisLaws:
             commands[k] = law.command(t, axis_input)[0]
         return commands
 
-    def end_trial(self, reference: np.ndarray, output: np.ndarray) -> TrialUpdate:
-        """Every axis's between-trial update; the returned one stacks their errors column by column."""
-        updates = tuple(law.end_trial(reference[:, k], output[:, k]) for k, law in enumerate(self.laws))
+    def end_trial(self, reference: np.ndarray, output: np.ndarray, applied: np.ndarray | None = None) -> TrialUpdate:
+        """Every axis's between-trial update (``applied``: ``(N, m)``, each axis's column the input it ran); the
+        returned one stacks their errors column by column."""
+        updates = tuple(law.end_trial(reference[:, k], output[:, k], None if applied is None else applied[:, k])
+                        for k, law in enumerate(self.laws))
         self.updates = updates
         for k, update in enumerate(updates):
             self.history[k].append(update.metrics)
@@ -214,6 +248,7 @@ class AxesSink:
                 applied=record.applied[:, k], output=record.output[:, k], error=record.error[:, k],
                 E=record.E[:, k], metrics=update.metrics, clamped=clamped, axis=node,
                 command_limits=(limiter.lower, limiter.upper),
+                latched=None if record.latched is None else record.latched[:, k],
             ))
 
     def timing(self, records: Iterator[Any]) -> None:

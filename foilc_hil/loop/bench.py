@@ -72,12 +72,12 @@ import threading
 import time
 from collections.abc import Callable, Generator, Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol, cast
 
 import numpy as np
 
 from drivers.cia402 import State402
-from drivers.realtime import BenchRealtimeConfig, collect_young, demote_current_thread
+from drivers.realtime import BenchRealtimeConfig, SyncSource, collect_young, demote_current_thread
 from foilc_hil.errors import (
     DriveError,
     DriveFaultError,
@@ -103,6 +103,7 @@ if TYPE_CHECKING:
 
     from foilc_hil.io.log_process import ProcessLogWriter
     from foilc_hil.io.mcap_log import McapLogWriter, QueuedLogWriter
+    from foilc_hil.loop.stalls import LoopStalls
 
 __all__ = [
     "MIN_SETTLE_TIMEOUT",
@@ -168,6 +169,26 @@ class DriveLike(Protocol):
     def bad_frames(self) -> int: ...
 
 
+class ClockedDriveLike(DriveLike, Protocol):
+    """A drive whose network can take SYNC from a clock (:class:`drivers.cia402_master.Cia402Drive`,
+    :class:`~foilc_hil.loop.axes.AxisGroup`): the realtime loop then runs on the SYNCs it reads from the bus."""
+
+    def start_clock(self, *, spin_margin: float) -> str | None: ...
+
+    def stop_clock(self) -> None: ...
+
+    def await_sync(self, after: int, timeout: float) -> Any: ...
+
+    @property
+    def latched(self) -> Any: ...
+
+    @property
+    def rpdo_sync_count(self) -> int: ...
+
+    @property
+    def syncs_seen(self) -> int: ...
+
+
 class LawLike(Protocol):
     """The subset of ``foilc_hil.laws.learning.LearningLaw`` the loop uses."""
 
@@ -175,7 +196,9 @@ class LawLike(Protocol):
 
     def command(self, t: int, output: np.ndarray) -> np.ndarray: ...
 
-    def end_trial(self, reference: np.ndarray, output: np.ndarray) -> TrialUpdate: ...
+    def end_trial(
+        self, reference: np.ndarray, output: np.ndarray, applied: np.ndarray | None = None
+    ) -> TrialUpdate: ...
 
     @property
     def feedforward(self) -> np.ndarray: ...
@@ -260,14 +283,16 @@ class TrialRecord:
     axis: int | None = None  # the axis's node id in a run of several axes (``axes:``); None: the only axis
     command_limits: tuple[float, float] | None = None  # this axis's limits when they are not the sink's
     first_sync: int | None = None  # the drive's count of the trial's first SYNC (its frame in /can); None: no bus
+    #: (N,): what the drive latched at SYNC i + 1 (``/ilc/sample.latched``); None: not known (not logged)
+    latched: np.ndarray | None = None
 
     def samples(self) -> TrialSamples:
         """The ``/ilc/sample`` messages of this trial as columns, layout :data:`~foilc_hil.io.schemas.SAMPLE_LAYOUT`
         (module docstring): row ``i`` describes the instant ``(i + 1) Ts``, ``output[i] = y((i + 1) Ts)`` (so
         ``error[i] = reference[i] - output[i]`` exactly) and ``control[i] = u_i``, sent after SYNC ``i`` and applied
-        by the drive from SYNC ``i + 1``."""
+        by the drive from SYNC ``i + 1`` if its RPDO came before it: ``latched[i]`` is what the drive did latch."""
         return TrialSamples(int(self.trial), float(self.sample_time), self.reference, self.output, self.control,
-                            self.error, self.E, self.axis)
+                            self.error, self.E, self.axis, self.latched)
 
 
 @dataclass
@@ -335,6 +360,7 @@ class _RawTrial:
     feedforward_used: np.ndarray
     faults: FaultCounts
     first_sync: int | None
+    latched: np.ndarray
 
 
 #: seconds between the loop's looks at its stop request while it waits for a between-trial update (a stalled log
@@ -439,6 +465,10 @@ class TrialLoop:
         Called with the trial number once the axis has settled, just before the trial's first SYNC. The embedded
         emulator and the simulated drive use it to start their plant's trial (initial condition, a disturbance that
         begins at a given trial, per-trial noise); a real drive has no such hook.
+    stalls
+        Fault injection (``stall@TRIAL+CYCLE``, :class:`foilc_hil.loop.stalls.LoopStalls`): the samples of each
+        trial whose cycle stalls the loop thread alone (``sleep``) between the law's command and its RPDO.
+        ``None``: no stall.
     """
 
     def __init__(
@@ -455,6 +485,7 @@ class TrialLoop:
         clock: Callable[[], float] = time.perf_counter,
         before_trial: Callable[[int], None] | None = None,
         sleep: Callable[[float], None] = time.sleep,
+        stalls: LoopStalls | None = None,
     ) -> None:
         ref = np.asarray(reference, dtype=float)
         if ref.ndim not in (1, 2) or ref.size == 0:
@@ -481,6 +512,14 @@ class TrialLoop:
             else None
         )
         self._command_margin = COMMAND_MARGIN_FRACTION * settings.period
+        self._sleep = sleep
+        self._stalls = stalls
+        # SYNC from a clock (realtime, bench.realtime.sync: clock, a drive that can): the loop runs on the SYNCs it
+        # reads from the bus. _latched: what the drive latched at the last SYNC; the liveness bound of the waits
+        self._clocked = False
+        self._clock_drive: ClockedDriveLike | None = None
+        self._latched: Any = 0.0
+        self._sync_timeout = settings.watchdog_cycles * settings.lockstep_feedback_timeout
         self.outcome = BenchOutcome()
         # finished realtime blocks (rows, first cycle, phase, trial) whose /timing records are not yet logged: a
         # trial's 6000 records take milliseconds to build, so the update thread logs them, not the loop thread
@@ -540,6 +579,7 @@ class TrialLoop:
             self.timing.start()
         if self.scheduler is not None:
             self.scheduler.start()
+            self._start_clock()
         update: _TrialUpdateThread | None = None
         try:
             for trial in range(first, last + 1):
@@ -575,10 +615,33 @@ class TrialLoop:
                 # an abort during the settle phase: the trial before it did complete, so finish logging it (the
                 # writer's waits are bounded: a stalled writer ends the update within its stall timeout)
                 update.finish(_UPDATE_GRACE)
+            self._stop_clock()
             self._emit_timing()
             self.outcome.clamped_commands = self._clamped_count()
             self.outcome.faults = FaultCounts(self.watchdog.total, self.drive.bad_frames)
             self.outcome.timing = self.timing.summary()
+
+    def _start_clock(self) -> None:
+        """Realtime with ``bench.realtime.sync: clock``: SYNC from the drive's clock, when it has one to start
+        (:mod:`drivers.sync_clock`); else the loop sends SYNC on its deadlines (the scheduler)."""
+        if self.settings.realtime.sync is not SyncSource.CLOCK or not hasattr(self.drive, "start_clock"):
+            self.timing.sync_clock = str(SyncSource.LOOP)
+            return
+        drive = cast(ClockedDriveLike, self.drive)
+        name = drive.start_clock(spin_margin=self.settings.realtime.spin_margin)
+        self._clocked = name is not None
+        self._clock_drive = drive if name is not None else None
+        if name is not None:  # the SYNCs so far were the loop's own (enable): the clock's are counted from here
+            self._sync_number = drive.syncs_seen
+        self.timing.sync_clock = name if name is not None else str(SyncSource.LOOP)
+
+    def _stop_clock(self) -> None:
+        """The clock stops with the loop: what follows (the drive's stop) sends its own SYNCs."""
+        drive, self._clock_drive = self._clock_drive, None
+        self._clocked = False
+        if drive is not None:
+            with contextlib.suppress(Exception):  # on every exit path, the error being raised is the run's
+                drive.stop_clock()
 
     # -- phases --------------------------------------------------------------------------------------------------
 
@@ -622,7 +685,10 @@ class TrialLoop:
         seen = np.empty((n + 1, *width))
         control = np.empty((n, *width))
         applied = np.empty((n, *width))
+        latched = np.empty((n, *width))  # what the drive latched at SYNC i + 1 (clocked: from the bus)
         sync_times = np.empty(n + 1)
+        stalls = self._stalls.cycles(trial) if self._stalls is not None else {}
+        clocked = self._clocked
         self._feedforward_used = np.array(self.law.feedforward, dtype=float, copy=True)
         self.timing.begin_block(n + 1, phase="trial", trial=trial)
         first_cycle = self._cycle
@@ -641,12 +707,16 @@ class TrialLoop:
             whole = self._run_whole_trial(seen, control, applied, sync_times)
             for i in range(whole, n):  # those left, one by one
                 y = self._cycle_feedback()
+                if clocked and i:
+                    latched[i - 1] = self._latched
                 sync_times[i] = self._sync_time
                 seen[i] = y
                 output_buffer[into] = y
                 u = as_command(law.command(i, output_buffer))
                 require(u, "command", self._cycle)
                 control[i] = u
+                if stalls and i in stalls:  # fault injection: the loop thread alone stalls (the SYNC clock goes on)
+                    self._stall(trial, i, stalls[i])
                 applied[i] = drive.set_target(clamp(u))
                 self._finish_cycle()
                 if i % every == 0:
@@ -658,13 +728,17 @@ class TrialLoop:
             self._finish_cycle()
         finally:
             self._flush_timing(first_cycle)
+        if clocked:
+            latched[n - 1] = self._latched
+        else:  # the loop itself sent each SYNC after the cycle's RPDO, on one bus object: every command latched
+            latched[:] = applied
         self.progress.advance(n)
         faults = FaultCounts(self.watchdog.total - lost_before, self.drive.bad_frames - bad_before)
         # SYNCs are counted one by one, the trial's N + 1 the last of them (no count where the drive ran it whole)
         first_sync = self._sync_number - n if whole == 0 else None
         return _RawTrial(
             trial, seen, control, applied, sync_times, self._clamped_count() - clamped_before, self._feedforward_used,
-            faults, first_sync,
+            faults, first_sync, latched,
         )
 
     def _run_whole_trial(
@@ -697,7 +771,7 @@ class TrialLoop:
         """Between trials (off the hot path): the law's update, metrics, progress, log, divergence check."""
         n = self.reference.shape[0]
         output = raw.seen[1:].copy()
-        update = self.law.end_trial(self.reference, output)
+        update = self.law.end_trial(self.reference, output, raw.latched)  # u_{k-1} is what the drive latched
         shape = (n, *self.reference.shape[1:])
         error = np.asarray(update.error, dtype=float).reshape(shape)
         E = np.asarray(update.E, dtype=float).reshape(shape)
@@ -718,6 +792,7 @@ class TrialLoop:
             clamped=raw.clamped,
             faults=raw.faults,
             first_sync=raw.first_sync,
+            latched=raw.latched,
         )
         self.outcome.trials.append(metrics)
         self.outcome.trial_faults.append(raw.faults)
@@ -738,17 +813,20 @@ class TrialLoop:
     def _cycle_feedback(self) -> float:
         """Release (realtime: wait for the deadline), SYNC, and wait for this cycle's feedback (watchdog-bounded)."""
         self._check_stop()
-        if self.scheduler is not None:
-            deadline, lateness, skipped = self.scheduler.wait()
+        if self._clocked:
+            timeout = self._clocked_sync()
         else:
-            deadline, lateness, skipped = math.nan, math.nan, 0
-        self._sync_number = self.drive.sync()
-        sync_time = self._clock()
-        self._sync_time = sync_time
-        self._deadline, self._lateness, self._skipped = deadline, lateness, skipped
-        timeout = self.watchdog.timeout
-        if self.scheduler is not None:  # wait no later than the next deadline: a lost feedback costs no deadline
-            timeout = max(0.0, self.scheduler.next_deadline - self._command_margin - sync_time)
+            if self.scheduler is not None:
+                deadline, lateness, skipped = self.scheduler.wait()
+            else:
+                deadline, lateness, skipped = math.nan, math.nan, 0
+            self._sync_number = self.drive.sync()
+            sync_time = self._clock()
+            self._sync_time = sync_time
+            self._deadline, self._lateness, self._skipped = deadline, lateness, skipped
+            timeout = self.watchdog.timeout
+            if self.scheduler is not None:  # wait no later than the next deadline: a lost feedback costs no deadline
+                timeout = max(0.0, self.scheduler.next_deadline - self._command_margin - sync_time)
         try:
             feedback = self.drive.wait_feedback(timeout)
         except FeedbackTimeoutError as exc:
@@ -757,7 +835,7 @@ class TrialLoop:
         received = self._clock()
         self._received = received
         self._missing = False
-        self._latency = received - sync_time
+        self._latency = received - self._sync_time
         self._late = self.scheduler is not None and self._latency > LATE_FEEDBACK_FRACTION * self.settings.period
         if feedback.state != State402.OPERATION_ENABLED:
             raise DriveFaultError(
@@ -767,6 +845,24 @@ class TrialLoop:
         self._signal.require_finite(y, "drive feedback", self._cycle)
         self._held = y
         return y
+
+    def _stall(self, trial: int, sample: int, seconds: float) -> None:
+        self._sleep(seconds)
+        if self._stalls is not None:
+            self._stalls.stalled(trial, sample, self._sync_number)
+
+    def _clocked_sync(self) -> float:
+        """SYNC from a clock: the next SYNC read from the bus (its time, deadline and the slots skipped before it,
+        as its producer recorded them), what the drive latched at it; returns the bound of the wait for feedback,
+        a liveness bound only (the next SYNC on the bus ends the wait first, as a lost feedback)."""
+        drive = cast(ClockedDriveLike, self._clock_drive)
+        seen = drive.await_sync(self._sync_number, self._sync_timeout)
+        self._sync_number = seen.number
+        self._sync_time = seen.time if seen.time == seen.time else self._clock()  # NaN: not known, read now
+        self._deadline, self._skipped = seen.due, seen.skipped
+        self._lateness = seen.time - seen.due
+        self._latched = drive.latched
+        return self._sync_timeout
 
     def _check_stop(self) -> None:
         if self.stop.requested:
@@ -789,6 +885,10 @@ class TrialLoop:
 
     def _finish_cycle(self) -> None:
         sent = self._clock()
+        if self._clocked:  # the command went out after the next SYNC (the bus object's order of sends): missed
+            missed = cast(ClockedDriveLike, self._clock_drive).rpdo_sync_count > self._sync_number
+        else:  # it went out after the next slot's SYNC should have latched it (NaN deadline: never)
+            missed = sent > self._deadline + self.settings.period
         self.timing.record(
             self._sync_time,
             self._deadline,
@@ -798,8 +898,7 @@ class TrialLoop:
             self._skipped,
             self._late,
             self._missing,
-            # missed: the command went out after the next slot's SYNC should have latched it (NaN deadline: never)
-            sent > self._deadline + self.settings.period,
+            missed,
         )
         self._cycle += 1
 

@@ -31,7 +31,7 @@ import numpy as np
 from drivers.cia402 import State402
 from drivers.cyclic_rx import CyclicReceive, CyclicReceiver, open_cyclic_receiver
 from drivers.drive import StopReport
-from drivers.faults import FaultyBus, Injection, InjectionReport, require_actions, split_by_axis
+from drivers.faults import LOOP_KINDS, FaultyBus, Injection, InjectionReport, require_actions, split_by_axis
 from drivers.realtime import RealtimeSession
 from foilc_hil.errors import DriveError, DriveFaultError, DriveNotStoppedError, FoilcHilError, InputError
 from foilc_hil.loop.axes import AxesSink, AxisGroup, AxisLaws, AxisLimiter, AxisOutcome
@@ -48,6 +48,7 @@ from foilc_hil.loop.bench import (
     loop_settings,
 )
 from foilc_hil.loop.safety import CommandLimiter, StopRequest
+from foilc_hil.loop.stalls import LoopStalls
 from foilc_hil.progress import ProgressView
 from plant_emulator.device import TimingMode
 
@@ -175,7 +176,8 @@ class RunPlan:
     reference: np.ndarray  # (N,) for one axis, (N, m) for m
     settings: LoopSettings
     title: str
-    injections: dict[int, tuple[Injection, ...]]  # node id -> the faults injected on that axis
+    injections: dict[int, tuple[Injection, ...]]  # node id -> the faults injected on that axis's bus or emulator
+    stalls: LoopStalls | None = None  # the loop's own injections (stall@...): they stall every axis's one loop
 
     @property
     def node_ids(self) -> tuple[int, ...]:
@@ -207,6 +209,9 @@ def plan_run(request: RunRequest) -> RunPlan:
     bus = request.bus if request.bus is not None else config.bus
     require_actions(config.inject, emulator=bus.interface == "embedded")
     injections = split_by_axis(config.inject, [axis.drive.node_id for axis in configs])  # a stray axis: exit 2
+    stalls = LoopStalls.of(config.inject)
+    injections = {node: kept for node, faults in injections.items()
+                  if (kept := tuple(i for i in faults if i.kind not in LOOP_KINDS))}
     columns = [reference_profile(axis.reference, config.sample_time) for axis in configs]
     lengths = [column.shape[0] for column in columns]
     if len(set(lengths)) != 1:
@@ -227,6 +232,7 @@ def plan_run(request: RunRequest) -> RunPlan:
         settings=loop_settings(config, request.mode),
         title=request.title or f"{law_kind.upper()}{several} on {where}",
         injections=injections,
+        stalls=stalls,
     )
 
 
@@ -354,7 +360,8 @@ class Rig:
             law=plan.law_kind, outcome=loop.outcome, log=str(self.request.out) if self.request.out is not None else "",
             design=_design_summary(plan.axes[0].design), bus=self._bus, cycles=loop.cycles,
             drive_stop=_worst(self.stops, plan.node_ids),
-            injected=[report for wrapper in self._faulty for report in wrapper.reports()],
+            injected=[*(report for wrapper in self._faulty for report in wrapper.reports()),
+                      *(plan.stalls.reports() if plan.stalls is not None else [])],
             axes=_axis_outcomes(plan, self.stops) if plan.several else [],
             stop_lines=[self.stops[node].describe(node) for node in plan.node_ids if node in self.stops],
         )
@@ -372,10 +379,10 @@ def _trial_loop(plan: RunPlan, drives: Sequence[Any], sink: McapSink | None, pro
     law, limiter = plan.law, plan.limiter
     if not plan.several:
         return TrialLoop(drives[0], law, plan.reference, limiter, plan.settings, log=sink, progress=progress,
-                         stop=stop, before_trial=hook)
+                         stop=stop, before_trial=hook, stalls=plan.stalls)
     log = AxesSink(sink, cast(AxisLaws, law), cast(AxisLimiter, limiter), plan.node_ids) if sink is not None else None
     return TrialLoop(AxisGroup(drives), law, plan.reference, limiter, plan.settings, log=log, progress=progress,
-                     stop=stop, before_trial=hook)
+                     stop=stop, before_trial=hook, stalls=plan.stalls)
 
 
 def _open_log(stack: contextlib.ExitStack, request: RunRequest, plan: RunPlan) -> McapSink | None:

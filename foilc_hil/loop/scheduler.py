@@ -150,7 +150,9 @@ class TimingSummary:
     (law, clamp, RPDO encode and send, log enqueue). ``cycles_per_second`` is ``cycles`` over the time from the
     loop's first cycle (:meth:`TimingRecorder.start`) to the summary. ``missed_deadlines`` (<= ``cycles``) and
     ``skipped_deadlines`` are defined in the module docstring; ``realtime`` is what the host setup applied
-    (:class:`drivers.realtime.RealtimeReport`; ``None`` in lockstep).
+    (:class:`drivers.realtime.RealtimeReport`; ``None`` in lockstep). With SYNC from a clock (``sync_clock``) the
+    jitter is the producer's lateness of each SYNC against its deadline, and ``cycle_time`` the intervals between
+    the SYNCs as the producer sent them.
     """
 
     mode: TimingMode
@@ -170,6 +172,9 @@ class TimingSummary:
     compute_p99_us: float | None
     cycles_per_second: float | None
     realtime: RealtimeReport | None = None
+    #: where SYNC came from in realtime: ``"thread"`` (a producer thread's clock), ``"bcm"`` (the kernel's broadcast
+    #: manager), ``"loop"`` (the loop, on its deadlines); ``None`` in lockstep (the loop, no deadline)
+    sync_clock: str | None = None
 
     def to_json(self) -> dict[str, Any]:
         document = {key: getattr(self, key) for key in self.__dataclass_fields__}
@@ -299,6 +304,7 @@ class TimingRecorder:
         self._count = 0
         self.phase = ""  # the current block's phase and trial
         self.trial = 0
+        self.sync_clock: str | None = None  # TimingSummary.sync_clock, set by the loop
         self._started_at = time.perf_counter()
 
     def start(self) -> None:
@@ -415,6 +421,7 @@ class TimingRecorder:
             compute_p50_us=compute[0],
             compute_p99_us=compute[1],
             cycles_per_second=cycles / elapsed if elapsed > 0 and cycles else None,
+            sync_clock=self.sync_clock,
         )
 
 
