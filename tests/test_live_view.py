@@ -155,6 +155,7 @@ def _write_config(tmp_path: Path) -> Path:
 
 
 @pytest.mark.netns
+@pytest.mark.slow
 def test_run_live_serves_what_the_log_holds(tmp_path: Path) -> None:
     """A realtime run (its /timing too) with --live and a connected client: the client's messages are the log's."""
     trials = 2
@@ -194,6 +195,7 @@ def _make_log(path: Path) -> None:
 
 
 @pytest.mark.netns
+@pytest.mark.slow
 def test_replay_live_streams_the_log(tmp_path: Path) -> None:
     """replay --live: every message on its topic with its logged log time; /can a subsequence of the log's."""
     log = tmp_path / "replayed.mcap"
