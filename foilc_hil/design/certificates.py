@@ -1017,7 +1017,7 @@ class _Evaluator:
             self._structured[key] = structured_input_map(loop, law)
         if key not in self._proxies:
             structured = self._structured[key]
-            self._proxies[key] = None if structured is None else EdgeProxy(structured, loop, law)
+            self._proxies[key] = None if structured is None else EdgeProxy(structured)
         return self._proxies[key]
 
     def estimate(self, scale: float, key: str) -> float:

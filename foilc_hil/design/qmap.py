@@ -105,7 +105,8 @@ __all__ = [
 
 #: Relative margin added to every structured upper bound for the FFT products' rounding (module notes).
 ROUNDING_MARGIN = 1e-11
-#: Relative widening of the first ``gamma`` tried above ``max(tau, lower bound)``.
+#: Relative widening of the first ``gamma`` tried above the symbol's bound (above an edge's lower bound: half of
+#: :data:`FAST_TOLERANCE`).
 FIRST_WIDENING = 1e-6
 #: Structured tests allowed per certificate in the default (bounded-time) mode.
 FAST_TESTS = 6
@@ -514,24 +515,27 @@ class _NormTest:
         return gamma * gamma * x - self.T.adjoint(self.T.apply(x))
 
     def _preconditioner(self, gamma: float) -> Callable[[np.ndarray], np.ndarray]:
-        """``(gamma^2 I - C^T C)^-1`` for the circulant ``C`` with the symbol's values (floored: it only steers)."""
-        from scipy.fft import fft, ifft
+        """``(gamma^2 I - C^T C)^-1`` for the circulant ``C`` with the symbol's values (floored: it only steers), on
+        real signals: the half spectrum (``rfft``; real coefficients make the rest its conjugate)."""
+        from scipy.fft import irfft, rfft
 
-        m = self.circulant.shape[1]
-        blocks = gamma * gamma * np.eye(m) - np.einsum("fba,fbc->fac", self.circulant.conj(), self.circulant)
+        n = self.circulant.shape[0]
+        half = self.circulant[: n // 2 + 1]
+        m = half.shape[1]
+        blocks = gamma * gamma * np.eye(m) - np.einsum("fba,fbc->fac", half.conj(), half)
         floor = 1e-12 * gamma * gamma
         if m == 1:
             inverse = 1.0 / np.maximum(blocks[:, 0, 0].real, floor)
 
             def apply_scalar(x: np.ndarray) -> np.ndarray:
-                return np.real(ifft(fft(x, axis=-1) * inverse, axis=-1))
+                return np.asarray(irfft(rfft(x, axis=-1) * inverse, n=n, axis=-1))
 
             return apply_scalar
         inverse_blocks = np.linalg.inv(blocks + floor * np.eye(m))
 
         def apply_blocks(x: np.ndarray) -> np.ndarray:
-            mixed = np.einsum("fab,kbf->kaf", inverse_blocks, fft(x, axis=-1))
-            return np.real(ifft(mixed, axis=-1))
+            mixed = np.einsum("fab,kbf->kaf", inverse_blocks, rfft(x, axis=-1))
+            return np.asarray(irfft(mixed, n=n, axis=-1))
 
         return apply_blocks
 
@@ -625,6 +629,7 @@ class StructuredInputMap:
     EV: tuple[np.ndarray, np.ndarray]
     structure_residual: float
     triangular: bool
+    short: tuple[np.ndarray, np.ndarray]  # M0, M1 of the same law on PROXY_SAMPLES samples, dense (its edges)
 
     @property
     def n_samples(self) -> int:
@@ -684,12 +689,28 @@ class StructuredInputMap:
         top = float(np.linalg.norm(image, 2)) if image.size else 0.0
         return top * (1.0 - ROUNDING_MARGIN) if math.isfinite(top) else math.inf
 
+    def edge_lower_bound(self, scale: float) -> float:
+        """A rigorous lower bound from the short trial's map: its top right singular vector (LAPACK), its first half
+        placed at the start of the whole trial and its second half at the end (the edges it holds do not depend on
+        the trial's length), then :meth:`_ratio` on the whole map."""
+        short = self.short[0] - scale * self.short[1]
+        if not np.all(np.isfinite(short)):
+            return 0.0
+        m, n = self.U.shape[1], self.n_samples
+        length = short.shape[1] // m
+        top = np.linalg.svd(short)[2][0].reshape(m, length)
+        x = np.zeros((1, m, n))
+        half = length // 2
+        x[0, :, :half] = top[:, :half]
+        x[0, :, n - (length - half) :] = top[:, half:]
+        return self._ratio(scale, x)
+
     def norm(self, scale: float, *, exact: bool = False, tests: int = FAST_TESTS) -> StructuredNorm:
         """``||M(s)||_2`` bracketed (module notes): the first test at ``max(tau, lower)`` widened by
         :data:`FIRST_WIDENING`, then a secant on the test's margin; ``exact`` narrows the bracket to
         :data:`EXACT_TOLERANCE` (more tests, with progress)."""
         tau, frequency = self.symbol.bound(scale)
-        lower = self.lower_bound(scale, frequency)
+        lower = max(self.lower_bound(scale, frequency), self.edge_lower_bound(scale))
         if not (math.isfinite(tau) and math.isfinite(lower)):
             return StructuredNorm(math.inf, lower, tau, 0, False)
         Ue, Ve = self.factors(scale)
@@ -697,7 +718,10 @@ class StructuredInputMap:
             return StructuredNorm(tau * (1.0 + ROUNDING_MARGIN), min(lower, tau), tau, 0, True)
         circulant = self.circulant[0] - scale * self.circulant[1]
         test = _NormTest.of(self.toeplitz(scale), Ue, Ve, tau, circulant)
-        first = max(tau, lower) * (1.0 + (EXACT_TOLERANCE / 2 if exact else FIRST_WIDENING))
+        # above the symbol the lower bound is an edge's, from a short trial's vector: within about 1e-5 of it, so
+        # the first test goes half the bracket's tolerance above it (one test where the edge sets the norm)
+        widening = EXACT_TOLERANCE / 2 if exact else (FIRST_WIDENING if tau >= lower else FAST_TOLERANCE / 2)
+        first = max(tau * (1.0 + FIRST_WIDENING), lower * (1.0 + widening))
         search = _Secant(test, lambda x: self._ratio(scale, x), lower, exact, tests if not exact else 60)
         upper, lower = search.run(first)
         residual = self.structure_residual * max(upper, 1.0) if math.isfinite(upper) else 0.0
@@ -815,7 +839,22 @@ def structured_input_map(loop: LoopPlant, law: LawStructure) -> StructuredInputM
     EtU = (mt_u[0] - T[0].adjoint(U), mt_u[1] - T[1].adjoint(U))
     EV = (_project_out(U, m_v[0] - T[0].apply(V)), _project_out(U, m_v[1] - T[1].apply(V)))
     circulant = (fft(_wrapped(a0, n), axis=0), fft(_wrapped(a1, n), axis=0))
-    return StructuredInputMap(operator, a0, a1, _Symbol.of(a0, a1), circulant, U, V, EtU, EV, residual, not anticausal)
+    symbol = _Symbol.of(a0, a1)
+    return StructuredInputMap(
+        operator, a0, a1, symbol, circulant, U, V, EtU, EV, residual, not anticausal, _short(loop, law)
+    )
+
+
+def _short(loop: LoopPlant, law: LawStructure) -> tuple[np.ndarray, np.ndarray]:
+    """``M0`` and ``M1`` of the same law on a trial of :data:`PROXY_SAMPLES` samples (or ``N``, if shorter), dense."""
+    assert law.q_filter is not None
+    short = min(law.n_samples, PROXY_SAMPLES)
+    short_law = LawStructure(
+        law.kp, law.r, law.sample_time, short, law.lead, law.fractional_memory, law.q_filter.filter.on(short)
+    )
+    m = loop.B.shape[1]
+    first, second = _operator(loop, short_law).apply(np.eye(m * short).reshape(m * short, m, short))
+    return _flat(first), _flat(second)
 
 
 def _operator(loop: LoopPlant, law: LawStructure) -> InputOperator:
@@ -895,6 +934,8 @@ def _quick_norm(smap: StructuredInputMap, scale: float, exact: bool) -> Structur
     tau, frequency = smap.symbol.bound(scale)
     lower = smap.lower_bound(scale, frequency)
     if not lower > CONTRACTION_LIMIT:
+        lower = max(lower, smap.edge_lower_bound(scale))
+    if not lower > CONTRACTION_LIMIT:
         return None
     return StructuredNorm(max(_triangle_bound(smap, scale, tau), lower), lower, tau, 0, False)
 
@@ -942,18 +983,10 @@ class EdgeProxy:
     its dense matrix warm-started from the last scale's vector. Not a certificate: the scale it picks is
     certified on the full trial (:func:`input_map_certificate`)."""
 
-    def __init__(self, smap: StructuredInputMap, loop: LoopPlant, law: LawStructure) -> None:
-        assert law.q_filter is not None
+    def __init__(self, smap: StructuredInputMap) -> None:
         self.symbol = smap.symbol
-        short = min(law.n_samples, PROXY_SAMPLES)
-        short_law = LawStructure(
-            law.kp, law.r, law.sample_time, short, law.lead, law.fractional_memory, law.q_filter.filter.on(short)
-        )
-        m = loop.B.shape[1]
-        identity = np.eye(m * short).reshape(m * short, m, short)
-        first, second = _operator(loop, short_law).apply(identity)
-        self.dense = (_flat(first), _flat(second))
-        self.vector = np.random.default_rng(7).standard_normal(m * short)
+        self.dense = smap.short
+        self.vector = np.random.default_rng(7).standard_normal(smap.short[0].shape[1])
 
     def estimate(self, scale: float) -> float:
         """``max(tau(s), ||M_short(s) v||)`` after :data:`PROXY_STEPS` power steps (``inf`` if not finite)."""
