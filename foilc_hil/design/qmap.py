@@ -986,7 +986,7 @@ class EdgeProxy:
     def __init__(self, smap: StructuredInputMap) -> None:
         self.symbol = smap.symbol
         self.dense = smap.short
-        self.vector = np.random.default_rng(7).standard_normal(smap.short[0].shape[1])
+        self.vector: np.ndarray = np.random.default_rng(7).standard_normal((smap.short[0].shape[1],))
 
     def estimate(self, scale: float) -> float:
         """``max(tau(s), ||M_short(s) v||)`` after :data:`PROXY_STEPS` power steps (``inf`` if not finite)."""
