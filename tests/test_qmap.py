@@ -299,11 +299,12 @@ def test_two_channels_against_the_dense_map(phase: QFilterPhase) -> None:
     assert max(abs(np.linalg.eigvals(model.A + model.B @ p1))) < 1.0
     loop = LoopPlant(model.A, model.B, model.measured_output, p1, 0.3 * np.linalg.inv(markov))
     n = 150
-    law = LawStructure(0.05, 0.6, TS, n, 1, FractionalMemory.CONTROLLABLE, QFilter(60.0, 2, TS, phase).on(n))
+    q = QFilter(60.0, 2, TS, phase).on(n)
+    law = LawStructure(0.05, 0.6, TS, n, 1, FractionalMemory.CONTROLLABLE, q)
     smap = qmap.structured_input_map(loop, law)
     assert smap is not None
     F = law_filter_matrix(0.05, 0.6, TS, n, 1)  # per channel: dense_input_map repeats it over the outputs
-    M = dense_input_map(loop.A, loop.B, loop.C_measured, p1, loop.p2, F, law.q_filter.matrix(), 1)
+    M = dense_input_map(loop.A, loop.B, loop.C_measured, p1, loop.p2, F, q.matrix(), 1)
     x = rng.standard_normal((1, 2, n))
     flat = x[0].T.ravel()  # sample-major, as the dense map
     np.testing.assert_allclose(smap.apply(1.0, x)[0].T.ravel(), M @ flat, atol=1e-10 * np.abs(M).sum(axis=1).max())
