@@ -442,3 +442,33 @@ def test_rows_keep_to_the_row_rate_budget() -> None:
     assert rows_of(600, 20.005) == 0  # half a row saved: none
     assert rows_of(2 * cap, 120.0) == cap  # refilled to the cap, not beyond
     assert publisher.stats.trials_thinned == 5
+
+
+def test_a_run_of_several_axes_is_served_axis_by_axis(tmp_path: Path) -> None:
+    """axes: every axis's rows and /ilc/trial, as the log's AxesSink splits them (no network: a recording server in
+    place of foxglove-sdk's), and a /drive/state of each node."""
+    from drivers.config import BusConfig
+    from foilc_hil.config import load_config
+    from foilc_hil.live.publisher import LivePublisher
+    from foilc_hil.loop.rig import RunRequest, run_rig
+    from plant_emulator.device import TimingMode
+
+    config_path = tmp_path / "axes.yaml"
+    config_path.write_text(CONFIG + "axes:\n  - node_id: 1\n  - node_id: 2\n    plant: {model: first_order, a: -30.0, "
+                           "b: 30.0}\n", encoding="utf-8")
+    server = _StuckServer()
+    server.release.set()  # records, never blocks
+    log = tmp_path / "axes.mcap"
+    with LivePublisher(server, LiveOptions(rows=0, row_rate=0.0)) as publisher:  # type: ignore[arg-type]
+        run_rig(RunRequest(config=load_config(config_path, {"trials": 2}), out=log, law="p-type",
+                           mode=TimingMode.LOCKSTEP, bus=BusConfig(interface="embedded", channel="live-axes-test"),
+                           live=publisher))
+    logged, _ = _logged(log)
+    sent: dict[str, list[dict[str, Any]]] = {}
+    for topic, payload in server.sent:
+        sent.setdefault(topic, []).append(json.loads(payload))
+    for topic in ("/ilc/sample", "/ilc/trial"):
+        assert sent[topic] == [doc for _, doc in logged[topic]], topic
+    assert {doc["axis"] for doc in sent["/ilc/trial"]} == {1, 2} and len(sent["/ilc/sample"]) == 2 * 2 * SAMPLES
+    assert {state["node"] for state in sent["/drive/state"]} == {1, 2}
+    assert publisher.stats.trials == 4 and publisher.stats.trials_dropped == 0
