@@ -310,6 +310,7 @@ def test_rescale_fixes_a_filter_that_breaks_the_naive_gain_and_refuse_raises(mem
     assert outcome.certificates.largest_admissible_scale >= outcome.gain_scale
 
 
+@pytest.mark.slow
 def test_r_above_one_has_no_monotonic_certificate() -> None:
     model = _paper_model(0.01)
     unc = Uncertainty.none(1, 1)
@@ -330,6 +331,7 @@ def test_r_above_one_has_no_monotonic_certificate() -> None:
     assert outcome.certificates.growth_bound.bound >= 1
 
 
+@pytest.mark.slow
 def test_certify_covers_uncertainty_vertices_and_mimo() -> None:
     model = _mimo()
     unc = Uncertainty(0.01 * np.eye(3), np.eye(3), 0.01 * model.B, np.eye(2))

@@ -60,6 +60,7 @@ def test_flat_phase_flag_solves_k(tmp_path: Path, capsys: pytest.CaptureFixture[
     assert document["checks"]["warnings"]  # this design does not roll off; the tuner says so
 
 
+@pytest.mark.slow
 def test_text_output_is_a_summary(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     config = _write(tmp_path, DELAYED_PLANT + "tuning: {crossover: 70, phase_margin_deg: 70}\n")
     assert main(["tune", "--config", str(config)]) == 0

@@ -115,6 +115,7 @@ def run(config_path: Path, channel: str, out: Path, trials: int, capsys: pytest.
     return code, document, captured.err.strip().splitlines()
 
 
+@pytest.mark.slow
 def test_one_lost_feedback_is_counted_held_and_replays(
     emulator_factory: Callable[..., tuple[Any, Path]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -140,6 +141,7 @@ def test_one_lost_feedback_is_counted_held_and_replays(
     assert json.loads(capsys.readouterr().out)["verified"] is True
 
 
+@pytest.mark.slow
 def test_one_loss_more_than_tolerated_aborts_naming_the_count(
     emulator_factory: Callable[..., tuple[Any, Path]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -156,6 +158,7 @@ def test_one_loss_more_than_tolerated_aborts_naming_the_count(
     assert emulator.drive.state in DISABLED_STATES
 
 
+@pytest.mark.slow
 def test_wrong_dlc_tpdos_are_counted_by_default(
     emulator_factory: Callable[..., tuple[Any, Path]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -177,6 +180,7 @@ def test_wrong_dlc_tpdos_are_counted_by_default(
     assert sum(t["lost_feedback"] for t in trials) == 20
 
 
+@pytest.mark.slow
 def test_wrong_dlc_tpdo_aborts_with_exit_1_under_abort(
     emulator_factory: Callable[..., tuple[Any, Path]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -195,6 +199,7 @@ def test_wrong_dlc_tpdo_aborts_with_exit_1_under_abort(
     assert emulator.drive.state in DISABLED_STATES
 
 
+@pytest.mark.slow
 def test_nmt_stop_mid_trial_raises_the_typed_error_in_process(
     emulator_factory: Callable[..., tuple[Any, Path]], tmp_path: Path
 ) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 from hypothesis import event, example, given
 from hypothesis import strategies as st
 
@@ -53,6 +54,7 @@ def mutated_eds(draw: st.DrawFn) -> bytes:
     return data
 
 
+@pytest.mark.slow
 @example(data=b"")
 @example(data=b"\xff\xfe[1000]\n")
 @given(data=mutated_eds())

@@ -104,6 +104,7 @@ def test_an_out_on_a_read_only_file_system_is_refused_before_the_design(tmp_path
     assert result.stderr.strip() == f"foilc-hil run: {mount}/x.mcap: cannot create: read-only file system"
 
 
+@pytest.mark.slow
 def test_physics_that_diverge_mid_run_fault_the_drive_and_the_stop_is_reported(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:

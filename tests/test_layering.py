@@ -161,6 +161,7 @@ def test_a_planted_import_of_foilc_hil_is_seen() -> None:
     assert any(target.split(".")[0] == "foilc_hil" for target in found)
 
 
+@pytest.mark.slow
 def test_the_import_graph_has_no_cycle() -> None:
     cycle = find_cycle(project_graph())
     assert cycle is None, "import cycle: " + " -> ".join(cycle or [])

@@ -70,6 +70,7 @@ def test_the_probe_sees_what_the_design_loads(loaded: set[str]) -> None:
     assert {"numpy", "scipy.linalg", "foilc_hil.design.certificates", "foilc_hil.commands.synthesize"} <= loaded
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("module", HEAVY)
 def test_the_design_path_does_not_load(loaded: set[str], module: str) -> None:
     assert module not in loaded, f"{module} was imported by the design path of synthesize"

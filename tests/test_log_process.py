@@ -55,6 +55,7 @@ def _contents(path: Path) -> dict[str, object]:
             "metadata": contents.metadata, "truncated": contents.truncated}
 
 
+@pytest.mark.slow
 def test_the_child_writes_what_the_in_process_writer_writes(tmp_path: Path) -> None:
     direct, child = tmp_path / "direct.mcap", tmp_path / "child.mcap"
     with McapLogWriter(direct, config_yaml="trials: 2\n", design=DESIGN, fsync=False) as writer:
@@ -256,6 +257,7 @@ def test_received_frames_wait_for_the_loops_own_calls(tmp_path: Path) -> None:
     assert [frame["dir"] for frame in frames] == ["rx"] * (2 * log_process.BATCH) + ["tx"]
 
 
+@pytest.mark.slow
 def test_the_writer_process_imports_no_python_can() -> None:
     """The child's start is what a run waits for before its drive is enabled: its module (and what it imports) must
     not pull in python-can (0.18 s of the 0.45 s it took)."""
@@ -287,6 +289,7 @@ def _channel_units(path: Path) -> dict[str, str]:
     return {channel.topic: channel.metadata["units"] for channel in summary.channels.values()}
 
 
+@pytest.mark.slow
 def test_the_child_labels_the_channels_with_the_units_the_loop_worked_out(tmp_path: Path) -> None:
     """The channels' units come from the config's ``drive:`` section; the loop's process works them out and the child
     writes them as the in-process writer does (the child never loads the config's models: half its start-up)."""

@@ -315,6 +315,7 @@ def test_writer_rejects_use_after_close(tmp_path: Path) -> None:
     assert os.path.getsize(tmp_path / "c.mcap") > 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("compression", ["zstd", "none"])
 def test_every_cut_offset_reads_without_error_and_keeps_completed_trials(tmp_path: Path, compression: str) -> None:
     """Cut a small log at ~800 offsets: reading never raises, never invents data, keeps finished trials."""

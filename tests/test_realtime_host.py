@@ -47,6 +47,7 @@ def test_the_timer_slack_is_one_nanosecond_in_the_session_and_restored() -> None
     assert realtime._timer_slack() == before
 
 
+@pytest.mark.slow
 def test_a_refused_fifo_is_reported_and_normal_scheduling_kept(monkeypatch: pytest.MonkeyPatch) -> None:
     def refuse(pid: int, policy: int, param: os.sched_param) -> None:
         raise PermissionError(1, "Operation not permitted")
@@ -136,6 +137,7 @@ def test_the_cpu_latency_request_is_in_force_for_the_session_and_dropped_after()
     assert _latency_requests_held() == before
 
 
+@pytest.mark.slow
 def test_a_refused_cpu_latency_request_is_reported(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     monkeypatch.setattr(realtime, "CPU_LATENCY_DEVICE", str(tmp_path / "no-such-device"))
     with RealtimeSession(RealtimeConfig(cpu_latency_us=0)) as session:

@@ -388,6 +388,7 @@ def test_verify_rebuilds_a_clamping_law_with_the_logged_command_limits(tmp_path:
     assert verify_log(contents).first_divergence is not None
 
 
+@pytest.mark.slow
 def test_verify_of_a_damaged_log_is_partial_and_exits_1(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

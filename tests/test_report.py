@@ -50,6 +50,7 @@ def _write(path: Path, trials: int = 4, timing: bool = True, mimo: bool = False)
     return sses
 
 
+@pytest.mark.slow
 def test_report_writes_plots_and_summaries(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     log = tmp_path / "run.mcap"
     sses = _write(log, trials=4, timing=True)

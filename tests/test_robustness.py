@@ -116,6 +116,7 @@ def _dense_error_map(ad: float, bd: float, p1: np.ndarray, p2: np.ndarray) -> np
     return np.eye(length) - H
 
 
+@pytest.mark.slow
 def test_per_draw_certificates_match_a_numpy_lifted_map_of_the_drawn_plant(config: Config, client: Any) -> None:
     settings = MonteCarloSettings(samples=2, seed=1, trials=2, noise=0.0, tolerance=0.01)
     report = run_robustness(config, [LawKind.IOILC], settings, client=client, workers=2)

@@ -10,6 +10,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 import drivers
 import drivers.schema
 import drivers.timing
@@ -32,6 +34,7 @@ def loaded_by(modules: list[str]) -> list[str]:
     return list(json.loads(child.stdout.splitlines()[-1]))
 
 
+@pytest.mark.slow
 def test_every_drivers_module_imports_without_foilc_hil() -> None:
     modules = [info.name for info in pkgutil.iter_modules(drivers.__path__, "drivers.")]
     assert "drivers.cia402_master" in modules and "drivers.errors" in modules
@@ -43,6 +46,7 @@ def test_the_probe_sees_foilc_hil() -> None:
     assert "foilc_hil.errors" in loaded_by(["foilc_hil.errors"])
 
 
+@pytest.mark.slow
 def test_the_emulator_imports_without_foilc_hil() -> None:
     assert loaded_by(["plant_emulator.embedded", "plant_emulator.cli"]) == []
 

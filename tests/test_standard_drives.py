@@ -87,6 +87,7 @@ def cli(*argv: str) -> tuple[int, dict[str, Any]]:
     return code, json.loads(stdout.getvalue())
 
 
+@pytest.mark.slow
 def test_the_mutation_removes_only_the_named_objects(tmp_path: Path) -> None:
     full = load_od(DEFAULT_EDS, NODE)
     od = load_od(mutated_eds(tmp_path, Obj.TORQUE_ACTUAL_VALUE, 0x1801, 0x1A01), NODE)
