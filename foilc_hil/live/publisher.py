@@ -282,11 +282,13 @@ class LivePublisher:
     def _publish(self, item: _Trial | _Timing) -> None:
         server = self._server
         if isinstance(item, _Timing):
+            if not server.wanted(TOPIC_TIMING):  # no JSON; only the block's last SYNC, for the next block's period
+                self._previous_sync = item.records[-1].sync_time if item.records else self._previous_sync
+                return
             documents, self._previous_sync = timing_documents(item.records, self._previous_sync)
-            if server.wanted(TOPIC_TIMING):
-                for document in documents:
-                    server.log(TOPIC_TIMING, document, _time_ns())
-                self.stats.timing += len(documents)
+            for document in documents:
+                server.log(TOPIC_TIMING, document, _time_ns())
+            self.stats.timing += len(documents)
             return
         record, limits, log_time = item
         if server.wanted(TOPIC_SAMPLE):
