@@ -19,8 +19,11 @@ braking velocity set-point and in CST lets a stable axis coast down), until ``|y
 least :data:`MIN_SETTLE_TIMEOUT` seconds of cycles) raises :class:`~foilc_hil.errors.DriveError`.
 
 Timing modes (:mod:`foilc_hil.loop.scheduler`): ``lockstep`` sends the next SYNC as soon as the command of the
-previous one is out; ``realtime`` releases each SYNC on an absolute deadline (period ``sample_time``), measures
-lateness, feedback latency and missed deadlines, and logs one ``/timing`` record per cycle.
+previous one is out; ``realtime`` has each SYNC on an absolute deadline (period ``sample_time``), measures
+lateness, feedback latency and missed deadlines, and logs one ``/timing`` record per cycle. In realtime the SYNC
+comes from a clock of its own where the drive can (``bench.realtime.sync: clock``, :mod:`drivers.sync_clock`): the
+loop then runs on the SYNCs it reads from the bus, each cycle has one period to send its command, and a late one
+never delays the next SYNC; else the loop sends each SYNC on its deadline (:class:`DeadlineScheduler`).
 
 The between-trial update (``law.end_trial``, metrics, the trial's log messages, the divergence check) runs in a
 helper thread while the next settle phase keeps the cyclic path going, so SYNC never pauses between trials (a
@@ -48,19 +51,22 @@ SIGINT/SIGTERM stop the loop at the next cycle. Every abort quick-stops the driv
 ``finally`` disables the drive (``safe_stop``) and closes the log.
 
 What ``/ilc/sample`` holds (the contract with ``replay --verify``; layout 2, metadata ``foilc_hil.layout``): row
-``i`` of trial ``k`` describes ONE instant, ``t = (i + 1) Ts``: ``output = y_{i+1}`` (exactly the float64 the
-law was given at sample ``i + 1``, the held one for a lost feedback), ``reference``, ``error`` and ``E`` are row
-``i`` of the trial arrays, so ``error == reference - output`` bit for bit, and ``control = u_i``, the command the
-drive applies from ``t`` (computed at ``i Ts`` from ``y_i``, the previous row's output; for row 0 the trial's
-``initial_output`` in ``/ilc/trial``). ``control`` is the law's command before the bench's limiter (what the law
-computed, so ``replay --verify`` can reproduce it bit for bit; the clamped, quantised value actually sent is kept
-in :attr:`TrialRecord.applied`, and ``/ilc/trial`` counts the clamped commands in ``clamped``). The law is built
-with the limiter's limits (``make_law(..., limits=...)``) and clamps internally, so it learns from the input that
-was applied (saturation-aware learning, see :mod:`foilc_hil.laws.learning`); the limiter stays as the safety layer
-and is normally a no-op. ``/ilc/trial`` records those limits as ``command_limits: [lower, upper]`` so that
-``replay --verify`` rebuilds the same law. The SSE of a trial is the sum of the squared ``error`` fields. Logs
-written before layout 2 (no ``foilc_hil.layout``) had ``t = i Ts`` and ``output = y_i`` with the rest at
-``(i + 1) Ts``; ``replay --verify`` reads both.
+``i`` of trial ``k`` describes ONE instant, ``t = (i + 1) Ts``: ``output = y_{i+1}`` (exactly the float64 the law
+was given at sample ``i + 1``, the held one for a lost feedback), ``reference``, ``error`` and ``E`` are row ``i``
+of the trial arrays, so ``error == reference - output`` bit for bit, and ``control = u_i``, the command the drive
+applies from ``t`` when its RPDO comes before the SYNC at ``t`` (computed at ``i Ts`` from ``y_i``, the previous
+row's output; for row 0 the trial's ``initial_output`` in ``/ilc/trial``). ``latched`` is what the drive did latch
+at that SYNC, known from the bus (SYNC from a clock: the loop reads its own RPDO and the SYNCs back in the bus's
+order; else the loop sends the SYNC after the RPDO, so it is the command sent), and the law learns from it
+(``law.end_trial(..., latched)``: ``u_{k-1}`` is what ran). ``control`` is the law's command before the bench's
+limiter (what the law computed, so ``replay --verify`` can reproduce it bit for bit; the clamped, quantised value
+actually sent is kept in :attr:`TrialRecord.applied`, and ``/ilc/trial`` counts the clamped commands in
+``clamped``). The law is built with the limiter's limits (``make_law(..., limits=...)``) and clamps internally, so
+it learns from the input that was applied (saturation-aware learning, see :mod:`foilc_hil.laws.learning`); the
+limiter stays as the safety layer and is normally a no-op. ``/ilc/trial`` records those limits as ``command_limits:
+[lower, upper]`` so that ``replay --verify`` rebuilds the same law. The SSE of a trial is the sum of the squared
+``error`` fields. Logs written before layout 2 (no ``foilc_hil.layout``) had ``t = i Ts`` and ``output = y_i`` with
+the rest at ``(i + 1) Ts``; ``replay --verify`` reads both.
 """
 
 from __future__ import annotations

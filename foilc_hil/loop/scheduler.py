@@ -7,22 +7,28 @@ Two timing modes drive the SYNC of the CAN loop (see :mod:`foilc_hil.loop.bench`
     deterministic and as fast as the bus allows; wall-clock time means nothing (tests, the demo, benchmarks).
 ``realtime``
     SYNC on a fixed period, on absolute deadlines ``t0 + k * period`` of :func:`time.perf_counter`, so errors do
-    not accumulate. :class:`DeadlineScheduler` sleeps until shortly before each deadline (``time.sleep`` is
+    not accumulate. By default (``bench.realtime.sync: clock``) a clock of its own sends it
+    (:mod:`drivers.sync_clock`: the kernel's broadcast manager on socketcan, a producer thread elsewhere, with the
+    same deadlines and policy as below) and the loop runs on the SYNCs it reads from the bus; else the loop sends
+    it, released by :class:`DeadlineScheduler`, which sleeps until shortly before each deadline (``time.sleep`` is
     coarse: its wake-up is late by the OS timer slack) and spins the last ``spin_margin`` seconds.
 
-Deadline accounting (documented, counted, never fatal by itself). Cycle ``k`` is released at deadline ``d_k``: it
-sends SYNC ``k``, waits for the feedback, and sends its command, which the drive latches at the next SYNC
-(``d_k + period``). Two different things can go wrong:
+Deadline accounting (documented, counted, never fatal by itself). Cycle ``k`` begins with SYNC ``k`` (due at deadline
+``d_k``): it waits for the feedback and sends its command, which the drive latches at the next SYNC (due at
+``d_k + period``). Two different things can go wrong:
 
 *missed deadline*
-    The cycle's command went out after ``d_k + period``: the drive latched the previous command once more. Counted
-    once per cycle (``missed_deadlines``, the ``/timing`` record's ``missed``), so ``missed_deadlines <= cycles``.
-    The cycle still completes; the next SYNC is released as soon as possible (late, or on a later slot).
+    The cycle's command went out after the next SYNC (SYNC from a clock: after it was sent, in the bus object's order
+    of sends; the loop's SYNC: after ``d_k + period``): the drive latched the previous command once more, and the
+    log's ``/ilc/sample.latched`` holds what it did latch. Counted once per cycle (``missed_deadlines``, the
+    ``/timing`` record's ``missed``), so ``missed_deadlines <= cycles``. The cycle still completes; SYNC from a clock
+    goes on regardless, the loop's own SYNC is released as soon as possible (late, or on a later slot).
 *skipped deadline*
-    A deadline slot on which no SYNC was sent at all: the loop reached its wait more than a period after the slot's
-    deadline (a host stall). No burst of catch-up SYNCs is sent; the cycle is released on the next slot still in
-    the future, and every slot passed over is counted in ``skipped_deadlines`` (any number per stall: a 50 ms stall
-    at 1 kHz skips about 50). The drive holds the last command meanwhile (RPDO values persist until replaced).
+    A deadline slot on which no SYNC was sent at all: the loop (or the SYNC producer) reached its wait more than a
+    period after the slot's deadline (a host stall). No burst of catch-up SYNCs is sent; the loop's cycle is released
+    on the next slot still in the future (the producer sends one late SYNC for the latest slot passed), and every slot
+    passed over is counted in ``skipped_deadlines`` (any number per stall: a 50 ms stall at 1 kHz skips about 50).
+    The drive holds the last command meanwhile (RPDO values persist until replaced).
 
 A cycle released late but before the following slot is neither: its lateness goes into the jitter statistics.
 
