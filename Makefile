@@ -11,13 +11,13 @@ WORKERS ?= $(shell n=$$((2 * $$(getconf _NPROCESSORS_ONLN 2>/dev/null || echo 1)
 
 # Bytecode caching on, whatever the shell says: a run starts many Python processes (the log writer, emulators, the
 # CLI in tests) and with PYTHONDONTWRITEBYTECODE set each one compiled every module it imports from source again,
-# and every pytest worker re-rewrote every test module (about 3 s of CPU for each of them)
+# and every pytest worker re-rewrote every test module (the cost: docs/benchmarks.md)
 unexport PYTHONDONTWRITEBYTECODE
 
-# The .venv by uv (from PyPI, into the .venv by the system's pip): about 5 s with uv's cache warm and 15 s cold,
-# against about a minute for pip, most of it spent byte-compiling every module of every package (here a module is
-# compiled when it is first imported, and most never are). Where uv cannot be had (an old pip without --python, no
-# PyPI), pip installs it all as before.
+# The .venv by uv (from PyPI, into the .venv by the system's pip): much faster than pip, which spends most of its
+# time byte-compiling every module of every package (here a module is compiled when it is first imported, and most
+# never are; the times: docs/benchmarks.md). Where uv cannot be had (an old pip without --python, no PyPI), pip
+# installs it all as before.
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv --without-pip $(VENV)
 	if $(PYTHON) -m pip --python $(BIN)/python install --quiet 'uv>=0.4' \
@@ -43,10 +43,10 @@ typecheck: $(STAMP)
 
 # two workers per core (pytest-xdist; worksteal evens out the long tests): a quarter of the suite's test time is
 # spent waiting, not computing (timeouts that are the point of a test, emulator and CLI processes, a drive's
-# heartbeat): on 2 cores, 316 s of test time held 241 CPU-s, and 4 workers took 141-144 s against 156 s for 3,
-# 160-170 s for 2 and 168 s for 6. Each test stays independent of the others and of wall-clock speed. One BLAS thread
+# heartbeat), so more workers than cores finish sooner (the measured counts: docs/benchmarks.md). Each test stays
+# independent of the others and of wall-clock speed. `pytest -m "not slow"` is the inner loop (README). One BLAS thread
 # per worker: the workers already fill the cores, and OpenBLAS threads that spin-wait for a core a loaded host does
-# not give them made a 3x3 expm take 14 ms instead of 20 us
+# not give them made a 3x3 expm hundreds of times slower
 # The shared caches first, once (tests/warm_caches.py): numba's compiled kernels, the packages' byte code and the
 # rewritten test modules; on a fresh clone each worker and each emulator process a test starts would otherwise
 # fill them again, at the same time (several seconds of CPU each)
@@ -65,7 +65,8 @@ docs: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks.run --out benchmarks/results.json --doc docs/benchmarks.md
 
-# 1 kHz realtime across processes in a private network namespace (root; about 16 minutes), vs canopen and python-can
+# 1 kHz realtime across processes in a private network namespace (root; its duration: docs/benchmarks.md), vs canopen
+# and python-can
 bench-realtime: $(STAMP)
 	$(BIN)/python -m benchmarks.realtime --out benchmarks/realtime.json
 
