@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -92,3 +93,41 @@ def test_privileged_peers_and_the_floor_say_which_pm_qos_request_they_held(
     monkeypatch.setattr(host_setup, "CPU_LATENCY_DEVICE", str(tmp_path / "no-such-device"))
     with bench_realtime._privileged(True) as held:
         assert bench_realtime._held_latency(held) is None
+
+
+def test_the_latched_truth_check_reconstructs_each_sync_from_the_frames_it_saw() -> None:
+    """SYNC 1, RPDO 100, SYNC 2, SYNC 3 (the RPDO of cycle 2 after it: missed), RPDO 200, RPDO 300, SYNC 4: the drive
+    latched 100 at SYNCs 2 and 3, 300 at SYNC 4; a log saying otherwise at one sample is found there."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from benchmarks.realtime import RPDO1_ID, SYNC_ID, latched_truth
+
+    frames = np.array([(SYNC_ID, 0.0, 0), (RPDO1_ID, 0.1, 100), (SYNC_ID, 1.0, 0), (SYNC_ID, 2.0, 0),
+                       (RPDO1_ID, 2.1, 200), (RPDO1_ID, 2.2, 300), (SYNC_ID, 3.0, 0)], dtype=float)
+    trials = [{"trial": 1, "first_sync": 1}]
+    rows = [{"trial": 1, "sample": i, "control": c, "latched": value}
+            for i, (c, value) in enumerate([(0.1, 0.1), (0.2, 0.1), (0.3, 0.3)])]
+    truth = latched_truth(frames, SimpleNamespace(trials=trials, samples=rows), 1000.0)
+    assert truth == {"samples": 3, "agree": 3, "first_disagreement": None, "latched_not_command": 1}
+    rows[1]["latched"] = 0.2  # the command, as if it had run
+    truth = latched_truth(frames, SimpleNamespace(trials=trials, samples=rows), 1000.0)
+    assert truth["agree"] == 2
+    assert truth["first_disagreement"] == {"trial": 1, "sample": 1, "logged": 0.2, "on_wire": 0.1}
+
+
+def test_missed_deadlines_are_judged_against_the_same_runs_host_floor() -> None:
+    from benchmarks.realtime import HOPS, _issue28_rows, floor_estimate
+
+    floor = {"over_500us_fraction": 0.01}
+    bench: dict[str, Any] = {"missed_deadline_fraction": 0.05, "latched_truth": {"samples": 10, "agree": 10}}
+    condition: dict[str, Any] = {"host_floor": floor, "bench": bench}
+    estimate = 1 - 0.99**HOPS
+    assert floor_estimate(condition) == pytest.approx(estimate)
+    ratio_row, truth_row = _issue28_rows("load", condition)
+    assert ratio_row["ratio"] == pytest.approx(0.05 / estimate) and ratio_row["met"] is (0.05 / estimate <= 2.0)
+    assert truth_row["met"] is True and truth_row["bench"] == "10 of 10"
+    bench["missed_deadline_fraction"] = 0.01
+    assert _issue28_rows("load", condition)[0]["met"] is True
+    assert _issue28_rows("quiet", {"bench": {"missed_deadline_fraction": 0.0}})[0]["met"] is False  # no floor
