@@ -7,7 +7,7 @@
     without ``axes:``; the same rig, :func:`foilc_hil.loop.rig.run_rig`, with one member), interleaved in the same
     run. Above 1: one loop over several axes moves more axis-cycles per second than one single-axis loop.
 ``bus_load``
-    The load a 4-axis run's log shows -- the exact wire bits (:func:`drivers.busload.wire_bits`: stuff bits,
+    The load a 4-axis run's log shows -- the exact wire bits (:func:`benchmarks.can_wire.wire_bits`: stuff bits,
     interframe space) of every frame between two consecutive SYNCs of the loop, averaged over its periods, at
     1 Mbit/s and ``sample_time`` -- against the worst-case figure ``run`` computes before it starts
     (:func:`foilc_hil.commands.run.check_bus_load`). Above 1: the computed bound holds (it counts a heartbeat of
@@ -64,7 +64,7 @@ def _rate(timing: Any) -> float:
 
 def measured_load(log: Path, bitrate: int, period: float) -> float:
     """Wire bits per SYNC period of the log's loop (periods carrying every axis's RPDO1), over ``bitrate x period``."""
-    from drivers.busload import wire_bits
+    from benchmarks.can_wire import wire_bits
     from drivers.cia301 import SYNC_COB_ID, FunctionCode, cob_id
     from foilc_hil.io.mcap_log import frame_to_message, read_log
 

@@ -1,4 +1,4 @@
-"""Bus load of a cyclic CANopen schedule: computed before a run, measured from a log afterwards.
+"""Bus load of a cyclic CANopen schedule, computed before a run.
 
 Classical CAN (ISO 11898-1) only. A data frame with ``s`` data bytes has ``g + 8s`` bits exposed to bit stuffing
 (``g = 34`` for an 11-bit identifier: SOF, identifier, RTR, IDE, r0, DLC and the 15-bit CRC; ``g = 54`` for a 29-bit
@@ -10,17 +10,15 @@ interframe space). A stuff bit follows every five equal bits, and stuff bits cou
 
 (Davis, Burns, Bril, Lukkien: "Controller Area Network (CAN) schedulability analysis: refuted, revisited and
 revised", Real-Time Systems 35, 2007, eq. 1). A schedule is planned on that worst case, because the payload (and so
-the actual stuffing) is not known in advance. :func:`wire_bits` counts the bits of one real frame exactly (CRC-15
-computed, stuff bits inserted), which is what a log's measured load uses.
+the actual stuffing) is not known in advance. (The exact bits of one real frame, CRC-15 computed and stuff bits
+inserted, are the benchmark's and the tests' business: ``benchmarks/can_wire.py``, the oracle of this bound.)
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from dataclasses import dataclass
-
-import can
 
 from drivers.cia402_master import PdoPlan
 from drivers.errors import ConfigError
@@ -29,20 +27,14 @@ __all__ = [
     "DEFAULT_BITRATE",
     "BusLoad",
     "CyclicFrame",
-    "crc15",
     "drive_schedule",
-    "measured_load",
     "schedule_load",
-    "stuffed_bits",
-    "wire_bits",
     "worst_case_bits",
 ]
 
 _STUFFED_OVERHEAD_STANDARD = 34  # SOF 1 + ID 11 + RTR 1 + IDE 1 + r0 1 + DLC 4 + CRC 15
 _STUFFED_OVERHEAD_EXTENDED = 54  # SOF 1 + ID 11 + SRR 1 + IDE 1 + ID 18 + RTR 1 + r1 r0 2 + DLC 4 + CRC 15
 _UNSTUFFED_TAIL = 13  # CRC delimiter 1 + ACK 2 + EOF 7 + interframe space 3
-_CRC15_POLY = 0x4599  # x^15 + x^14 + x^10 + x^8 + x^7 + x^4 + x^3 + 1
-_STUFF_RUN = 5
 _CLASSICAL_MAX_DATA = 8
 DEFAULT_BITRATE = 1_000_000  # bit/s assumed when the config leaves bus.bitrate unset (the CANopen maximum)
 _HEARTBEAT_BYTES = 1  # the NMT state
@@ -57,67 +49,6 @@ def worst_case_bits(data_bytes: int, *, extended: bool = False) -> int:
         raise ValueError(f"a classical CAN frame carries 0..8 data bytes, not {data_bytes}")
     stuffed = (_STUFFED_OVERHEAD_EXTENDED if extended else _STUFFED_OVERHEAD_STANDARD) + 8 * data_bytes
     return stuffed + _UNSTUFFED_TAIL + (stuffed - 1) // 4
-
-
-def crc15(bits: Sequence[int]) -> int:
-    """The CAN CRC-15 of a bit sequence (SOF through the last data bit), as ISO 11898-1 computes it."""
-    crc = 0
-    for bit in bits:
-        feedback = bit ^ ((crc >> 14) & 1)
-        crc = (crc << 1) & 0x7FFF
-        if feedback:
-            crc ^= _CRC15_POLY
-    return crc
-
-
-def _bits(value: int, width: int) -> list[int]:
-    return [(value >> shift) & 1 for shift in range(width - 1, -1, -1)]
-
-
-def _stuffed_section(msg: can.Message) -> list[int]:
-    """SOF through CRC of a classical frame, before stuffing (dominant = 0)."""
-    dlc = msg.dlc
-    remote = 1 if msg.is_remote_frame else 0
-    if msg.is_extended_id:
-        head = [0, *_bits(msg.arbitration_id >> 18, 11), 1, 1, *_bits(msg.arbitration_id & 0x3FFFF, 18), remote,
-                0, 0]
-    else:
-        head = [0, *_bits(msg.arbitration_id, 11), remote, 0, 0]
-    head += _bits(dlc, 4)
-    if not msg.is_remote_frame:
-        for byte in bytes(msg.data)[:dlc]:
-            head += _bits(byte, 8)
-    return head + _bits(crc15(head), 15)
-
-
-def stuffed_bits(msg: can.Message) -> list[int]:
-    """SOF through CRC of one classical frame as sent: a stuff bit of the opposite value after five equal bits.
-
-    Raises
-    ------
-    ValueError
-        For CAN FD and error frames, which this classical model does not describe.
-    """
-    if msg.is_fd or msg.is_error_frame:
-        raise ValueError("the classical frame model describes data and remote frames only")
-    out: list[int] = []
-    run_value, run_length = -1, 0
-    for bit in _stuffed_section(msg):
-        out.append(bit)
-        if bit == run_value:
-            run_length += 1
-        else:
-            run_value, run_length = bit, 1
-        if run_length == _STUFF_RUN:
-            # the stuff bit has the opposite value and starts the next run
-            out.append(1 - bit)
-            run_value, run_length = 1 - bit, 1
-    return out
-
-
-def wire_bits(msg: can.Message) -> int:
-    """Exact length on the wire, in bits, of one classical frame (stuff bits and interframe space included)."""
-    return len(stuffed_bits(msg)) + _UNSTUFFED_TAIL
 
 
 @dataclass(frozen=True, slots=True)
@@ -224,16 +155,3 @@ def schedule_load(frames: Iterable[CyclicFrame], *, bitrate: int, period: float,
     if bitrate <= 0 or not period > 0 or not 0 < limit <= 1:
         raise ValueError(f"need bitrate > 0, period > 0 and 0 < limit <= 1, got {bitrate}, {period}, {limit}")
     return BusLoad(tuple(frames), bitrate, period, limit)
-
-
-def measured_load(messages: Iterable[can.Message], *, bitrate: int) -> float:
-    """The load a log shows: exact wire bits of its classical frames over the span of their timestamps.
-
-    Frames the classical model does not describe (FD, error frames) are left out. Returns 0.0 for fewer than two
-    frames (no span to divide by).
-    """
-    timed = sorted((msg.timestamp, wire_bits(msg)) for msg in messages if not (msg.is_fd or msg.is_error_frame))
-    if len(timed) < 2 or timed[-1][0] <= timed[0][0]:
-        return 0.0
-    # the span runs from the first frame's start to the last frame's start: the last frame's bits lie outside it
-    return sum(bits for _, bits in timed[:-1]) / (bitrate * (timed[-1][0] - timed[0][0]))

@@ -541,7 +541,7 @@ class Cia402Drive(Drive):
 
     @property
     def pdo_codecs(self) -> dict[int, PdoCodec]:
-        """The configured PDO codecs by COB-ID (RPDO and TPDOs), e.g. for :func:`drivers.trace.describe_frame`."""
+        """The configured PDO codecs by COB-ID (RPDO and TPDOs), e.g. to decode a capture."""
         return self.cyclic.pdo_codecs
 
     @property

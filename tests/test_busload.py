@@ -7,15 +7,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from drivers.busload import (
-    CyclicFrame,
-    crc15,
-    measured_load,
-    schedule_load,
-    stuffed_bits,
-    wire_bits,
-    worst_case_bits,
-)
+from benchmarks.can_wire import crc15, measured_load, stuffed_bits, wire_bits
+from drivers.busload import CyclicFrame, schedule_load, worst_case_bits
 from foilc_hil.errors import ConfigError
 from tests.fuzz_settings import fuzz_settings
 

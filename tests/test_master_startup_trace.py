@@ -2,7 +2,7 @@
 
 Read :data:`EXPECTED` top to bottom: it is the whole conversation of ``connect()``, ``configure(CSV, 2 ms)`` and
 ``enable()`` with drive node 5 (master node 127, drive heartbeat 100 ms, drive watching the master at 200 ms),
-captured with the master's frame tap and decoded by :func:`drivers.trace.describe_frame`. Heartbeats (the drive's
+captured with the master's frame tap and decoded by :func:`tests.can_trace.describe_frame`. Heartbeats (the drive's
 and the master's) are periodic and interleave at random; they are left out, except the boot-up. Run with ``-s`` to
 see the table of frames.
 """
@@ -17,7 +17,7 @@ import can
 from drivers.cia301 import FunctionCode, NmtState, cob_id
 from drivers.cia402 import OperationMode
 from drivers.cia402_master import Cia402Drive
-from drivers.trace import describe_frame
+from tests.can_trace import describe_frame
 from tests.test_master_localnode import NODE_ID, MiniServo, drive_config
 
 Line = tuple[str, str]  # (direction, meaning)
