@@ -33,8 +33,9 @@ import numpy as np
 
 from benchmarks.comparison import Comparison, comparisons_json, repeat, seconds
 from benchmarks.output import emit, json_parser
+from benchmarks.queued_writer import QueuedLogWriter
 from foilc_hil.io.log_process import ProcessLogWriter
-from foilc_hil.io.mcap_log import McapLogWriter, QueuedLogWriter, read_log
+from foilc_hil.io.mcap_log import McapLogWriter, read_log
 from foilc_hil.io.mcap_writer import FRAME_BATCH
 from foilc_hil.io.records import SampleRecord, TimingRecord
 

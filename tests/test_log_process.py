@@ -315,7 +315,7 @@ def test_the_child_labels_the_channels_with_the_units_the_loop_worked_out(tmp_pa
         os.write(data_w, framed(marshal.dumps([opened])))
         os.close(data_w)
         serve(data_r, reply_w, fd)
-        print(sorted(m for m in sys.modules if m.split(".")[0] in ("pydantic", "can", "drivers")))
+        print(sorted(m for m in sys.modules if m.split(".")[0] in ("pydantic", "can", "canopen")))
     """)
     result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, check=True)
     assert result.stdout.strip() == "[]", result.stdout

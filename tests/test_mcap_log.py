@@ -19,7 +19,8 @@ from mcap.exceptions import McapError
 from mcap.reader import NonSeekingReader, make_reader
 
 from foilc_hil.errors import LogFormatError
-from foilc_hil.io.mcap_log import LogWriteError, McapLogReader, McapLogWriter, QueuedLogWriter, read_log
+from foilc_hil.io.log_process import ProcessLogWriter
+from foilc_hil.io.mcap_log import LogWriteError, McapLogReader, McapLogWriter, read_log
 from foilc_hil.io.schemas import TOPICS
 
 CONFIG_YAML = "sample_time: 0.01\ntrials: 3\n"
@@ -27,7 +28,7 @@ DESIGN = {"P": [[0.5, -0.25]], "kp": 0.1, "certificates": {"spectral_radius": 0.
 N_SAMPLES = 40
 
 
-def _write_trial(writer: McapLogWriter | QueuedLogWriter, trial: int, rng: np.random.Generator) -> list[dict]:
+def _write_trial(writer: McapLogWriter | ProcessLogWriter, trial: int, rng: np.random.Generator) -> list[dict]:
     """Log one synthetic trial; return the sample documents expected back."""
     expected = []
     for i in range(N_SAMPLES):
@@ -208,14 +209,14 @@ def test_a_killed_process_loses_only_the_trial_in_progress(tmp_path: Path) -> No
     script = textwrap.dedent(
         f"""
         import os
-        from foilc_hil.io.mcap_log import QueuedLogWriter
-        log = QueuedLogWriter.open({str(path)!r}, config_yaml="x: 1\\n")
+        from foilc_hil.io.mcap_log import McapLogWriter
+        log = McapLogWriter({str(path)!r}, config_yaml="x: 1\\n")
         for trial in (1, 2, 3):
             for i in range(200):
                 log.log_sample(trial, i * 0.01, 1.0, 0.5, 0.25, 0.5)
             if trial < 3:
                 log.log_trial({{"trial": trial, "sse": 1.0, "rmse": 1.0, "max_abs_error": 1.0}})
-                log.end_trial(wait=True)
+                log.end_trial()
         os._exit(9)  # die mid-trial 3: no close, no footer
         """
     )
@@ -259,26 +260,9 @@ def test_bad_compression_and_unwritable_path_are_input_errors(tmp_path: Path) ->
         McapLogWriter(tmp_path / "no" / "such" / "dir.mcap", config_yaml=None)
 
 
-def test_queued_writer_writes_what_the_direct_writer_writes(tmp_path: Path) -> None:
-    direct, queued = tmp_path / "direct.mcap", tmp_path / "queued.mcap"
-    expected, _ = _write_log(direct, trials=2)
-    rng = np.random.default_rng(7)
-    with QueuedLogWriter.open(queued, config_yaml=CONFIG_YAML, design=DESIGN) as log:
-        for trial in (1, 2):
-            _write_trial(log, trial, rng)
-            log.end_trial()
-    a, b = read_log(direct), read_log(queued)
-    assert b.samples == expected == a.samples
-    assert b.trials == a.trials and b.timing == a.timing
-    assert [f for f in b.frames if f["dir"] == "rx"] == [f for f in a.frames if f["dir"] == "rx"]
-    assert b.metadata == a.metadata and not b.truncated
-    with queued.open("rb") as stream:
-        assert make_reader(stream).get_summary().statistics.chunk_count == 2  # type: ignore[union-attr]
-
-
-def test_queued_writer_accepts_frames_from_a_notifier_thread(tmp_path: Path) -> None:
+def test_the_process_writer_accepts_frames_from_a_notifier_thread(tmp_path: Path) -> None:
     path = tmp_path / "threads.mcap"
-    log = QueuedLogWriter.open(path, config_yaml=None, fsync=False)
+    log = ProcessLogWriter(path, config_yaml=None, fsync=False)
 
     def rx() -> None:
         for i in range(500):
@@ -293,15 +277,6 @@ def test_queued_writer_accepts_frames_from_a_notifier_thread(tmp_path: Path) -> 
     contents = read_log(path)
     assert [s["control"] for s in contents.samples] == [float(i) for i in range(500)]
     assert [f["timestamp"] for f in contents.frames] == [1.0 + i for i in range(500)]
-
-
-def test_queued_writer_reports_a_background_failure_between_trials(tmp_path: Path) -> None:
-    log = QueuedLogWriter.open(tmp_path / "e.mcap", config_yaml=None, fsync=False)
-    log.writer.close()  # the file goes away under the background thread
-    log.log_sample(1, 0.0, 0.0, 0.0, 0.0, 0.0)  # the hot path never raises
-    with pytest.raises(LogWriteError, match="closed"):
-        log.sync()
-    log.close()
 
 
 def test_writer_rejects_use_after_close(tmp_path: Path) -> None:
@@ -366,33 +341,6 @@ def test_schemas_name_their_dialect_and_channels_carry_units(tmp_path: Path) -> 
     # a config that does not load gives the time units only, and the log is still written
     McapLogWriter(tmp_path / "odd.mcap", config_yaml="drive: [1, 2]\n").close()
     assert _channel_units(tmp_path / "odd.mcap")["/ilc/sample"] == {"t": "s"}
-
-
-def test_a_slow_writer_bounds_the_queue_and_loses_nothing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Back-pressure: a loop faster than the writer thread waits for it instead of growing the queue without bound."""
-    import time
-
-    from foilc_hil.io import mcap_log
-
-    monkeypatch.setattr(mcap_log, "MAX_BACKLOG", 40)
-    writer = QueuedLogWriter.open(tmp_path / "slow.mcap", config_yaml=None, fsync=False)
-    inner_write = writer.writer.write_sample
-
-    def slow_write(record: object, log_time_ns: int | None = None) -> None:
-        time.sleep(0.0005)  # slower than the producer below, which only enqueues
-        inner_write(record, log_time_ns=log_time_ns)  # type: ignore[arg-type]
-
-    monkeypatch.setattr(writer.writer, "write_sample", slow_write)
-    deepest = 0
-    with writer:
-        for i in range(400):
-            writer.log_sample(1, i * 0.01, 1.0, 0.5, 0.1, 0.5, None, sample=i)
-            deepest = max(deepest, writer.pending())
-        writer.log_trial({"trial": 1, "sse": 1.0, "rmse": 0.5, "max_abs_error": 0.5})
-    assert writer.backpressure_waits > 0
-    assert deepest <= 41  # never more than the bound plus the item that crossed it
-    samples = read_log(tmp_path / "slow.mcap").samples
-    assert [row["sample"] for row in samples] == list(range(400))
 
 
 def test_a_topic_filtered_read_gives_the_records_of_a_full_read(tmp_path: Path) -> None:

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import enum
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from foilc_hil.io.mcap_log import LogOp, McapLogWriter, QueuedLogWriter, read_log
+from foilc_hil.io.log_process import ProcessLogWriter
+from foilc_hil.io.mcap_log import McapLogWriter, read_log
 from foilc_hil.io.records import SampleRecord, TimingRecord
 
 
@@ -18,11 +18,11 @@ def _records() -> list[SampleRecord]:
     return [siso, mimo]
 
 
-@pytest.mark.parametrize("queued", [False, True], ids=["direct", "queued"])
-def test_records_round_trip_through_the_writer(tmp_path: Path, queued: bool) -> None:
+@pytest.mark.parametrize("process", [False, True], ids=["in-process", "writer-process"])
+def test_records_round_trip_through_the_writer(tmp_path: Path, process: bool) -> None:
     out = tmp_path / "records.mcap"
-    direct = McapLogWriter(out, config_yaml=None, fsync=False)
-    writer: McapLogWriter | QueuedLogWriter = QueuedLogWriter(direct) if queued else direct
+    writer = (ProcessLogWriter(out, config_yaml=None, fsync=False) if process
+              else McapLogWriter(out, config_yaml=None, fsync=False))
     with writer:
         for record in _records():
             writer.write_sample(record)
@@ -55,16 +55,11 @@ def test_sample_record_is_immutable_and_has_no_dict() -> None:
     assert not hasattr(record, "__dict__")
 
 
-def test_log_opcodes_are_a_unique_int_enum() -> None:
-    assert issubclass(LogOp, enum.IntEnum)
-    assert len(LogOp.__members__) == len(LogOp) == 7  # no aliases: every opcode has its own value
-
-
-@pytest.mark.parametrize("queued", [False, True], ids=["direct", "queued"])
-def test_timing_records_round_trip_typed_and_positional(tmp_path: Path, queued: bool) -> None:
+@pytest.mark.parametrize("process", [False, True], ids=["in-process", "writer-process"])
+def test_timing_records_round_trip_typed_and_positional(tmp_path: Path, process: bool) -> None:
     out = tmp_path / "timing.mcap"
-    direct = McapLogWriter(out, config_yaml=None, fsync=False)
-    writer: McapLogWriter | QueuedLogWriter = QueuedLogWriter(direct) if queued else direct
+    writer = (ProcessLogWriter(out, config_yaml=None, fsync=False) if process
+              else McapLogWriter(out, config_yaml=None, fsync=False))
     typed = TimingRecord(7, 2, 3, np.float64(12.5), 1000.0, None, True, lost_feedback=True)
     with writer:
         writer.write_timing(typed)

@@ -1,6 +1,6 @@
 """The MCAP log written by a child process: the loop's process neither encodes JSON nor writes the file.
 
-:class:`ProcessLogWriter` has the logging methods of :class:`~foilc_hil.io.mcap_log.QueuedLogWriter`. Each call
+:class:`ProcessLogWriter` has the logging methods of :class:`~foilc_hil.io.mcap_log.McapLogWriter`. Each call
 appends one plain tuple (an opcode, the log time, the values; a frame as its
 :func:`~foilc_hil.io.mcap_log.frame_fields`, a trial's samples as the float64 columns of its
 :class:`~foilc_hil.io.records.TrialSamples`) to a deque; every :data:`BATCH` items, at every trial's end and at
@@ -101,7 +101,7 @@ _PLAIN_TYPES: Final = frozenset({float, int, bool, type(None)})
 
 class ProcessLogWriter(_ClosingListener):
     """MCAP logging in a child process (see the module's docstring); same logging methods as
-    :class:`~foilc_hil.io.mcap_log.QueuedLogWriter`, same parameters as
+    :class:`~foilc_hil.io.mcap_log.McapLogWriter`, same parameters as
     :class:`~foilc_hil.io.mcap_log.McapLogWriter` (``output`` is a path here), and ``wait`` (see :meth:`started`).
 
     Values are referenced until their batch is sent: pass floats, or arrays the caller does not mutate afterwards.
@@ -206,7 +206,7 @@ class ProcessLogWriter(_ClosingListener):
         fsync: bool = True,
         wait: bool = True,
     ) -> ProcessLogWriter:
-        """Create the file and start the writer process (the spelling of ``QueuedLogWriter.open``); ``wait=False``:
+        """Create the file and start the writer process ; ``wait=False``:
         return while the child starts, and call :meth:`started` before the first trial."""
         return cls(output, compression=compression, config_yaml=config_yaml, design=design, fsync=fsync, wait=wait)
 

@@ -1,7 +1,7 @@
 """The typed records the trial loop hands to the log writer.
 
 A sample is built once, as a :class:`SampleRecord`, by whoever produced it (the trial loop after a trial, a test,
-a tool) and travels unchanged through :class:`~foilc_hil.io.mcap_log.QueuedLogWriter`'s queue to
+a tool) and travels unchanged through :class:`~foilc_hil.io.log_process.ProcessLogWriter`'s pipe to
 :class:`~foilc_hil.io.mcap_log.McapLogWriter`, which encodes it with :meth:`SampleRecord.to_json`: one form from
 the loop to the file. A cycle's timing travels the same way as a :class:`TimingRecord` (``/timing``).
 

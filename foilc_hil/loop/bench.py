@@ -108,7 +108,7 @@ from plant_emulator.device import TimingMode
 if TYPE_CHECKING:
 
     from foilc_hil.io.log_process import ProcessLogWriter
-    from foilc_hil.io.mcap_log import McapLogWriter, QueuedLogWriter
+    from foilc_hil.io.mcap_log import McapLogWriter
     from foilc_hil.loop.stalls import LoopStalls
 
 __all__ = [
@@ -1012,7 +1012,7 @@ class McapSink:
     """
 
     def __init__(
-        self, writer: McapLogWriter | QueuedLogWriter | ProcessLogWriter, command_limits: tuple[float, float] | None
+        self, writer: McapLogWriter | ProcessLogWriter, command_limits: tuple[float, float] | None
     ) -> None:
         from foilc_hil.io.schemas import METADATA_LAYOUT, SAMPLE_LAYOUT
 
