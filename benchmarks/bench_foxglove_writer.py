@@ -6,7 +6,7 @@ each trial's samples as the float64 columns of a :class:`~foilc_hil.io.records.T
 trial's end. The JSON documents are the project's on both sides (``classic_frames_documents``,
 ``trial_samples_documents``: the log's bytes), so what differs is the writer: ours
 (:class:`~foilc_hil.io.mcap_writer.McapFileWriter`: records, chunks, zstd and indexes in Python and zstandard; the
-writer process's configuration, ``compiled_frames=False``) against foxglove-sdk's ``MCAPWriter`` (Rust) fed through
+writer process's configuration) against foxglove-sdk's ``MCAPWriter`` (Rust) fed through
 its channels (``Channel.log``: one call a message), the same schemas, channel metadata, metadata records, zstd and
 chunk size. Neither syncs the file (the disk is not under test).
 
@@ -92,8 +92,8 @@ def workload(trials: int, samples: int, *, frames: bool = True, rows: bool = Tru
 
 
 def write_ours(path: Path, load: Workload) -> None:
-    """``run``'s writer process's writer (``compiled_frames=False``), fed as the process feeds it."""
-    writer = McapFileWriter(path, config_yaml=CONFIG_YAML, fsync=False, compiled_frames=False, chunk_size=CHUNK_SIZE)
+    """``run``'s writer process's writer, fed as the process feeds it."""
+    writer = McapFileWriter(path, config_yaml=CONFIG_YAML, fsync=False, chunk_size=CHUNK_SIZE)
     for k, (fields, directions, times) in enumerate(load.frames):
         for start in range(0, len(fields), BATCH_FRAMES):
             end = start + BATCH_FRAMES

@@ -21,7 +21,6 @@ from foilc_hil.io.mcap_writer import (
     Direction,
     McapFileWriter,
     classic_frames_documents,
-    classic_frames_records,
     frame_json,
 )
 
@@ -61,26 +60,22 @@ def _records(data: bytes) -> list[tuple[int, int, int, int, int, bytes]]:
     return records
 
 
-def test_a_batch_of_classic_frames_is_orjsons_text_in_mcap_records() -> None:
+def test_a_batch_of_classic_frames_is_each_frames_own_text() -> None:
+    """The batch spelling (the one every batch of classic frames takes) is, frame for frame, the single-frame one."""
     frames = _classic_frames(500, seed=3)
     directions: list[Direction] = ["tx" if i % 3 else "rx" for i in range(len(frames))]
     log_times = [1_700_000_000_000_000_000 + 1000 * i for i in range(len(frames))]
-    sequence = (1 << 32) - 200  # the sequence number wraps within the batch
-    stamps, ids, extended, dlcs, datas = list(zip(*(frame_fields(m) for m in frames), strict=True))[:5]
-    encoded = classic_frames_records(stamps, ids, extended, dlcs, datas, directions, log_times, 3, sequence)
-    assert encoded is not None
-    data, offsets = encoded
-    stamps = [m.timestamp or log_time / 1e9 for m, log_time in zip(frames, log_times, strict=True)]  # type: ignore[assignment]
-    assert _records(data) == [
-        (offset, 3, (sequence + i) % (1 << 32), log_times[i], round(stamps[i] * 1e9), _document(m, stamps[i], d))
-        for i, (offset, m, d) in enumerate(zip(offsets, frames, directions, strict=True))
-    ]
-    # one frame at a time: the same text
+    stamps = [m.timestamp or log_time / 1e9 for m, log_time in zip(frames, log_times, strict=True)]
+    _, ids, extended, dlcs, datas = list(zip(*(frame_fields(m) for m in frames), strict=True))[:5]
+    documents = classic_frames_documents(stamps, ids, extended, dlcs, datas, [None] * len(frames), directions)
+    assert documents is not None
     texts = [frame_json(frame_fields(m), t, d) for m, t, d in zip(frames, stamps, directions, strict=True)]
-    assert texts == [record[-1] for record in _records(data)]
+    assert documents == texts
+    # and the text is orjson's document of the frame (an independent spelling)
+    assert texts == [_document(m, t, d) for m, t, d in zip(frames, stamps, directions, strict=True)]
 
 
-def test_frames_the_kernel_does_not_cover_are_written_one_by_one(tmp_path: Path) -> None:
+def test_frames_the_batch_does_not_cover_are_written_one_by_one(tmp_path: Path) -> None:
     classic = _classic_frames(3, seed=5)
     odd = [
         can.Message(arbitration_id=0x181, is_remote_frame=True, dlc=2, is_extended_id=False, timestamp=1.0),
@@ -89,9 +84,6 @@ def test_frames_the_kernel_does_not_cover_are_written_one_by_one(tmp_path: Path)
         can.Message(arbitration_id=0x181, data=b"\x01", is_extended_id=False, timestamp=1e-05),  # exponent
         can.Message(arbitration_id=0x181, data=b"\x01", is_extended_id=False, timestamp=float("inf")),
     ]
-    stamps, ids, extended, dlcs, datas = list(zip(*(frame_fields(m) for m in [*classic, odd[3]]), strict=True))[:5]
-    # orjson's spelling of 1e-05: not the kernel's
-    assert classic_frames_records(stamps, ids, extended, dlcs, datas, ["tx"] * 4, [1] * 4, 1, 0) is None
     path = tmp_path / "odd.mcap"
     with McapLogWriter(path, config_yaml=None, fsync=False) as writer:
         for msg in [*classic, *odd[:4]]:
@@ -146,7 +138,7 @@ def test_a_batch_of_documents_is_each_frames_own_text() -> None:
 
 def _file_bytes(log: Callable[[McapFileWriter], None]) -> bytes:
     stream = io.BytesIO()
-    writer = McapFileWriter(stream, config_yaml=None, fsync=False, compiled_frames=False, compression="none")
+    writer = McapFileWriter(stream, config_yaml=None, fsync=False, compression="none")
     log(writer)
     writer.close()
     return stream.getvalue()
@@ -177,7 +169,7 @@ def test_frames_logged_as_columns_make_the_file_frame_by_frame_logging_makes() -
 def test_a_frame_whose_timestamp_is_not_a_number_is_refused(stamp: object) -> None:
     fields = (stamp, 0x181, False, 1, b"\x01",
               False, False, False, False, False, None)
-    writer = McapFileWriter(io.BytesIO(), config_yaml=None, fsync=False, compiled_frames=False)
+    writer = McapFileWriter(io.BytesIO(), config_yaml=None, fsync=False)
     with pytest.raises(TypeError, match=f"timestamp must be a number, not {type(stamp).__name__}"):
         writer.log_frames([fields], ["tx"], [1])
     writer.close()

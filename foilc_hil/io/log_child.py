@@ -126,12 +126,9 @@ def _reply(stream: IO[bytes], kind: ReplyKind, value: Any) -> None:
 def _open_writer(item: tuple[Any, ...], file_fd: int) -> McapFileWriter:
     path, compression, config_yaml, design, chunk_size, fsync, channels_metadata = item[1:]
     stream = os.fdopen(file_fd, "wb")
-    # Python frames, no compiled kernel: numba's import took 1.9 s at the first batch on a loaded machine, and the
-    # bench's loop blocked on the full pipe meanwhile (a SYNC gap, the drive's SYNC-loss EMCY). Here, off the loop's
-    # GIL, a frame's few microseconds in Python cost the loop nothing.
     writer = McapFileWriter(
         stream, compression=compression, config_yaml=config_yaml, design=design, chunk_size=chunk_size, fsync=fsync,
-        compiled_frames=False, channels_metadata=channels_metadata,
+        channels_metadata=channels_metadata,
     )
     writer.path = path
     return writer

@@ -173,13 +173,6 @@ class ChunkedMcapWriter:
         records = b"".join(chain.from_iterable(zip(headers, datas, strict=True)))
         self._append_records(channel_id, log_times, offsets, records)
 
-    def add_records(self, channel_id: int, log_times: Sequence[int], offsets: Iterable[int], records: bytes) -> None:
-        """Append ``len(log_times)`` ``Message`` records of one channel already encoded (by
-        :func:`foilc_hil.io.frame_kernel.encode_frames`, with the sequence numbers from :meth:`message_count` on),
-        ``offsets`` the offset of each within ``records``."""
-        self._message_counts[channel_id] += len(log_times)
-        self._append_records(channel_id, log_times, offsets, records)
-
     def _append_records(
         self, channel_id: int, log_times: Sequence[int], offsets: Iterable[int], records: bytes
     ) -> None:

@@ -51,7 +51,6 @@ from foilc_hil.io.mcap_writer import (
     McapFileWriter,
     _LogLifecycle,
     _time_ns,
-    classic_frames_records,
     encode_design,
     frame_json,
 )
@@ -72,7 +71,6 @@ __all__ = [
     "LogWriteError",
     "McapLogReader",
     "McapLogWriter",
-    "classic_frames_records",
     "count_directions",
     "encode_design",
     "frame_fields",

@@ -54,7 +54,6 @@ __all__ = [
     "McapFileWriter",
     "check_log_path",
     "classic_frames_documents",
-    "classic_frames_records",
     "encode_design",
     "frame_json",
     "trial_samples_documents",
@@ -239,12 +238,6 @@ class McapFileWriter(_LogLifecycle):
         Chunks are closed at this size (bytes, uncompressed) as well as at every :meth:`end_trial`.
     fsync
         ``os.fsync`` the file at every :meth:`end_trial` so a completed trial survives a power cut too.
-    compiled_frames
-        Write batches of classic frames without a channel with the compiled kernel (:mod:`foilc_hil.io.frame_kernel`,
-        loaded at the first batch: numba's import); ``False``: their documents by C loops over the batch
-        (:func:`classic_frames_documents`), the same bytes, for a process that must start fast and not pause at its
-        first batch (the writer process of ``run``). Frames on a text channel always take that path; a remote,
-        error or FD frame is written on its own.
     channels_metadata
         Each topic's channel metadata, as :func:`~foilc_hil.io.schemas.channel_metadata` gives it for
         ``config_yaml`` (what it is when ``None``). The writer process gets it from the loop's process: working it
@@ -260,7 +253,6 @@ class McapFileWriter(_LogLifecycle):
         design: Mapping[str, Any] | None = None,
         chunk_size: int = 4 * 1024 * 1024,
         fsync: bool = True,
-        compiled_frames: bool = True,
         channels_metadata: Mapping[str, Mapping[str, str]] | None = None,
     ) -> None:
         if compression not in _COMPRESSION:
@@ -276,7 +268,6 @@ class McapFileWriter(_LogLifecycle):
             self._stream = output
             self._owns_stream = False
         self._fsync = fsync
-        self._compiled_frames = compiled_frames
         self._lock = threading.Lock()
         self._frames: list[Any] = []  # logged, not yet encoded: rows of _FRAME_ROW values, one after the other
         self._closed = False
@@ -488,14 +479,6 @@ class McapFileWriter(_LogLifecycle):
         can_channel = self._can_channel
         try:
             if rares.count(None) == len(rares):  # classic data frames, with no channel or a text one
-                if self._compiled_frames and channels.count(None) == len(channels):
-                    first = self._writer.message_count(can_channel)
-                    encoded = classic_frames_records(
-                        stamps, ids, extended, dlcs, datas, directions, log_times, can_channel, first,
-                    )
-                    if encoded is not None:
-                        self._writer.add_records(can_channel, log_times, encoded[1], encoded[0])
-                        return
                 documents = classic_frames_documents(stamps, ids, extended, dlcs, datas, channels, directions)
                 if documents is not None:
                     self._writer.add_messages(can_channel, log_times, documents, _publish_times(stamps))
@@ -638,48 +621,6 @@ def classic_frames_documents(
         map(bytes.decode, map(_base64, datas)), map(fields.__getitem__, channels), strict=True,
     )
     return list(map(str.encode, map(operator.mod, map(_FRAME_TEMPLATES.__getitem__, directions), values)))
-
-
-def classic_frames_records(
-    stamps: Sequence[float],
-    ids: Sequence[int],
-    extended: Sequence[bool],
-    dlcs: Sequence[int],
-    datas: Sequence[bytes | bytearray],
-    directions: Sequence[str],
-    log_times: Sequence[int],
-    channel_id: int,
-    sequence: int,
-) -> tuple[bytes, list[int]] | None:
-    """The MCAP ``Message`` records (and their offsets) of a batch of classic data frames, given as columns, on
-    ``channel_id`` from sequence number ``sequence`` on, with the ``/can`` JSON :func:`frame_json` writes (a frame
-    without a timestamp gets its log time); ``None`` if a timestamp needs orjson's spelling or a direction is odd.
-
-    The columns go to numpy by C loops and one compiled kernel writes the records
-    (:func:`foilc_hil.io.frame_kernel.encode_frames`): no Python bytecode per frame.
-    """
-    from foilc_hil.io.frame_kernel import FIXED_BYTES, encode_frames
-
-    count = len(ids)
-    if not all(stamps):  # the bench's own frames: their log time
-        stamps = [stamp or log_time / 1e9 for stamp, log_time in zip(stamps, log_times, strict=True)]
-    spelled = _timestamp_texts(stamps, directions)
-    if spelled is None:
-        return None
-    texts, joined = spelled
-    text = np.frombuffer(joined.encode("ascii"), np.uint8)
-    payload = np.frombuffer(b"".join(datas), np.uint8)
-    out = np.empty(count * FIXED_BYTES + text.size + 2 * payload.size, np.uint8)
-    offsets = np.empty(count, np.int64)
-    size = encode_frames(
-        text, np.cumsum(np.fromiter(map(len, texts), np.int64, count)),
-        np.fromiter(ids, np.int64, count), np.fromiter(extended, np.bool_, count), np.fromiter(dlcs, np.int64, count),
-        payload, np.cumsum(np.fromiter(map(len, datas), np.int64, count)),
-        np.frombuffer("".join(directions).encode("ascii"), np.uint8)[::2] == ord("t"),
-        np.fromiter(log_times, np.int64, count), np.rint(np.fromiter(stamps, np.float64, count) * 1e9).astype(np.int64),
-        channel_id, sequence, out, offsets,
-    )
-    return out[:size].tobytes(), offsets.tolist()
 
 
 def frame_json(fields: FrameFields, timestamp: float, direction: Direction) -> bytes:
