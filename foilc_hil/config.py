@@ -102,6 +102,11 @@ class ReferenceConfig(Section):
     scale: float = 1.0  # multiplies the profile (unit conversion)
     time_scale: float = Field(default=1.0, gt=0)  # eq52 is printed in ms; 1.0 keeps 6 s per trial
     segments: list[Segment] | None = None
+    # seconds of a linear ramp from rest to the profile's first value before it, and from its last value back to
+    # rest after it (both part of the trial): a profile that starts or ends away from rest asks for a jump no axis
+    # can make, which a learning law integrates into a command at the drive's limit at the trial's edges
+    lead_in: float = Field(default=0.0, ge=0)
+    lead_out: float = Field(default=0.0, ge=0)
 
     @model_validator(mode="after")
     def _segments_for_piecewise(self) -> ReferenceConfig:

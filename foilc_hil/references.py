@@ -34,7 +34,13 @@ _EQ52_DURATION = 6.0
 
 
 def trial_duration(cfg: ReferenceConfig) -> float:
-    """Length of one trial in seconds (``time_scale`` stretches every profile in time)."""
+    """Length of one trial in seconds (``time_scale`` stretches every profile in time), the ``lead_in`` and
+    ``lead_out`` ramps included."""
+    return _profile_duration(cfg) + cfg.lead_in + cfg.lead_out
+
+
+def _profile_duration(cfg: ReferenceConfig) -> float:
+    """Length of the profile itself, between the lead-in and the lead-out."""
     if cfg.profile == "eq49":
         base = _EQ49_DURATION
     elif cfg.profile == "eq52":
@@ -104,6 +110,30 @@ def reference_profile(cfg: ReferenceConfig, sample_time: float) -> np.ndarray:
     t = sample_times(cfg, sample_time)
     # Breakpoints are compared with a tolerance far below one sample so that e.g. 1000 * 0.01 lands on 10 s.
     tol = 1e-9 * sample_time
+    if cfg.lead_in or cfg.lead_out:
+        return _with_leads(cfg, t, tol)
+    return _profile_values(cfg, t, tol) * cfg.scale
+
+
+def _with_leads(cfg: ReferenceConfig, t: np.ndarray, tol: float) -> np.ndarray:
+    """The profile shifted by ``lead_in``, with a ramp from rest up to its first value before it and from its last
+    value down to rest after it (the profile's own ends, sampled just inside them)."""
+    begin, end = cfg.lead_in, cfg.lead_in + _profile_duration(cfg)
+    inner = np.clip(t - begin, tol, end - begin)
+    values = _profile_values(cfg, inner, tol)
+    edges = _profile_values(cfg, np.array([tol, end - begin]), tol)
+    first, last = float(edges[0]), float(edges[1])
+    if cfg.lead_in:
+        before = t <= begin + tol
+        values = np.where(before, first * np.clip(t / cfg.lead_in, 0.0, 1.0), values)
+    if cfg.lead_out:
+        after = t > end + tol
+        values = np.where(after, last * np.clip((t[-1] - t) / cfg.lead_out, 0.0, 1.0), values)
+    return np.asarray(values * cfg.scale, dtype=float)
+
+
+def _profile_values(cfg: ReferenceConfig, t: np.ndarray, tol: float) -> np.ndarray:
+    """The profile (unscaled) at the instants ``t`` of its own time axis."""
     if cfg.profile == "eq49":
         edge = 10.0 * cfg.time_scale
         values = np.where(t <= edge + tol, 1.0, 0.0)
@@ -114,7 +144,7 @@ def reference_profile(cfg: ReferenceConfig, sample_time: float) -> np.ndarray:
         values = np.where(t_ms <= 3000.0 + tol_ms, 400.0, np.where(t_ms <= 4000.0 + tol_ms, ramp, 600.0))
     else:
         values = _piecewise(cfg, t, tol)
-    return np.asarray(values * cfg.scale, dtype=float)
+    return np.asarray(values, dtype=float)
 
 
 def _piecewise(cfg: ReferenceConfig, t: np.ndarray, tol: float) -> np.ndarray:

@@ -57,3 +57,30 @@ def test_sample_time_must_divide_the_trial() -> None:
         trial_samples(ReferenceConfig(profile="eq49"), 0.03)
     with pytest.raises(ConfigError, match="sample_time"):
         trial_samples(ReferenceConfig(profile="eq49"), -1.0)
+
+
+@pytest.mark.parametrize("profile", ["eq52", "piecewise"])
+def test_lead_in_and_lead_out_ramp_from_and_to_rest_around_the_same_profile(profile: str) -> None:
+    segments = [Segment(duration=0.5, start=2.0, end=3.0), Segment(duration=0.5, start=3.0)]
+    base = ReferenceConfig(profile=profile, segments=segments if profile == "piecewise" else None, scale=1.5)
+    led = base.model_copy(update={"lead_in": 0.2, "lead_out": 0.3})
+    ts = 0.001
+    plain, with_leads = reference_profile(base, ts), reference_profile(led, ts)
+    assert trial_samples(led, ts) == trial_samples(base, ts) + 500 == with_leads.shape[0]
+    # the profile itself, shifted by the lead-in (to rounding of its instants)
+    np.testing.assert_allclose(with_leads[200:200 + plain.shape[0]], plain, rtol=0, atol=1e-9 * np.abs(plain).max())
+    # the ramps meet the profile at its own start and end (t = 0 and T of the profile, not its first sample)
+    first = (2.0 if profile == "piecewise" else 400.0) * 1.5
+    last = plain[-1]
+    lead_in, lead_out = with_leads[:200], with_leads[200 + plain.shape[0]:]
+    # a straight ramp up from rest to the first value, and down from the last one to rest at the trial's end
+    np.testing.assert_allclose(lead_in, first * np.arange(1, 201) / 200, atol=1e-9)
+    np.testing.assert_allclose(lead_out, last * (1 - np.arange(1, 301) / 300), atol=1e-9)
+    assert with_leads[-1] == 0.0 and np.all(np.diff(lead_in) > 0)
+
+
+def test_a_negative_lead_is_refused() -> None:
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError):
+        ReferenceConfig(profile="eq52", lead_in=-0.1)
