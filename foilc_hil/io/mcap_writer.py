@@ -3,8 +3,8 @@
 :class:`McapFileWriter` writes the layout of :mod:`foilc_hil.io.schemas` (durability: see
 :mod:`foilc_hil.io.mcap_log`); :class:`foilc_hil.io.mcap_log.McapLogWriter` is the same writer as a python-can
 listener. Why a module of its own: the writer process (:mod:`foilc_hil.io.log_child`) imports this and not
-python-can, whose import (its interface registry's entry points, its own log formats) was 0.18 s of the child's
-0.45 s start: a start every ``run`` waits for before its drive is enabled.
+python-can, whose import (its interface registry's entry points, its own log formats) would be a large part of the
+child's start: a start every ``run`` waits for before its drive is enabled.
 """
 
 from __future__ import annotations
@@ -314,8 +314,8 @@ class McapFileWriter(_LogLifecycle):
         ``TypeError``.
 
         Why columns: the rows are built by ``zip`` and ``chain`` (C loops), where :meth:`log_frame_fields` is a
-        Python call per frame: the calls per frame (the dispatch, the check, the row) were about a third of the
-        writer process's 9.5 us a frame in a profile; with this and :func:`classic_frames_documents`, 5.3 us.
+        Python call per frame: the calls per frame (the dispatch, the check, the row) were a large share of the
+        writer process's time per frame.
         """
         columns = list(zip(*fields, strict=True))
         if not columns:
@@ -570,8 +570,8 @@ def trial_samples_documents(samples: TrialSamples) -> list[bytes] | None:
     writes for each of :meth:`TrialSamples.records` (same keys, order and spelling), built by formatting over the
     columns instead of a record, a dict and an ``orjson.dumps`` per row; ``None`` for columns of vectors.
 
-    Why: the writer process wrote a trial's rows at about 9 us each, half its work in a lockstep run of the
-    first-order plant (one row and four frames a cycle) -- work that competes with the loop on a 2-core host.
+    Why: a record, a dict and an ``orjson.dumps`` per row were half the writer process's work in a lockstep run of
+    the first-order plant (one row and four frames a cycle) -- work that competes with the loop on a 2-core host.
     """
     columns = samples.columns()
     if any(column.ndim != 1 for column in columns):
@@ -607,9 +607,10 @@ def classic_frames_documents(
     ``None`` or text): :func:`frame_json`'s text of each, built by ``map`` over the columns (C loops, no Python
     bytecode per frame); ``None`` if a timestamp needs orjson's spelling or a direction is odd.
 
-    Why: the writer process writes every frame of a run this way, without the compiled kernel (numba's import is a
-    second at its start; see :mod:`foilc_hil.io.log_child`): 1.8 us a frame, against 3 us for :func:`frame_json`
-    called per frame (measured on a batch of 1024).
+    Why: the writer process writes every frame of a run this way, without the compiled kernel (numba's import would
+    hold its start; see :mod:`foilc_hil.io.log_child`), and C loops over columns beat :func:`frame_json` called per
+    frame.
+
     """
     spelled = _timestamp_texts(stamps, directions)
     if spelled is None:
