@@ -4,7 +4,7 @@
 appends one plain tuple (an opcode, the log time, the values; a frame as its
 :func:`~foilc_hil.io.mcap_log.frame_fields`, a trial's samples as the float64 columns of its
 :class:`~foilc_hil.io.records.TrialSamples`) to a deque; every :data:`BATCH` items, at every trial's end and at
-:meth:`~ProcessLogWriter.sync` the deque goes to the child as one ``marshal`` payload (C code, about 0.3 us an item)
+:meth:`~ProcessLogWriter.sync` the deque goes to the child as one ``marshal`` payload (C code, cheap per item)
 through a pipe. The child (``python -m foilc_hil.io.log_child``, started by the writer) runs the one
 :class:`~foilc_hil.io.mcap_writer.McapFileWriter`: the file, layout and JSON are the same as in-process logging.
 The child reads the pipe on its own clock (every :data:`READ_PAUSE` once drained) and runs in ``SCHED_BATCH``: the
@@ -253,8 +253,9 @@ class ProcessLogWriter(_ClosingListener):
         """Log a trial's ``/ilc/sample`` messages as one item: its columns as float64 bytes, one log time for all
         (the child builds the rows with :meth:`TrialSamples.records`, the same documents as :meth:`write_sample`).
 
-        Why: built here, the rows cost the loop's process 3.2 to 5.4 us each (the record, its check, its tuple,
-        its share of ``marshal``); sent as columns, 0.3 us a row.
+        Why: built here, the rows would cost the loop's process a record, its check, its tuple and its share of
+        ``marshal`` each; sent as columns, a trial is one item.
+
         """
         axis = None if samples.axis is None else int(samples.axis)
         columns = tuple(column.tobytes() for column in samples.columns())
