@@ -4,7 +4,7 @@ the batches :class:`foilc_hil.io.log_process.ProcessLogWriter` sends through a p
 
 The wire (the opcodes, the replies, the framing of a payload) is defined here, with the reader; the sender imports it.
 This module imports neither python-can nor the sender: the child's start (its imports) is what a run waits for
-before its drive is enabled (0.45 s with python-can, measured).
+before its drive is enabled.
 """
 
 from __future__ import annotations
@@ -90,10 +90,9 @@ def _payloads(data_fd: int, pause: float = READ_PAUSE) -> Iterator[list[tuple[An
 
     The pipe is read on the child's own clock: take what is there, then sleep ``pause`` unless the read filled its
     buffer. Why not a blocking read: a reader asleep on the pipe is woken by every write, and that wake-up took the
-    loop's CPU (a pipe wake-up is a synchronous one: Linux favours the writer's CPU for the reader) -- measured, a
-    write of one batch took 0.05 to 3 ms of wall time for 25 us of CPU, 7 to 12 % of a lockstep run; read on a timer,
-    the same writes took their CPU time (median 16 to 26 us). A write then only copies, and the child wakes wherever
-    a CPU is free.
+    loop's CPU (a pipe wake-up is a synchronous one: Linux favours the writer's CPU for the reader), so a write of
+    one batch took many times its own CPU time in wall time. Read on a timer, a write only copies, and the child
+    wakes wherever a CPU is free.
     """
     os.set_blocking(data_fd, False)
     buffer = bytearray()
