@@ -42,7 +42,8 @@ The sum is a *linear* (not circular) convolution of the weights with ``g``. Shor
 convolution; long ones sum the first :data:`NEAR_FIELD` weights directly and the rest by a zero-padded FFT
 (:func:`foilc_hil.design.convolution.fft_convolve`: ``scipy.signal.fftconvolve``'s operations, bit for bit,
 without importing ``scipy.signal``), so the FFT's rounding never dominates the small early samples (at N = 200,000,
-r = 0.7, f = t^1.5: within 6.8e-11 of the direct sum at every sample, 0.04 s against 5.8 s). For r > 1 the sum
+r = 0.7, f = t^1.5: within 6.8e-11 of the direct sum at every sample, in a fraction of its time). For r > 1 the sum
+
 itself cancels (alternating weights against a growing signal) and both methods lose digits alike. The direct sum of
 a 2-D signal (the learning law's) is a compiled loop that adds the products in the order of scipy's 2-D direct
 ``signal.convolve``, so it equals scipy's bit for bit (``replay --verify`` of logs written with scipy needs it) at a
