@@ -296,8 +296,9 @@ def markov_blocks(A_cl: np.ndarray, B_in: np.ndarray, C_out: np.ndarray, start: 
     """``C_out A_cl^(start + j) B_in`` for ``j = 0..count-1``, shape ``(count, p, m)``; ``nan`` past an overflow.
 
     The first :data:`MARKOV_STRIDE` powers one by one, then every further stride at once by ``A_cl^stride`` (a
-    stacked product): a Python step per power cost about 15 ms per 2000-sample map, a third of a robustness draw's
-    IOILC certificate. The blocks are the model the certificates take as given, as before.
+    stacked product): a Python step per power was a large share of a robustness draw's IOILC certificate. The
+    blocks are the model the certificates take as given, as before.
+
     """
     blocks = np.empty((count, C_out.shape[0], B_in.shape[1]))
     if count == 0:
