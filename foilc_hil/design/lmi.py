@@ -341,8 +341,9 @@ class StandardForm:
     ``Qt``, ``J`` row by row, the multipliers ``sigma``, then ``gamma``), and ``Qb``, ``Qt`` as linear maps of ``x``.
 
     The coefficients are :func:`lmi_matrix` evaluated with numpy at ``x = 0`` and at each unit vector (the matrix is
-    affine in the decision variables), so cvxpy gets one linear map instead of an expression tree of blocks: its
-    compilation took about 110 ms of a 120 ms solve that way, and the solver 8 ms. ``tests/test_lmi_numerics.py``
+    affine in the decision variables), so cvxpy gets one linear map instead of an expression tree of blocks, whose
+    compilation would be most of a solve's time (the solver itself is a small part). ``tests/test_lmi_numerics.py``
+
     checks ``M(x)`` against :func:`lmi_matrix` at random ``x``.
     """
 
