@@ -31,6 +31,8 @@ import yaml
 from foilc_hil.io.mcap_log import read_log
 from tests.test_bench_crossprocess import NETNS_SETUP, SHIPPED, _unshare_available
 
+pytestmark = [pytest.mark.netns, pytest.mark.slow]
+
 ROOT = Path(__file__).resolve().parents[1]
 GROUP = "239.74.163.4"
 PERIOD = 0.001
