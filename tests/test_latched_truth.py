@@ -29,6 +29,8 @@ from foilc_hil.loop.rig import RunReport, RunRequest, run_rig
 from plant_emulator.device import TimingMode
 from plant_emulator.embedded import EmbeddedEmulator
 
+pytestmark = pytest.mark.slow
+
 TS = 0.005
 SCALE = 1000.0
 STALLED = 10  # the sample of trial 2 whose cycle stalls
