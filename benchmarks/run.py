@@ -60,6 +60,7 @@ def collect(repeats: int = 3) -> dict[str, Any]:
 
     from benchmarks import (
         bench_axes,
+        bench_design_grid,
         bench_foxglove_writer,
         bench_live,
         bench_lockstep,
@@ -81,6 +82,7 @@ def collect(repeats: int = 3) -> dict[str, Any]:
     lockstep_peer, lockstep_rows = bench_lockstep.collect(max(repeats, 5))
     lockstep_profile = bench_profile.collect(repeats)
     science_rows = bench_science.science_comparisons(repeats)
+    design_grid = bench_design_grid.collect()  # issue 26: every law x Q-filter x N, in process
     robustness = robustness_comparisons()  # root: Dask's loopback TCP inside `unshare --net`
     axes, axes_rows = bench_axes.collect(repeats)
     # at least 11 pairs: the ratio's pairs spread 0.4x..1.7x at a load of 8-9 on 2 cores (a goal of 0.9x)
@@ -119,6 +121,7 @@ def collect(repeats: int = 3) -> dict[str, Any]:
         "lockstep_profile": lockstep_profile,
         # axes: runs of 1, 2 and 4 axes against the single-axis run, and the bus load of a 4-axis log
         "axes": axes,
+        "design_grid": design_grid,
         "load_average_end": os.getloadavg()[0],
     }
 
