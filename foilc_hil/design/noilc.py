@@ -92,6 +92,7 @@ from foilc_hil.progress import as_step
 __all__ = [
     "DENSE_LIMIT",
     "STRUCTURED_METHOD",
+    "LiftedDesign",
     "LiftedUpdate",
     "Realization",
     "certify_lifted",
@@ -230,10 +231,6 @@ class LiftedUpdate:
         length, p = self.length, self.left.shape[1]
         unit = np.eye(length * p).reshape(length, p, length * p)
         return np.asarray(self.apply(unit).reshape(-1, length * p))
-
-    def scaled(self, scale: float) -> LiftedUpdate:
-        """``scale L``."""
-        return LiftedUpdate(self.left.scaled(scale), self.right)
 
 
 def noilc_weights(model: DiscreteModel, config: NoilcConfig, n_samples: int) -> NoilcWeights:
