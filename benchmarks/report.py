@@ -276,8 +276,8 @@ MEASURED_OUTSIDE = (
     "smaller suite: 107 s on two workers against about 190 s in one process). With `PYTHONDONTWRITEBYTECODE` set, "
     "every worker re-rewrote every test module (about 3 s of CPU each), which is why the Makefile unexports it.",
     "- **The inner loop**, `OPENBLAS_NUM_THREADS=1 pytest -m \"not slow\" -n 2` (README, \"Development\"): about 1,700 "
-    "of the suite's 2,300 tests (the 620 `slow` ones left out), 92 to 100 s wall in three runs at a load average of 7 "
-    "to 10 (other sessions' tests on the same 2 cores), 57 to 67 CPU-s, of which the two workers' collection (every "
+    "of the suite's 2,300 tests (the 620 `slow` ones left out), 92 to 156 s wall in four runs at a load average of 4 "
+    "to 14 (other sessions' tests on the same 2 cores), 57 to 73 CPU-s, of which the two workers' collection (every "
     "test module imported in each) is about 17 (not measured with the cores to itself).",
     "- **The bootstrap**: uv installs the `.venv` in about 5 s with its cache warm and 15 s cold, against about a "
     "minute for pip, most of it byte-compiling every module of every package.",
