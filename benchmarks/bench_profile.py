@@ -137,12 +137,23 @@ def _instrument(timer: StageTimer) -> list[tuple[object, str, Any]]:
     return undo
 
 
+def _runner() -> tuple[Any, Any]:
+    """``run`` and its request type in the tree being profiled: the one rig, or the baseline's ``run_bench``."""
+    try:
+        from foilc_hil.loop import rig
+    except ImportError:  # the baseline commit, before the one rig
+        from foilc_hil.loop import bench
+
+        return bench.run_bench, bench.RunRequest  # type: ignore[attr-defined]
+    return rig.run_rig, rig.RunRequest
+
+
 def _run(trials: int = 3) -> tuple[int, float, float]:
     """One lockstep run of the PMSM axis at 1 ms: cycles, then seconds in ``TrialLoop.run`` (wall clock, and CPU
     time of the control thread: what a loaded machine leaves least distorted)."""
     from drivers.config import BusConfig
     from foilc_hil.config import load_config
-    from foilc_hil.loop import bench, rig
+    from foilc_hil.loop import bench
     from foilc_hil.references import trial_samples
     from plant_emulator.device import TimingMode
 
@@ -168,9 +179,10 @@ def _run(trials: int = 3) -> tuple[int, float, float]:
         finally:
             spent.append((time.perf_counter() - started, time.thread_time() - cpu))
 
+    run, request = _runner()
     bench.TrialLoop.run = timed_run  # type: ignore[method-assign,assignment]
     try:
-        report = rig.run_rig(rig.RunRequest(
+        report = run(request(
             config=config, out=None, law="foilc", trials=trials, mode=TimingMode.LOCKSTEP, design=design, quiet=True,
             bus=BusConfig(interface="embedded", channel="profile")))
     finally:
