@@ -138,3 +138,27 @@ def test_a_drive_fault_is_one_stderr_line_at_the_default_log_level(tmp_path: Pat
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert result.returncode == 1 and len(lines) == 1, lines
     assert "EMCY 0x2310" in lines[0] and f"drive {NODE} confirmed disabled" in lines[0]
+
+
+@pytest.mark.parametrize("kind", ["/dev/zero", "a FIFO", "a 2 MiB file"])
+def test_a_special_or_huge_eds_is_refused_through_the_cli(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], kind: str
+) -> None:
+    """``drive.eds`` naming /dev/zero, a FIFO or a file past the cap: exit 2, one line with the file and what it is
+    (a FIFO was "EDS file not found" after a blocking read; a 50 MB EDS took 30 s and 1.7 GB)."""
+    if kind == "/dev/zero":
+        eds = Path("/dev/zero")
+    elif kind == "a FIFO":
+        eds = tmp_path / "drive.eds"
+        os.mkfifo(eds)
+    else:
+        eds = tmp_path / "big.eds"
+        with eds.open("wb") as stream:
+            stream.truncate(2 << 20)
+    config = bench_config(tmp_path)
+    document = yaml.safe_load(config.read_text(encoding="utf-8"))
+    document["drive"]["eds"] = str(eds)
+    config.write_text(yaml.safe_dump(document), encoding="utf-8")
+    assert main(["run", "--config", str(config), "--trials", "1", "--out", str(tmp_path / "x.mcap")]) == 2
+    line = _one_line(capsys, "run")
+    assert f"{eds}: is " in line and ("not a regular file" in line or "an EDS is at most" in line), line
