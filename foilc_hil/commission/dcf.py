@@ -12,7 +12,10 @@ master loaded (``drive.eds``, section by section) and adds:
   the PDOs -- 0x6060 mode, 0x605A, 0x6007, 0x1006, 0x60C2, 0x1017 and 0x1016:1 (heartbeats) -- where the EDS
   has them (``run`` skips an optional object the EDS lacks; so does the DCF).
 
-canopen's ``import_od`` loads it back (``od.node_id``, ``od.bitrate`` and each object's ``value``).
+canopen's ``import_od`` loads it back (``od.node_id``, ``od.bitrate`` and each object's ``value``). Why not
+canopen's ``export_dcf``: it marks every object with a value (every default, after ``import_od``) as configured, its
+commissioning section lacks most of CiA 306's keys, and it rewrites the EDS from what it parsed
+(``docs/commissioning.md``).
 """
 
 from __future__ import annotations
