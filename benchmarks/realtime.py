@@ -182,7 +182,7 @@ def answer_times(frames: np.ndarray, node: int = NODE) -> np.ndarray:
     tpdo1 = cob_id(FunctionCode.TPDO1, node)
     answers: list[float] = []
     last_sync: float | None = None
-    for can_id, stamp in frames:
+    for can_id, stamp in frames[:, :2]:
         if can_id == SYNC_ID:
             last_sync = stamp
         elif can_id == tpdo1 and last_sync is not None:

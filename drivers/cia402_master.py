@@ -406,7 +406,7 @@ class Cia402Drive(Drive):
 
     # --- SYNC from a clock (realtime; drivers.sync_clock) -------------------------------------------------------
 
-    def start_clock(self, *, spin_margin: float = 0.0002) -> str | None:
+    def start_clock(self, *, spin_margin: float = 0.0) -> str | None:
         """SYNC from a clock on this drive's network from now on (:meth:`DriveNetwork.start_clock`, at the cycle
         period ``configure`` set); the clock's name (``"thread"``, ``"bcm"``), or None where the network has no
         cyclic receiver to read the bus on (the loop then sends SYNC itself)."""

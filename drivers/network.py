@@ -134,7 +134,6 @@ class DriveNetwork:
         self._clock: SyncClock | None = None
         self._echo_routes: tuple[int, ...] = ()
         self._seen_time = math.nan  # the last SYNC echo's time (perf_counter), from its bus timestamp
-        self._spin = 0.0
 
     @property
     def listening(self) -> bool:
@@ -256,7 +255,7 @@ class DriveNetwork:
         """The running SYNC clock, or None."""
         return self._clock
 
-    def start_clock(self, period: float, echoes: Mapping[int, Callback], *, spin_margin: float = 0.0002) -> SyncClock:
+    def start_clock(self, period: float, echoes: Mapping[int, Callback], *, spin_margin: float = 0.0) -> SyncClock:
         """SYNC from a clock from now on (module docstring): the broadcast manager on ``socketcan``, else a thread.
 
         Parameters
@@ -266,7 +265,8 @@ class DriveNetwork:
         echoes
             The members' RPDO COB-IDs and each one's echo handler (what its drive latches at the next SYNC).
         spin_margin
-            The producer's and :meth:`await_sync`'s spin before each SYNC is due, seconds.
+            The producer thread's spin before each SYNC is due, seconds (0: it sleeps to the deadline; its spin holds
+            the GIL the other threads of the process wait for).
 
         Raises
         ------
@@ -285,7 +285,6 @@ class DriveNetwork:
             receiver.route(cob, callback)
         self._echo_routes = tuple(echoes)
         self.syncs_seen = self.syncs_sent
-        self._spin = spin_margin
         clock: SyncClock
         if type(self.bus).__name__ == "SocketcanBus":  # python-can's socketcan bus: the kernel holds the period
             clock = BroadcastSync(self.bus, self._sync_message, period)
@@ -311,8 +310,8 @@ class DriveNetwork:
 
     def await_sync(self, after: int, timeout: float) -> SyncSeen:
         """The SYNC after SYNC ``after``, read from the bus on the control thread (frames before it dispatched in
-        order: the members' TPDOs and RPDO echoes). Blocks in the receive until shortly before it is due, then
-        spins, where the producer says when that is.
+        order: the members' TPDOs and RPDO echoes). Blocks in the kernel's receive, never spins: the producer thread
+        needs the GIL when the SYNC is due, and the loop has the rest of the period after it.
 
         Raises :class:`DriveError` when none came within ``timeout`` seconds (the clock stopped; its error if it
         failed).
@@ -320,20 +319,14 @@ class DriveNetwork:
         clock, receiver = self._clock, self.receiver
         if clock is None or receiver is None:
             raise DriveError("await_sync: the SYNC clock is not running")
-        start = time.perf_counter()
-        due = clock.next_due(after)
-        spin_until = -math.inf if due is None else due + 2.0 * self._spin
+        end = time.perf_counter() + timeout
         while self.syncs_seen <= after:
-            now = time.perf_counter()
-            left = start + timeout - now
+            left = end - time.perf_counter()
             if left <= 0.0:
                 failed = getattr(clock, "error", None)
                 why = f": the producer failed: {failed}" if failed is not None else ""
                 raise DriveError(f"no SYNC on the bus for {timeout:.3f} s after SYNC {after}{why}")
-            if due is not None and now < due - self._spin:  # the kernel wakes us for a frame, or shortly before
-                receiver.poll(min(due - self._spin - now, left))
-            else:  # around the due time: poll without blocking (perf_counter and monotonic are one clock here)
-                receiver.poll(left, time.monotonic() + (spin_until - now))
+            receiver.poll(left)
         number = after + 1
         record = clock.record(number)
         if record is None:

@@ -134,6 +134,9 @@ class BenchRealtimeConfig(RealtimeConfig):
     # cyclic_receive: loop (and no injected bus fault), else the loop sends SYNC (and says so). loop: the loop sends
     # each SYNC on its deadline, after the previous cycle's command
     sync: SyncSource = SyncSource.CLOCK
+    # seconds the SYNC producer thread spins before each deadline after its sleep (sync: clock, not on socketcan); 0:
+    # it sleeps to the deadline (SCHED_FIFO and timer slack 1 ns: tens of microseconds late); a spin holds the GIL
+    sync_spin: float = Field(default=0.0, ge=0, le=0.001)
 
 
 @dataclass(frozen=True)

@@ -113,7 +113,7 @@ class AxisGroup:
 
     # -- SYNC from a clock (realtime): one clock for the one network, every axis's RPDO echo ------------------
 
-    def start_clock(self, *, spin_margin: float = 0.0002) -> str | None:
+    def start_clock(self, *, spin_margin: float = 0.0) -> str | None:
         """SYNC from a clock on the axes' one network (every drive's RPDO echo routed); the clock's name, or None
         where the network cannot (no cyclic receiver)."""
         first = self.drives[0]

@@ -634,7 +634,7 @@ class TrialLoop:
             self.timing.sync_clock = str(SyncSource.LOOP)
             return
         drive = cast(ClockedDriveLike, self.drive)
-        name = drive.start_clock(spin_margin=self.settings.realtime.spin_margin)
+        name = drive.start_clock(spin_margin=self.settings.realtime.sync_spin)
         self._clocked = name is not None
         self._clock_drive = drive if name is not None else None
         if name is not None:  # the SYNCs so far were the loop's own (enable): the clock's are counted from here
