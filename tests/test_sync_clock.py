@@ -180,3 +180,28 @@ def test_await_sync_without_a_clock_and_a_clock_without_a_receiver_are_refused(e
     finally:
         network.close()
         network.bus.shutdown()
+
+
+def test_on_socketcan_the_kernels_broadcast_manager_sends_sync() -> None:
+    """python-can's ``send_periodic`` on ``socketcan:vcan0`` (the kernel's BCM holds the period) and the SYNCs read
+    back from the loop's own socket. Runs where a ``vcan0`` exists; this test machine's kernel has no SocketCAN (no
+    AF_CAN), so here it is skipped with python-can's reason."""
+    cfg = BusConfig(interface="socketcan", channel="vcan0")
+    try:
+        bus = open_bus(cfg)
+    except DriveError as exc:
+        pytest.skip(f"socketcan:vcan0 cannot be opened here: {str(exc).splitlines()[0]}")
+    network = DriveNetwork(bus, open_cyclic_receiver(cfg, 0.0))
+    try:
+        clock = network.start_clock(PERIOD, {})
+        assert clock.name == "bcm" and clock.record(1) is None
+        seen = [network.await_sync(number, 1.0) for number in range(network.syncs_seen, network.syncs_seen + 5)]
+        assert [s.number for s in seen] == list(range(seen[0].number, seen[0].number + 5))
+        assert all(b.time > a.time for a, b in itertools.pairwise(seen))  # each from its own echo's timestamp
+        network.stop_clock()
+        assert network.clock is None
+    finally:
+        network.close()
+        assert network.receiver is not None
+        network.receiver.close()
+        bus.shutdown()
