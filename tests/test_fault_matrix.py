@@ -134,6 +134,9 @@ MATRIX: tuple[Row, ...] = (
     Row("a foreign node's TPDO1, heartbeat and EMCY (10 cycles)", "foreign-node@2:node=5,count=10",
         Outcome.RIDES_OUT),
     Row("bus silence, one cycle", "silence@2+20", Outcome.RIDES_OUT, lost=1),
+    # lockstep: the loop sends SYNC itself, so a stall of its thread delays the next SYNC and nothing is missed
+    # (with SYNC from a clock the command misses its SYNC: tests/test_latched_truth.py and the netns test)
+    Row("the loop thread stalled 5 ms (one cycle)", "stall@2+20:duration=0.005", Outcome.RIDES_OUT),
     # the drive's heartbeat consumer (0.4 s here) must trip well within the run's stop attempts (about 2 s)
     Row("bus silence to the end", "silence@2+20:count=0", Outcome.ABORTS,
         names="consecutive SYNCs without feedback", stop=Stop.NOT_CONFIRMED, drive={"heartbeat_consumer_ms": 400},
