@@ -76,7 +76,8 @@ def test_a_trial_sent_as_columns_is_written_as_its_rows(tmp_path: Path) -> None:
     error[7] = np.nan
     trials = [
         TrialSamples(1, 0.001, grid[:, 0], grid[:, 1], rng.standard_normal(250), error, error * 0.5),
-        TrialSamples(2, 0.001, grid[:, 1], grid[:, 0], np.arange(250), error, error, axis=3),  # ints: floats
+        TrialSamples(2, 0.001, grid[:, 1], grid[:, 0], np.arange(250), error, error, axis=3,  # ints: floats
+                     latched=np.arange(250) - 1.0),  # what the drive latched: a column of its own
     ]
     direct, child = tmp_path / "direct.mcap", tmp_path / "child.mcap"
     with McapLogWriter(direct, config_yaml=None, fsync=False) as writer:
@@ -91,6 +92,7 @@ def test_a_trial_sent_as_columns_is_written_as_its_rows(tmp_path: Path) -> None:
     assert len(rows) == 500 and rows[7]["error"] is None and rows[250]["axis"] == 3 and "axis" not in rows[0]
     assert [row["t"] for row in rows[:3]] == [0.001, 2 * 0.001, 3 * 0.001]
     assert rows[251]["control"] == 1.0 and type(rows[251]["control"]) is float
+    assert rows[251]["latched"] == 0.0 and "latched" not in rows[0]
     assert rows[1]["reference"] == float(grid[1, 0]) and rows[1]["output"] == float(grid[1, 1])
 
 

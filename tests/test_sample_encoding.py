@@ -48,6 +48,17 @@ def test_documents_are_orjson_of_each_rows_document(
     assert documents == [_truth(trial, sample_time, i, row, axis) for i, row in enumerate(rows)]
 
 
+def test_latched_is_written_after_E_as_the_record_writes_it() -> None:
+    rng = np.random.default_rng(5)
+    columns = [rng.standard_normal(20) for _ in range(6)]
+    columns[5][3] = np.nan
+    reference, output, control, error, big_e, latched = columns
+    trial = TrialSamples(4, 0.001, reference, output, control, error, big_e, axis=2, latched=latched)
+    documents = trial_samples_documents(trial)
+    assert documents == [orjson.dumps(record.to_json()) for record in trial.records()]
+    assert documents is not None and b'"latched":null,"sample":3,"axis":2}' in documents[3]
+
+
 def test_exponents_negative_zero_and_non_finite_values_are_spelled_as_orjson_spells_them() -> None:
     awkward = np.array([1e16, 1e-5, -0.0, 5e-324, np.nan, np.inf, -np.inf, 1.5e300, 0.1, 123456789.0])
     columns = [np.roll(awkward, k) for k in range(5)]
