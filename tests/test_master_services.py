@@ -120,6 +120,11 @@ class Net:
         self.on_sync: Callable[[], None] = lambda: None
         self.heartbeats: list[tuple[int, float]] = []
 
+    @property
+    def syncs_sent(self) -> int:
+        """The network's count of SYNCs sent (``DriveNetwork.syncs_sent``: what a send returns)."""
+        return self.syncs
+
     def sync(self, cycle_period: float) -> None:
         for begin_cycle in self.members:
             begin_cycle()
