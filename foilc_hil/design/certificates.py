@@ -107,6 +107,7 @@ from foilc_hil.design.lifted import (
     markov_blocks,
     moments,
     symbol_grid,
+    vector_norm,
     zero_history_filter,
 )
 from foilc_hil.design.models import DiscreteModel, Uncertainty, uncertainty_vertices
@@ -526,17 +527,17 @@ def power_norm(
     """A LOWER bound on the largest singular value: ``||T v||`` for ``v`` from power iteration on ``T^T T``;
     it stops early once the bound reaches ``enough`` (all a verdict may need to know)."""
     v = np.random.default_rng(0).standard_normal(size)
-    v /= np.linalg.norm(v)
+    v /= vector_norm(v)
     estimate = 0.0
     for _ in range(iterations):
         w = matvec(v)
-        estimate = max(estimate, float(np.linalg.norm(w)))
+        estimate = max(estimate, vector_norm(w))
         if not math.isfinite(estimate):
             return math.inf
         if estimate >= enough:
             break
         v = rmatvec(w)
-        norm = float(np.linalg.norm(v))
+        norm = vector_norm(v)
         if norm == 0.0:
             break
         v /= norm

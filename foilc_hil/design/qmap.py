@@ -84,6 +84,7 @@ from foilc_hil.design.lifted import (
     grid_bound,
     markov_blocks,
     symbol_grid,
+    vector_norm,
     zero_history_filter,
 )
 from foilc_hil.design.qfilter import TrialQFilter
@@ -395,13 +396,6 @@ def _flat(x: np.ndarray) -> np.ndarray:
     return x.reshape(x.shape[0], x.shape[1] * x.shape[2]).T
 
 
-def _norm(x: np.ndarray) -> float:
-    """The 2-norm of a whole array by a sum of squares: a ``einsum`` loop, not BLAS (whose threads cost seconds a
-    certificate on a loaded two-core host: :meth:`StructuredInputMap.edge_lower_bound`'s notes)."""
-    flat = x.reshape(-1)
-    return math.sqrt(float(np.einsum("i,i->", flat, flat)))
-
-
 def _inner(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """``X^T Y`` for ``(K, m, N)`` and ``(L, m, N)`` signals (``K x L``), by ``einsum``."""
     return np.asarray(np.einsum("kat,lat->kl", x, y))
@@ -418,7 +412,7 @@ def _orthonormalize(W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``Q``, ``R`` with ``Q`` orthonormal (``(kq, m, N)``) and ``W = R^T``-combinations of it: ``W_j = sum_i R[i, j]
     Q_i`` to rounding, by two passes of the Gram matrix's eigen-decomposition (directions below ``1e-26`` of the
     largest eigenvalue dropped: a change of ``W`` of at most ``1e-13`` of its norm, inside :data:`ROUNDING_MARGIN`).
-    ``einsum`` instead of a threaded QR (:func:`_norm`)."""
+    ``einsum`` instead of a threaded QR (:func:`~foilc_hil.design.lifted.vector_norm`)."""
     Q, R = W, np.eye(W.shape[0])
     for _ in range(2):
         values, vectors = np.linalg.eigh(_inner(Q, Q))
@@ -601,9 +595,9 @@ class _NormTest:
         from scipy.linalg import LinAlgError, cho_factor, cho_solve
 
         size = self.W.shape[1] * self.W.shape[2]
-        z_norm = _norm(Z)
+        z_norm = vector_norm(Z)
         fft_error = (3 * 12.0 * math.log2(self.T.nfft) + 4) * UNIT_ROUNDOFF * (gamma**2 + self.T.l1() ** 2) * z_norm
-        rho = _norm(residual) + fft_error
+        rho = vector_norm(residual) + fft_error
         product = _inner(self.W, Z) + _inner(Z, residual)
         slack = rho * rho / gap + 4.0 * size * UNIT_ROUNDOFF * z_norm * (math.sqrt(self.W.shape[0]) + rho)
         bound = 0.5 * (product + product.T) + slack * np.eye(product.shape[0])
@@ -688,12 +682,12 @@ class StructuredInputMap:
         :data:`RATIO_STEPS` power steps of ``M^T M`` from it, widened down for rounding (0 for ``x = 0``)."""
         best = 0.0
         for _ in range(RATIO_STEPS + 1):
-            size = _norm(x)
+            size = vector_norm(x)
             if not (size > 0.0 and math.isfinite(size)):
                 break
             x = x / size
             image = self.apply(scale, x)
-            value = _norm(image)
+            value = vector_norm(image)
             if not math.isfinite(value):
                 break
             best = max(best, value)
@@ -840,9 +834,9 @@ def _structure_residual(
     worst = 0.0
     for part in (0, 1):
         toeplitz = T[part].apply(probes)
-        scale = _norm(images[part]) + _norm(toeplitz)
+        scale = vector_norm(images[part]) + vector_norm(toeplitz)
         left = _project_out(U, images[part] - toeplitz)
-        worst = max(worst, _norm(left) / max(scale, 1e-300))
+        worst = max(worst, vector_norm(left) / max(scale, 1e-300))
     return worst if math.isfinite(worst) else math.inf
 
 
@@ -1032,7 +1026,7 @@ class EdgeProxy:
         matrix = self.dense[0] - scale * self.dense[1]
         value = 0.0
         for _ in range(PROXY_STEPS):
-            size = _norm(self.vector)
+            size = vector_norm(self.vector)
             if not (size > 0 and math.isfinite(size)):
                 return math.inf
             image = np.einsum("ij,j->i", matrix, self.vector / size)  # not BLAS (edge_lower_bound's notes)
@@ -1054,12 +1048,12 @@ def unstructured_certificate(loop: LoopPlant, law: LawStructure) -> PlantCertifi
     x = np.random.default_rng(0).standard_normal((1, loop.B.shape[1], law.n_samples))
     lower = 0.0
     for _ in range(UNSTRUCTURED_STEPS):
-        size = _norm(x)
+        size = vector_norm(x)
         if not (size > 0 and math.isfinite(size)):
             break
         first, second = operator.apply(x / size)
         image = first - second
-        value = _norm(image)
+        value = vector_norm(image)
         if not math.isfinite(value):
             lower = math.inf
             break
