@@ -38,6 +38,7 @@ from foilc_hil.design.qfilter import QFilter
 from foilc_hil.design.record import Bounds, CertificateAction, Design, PlantCertificate
 from foilc_hil.design.tuning import tune
 from foilc_hil.errors import ConfigError
+from foilc_hil.progress import step
 from plant_emulator.linear import continuous_model
 
 __all__ = ["build_design", "design_model", "law_kind", "law_structure", "model_delay_samples"]
@@ -172,14 +173,15 @@ def _p_type(config: Config, model: DiscreteModel, uncertainty: Uncertainty, stru
         entry = PlantCertificate("worst case", "estimate", bounds.spectral_radius, bounds.norm_2, "search estimate")
         return ScaledVerdict(scale, (entry,))
 
-    admission = admit(
-        evaluate,
-        law=str(LawKind.P_TYPE),
-        policy=settings.on_divergent_filter,
-        require_monotonic=settings.require_monotonic,
-        growth_horizon=config.trials,
-        estimate=estimate,
-    )
+    with step("certificates of the P-type law"):  # the design and, where the rule needs it, the rescale
+        admission = admit(
+            evaluate,
+            law=str(LawKind.P_TYPE),
+            policy=settings.on_divergent_filter,
+            require_monotonic=settings.require_monotonic,
+            growth_horizon=config.trials,
+            estimate=estimate,
+        )
     chosen = designs[admission.verdict.scale]
     if admission.action is CertificateAction.NONE:
         return chosen
