@@ -174,8 +174,11 @@ def check_trial_wire(
                    and len(f.data) != wire.tpdo_sizes[f.cob_id])
         answers = [f for f in window if not f.tx and f.cob_id == wire.velocity.cob_id
                    and len(f.data) == wire.velocity.size]
-        # a cycle without its TPDO is a lost feedback: the law was given the last good value again
+        # a cycle without its TPDO is a lost feedback: the law was given the last good value again; so is one whose
+        # TPDO came after a realtime loop stopped waiting (the law was given the held value, not the late TPDO's)
         y = wire.velocity.decode(answers[0].data) / wire.velocity_scale if answers else held
+        if answers and _bits(y) != _bits(inputs[i]) and _bits(held) == _bits(inputs[i]):
+            answers, y = [], held
         lost += not answers
         held = y
         if not (math.isnan(y) and not answers) and _bits(y) != _bits(inputs[i]):
