@@ -184,3 +184,18 @@ def test_a_log_damaged_before_its_first_trial_names_the_damage(
     assert main(["replay", str(cut), "--verify"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no /ilc/sample messages to verify (" in err[0], err
+
+
+def test_a_plant_with_its_own_delay_verifies(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The design's input delay is the CAN loop's plus the plant's own (``plant.delay``): the rebuilt design gets the
+    loop's alone, as the run's did (the demo's log failed --verify on a design rebuilt with both twice)."""
+    import yaml
+
+    config = bench_config(tmp_path)
+    document = yaml.safe_load(config.read_text(encoding="utf-8"))
+    document["plant"]["delay"] = document["sample_time"]  # one sample of the plant's own
+    config.write_text(yaml.safe_dump(document), encoding="utf-8")
+    out = tmp_path / "delayed.mcap"
+    run_rig(RunRequest(config=load_config(config), out=out, trials=2))
+    code, report = verify(out, capsys)
+    assert code == 0 and report["verified"] is True, report.get("first_divergence")

@@ -550,11 +550,14 @@ def _rebuilt_design(config: Any, design: Mapping[str, Any], n: int) -> dict[str,
     """The design the logged config gives for the logged law and input delay, as the log would hold it."""
     import json
 
-    from foilc_hil.design.pipeline import build_design
+    from foilc_hil.design.pipeline import build_design, model_delay_samples
     from foilc_hil.io.mcap_writer import encode_design
 
+    # the design's input delay is the loop's transport delay plus the plant's own (plant.delay), which the pipeline
+    # adds again: the transport delay is what it is given
+    transport = int(design.get("input_delay", 0)) - model_delay_samples(config)
     try:
-        rebuilt = build_design(config, str(design.get("law")), n, input_delay=int(design.get("input_delay", 0)))
+        rebuilt = build_design(config, str(design.get("law")), n, input_delay=transport)
     except FoilcHilError as exc:
         return {"law": f"not designable: {exc}"}
     return {key: json.loads(value) for key, value in encode_design(rebuilt.to_json()).items()}
