@@ -261,15 +261,14 @@ MEASURED_OUTSIDE = (
     "",
     "Measured by hand on the 2-core test machine, not by `make bench`; wall clock unless said otherwise.",
     "",
-    "- **`make demo`**, `.venv` in place: 46 to 56 s (55.7 s, 50.0 s, 50.7 s and 46.7 s in four runs), at the "
-    "paper's scale (eq. 52 at 1 ms, 6000 samples, 30 trials per law: 416k CAN cycles). The two laws run at once, "
-    "each in its own worker process, 5,400 to 7,300 cycles/s each, 29 to 39 s; the design 3 to 5 s; the rest is the "
-    "two reports and `comparison.png`.",
-    "- **`make test`** on a fresh clone: 2 min 42 s to 2 min 59.8 s in five runs, including the `.venv` bootstrap "
-    "(uv: 7 s) and the shared caches (numba's kernels and one test collection: 30 s, beside mypy's cold run, 35 s); "
-    "ruff, mypy and pytest at once, pytest 1555 tests in 125-136 s on four pytest-xdist workers. CPU-bound: about "
-    "300-330 CPU-s on two cores, and the host's speed moves by 10 to 20 % from one run to the next, so the 3-minute "
-    "goal holds with little room.",
+    "- **`make demo`** on a fresh clone, the `.venv` bootstrap included: 31.3 s (the demo itself 27.1 s, its design "
+    "4.1 s) with the cores to itself; 84.8 s at a load of 6-10 from other work. The trial is eq. (52) at 1 ms between "
+    "two 0.25 s ramps, 6500 samples, 30 trials per law (about 460k CAN cycles); the two laws run at once, each in its "
+    "own worker process; the rest is the two reports and `comparison.png`.",
+    "- **`make test`** on a fresh clone, the `.venv` bootstrap included: 2 min 19 s (pytest: 2,320 tests in 117 s, "
+    "one skipped with its reason: `vcan0` cannot exist here) with the cores to itself; 4 min 3 s and 10 min 6 s at "
+    "loads of about 6 and 10 from other work beside it. ruff, mypy, pytest and the API reference at once, pytest on "
+    "four pytest-xdist workers. CPU-bound: about 240 CPU-s on two cores.",
     "- **pytest workers** (the Makefile's two per core): a quarter of the suite's test time is waiting (timeouts that "
     "are the point of a test, emulator and CLI processes, a drive's heartbeat); on 2 cores 316 s of test time held "
     "241 CPU-s, and 4 workers took 141-144 s against 156 s for 3, 160-170 s for 2 and 168 s for 6 (an earlier, "
