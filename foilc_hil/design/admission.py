@@ -30,8 +30,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from foilc_hil.config import DivergentFilterPolicy
-from foilc_hil.design.certificates import CONTRACTION_LIMIT
-from foilc_hil.design.record import CertificateAction, GrowthBound, PlantCertificate
+from foilc_hil.design.certificates import ScaledVerdict
+from foilc_hil.design.record import CertificateAction, GrowthBound
 from foilc_hil.errors import ConfigError, ConvergenceCertificateError
 
 __all__ = ["Admission", "ScaledVerdict", "admit"]
@@ -42,42 +42,6 @@ SMALLEST_SCALE = 1e-3
 SCALE_TOLERANCE = 0.05
 #: Scales tried, relative to the estimated minimum, when that one is not certified (:func:`_search`).
 BACKOFF = (0.9, 0.75, 1.1, 0.5, 1.3, 0.25, 0.1)
-
-
-@dataclass(frozen=True)
-class ScaledVerdict:
-    """The certificates of one gain scale ``s`` at every plant (nominal first, then the vertices)."""
-
-    scale: float
-    plants: tuple[PlantCertificate, ...]
-
-    def _worst(self, key: str) -> float:
-        values = [float(getattr(entry, key)) for entry in self.plants]
-        return max(values) if values and all(math.isfinite(v) for v in values) else math.inf
-
-    @property
-    def spectral_radius(self) -> float:
-        """The worst-case spectral radius (``inf`` when one is not finite)."""
-        return self._worst("spectral_radius")
-
-    @property
-    def norm_2(self) -> float:
-        """The worst-case induced 2-norm."""
-        return self._worst("norm_2")
-
-    @property
-    def asymptotic(self) -> bool:
-        """Certified to converge."""
-        return self.spectral_radius < 1.0
-
-    @property
-    def monotonic(self) -> bool:
-        """Certified to converge monotonically in l2."""
-        return self.asymptotic and self.norm_2 <= CONTRACTION_LIMIT
-
-    def admissible(self, require_monotonic: bool) -> bool:
-        """What the rule asks of it."""
-        return self.monotonic if require_monotonic else self.asymptotic
 
 
 @dataclass(frozen=True)

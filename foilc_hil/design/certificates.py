@@ -85,7 +85,7 @@ this module fills in), :mod:`foilc_hil.design.lifted` and :mod:`foilc_hil.design
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -145,6 +145,7 @@ __all__ = [
     "LiftedErrorMap",
     "LoopPlant",
     "PTypeScales",
+    "ScaledVerdict",
     "block_toeplitz_product",
     "bounded_matrix_certificate",
     "certify",
@@ -929,35 +930,40 @@ def _plants(model: DiscreteModel, uncertainty: Uncertainty) -> list[tuple[str, n
     return plants
 
 
-def _worst(entries: Sequence[PlantCertificate], key: str) -> float:
-    values = [float(getattr(entry, key)) for entry in entries]
-    return max(values) if all(math.isfinite(v) for v in values) else math.inf
-
-
 @dataclass(frozen=True)
-class _Verdict:
-    """The certificates of one gain scale at every plant."""
+class ScaledVerdict:
+    """The certificates of one gain scale ``s`` at every plant (nominal first, then the vertices): what the rescale
+    rule of every law reads (here for the 2D laws; :mod:`foilc_hil.design.admission` for p-type, noilc, gradient)."""
 
     scale: float
     plants: tuple[PlantCertificate, ...]
 
+    def _worst(self, key: str) -> float:
+        values = [float(getattr(entry, key)) for entry in self.plants]
+        return max(values) if values and all(math.isfinite(v) for v in values) else math.inf
+
     @property
     def spectral_radius(self) -> float:
-        return _worst(self.plants, "spectral_radius")
+        """The worst-case spectral radius (``inf`` when one is not finite)."""
+        return self._worst("spectral_radius")
 
     @property
     def norm_2(self) -> float:
-        return _worst(self.plants, "norm_2")
+        """The worst-case induced 2-norm."""
+        return self._worst("norm_2")
 
     @property
     def asymptotic(self) -> bool:
+        """Certified to converge."""
         return self.spectral_radius < 1.0
 
     @property
     def monotonic(self) -> bool:
+        """Certified to converge monotonically in l2."""
         return self.asymptotic and self.norm_2 <= CONTRACTION_LIMIT
 
     def admissible(self, require_monotonic: bool) -> bool:
+        """What the rule asks of it."""
         return self.monotonic if require_monotonic else self.asymptotic
 
     def bounds(self) -> Bounds:
@@ -974,12 +980,12 @@ class _Evaluator:
             (name, LoopPlant(A_v, B_v, model.measured_output, P[:, :n], P[:, n:]))
             for name, A_v, B_v in _plants(model, uncertainty)
         ]
-        self._cache: dict[float, _Verdict] = {}
+        self._cache: dict[float, ScaledVerdict] = {}
         self._scaled: dict[tuple[int, float, float, str], _ScaledErrorMap | None] = {}
         self._structured: dict[tuple[int, float, float, str], StructuredInputMap | None] = {}
         self._proxies: dict[tuple[int, float, float, str], EdgeProxy | None] = {}
 
-    def at(self, scale: float, law: LawStructure | None = None) -> _Verdict:
+    def at(self, scale: float, law: LawStructure | None = None) -> ScaledVerdict:
         """The verdict with ``p2`` scaled by ``scale`` (for ``law``, default the law as it runs)."""
         if law is not None:
             return self._evaluate(scale, law)
@@ -987,8 +993,8 @@ class _Evaluator:
             self._cache[scale] = self._evaluate(scale, self.law)
         return self._cache[scale]
 
-    def _evaluate(self, scale: float, law: LawStructure) -> _Verdict:
-        return _Verdict(scale, tuple(self._certificate(index, scale, law) for index in range(len(self.loops))))
+    def _evaluate(self, scale: float, law: LawStructure) -> ScaledVerdict:
+        return ScaledVerdict(scale, tuple(self._certificate(index, scale, law) for index in range(len(self.loops))))
 
     def _certificate(self, index: int, scale: float, law: LawStructure) -> PlantCertificate:
         """One plant's certificate: the precomputed scaled map where it is conclusive, else :func:`map_certificate`."""
@@ -1055,7 +1061,7 @@ class _Evaluator:
 
 
 def _record(
-    evaluator: _Evaluator, chosen: _Verdict, require_monotonic: bool, action: CertificateAction
+    evaluator: _Evaluator, chosen: ScaledVerdict, require_monotonic: bool, action: CertificateAction
 ) -> Certificates:
     """The typed certificates of the ``chosen`` verdict (the designed and naive ones for comparison)."""
     law = evaluator.law
@@ -1087,7 +1093,7 @@ def certify_as_given(
     return _record(evaluator, evaluator.at(1.0), require_monotonic, CertificateAction.NONE)
 
 
-def _summary(designed: _Verdict, law: LawStructure) -> str:
+def _summary(designed: ScaledVerdict, law: LawStructure) -> str:
     return (
         f"spectral radius {designed.spectral_radius:.4g}, induced 2-norm {designed.norm_2:.4g} "
         f"(filter first weight 1 + kp h^-r = {law.filter_first_weight:.4g})"
@@ -1107,7 +1113,7 @@ def _refuse(policy: DivergentFilterPolicy, summary: str) -> None:
         )
 
 
-def _best_scale(evaluator: _Evaluator, summary: str, require_monotonic: bool) -> tuple[_Verdict, str]:
+def _best_scale(evaluator: _Evaluator, summary: str, require_monotonic: bool) -> tuple[ScaledVerdict, str]:
     """The scale of ``p2`` minimising the worst-case 2-norm (monotonic), else the worst spectral radius."""
     from scipy.optimize import minimize_scalar
 
@@ -1138,7 +1144,7 @@ def _best_scale(evaluator: _Evaluator, summary: str, require_monotonic: bool) ->
     return best, "asymptotic"
 
 
-def _largest_admissible(evaluator: _Evaluator, best: _Verdict, require_monotonic: bool) -> float:
+def _largest_admissible(evaluator: _Evaluator, best: ScaledVerdict, require_monotonic: bool) -> float:
     """Largest admissible scale (same criterion), by bisection on the search's estimates between the chosen scale
     and 1 (not admissible), the result certified as every chosen scale is (else the chosen scale itself)."""
     lo, hi = best.scale, 1.0
