@@ -13,11 +13,13 @@ import enum
 import importlib
 import json
 import logging
+import signal
 import sys
+import threading
 from collections.abc import Sequence
 from enum import StrEnum
 from types import ModuleType
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from foilc_hil import __version__
 from foilc_hil.errors import ConfigError, ExitCode, FoilcHilError, RunInterruptedError
@@ -76,8 +78,12 @@ def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``foilc-hil`` console script. Returns the process exit code."""
+def main(argv: Sequence[str] | None = None, *, restore_signals: bool = True) -> int:
+    """Entry point of the ``foilc-hil`` console script. Returns the process exit code.
+
+    Once the command is done, SIGINT and SIGTERM are ignored while it reports; ``restore_signals`` puts the handlers
+    found back on return (a caller in the same process); the console script does not, so a signal between the report
+    and the process's exit cannot cut it short either."""
     args_list = list(sys.argv[1:] if argv is None else argv)
     try:
         chosen = next((token for token in args_list if token in COMMANDS), None)
@@ -89,17 +95,29 @@ def main(argv: Sequence[str] | None = None) -> int:
             _write_json({"error": _error_detail("UsageError", "invalid command line (see stderr)", code)})
         return code
     _configure_logging(LogLevel(args.log_level))
+    previous = _handlers()
+    try:
+        return _execute(args)
+    finally:
+        if restore_signals:
+            _restore(previous)
+
+
+def _execute(args: argparse.Namespace) -> int:
+    """Run the parsed command and report it (one JSON document under ``--json``); its exit code."""
     module = _load(args.command)
     want_json = bool(getattr(args, "json", False))
     try:
         with steps(quiet=want_json or bool(getattr(args, "quiet", False))):  # progress.step of the slow work
             result = module.execute(args)
+        _shield_signals()
     except KeyboardInterrupt:
         error: FoilcHilError = RunInterruptedError("interrupted")
         return _fail(args.command, error, want_json)
     except ConfigError as exc:
         return _fail(args.command, _with_source(exc, getattr(args, "config", None)), want_json)
     except FoilcHilError as exc:
+        _shield_signals()
         return _fail(args.command, exc, want_json)
     if want_json:
         document = result.document
@@ -113,6 +131,29 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stderr.write(f"foilc-hil {args.command}: {result.message}\n")
     sys.stdout.flush()
     return int(result.exit_code)
+
+
+_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+def _handlers() -> list[Any]:
+    return [signal.getsignal(signum) for signum in _SIGNALS]
+
+
+def _restore(previous: list[Any]) -> None:
+    """The handlers ``main`` found (a caller in the same process, pytest, gets its own back)."""
+    if threading.current_thread() is threading.main_thread():
+        for signum, handler in zip(_SIGNALS, previous, strict=True):
+            signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
+
+
+def _shield_signals() -> None:
+    """The command is done (its drive stopped, its log closed): a SIGINT or SIGTERM from now on would only cut the
+    report short (a SIGTERM 30 ms after a Ctrl-C killed the process after its stop, exit -15 instead of 130), so the
+    rest (the report, the exit code) runs with both ignored. Outside the main thread nothing can be changed."""
+    if threading.current_thread() is threading.main_thread():
+        for signum in _SIGNALS:
+            signal.signal(signum, signal.SIG_IGN)
 
 
 @enum.unique
@@ -190,7 +231,7 @@ def _write_json(document: dict[str, object]) -> None:
 
 def run() -> NoReturn:
     """Console-script wrapper."""
-    raise SystemExit(main())
+    raise SystemExit(main(restore_signals=False))
 
 
 if __name__ == "__main__":
