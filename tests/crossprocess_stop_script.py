@@ -6,6 +6,7 @@ emulator reports it on stdin's end (its ``state`` line)."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -40,6 +41,17 @@ def main(config: str, out_path: str, action: str) -> int:
     python = sys.executable
     emulator = subprocess.Popen([python, "-m", "plant_emulator", "--config", config, "--bus", BUS, "--mode",
                                  "lockstep"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        return _run(emulator, out, action)
+    finally:  # whatever went wrong, no emulator outlives the test
+        if emulator.poll() is None:
+            emulator.kill()
+            emulator.communicate()
+
+
+def _run(emulator: subprocess.Popen[str], out: Path, action: str) -> int:
+    """The bench against the started ``emulator``: two trials on disk, ``action``, the report (see the module)."""
+    python, config = sys.executable, sys.argv[1]
     deadline = time.monotonic() + 60
     while emulator.stderr is not None and "ready" not in emulator.stderr.readline():
         if time.monotonic() > deadline:
@@ -47,11 +59,26 @@ def main(config: str, out_path: str, action: str) -> int:
     bench = subprocess.Popen([python, "-m", "foilc_hil.cli", "run", "--config", config, "--bus", BUS, "--mode",
                               "lockstep", "--trials", "100000", "--law", "p-type", "--out", str(out), "--json"],
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    writers: list[int] = []
+    try:
+        return _act(bench, emulator, out, action, writers)
+    finally:  # a failure on the way leaves neither the bench nor a stopped writer behind
+        for pid in writers:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+        if bench.poll() is None:
+            bench.kill()
+            bench.communicate()
+
+
+def _act(bench: subprocess.Popen[str], emulator: subprocess.Popen[str], out: Path, action: str,
+         writers: list[int]) -> int:
     while _trials_on_disk(out) < 2 and bench.poll() is None:
         time.sleep(0.05)
     writer = next(pid for pid in _children(bench.pid)
                   if b"foilc_hil.io.log_child" in Path(f"/proc/{pid}/cmdline").read_bytes())
     if action == "stall":
+        writers.append(writer)
         os.kill(writer, signal.SIGSTOP)
     else:
         bench.send_signal(signal.SIGINT)
@@ -60,12 +87,12 @@ def main(config: str, out_path: str, action: str) -> int:
     stdout, stderr = bench.communicate(timeout=120)
     if action == "stall":
         os.kill(writer, signal.SIGCONT)
+        writers.clear()
     emulator.send_signal(signal.SIGINT)
     emulator.communicate(timeout=60)
     print(json.dumps({"code": bench.returncode, "stderr": [line for line in stderr.splitlines() if line.strip()],
                       "document": json.loads(stdout) if stdout.strip() else None}))
     return 0
-
 
 if __name__ == "__main__":
     raise SystemExit(main(*sys.argv[1:4]))
