@@ -18,6 +18,7 @@ from pydantic import Field, model_validator
 from drivers.config import BusConfig, DriveConfig
 from drivers.injection import Injection
 from drivers.realtime import BenchRealtimeConfig
+from foilc_hil.errors import ConfigError
 from foilc_hil.schema import Section, apply_overrides, load_document, validate
 from plant_emulator.config import PlantConfig
 from plant_emulator.settings import EmulatorConfig
@@ -72,6 +73,22 @@ class DivergentFilterPolicy(StrEnum):
     RESCALE = "rescale"
     AUGMENT = "augment"
     REFUSE = "refuse"
+
+    @classmethod
+    def parse(cls, value: str) -> DivergentFilterPolicy:
+        """The policy named by ``value``; one owner of the error both certificate steps give for an unknown name.
+
+        Raises
+        ------
+        foilc_hil.errors.ConfigError
+            For an unknown policy (``synthesis.on_divergent_filter``).
+        """
+        try:
+            return cls(value)
+        except ValueError:
+            raise ConfigError(
+                f"must be 'rescale', 'augment' or 'refuse', got {value!r}", key="synthesis.on_divergent_filter"
+            ) from None
 
 
 @enum.unique

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from foilc_hil.config import DivergentFilterPolicy
 from foilc_hil.design.certificates import ScaledVerdict
 from foilc_hil.design.record import CertificateAction, GrowthBound
-from foilc_hil.errors import ConfigError, ConvergenceCertificateError
+from foilc_hil.errors import ConvergenceCertificateError
 
 __all__ = ["Admission", "ScaledVerdict", "admit"]
 
@@ -120,12 +120,7 @@ def admit(
     foilc_hil.errors.ConfigError
         For an unknown policy (``synthesis.on_divergent_filter``).
     """
-    try:
-        policy = DivergentFilterPolicy(policy)
-    except ValueError:
-        raise ConfigError(
-            f"must be 'rescale', 'augment' or 'refuse', got {policy!r}", key="synthesis.on_divergent_filter"
-        ) from None
+    policy = DivergentFilterPolicy.parse(policy)
     designed = evaluate(1.0)
     if designed.admissible(require_monotonic):
         return Admission(designed, CertificateAction.NONE, None, None)

@@ -134,7 +134,7 @@ from foilc_hil.design.record import (
     Proof,
     PTypeGain,
 )
-from foilc_hil.errors import ConfigError, ConvergenceCertificateError
+from foilc_hil.errors import ConvergenceCertificateError
 from foilc_hil.progress import as_step
 
 __all__ = [
@@ -1200,12 +1200,7 @@ def certify(
     foilc_hil.errors.ConvergenceCertificateError
         When the law is not certified and cannot be fixed (exit 3).
     """
-    try:
-        policy = DivergentFilterPolicy(policy)
-    except ValueError:
-        raise ConfigError(
-            f"must be 'rescale', 'augment' or 'refuse', got {policy!r}", key="synthesis.on_divergent_filter"
-        ) from None
+    policy = DivergentFilterPolicy.parse(policy)
     P = np.asarray(P, dtype=float)
     evaluator = _Evaluator(model, uncertainty, P, law)
     designed = evaluator.at(1.0)
