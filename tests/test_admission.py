@@ -14,9 +14,10 @@ import yaml
 
 from foilc_hil.cli import main
 from foilc_hil.config import Config, load_config
+from foilc_hil.design.admission import admit
 from foilc_hil.design.pipeline import build_design
 from foilc_hil.design.record import CertificateAction
-from foilc_hil.errors import ConvergenceCertificateError
+from foilc_hil.errors import ConfigError, ConvergenceCertificateError
 from foilc_hil.laws.learning import make_law
 from tests.lifted_reference import config_plants
 
@@ -144,3 +145,17 @@ def test_asymptotic_only_hands_out_a_convergent_design_as_it_is() -> None:
     assert certificates is not None
     assert certificates.action is CertificateAction.NONE and float(design.p2[0, 0]) == 2.2
     assert certificates.asymptotic and not certificates.monotonic and certificates.norm_2 > 1
+
+
+def test_an_unknown_policy_is_refused_before_any_certificate_is_computed() -> None:
+    """``admit`` names the field of an unknown policy (exit 2) and never evaluates the gain."""
+    evaluated: list[float] = []
+
+    def evaluate(scale: float) -> Any:
+        evaluated.append(scale)
+        raise AssertionError("evaluated an unknown policy's gain")
+
+    with pytest.raises(ConfigError) as caught:
+        admit(evaluate, law="p-type", policy="shrink", require_monotonic=False, growth_horizon=10)  # type: ignore[arg-type]
+    assert caught.value.key == "synthesis.on_divergent_filter" and "'shrink'" in str(caught.value)
+    assert caught.value.exit_code == 2 and evaluated == []
