@@ -42,6 +42,25 @@ def _accumulate(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
             out[i, j] += total
 
 
+@njit(cache=True, inline="always")
+def _advance(i: int, c: int, A: np.ndarray, B: np.ndarray, W: np.ndarray, state: np.ndarray,
+             scratch: np.ndarray) -> None:
+    """Column ``c`` of ``state <- A_i state + B_i w_i`` in place (through ``scratch``): one step of either sweep of
+    :func:`apply_operator`, the generators indexed, not sliced (no views in the inner loop). Inlined in numba's IR
+    (``inline="always"``): called as a function, the apply was 1.6-1.8x slower at N = 6000; inlined it is as fast as
+    the loops written out twice, and bit-identical to them."""
+    n, m = A.shape[1], B.shape[2]
+    for row in range(n):
+        total = 0.0
+        for k in range(n):
+            total += A[i, row, k] * state[k, c]
+        for k in range(m):
+            total += B[i, row, k] * W[i, k, c]
+        scratch[row, c] = total
+    for row in range(n):
+        state[row, c] = scratch[row, c]
+
+
 @njit(cache=True)
 def apply_operator(
     Af: np.ndarray,
@@ -71,15 +90,7 @@ def apply_operator(
                 for k in range(nb):
                     total += Cb[i, row, k] * state[k, c]
                 out[i, row, c] = total
-            for row in range(nb):
-                total = 0.0
-                for k in range(nb):
-                    total += Ab[i, row, k] * state[k, c]
-                for k in range(m):
-                    total += Bb[i, row, k] * W[i, k, c]
-                scratch[row, c] = total
-            for row in range(nb):
-                state[row, c] = scratch[row, c]
+            _advance(i, c, Ab, Bb, W, state, scratch)
     state = np.zeros((nf, columns))
     scratch = np.zeros((nf, columns))
     for i in range(length):
@@ -91,15 +102,7 @@ def apply_operator(
                 for k in range(m):
                     total += D[i, row, k] * W[i, k, c]
                 out[i, row, c] = total
-            for row in range(nf):
-                total = 0.0
-                for k in range(nf):
-                    total += Af[i, row, k] * state[k, c]
-                for k in range(m):
-                    total += Bf[i, row, k] * W[i, k, c]
-                scratch[row, c] = total
-            for row in range(nf):
-                state[row, c] = scratch[row, c]
+            _advance(i, c, Af, Bf, W, state, scratch)
     return out
 
 
