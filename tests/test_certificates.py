@@ -8,25 +8,24 @@ import numpy as np
 import pytest
 
 from foilc_hil.config import DivergentFilterPolicy, FractionalMemory
-from foilc_hil.design.certificates import (
-    CHOLESKY_METHOD,
-    CONTRACTION_LIMIT,
-    DENSE_LIMIT,
+from foilc_hil.design.certificates import certify, map_certificate
+from foilc_hil.design.error_map import (
     FftOperand,
-    LawStructure,
-    LoopPlant,
     block_toeplitz_product,
-    bounded_matrix_certificate,
-    certify,
-    dense_block_toeplitz,
     dense_error_map,
     dense_input_map,
     lifted_error_map,
-    map_certificate,
-    matrix_norm_bound,
 )
 from foilc_hil.design.fractional import FractionalPD
+from foilc_hil.design.lifted import LawStructure, LoopPlant, dense_block_toeplitz
 from foilc_hil.design.lmi import solve_lmi
+from foilc_hil.design.map_norms import (
+    CHOLESKY_METHOD,
+    CONTRACTION_LIMIT,
+    DENSE_LIMIT,
+    bounded_matrix_certificate,
+    matrix_norm_bound,
+)
 from foilc_hil.design.models import DiscreteModel, Uncertainty, augment_input_delay, discretize
 from foilc_hil.design.qfilter import QFilter
 from foilc_hil.design.qmap import structured_input_map

@@ -12,8 +12,9 @@ from scipy.linalg import solve_discrete_lyapunov
 from scipy.special import binom
 
 from foilc_hil.config import Config, LawKind, load_config
-from foilc_hil.design.certificates import LawStructure, dense_error_map
 from foilc_hil.design.codesign import Candidate, CodesignSearch, time_varying_map
+from foilc_hil.design.error_map import dense_error_map
+from foilc_hil.design.lifted import LawStructure
 from foilc_hil.design.lmi import solve_lmi
 from foilc_hil.design.pipeline import build_design, design_model, law_structure
 from foilc_hil.design.record import Design
@@ -121,7 +122,7 @@ def test_time_varying_map_with_a_constant_delta_is_the_frozen_dense_map() -> Non
     dA, dB = 0.001 * np.eye(2), 0.0016 * np.array([[1.0], [0.0]])
     dA[1, 1] = 0.0  # the delay state does not vary
     T = time_varying_map(model, P, law, [(dA, dB)] * 40)
-    from foilc_hil.design.certificates import law_filter_matrix
+    from foilc_hil.design.lifted import law_filter_matrix
 
     F = law_filter_matrix(0.02, 0.6, 0.01, 40, lead=1)
     expected = dense_error_map(model.A + dA, model.B + dB, model.measured_output, P[:, :2], P[:, 2:], F, lead=1)

@@ -14,7 +14,7 @@ import yaml
 from foilc_hil.cli import main
 from foilc_hil.config import Config, LawKind, load_config
 from foilc_hil.design import pipeline
-from foilc_hil.design.certificates import dense_input_map
+from foilc_hil.design.error_map import dense_input_map
 from foilc_hil.design.pipeline import build_design, law_kind
 from foilc_hil.design.ptype import p_type_default_gain
 from foilc_hil.design.qfilter import QFilter
@@ -97,7 +97,7 @@ def test_the_recorded_certificate_is_the_running_laws_input_map(kind: LawKind) -
         M = _lifted_input_map(design, Q, n)
     else:
         if kind is LawKind.FOILC:
-            from foilc_hil.design.certificates import law_filter_matrix
+            from foilc_hil.design.lifted import law_filter_matrix
 
             F = law_filter_matrix(design.kp, design.r, SAMPLE_TIME, n, lead=1)
         else:
@@ -222,6 +222,8 @@ DESIGN_ORDER = (
     "ptype",
     "record",
     "lifted",
+    "map_norms",
+    "error_map",
     "qmap",
     "certificates",
     "admission",

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from foilc_hil.design.certificates import LawStructure, certify_as_given
+from foilc_hil.design.certificates import certify_as_given
+from foilc_hil.design.lifted import LawStructure
 from foilc_hil.design.models import (
     DiscreteModel,
     Uncertainty,

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from foilc_hil.config import FractionalMemory, LawConfig, QFilterConfig
-from foilc_hil.design.certificates import LawStructure, LoopPlant, certify_as_given, certify_p_type
+from foilc_hil.design.certificates import certify_as_given, certify_p_type
 from foilc_hil.design.fractional import FractionalPD
+from foilc_hil.design.lifted import LawStructure, LoopPlant
 from foilc_hil.design.models import DiscreteModel, Uncertainty, augment_input_delay
 from foilc_hil.design.pipeline import law_kind
 from foilc_hil.design.qfilter import QFilter
@@ -321,7 +322,7 @@ def test_make_law_with_q_filter_stores_filtered_feedforward() -> None:
 @pytest.mark.parametrize("delay", [0, 1, 2])
 def test_law_obeys_the_certificates_lifted_error_map(delay: int, memory: str) -> None:
     """A second, independent derivation: the certificates' dense trial map T predicts the law's error updates."""
-    from foilc_hil.design.certificates import dense_error_map
+    from foilc_hil.design.error_map import dense_error_map
 
     n = 25
     A, B, C = _first_order(0.1)
@@ -348,7 +349,8 @@ def test_law_obeys_the_certificates_lifted_error_map(delay: int, memory: str) ->
         np.testing.assert_allclose(errors[k + 1] - errors[k], T @ (errors[k] - errors[k - 1]), atol=1e-10)
     assert np.linalg.norm(errors[2] - errors[1]) > 1e-3  # the check is not vacuous
     # The certificate's fast map is the same operator as the law's (fractional_memory passed through).
-    from foilc_hil.design.certificates import law_filter_matrix, lifted_error_map
+    from foilc_hil.design.error_map import lifted_error_map
+    from foilc_hil.design.lifted import law_filter_matrix
 
     np.testing.assert_allclose(law_filter_matrix(0.15, 0.6, 0.1, n, delay, memory), F, atol=1e-12)
     fast = lifted_error_map(

@@ -1,6 +1,6 @@
 """The Q-filtered input map's certificates (foilc_hil.design.qmap) against dense truths and against simulation.
 
-Every number is checked against an independent computation: the dense map of ``certificates.dense_input_map`` (its
+Every number is checked against an independent computation: the dense map of ``error_map.dense_input_map`` (its
 own lifted plant, fractional matrix and ``QFilter.matrix``), LAPACK's SVD and eigenvalues, and trials of the law
 run sample by sample on the plant.
 """
@@ -18,8 +18,10 @@ from hypothesis import strategies as st
 
 from foilc_hil.config import Config, FractionalMemory, LawConfig, QFilterConfig, QFilterPhase, load_config
 from foilc_hil.design import qmap
-from foilc_hil.design.certificates import CONTRACTION_LIMIT, certify_as_given, dense_input_map, law_filter_matrix
-from foilc_hil.design.lifted import LawStructure, LoopPlant
+from foilc_hil.design.certificates import certify_as_given
+from foilc_hil.design.error_map import dense_input_map
+from foilc_hil.design.lifted import LawStructure, LoopPlant, law_filter_matrix
+from foilc_hil.design.map_norms import CONTRACTION_LIMIT
 from foilc_hil.design.models import DiscreteModel, Uncertainty, augment_input_delay, discretize
 from foilc_hil.design.pipeline import build_design
 from foilc_hil.design.qfilter import QFilter

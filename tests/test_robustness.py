@@ -198,7 +198,7 @@ def test_noilc_per_draw_certificates_bound_a_numpy_lifted_map_of_the_drawn_plant
     ``T = I - G_v L`` built with numpy from the drawn plant's Markov parameters and the design's weights: a rigorous
     bound, within 1e-7 of the exact norm."""
     from foilc_hil.design import robustness
-    from foilc_hil.design.certificates import CHOLESKY_METHOD
+    from foilc_hil.design.map_norms import CHOLESKY_METHOD
     from foilc_hil.design.rational_map import RATIONAL_METHOD
     from foilc_hil.design.robustness import certify_draws, running_law
     from foilc_hil.loop.robustness import _frozen_perturbations

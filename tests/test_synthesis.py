@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from foilc_hil.config import FractionalMemory, LawKind
-from foilc_hil.design.certificates import LawStructure
+from foilc_hil.design.lifted import LawStructure
 from foilc_hil.design.lmi import (
     lmi_matrix,
     roesser_model,

@@ -6,7 +6,7 @@ gradient ILC (its step) -- get it here, with the same settings:
 
 * ``synthesis.require_monotonic: true`` (the default): the design must be certified MONOTONIC (the worst-case
   induced 2-norm of the trial map, nominal and at the uncertainty vertices, at most
-  :data:`~foilc_hil.design.certificates.CONTRACTION_LIMIT`); ``false``: asymptotic convergence (the worst-case
+  :data:`~foilc_hil.design.map_norms.CONTRACTION_LIMIT`); ``false``: asymptotic convergence (the worst-case
   spectral radius below one) is enough.
 * ``synthesis.on_divergent_filter`` says what happens to a design that is not: ``refuse`` (and ``augment``, not
   implemented) raise :class:`~foilc_hil.errors.ConvergenceCertificateError` (exit 3, one line with the bound);

@@ -6,41 +6,8 @@ sample carries the weight ``1 + kp h^-r`` (hundreds to thousands at millisecond 
 (18) can diverge once the filter is switched on. This module certifies the law with the filter (and the
 input delay, and an optional Q-filter) on whole trials.
 
-The lifted map
---------------
-Sample alignment is that of :mod:`foilc_hil.references`: a trial issues ``u[i] = u(i Ts)``, ``i = 0..N-1``;
-``x[i] = x(i Ts)``; ``e[i] = e((i+1) Ts)`` is the first error sample ``u[i]`` moves (relative degree one). With
-``d`` cycles of input delay (state ``z = [x; u(t-d); ...; u(t-1)]``, measured output ``C_measured z``), ``u[i]``
-first moves ``e[i + d]`` and the law is
-
-    u_k[i] = u_{k-1}[i] + p1 (z_k[i] - z_{k-1}[i]) + p2 E_{k-1}[i + d]      (E[j] = 0 for j >= N),
-    E = F e  acting on each output channel, with F the law's operator (``law.fractional_memory``):
-      "controllable" (default): F = diag(I_d, F_c), F_c = FractionalPD(kp, r, h, history="zero").matrix(N - d),
-                                a pure lower-triangular Toeplitz operator on e[d:] (zero history before it);
-      "trial" (paper-literal):  F = FractionalPD(kp, r, h).matrix(N), Caputo over the whole trial.
-
-The first ``d`` error samples cannot be moved by any input (they repeat every trial), so the trial-to-trial map
-acts on ``e~ = e[d:]`` (``L = N - d`` samples). Writing ``A_cl = A + B p1``, the learning update
-``du = u_k - u_{k-1}`` obeys ``dz[i+1] = A_cl dz[i] + B p2 E'[i]`` and ``de[j] = -C_measured dz[j + 1]``, so
-
-    e~_k - e~* = T (e~_{k-1} - e~*),   T = I - H F',
-    H = block lower-triangular Toeplitz with blocks h_j = C_measured A_cl^(j + d) B p2  (j = 0..L-1),
-    F' = F[d:, d:]  (only columns >= d matter: the first d error samples never change) -- F_c itself in
-                    "controllable" mode, where this is also the whole affine part: E[d:] depends on e[d:] only,
-                    so the law's fixed point e~* = 0 (in "trial" mode F[d:, :d] e[:d] is a constant offset
-                    that moves the fixed point to a nonzero Mittag-Leffler-like tail; the map T of differences
-                    is still exact).
-
-``T`` is the map of the law as it runs: an exact identity on trial-to-trial error differences (the tests check
-it against a brute-force trial-by-trial simulation), not a bound.
-
-With a Q-filter (zero-phase, an ``N x N`` matrix ``Q``; as :mod:`foilc_hil.laws.learning` runs it, the feedforward
-stored for the next trial is ``Q u_{k-1}``, so ``u_k = Q u_{k-1} + P2 S E_{k-1} + P1 (z_k - z_{k-1})``) the error
-recursion does not close; the map acts on the input instead:
-
-    u_k - u* = M (u_{k-1} - u*),  M = R (Q - P2 S F Gy - P1 Gz),  R = (I - P1 Gz)^-1,
-
-with ``Gz``, ``Gy`` the lifted input-to-state and input-to-output maps and ``S`` the ``d``-sample advance.
+The maps certified are those of :mod:`foilc_hil.design.error_map` (its notes): the error map ``T = I - H F'``
+without a Q-filter, the input map ``M`` with one; the norms come from :mod:`foilc_hil.design.map_norms`.
 
 What is exact and what is estimated
 -----------------------------------
@@ -52,10 +19,11 @@ What is exact and what is estimated
   ``I - h_0 w_0`` (``w_0 = 1 + kp h^-r``). The Toeplitz-plus-columns decomposition of ``F`` is verified on a
   random probe against ``FractionalPD.apply``; if it does not hold, ``T`` is built densely instead.
 * Induced 2-norm of ``T`` (monotonic convergence in l2), first: a RIGOROUS UPPER BOUND from the truncated
-  Toeplitz symbol (:meth:`LiftedErrorMap.symbol_upper_bound`: the sup of the symbol on a fine grid, widened by its
-  Lipschitz constant, plus the correction columns' Frobenius norm). When that bound is below 1 it is the
-  certificate (``norm_2_method = "upper bound (truncated Toeplitz symbol)"``; ``norm_2`` is then the bound, at most
-  a few 1e-5 above the exact finite-trial norm on the shipped configs) and nothing iterative runs. Otherwise a
+  Toeplitz symbol (:meth:`~foilc_hil.design.error_map.LiftedErrorMap.symbol_upper_bound`: the sup of the symbol on
+  a fine grid, widened by its Lipschitz constant, plus the correction columns' Frobenius norm). When that bound is
+  below 1 it is the certificate (``norm_2_method = "upper bound (truncated Toeplitz symbol)"``; ``norm_2`` is then
+  the bound, at most a few 1e-5 above the exact finite-trial norm on the shipped configs) and nothing iterative
+  runs. Otherwise a
   power iteration's ``||T v||`` (a unit ``v``: a rigorous LOWER bound) at or above 1 settles the verdict, not
   monotonic (``"lower bound (power iteration; the symbol bound is not below 1)"``). Only between the two, for
   the exact value: ARPACK (``scipy.sparse.linalg.svds``) with
@@ -78,7 +46,8 @@ What is exact and what is estimated
   non-Toeplitz and is covered only by the LMI of Theorem 1 and by simulation.
 
 Module order: after :mod:`foilc_hil.design.record` (whose typed :class:`~foilc_hil.design.record.Certificates`
-this module fills in), :mod:`foilc_hil.design.lifted` and :mod:`foilc_hil.design.qmap`, before
+this module fills in), :mod:`foilc_hil.design.lifted`, :mod:`foilc_hil.design.map_norms`,
+:mod:`foilc_hil.design.error_map` and :mod:`foilc_hil.design.qmap`, before
 :mod:`foilc_hil.design.lmi` (which certifies the gain it solves for).
 """
 
@@ -90,25 +59,22 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from foilc_hil.config import DivergentFilterPolicy, FractionalMemory, LawKind
-from foilc_hil.design.convolution import fft_convolve
+from foilc_hil.config import DivergentFilterPolicy, LawKind
+from foilc_hil.design.error_map import dense_input_map, lifted_error_map
 from foilc_hil.design.lifted import (
     SYMBOL_GRID_CAP,
-    SYMBOL_GRID_CAP_MIMO,
-    SYMBOL_SLACK,
-    BlockToeplitz,
     LawStructure,
     LoopPlant,
-    ScalarFilter,
-    dense_block_toeplitz,
-    fractional_filter,
     grid_bound,
-    law_filter_matrix,
-    markov_blocks,
     moments,
     symbol_grid,
-    vector_norm,
-    zero_history_filter,
+)
+from foilc_hil.design.map_norms import (
+    CONTRACTION_LIMIT,
+    DENSE_LIMIT,
+    operator_norm,
+    power_norm,
+    radius_of,
 )
 from foilc_hil.design.models import DiscreteModel, Uncertainty, uncertainty_vertices
 from foilc_hil.design.ptype import frequency_bound
@@ -138,454 +104,14 @@ from foilc_hil.errors import ConvergenceCertificateError
 from foilc_hil.progress import as_step
 
 __all__ = [
-    "DENSE_LIMIT",
     "Certification",
-    "FftOperand",
-    "LawStructure",
-    "LiftedErrorMap",
-    "LoopPlant",
     "PTypeScales",
     "ScaledVerdict",
-    "block_toeplitz_product",
-    "bounded_matrix_certificate",
     "certify",
     "certify_as_given",
     "certify_p_type",
-    "dense_block_toeplitz",
-    "dense_error_map",
-    "dense_input_map",
-    "gram_norm_bound",
-    "law_filter_matrix",
-    "lifted_error_map",
     "map_certificate",
-    "markov_blocks",
-    "matrix_certificate",
-    "matrix_norm_bound",
-    "power_norm",
 ]
-
-#: Up to this many rows, norms and spectra are computed densely (exact, LAPACK).
-DENSE_LIMIT = 600
-#: Up to this many rows the input map's spectral radius is computed densely: these maps are far from normal, and
-#: ARPACK's ``eigs`` needs thousands of restarts on them (minutes at 700 rows on a loaded machine), LAPACK a second.
-RADIUS_DENSE_LIMIT = 1000
-#: ARPACK restarts allowed for one norm; beyond that the dense fallback (or no certificate).
-ARPACK_RESTARTS = 60
-#: Largest map a non-converged ARPACK norm falls back to a dense SVD for.
-DENSE_FALLBACK_LIMIT = 2500
-#: Power iterations for the lower bound used when the spectral radius already rules a certificate out.
-POWER_ITERATIONS = 40
-#: Admissible certificate: the worst-case 2-norm must be at most this (strictly below one).
-CONTRACTION_LIMIT = 1.0 - 1e-9
-#: The Cholesky test of :func:`matrix_norm_bound` tries ``rho^2 = (1 + gap) lambda`` (``lambda``: an estimate of
-#: ``lambda_max(T^T T)``, :func:`_norm_estimate`) for each gap in turn until it succeeds.
-CHOLESKY_GAPS = (1e-8, 1e-6, 1e-4, 1e-2, 1e-1, 1.0, 10.0)
-#: Bisection steps between the last gap that failed and the one that passed, when they are more than 1e-4 apart.
-CHOLESKY_BISECTIONS = 14
-#: Unit roundoff of float64.
-UNIT_ROUNDOFF = 2.0**-53
-#: Transforms behind one FFT product column (forward of each factor, inverse) for its rounding bound.
-FFT_TRANSFORMS = 3
-#: Per-level constant of the FFT's relative rounding bound (Higham, Accuracy and Stability, sec. 24.1: at most
-#: ``log2(n) eta / (1 - log2(n) eta)`` with ``eta = mu + gamma_4 (sqrt 2 + mu)``, about ``6 u`` per level for a
-#: twiddle error ``mu`` of a few ``u``); taken with a factor 2 to spare.
-FFT_LEVEL_CONSTANT = 12.0
-
-
-# --- lifted block-Toeplitz operators via FFT ------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class LiftedErrorMap:
-    """``T = I - H F'`` on ``e[lead:]`` (module notes), with its pieces for fast products."""
-
-    H: BlockToeplitz
-    F: ScalarFilter | None  # None: the dense path
-    dense_matrix: np.ndarray | None
-    n_outputs: int
-    length: int  # L = N - lead
-
-    @property
-    def size(self) -> int:
-        """Rows of ``T``."""
-        return self.length * self.n_outputs
-
-    def matvec(self, x: np.ndarray) -> np.ndarray:
-        """``T x`` for a flat vector ``x`` of :attr:`size` entries (sample-major)."""
-        if self.dense_matrix is not None:
-            return np.asarray(self.dense_matrix @ x)
-        assert self.F is not None
-        X = x.reshape(self.length, self.n_outputs)
-        return (X - self.H.matvec(self.F.matvec(X))).ravel()
-
-    def rmatvec(self, y: np.ndarray) -> np.ndarray:
-        """``T^T y``."""
-        if self.dense_matrix is not None:
-            return np.asarray(self.dense_matrix.T @ y)
-        assert self.F is not None
-        Y = y.reshape(self.length, self.n_outputs)
-        return (Y - self.F.rmatvec(self.H.rmatvec(Y))).ravel()
-
-    def to_dense(self) -> np.ndarray:
-        """``T`` as a dense matrix (for small trials and tests)."""
-        if self.dense_matrix is not None:
-            return self.dense_matrix
-        assert self.F is not None
-        return np.eye(self.size) - dense_block_toeplitz(self.H.blocks) @ np.kron(self.F.dense(), np.eye(self.n_outputs))
-
-    def diagonal_block(self) -> np.ndarray:
-        """The repeated diagonal block ``I - h_0 w_0`` of the Toeplitz part."""
-        assert self.F is not None
-        return np.eye(self.n_outputs) - self.H.blocks[0] * self.F.weights[0]
-
-    def spectral_radius(self) -> float:
-        """Exact spectral radius (module notes)."""
-        if self.dense_matrix is not None:
-            return _radius(self.dense_matrix)
-        assert self.F is not None
-        p = self.n_outputs
-        k = self.F.corrections.shape[1]
-        radius = _radius(self.diagonal_block())
-        if k:
-            # T = [[X11, 0], [X21, X22]] with X11 the first k samples: its leading block.
-            columns = np.column_stack([self.matvec(_unit(self.size, j)) for j in range(k * p)])
-            radius = max(radius, _radius(columns[: k * p, :]))
-        return radius
-
-    def _taus(self) -> np.ndarray:
-        """The Toeplitz blocks ``tau_j = delta_j I - sum_l h_l w_(j-l)`` of ``T`` (without correction columns)."""
-        assert self.F is not None
-        length = self.length
-        taus = -np.asarray(fft_convolve(self.H.blocks, self.F.weights[:length, None, None])[:length])
-        taus[0] += np.eye(self.n_outputs)
-        return taus
-
-    def norm_upper_bound(self) -> float:
-        """A rigorous upper bound: ``sum_j ||tau_j||_2`` (Toeplitz part) + Frobenius norm of the correction columns."""
-        if self.F is None:
-            assert self.dense_matrix is not None
-            return float(np.linalg.norm(self.dense_matrix, "fro"))
-        taus = self._taus()
-        return float(np.sum(np.linalg.norm(taus, ord=2, axis=(1, 2)))) + self._correction_norm()
-
-    def symbol_upper_bound(self) -> float:
-        """A rigorous, tight upper bound on ``||T||_2`` from the truncated symbol (the fast certificate).
-
-        The Toeplitz part of ``T`` is a finite section (a compression) of the Laurent operator of the truncated
-        symbol ``a(theta) = sum_{j < L} tau_j e^{i j theta}``, whose norm is ``sup_theta ||a(theta)||_2``; so that sup
-        bounds it, for every trial length. The sup is taken on an ``M``-point grid and widened rigorously: for one
-        output by :func:`grid_bound` (the smallest of a Lipschitz, a curvature and the triangle bound; the
-        curvature widening shrinks like ``1 / M^2``, so the grid stays small), for several by
-        ``(pi / M) sum_j j ||tau_j||_2`` (``||a'|| <= sum_j j ||tau_j||``, every ``theta`` within ``pi / M`` of a
-        grid point); the correction columns of the "trial" memory add their Frobenius norm.
-        """
-        if self.F is None:
-            return self.norm_upper_bound()
-        from scipy.fft import fft
-
-        taus = self._taus()
-        magnitudes = np.linalg.norm(taus, ord=2, axis=(1, 2))
-        sums = moments(magnitudes)
-        if self.n_outputs == 1:
-            grid = symbol_grid(self.length, sums, SYMBOL_GRID_CAP)
-            peak = float(np.max(np.abs(fft(taus[:, 0, 0], n=grid))))
-            return grid_bound(peak, grid, sums) + self._correction_norm()
-        lipschitz = sums[1]
-        wanted = max(4096, 2 * self.length, math.ceil(lipschitz * math.pi / SYMBOL_SLACK))
-        grid = min(SYMBOL_GRID_CAP_MIMO, 1 << math.ceil(math.log2(wanted)))
-        peak = float(np.max(np.linalg.svd(fft(taus, n=grid, axis=0), compute_uv=False)))
-        # both are rigorous; the triangle inequality wins when every tau_j has the same phase at one frequency
-        return min(peak + lipschitz * math.pi / grid, sums[0]) + self._correction_norm()
-
-    def _correction_norm(self) -> float:
-        """Frobenius norm of ``T``'s correction columns (the Caputo terms of the "trial" memory); 0 without."""
-        assert self.F is not None
-        k = self.F.corrections.shape[1]
-        if not k:
-            return 0.0
-        correction = np.zeros((self.size, 0))
-        for j in range(k):
-            block = np.zeros((self.length, self.n_outputs, self.n_outputs))
-            block[:, np.arange(self.n_outputs), np.arange(self.n_outputs)] = self.F.corrections[:, j : j + 1]
-            for q in range(self.n_outputs):
-                correction = np.column_stack([correction, self.H.matvec(block[:, :, q]).ravel()])
-        return float(np.linalg.norm(correction, "fro"))
-
-    def symbol_norm(self, grid: int = 4096) -> float:
-        """sup over a frequency grid of the largest singular value of the Toeplitz part's symbol."""
-        if self.F is None:
-            return math.nan
-        from scipy.fft import fft
-
-        length = self.length
-        taus = self._taus()
-        n_fft = max(grid, 2 * length)
-        symbol = fft(taus, n=n_fft, axis=0)
-        if self.n_outputs == 1:
-            return float(np.max(np.abs(symbol)))
-        return float(np.max(np.linalg.svd(symbol, compute_uv=False)))
-
-
-def _unit(size: int, index: int) -> np.ndarray:
-    vector = np.zeros(size)
-    vector[index] = 1.0
-    return vector
-
-
-def _radius(matrix: np.ndarray) -> float:
-    if matrix.size == 0:
-        return 0.0
-    values = np.linalg.eigvals(matrix)
-    return float(np.max(np.abs(values))) if np.all(np.isfinite(values)) else math.inf
-
-
-def lifted_error_map(loop: LoopPlant, law: LawStructure) -> LiftedErrorMap:
-    """The trial-to-trial error map ``T`` of the law as it runs (module notes), without a Q-filter.
-
-    ``law.fractional_memory`` picks ``F'``: ``"controllable"`` -- the zero-history Toeplitz operator on the
-    ``N - lead`` controllable samples; ``"trial"`` -- ``F' = F[lead:, lead:]`` of the Caputo operator over the whole
-    trial. ``law.q_filter`` is not used here (see :func:`lifted_input_map`).
-    """
-    n_out = loop.C_measured.shape[0]
-    kp, r, sample_time, n_samples, lead = law.kp, law.r, law.sample_time, law.n_samples, law.lead
-    length = n_samples - lead
-    A_cl = loop.A + loop.B @ loop.p1
-    blocks = markov_blocks(A_cl, loop.B @ loop.p2, loop.C_measured, lead, length)
-    H = BlockToeplitz(blocks)
-    finite = bool(np.all(np.isfinite(blocks)))  # an overflowing plant takes the dense path (caller reports it)
-    if law.fractional_memory is FractionalMemory.CONTROLLABLE:
-        window = zero_history_filter(kp, r, sample_time, length)
-        if finite:
-            return LiftedErrorMap(H, window, None, n_out, length)
-        F_dense = window.dense()
-    else:
-        filt, fpd = fractional_filter(kp, r, sample_time, n_samples)
-        if filt is not None and finite:
-            return LiftedErrorMap(H, filt.sub(lead), None, n_out, length)
-        F_dense = np.asarray(fpd.matrix(n_samples), dtype=float)[lead:, lead:]
-    # Dense path: exact, O(N^2) memory.
-    H_dense = dense_block_toeplitz(blocks)
-    T = np.eye(length * n_out) - H_dense @ np.kron(F_dense, np.eye(n_out))
-    return LiftedErrorMap(H, None, T, n_out, length)
-
-
-def _gamma(k: int) -> float:
-    """``gamma_k = k u / (1 - k u)``: the classical bound on the relative rounding error of ``k`` operations."""
-    return k * UNIT_ROUNDOFF / (1.0 - k * UNIT_ROUNDOFF)
-
-
-@dataclass(frozen=True)
-class FftOperand:
-    """A right-hand side ``X`` of :func:`block_toeplitz_product`, transformed once for many left factors: the
-    per-draw NOILC maps of a robustness chunk all multiply the same gain, and its FFT was a third of each product.
-
-    Attributes
-    ----------
-    spectrum
-        ``rfft`` of ``X``'s ``K`` columns as ``(K, cols, F)``: each column's blocks, ``nfft`` points along them (the
-        transform runs along the last, contiguous axis: along the first, strided one, pocketfft took twice as long
-        at 2000 x 2000).
-    length, cols
-        The block rows of ``X`` and the columns of each block (the blocks' input channels).
-    nfft
-        The FFT length: ``next_fast_len(2 length)``, room for the full linear convolution.
-    norm
-        ``||X||_F``, for the rounding bound.
-    """
-
-    spectrum: np.ndarray
-    length: int
-    cols: int
-    nfft: int
-    norm: float
-
-    @classmethod
-    def of(cls, X: np.ndarray, length: int) -> FftOperand:
-        """``X`` (``length * cols`` rows) transformed."""
-        from scipy.fft import next_fast_len, rfft
-
-        cols = X.shape[0] // length
-        nfft = next_fast_len(2 * length, real=True)
-        columns = np.ascontiguousarray(X.reshape(length, cols, X.shape[1]).transpose(2, 1, 0))  # (K, cols, length)
-        spectrum = rfft(columns, n=nfft, axis=-1)
-        return cls(spectrum, length, cols, nfft, float(np.linalg.norm(X)))
-
-
-def block_toeplitz_product(blocks: np.ndarray, X: np.ndarray | FftOperand) -> tuple[np.ndarray, float]:
-    """``dense_block_toeplitz(blocks) @ X`` by FFT, and a rigorous bound on the Frobenius norm of its rounding error.
-
-    ``O(L^2 log L)`` for an ``(L m) x K`` right-hand side instead of the ``O(L^2 K)`` of a dense product (the per-draw
-    NOILC map: ``K = L`` columns); ``X`` may come transformed already (:class:`FftOperand`). The bound: every column
-    is a convolution done with :data:`FFT_TRANSFORMS` FFTs of ``M`` points, each accurate to ``FFT_LEVEL_CONSTANT
-    log2(M) u`` relative in 2-norm, and ``||h * x||_2 <= sum_j ||h_j||_F ||x||_2``; so ``||error||_F <=
-    (FFT_TRANSFORMS FFT_LEVEL_CONSTANT log2 M + m + 2) u sum_j ||h_j||_F ||X||_F`` (``m + 2``: the per-frequency
-    products and sums).
-    """
-    from scipy.fft import irfft, rfft
-
-    length, rows, cols = blocks.shape
-    operand = X if isinstance(X, FftOperand) else FftOperand.of(X, length)
-    if (operand.length, operand.cols) != (length, cols):
-        raise ValueError(f"X has {operand.length} blocks of {operand.cols} columns; the blocks are {length} x {cols}")
-    nfft = operand.nfft
-    spectrum = rfft(blocks.transpose(1, 2, 0), n=nfft, axis=-1)  # (rows, cols, F)
-    if rows == cols == 1:  # single channel: a broadcast product, no einsum dispatch over a (K, 1, F) array
-        mixed = operand.spectrum * spectrum[0]
-    else:
-        mixed = np.einsum("rcf,kcf->krf", spectrum, operand.spectrum)
-    columns = irfft(mixed, n=nfft, axis=-1, overwrite_x=True)[..., :length]  # (K, rows, length)
-    # the product's columns are the rows of this array: an F-ordered view for rows == 1 (no copy)
-    product = np.asarray(columns.transpose(2, 1, 0)).reshape(length * rows, -1)
-    relative = (FFT_TRANSFORMS * FFT_LEVEL_CONSTANT * math.log2(nfft) + cols + 2) * UNIT_ROUNDOFF
-    h_norm = float(np.sum(np.linalg.norm(blocks.reshape(length, -1), axis=1)))
-    return product, relative * h_norm * operand.norm
-
-
-# --- dense reference maps (tests, small trials) ---------------------------------------------------------------
-
-
-def _lifted_plant(A: np.ndarray, B: np.ndarray, C: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Dense ``Gz`` (``u[0..N-1] -> z[0..N-1]``, ``z[i] = z(i Ts)``) and ``Gy`` (``-> y((i+1) Ts)``)."""
-    ns, m = B.shape
-    p = C.shape[0]
-    powers = np.empty((n + 1, ns, m))  # A^k B; powers[n] is a zero block (the entries above the diagonals)
-    powers[n] = 0.0
-    power = B.copy()
-    for k in range(n):
-        powers[k] = power
-        power = A @ power
-    markov = C @ powers  # C A^k B, k = 0..n (the last zero)
-    # z[i] gets A^(i-1-j) B u[j]; y[i] gets C A^(i-j) B u[j]: block (i, j) by its lag, the zero block where none.
-    # (Indexed once, not assigned block by block in Python: 0.8 s a call at N = 700.)
-    lag = np.subtract.outer(np.arange(n), np.arange(n))
-    Gy = markov[np.where(lag >= 0, lag, n)].transpose(0, 2, 1, 3).reshape(n * p, n * m)
-    Gz = powers[np.where(lag >= 1, lag - 1, n)].transpose(0, 2, 1, 3).reshape(n * ns, n * m)
-    return Gz, Gy
-
-
-def _advance(n: int, lead: int, channels: int) -> np.ndarray:
-    """``S``: ``(S v)[i] = v[i + lead]``, zero past the end."""
-    return np.kron(np.eye(n, k=lead), np.eye(channels))
-
-
-def dense_error_map(
-    A: np.ndarray,
-    B: np.ndarray,
-    C_measured: np.ndarray,
-    p1: np.ndarray,
-    p2: np.ndarray,
-    F: np.ndarray,
-    lead: int = 0,
-) -> np.ndarray:
-    """``T_full = I - Gy (I - P1 Gz)^-1 P2 S F`` on the whole error ``e[0..N-1]`` (dense; a second method).
-
-    Its first ``lead`` samples form the identity (they never change); ``T_full[lead:, lead:]`` is the map of
-    :func:`lifted_error_map`.
-    """
-    n = F.shape[0]
-    m = B.shape[1]
-    p = C_measured.shape[0]
-    Gz, Gy = _lifted_plant(A, B, C_measured, n)
-    P1 = np.kron(np.eye(n), p1)
-    P2 = np.kron(np.eye(n), p2)
-    R = np.linalg.solve(np.eye(n * m) - P1 @ Gz, np.eye(n * m))
-    return np.eye(n * p) - Gy @ R @ P2 @ _advance(n, lead, p) @ np.kron(F, np.eye(p))
-
-
-def dense_input_map(
-    A: np.ndarray,
-    B: np.ndarray,
-    C_measured: np.ndarray,
-    p1: np.ndarray,
-    p2: np.ndarray,
-    F: np.ndarray,
-    Q: np.ndarray,
-    lead: int = 0,
-) -> np.ndarray:
-    """``M = R (Q - P2 S F Gy - P1 Gz)`` on the input ``u[0..N-1]`` (dense; with a Q-filter)."""
-    n = F.shape[0]
-    m = B.shape[1]
-    p = C_measured.shape[0]
-    Gz, Gy = _lifted_plant(A, B, C_measured, n)
-    P1 = np.kron(np.eye(n), p1)
-    P2 = np.kron(np.eye(n), p2)
-    Qm = np.kron(Q, np.eye(m))
-    R = np.linalg.solve(np.eye(n * m) - P1 @ Gz, np.eye(n * m))
-    learning = P2 @ _advance(n, lead, p) @ np.kron(F, np.eye(p)) @ Gy
-    return R @ (Qm - learning - P1 @ Gz)
-
-
-# --- certificates ---------------------------------------------------------------------------------------------
-
-
-def power_norm(
-    size: int,
-    matvec: Callable[[np.ndarray], np.ndarray],
-    rmatvec: Callable[[np.ndarray], np.ndarray],
-    iterations: int = POWER_ITERATIONS,
-    enough: float = math.inf,
-) -> float:
-    """A LOWER bound on the largest singular value: ``||T v||`` for ``v`` from power iteration on ``T^T T``;
-    it stops early once the bound reaches ``enough`` (all a verdict may need to know)."""
-    v = np.random.default_rng(0).standard_normal(size)
-    v /= vector_norm(v)
-    estimate = 0.0
-    for _ in range(iterations):
-        w = matvec(v)
-        estimate = max(estimate, vector_norm(w))
-        if not math.isfinite(estimate):
-            return math.inf
-        if estimate >= enough:
-            break
-        v = rmatvec(w)
-        norm = vector_norm(v)
-        if norm == 0.0:
-            break
-        v /= norm
-    return estimate
-
-
-def _operator_norm(
-    size: int,
-    matvec: Callable[[np.ndarray], np.ndarray],
-    rmatvec: Callable[[np.ndarray], np.ndarray],
-    dense: Callable[[], np.ndarray],
-    upper_bound: Callable[[], float] | None = None,
-) -> tuple[float, str]:
-    """Largest singular value: dense SVD for small sizes, ARPACK ``svds`` otherwise.
-
-    ARPACK is capped (``ARPACK_RESTARTS``); when it does not converge -- clustered top singular values, e.g. a
-    Toeplitz map whose symbol is flat near its maximum -- a dense SVD is used up to ``DENSE_FALLBACK_LIMIT``
-    rows, and beyond that a rigorous ``upper_bound`` when it is below one, else ``inf`` with the method saying why,
-    so a certificate is never granted on an unconverged estimate.
-    """
-    if size <= DENSE_LIMIT:
-        matrix = dense()
-        if not np.all(np.isfinite(matrix)):
-            return math.inf, "dense"
-        return float(np.linalg.norm(matrix, 2)), "dense"
-    from scipy.sparse.linalg import ArpackNoConvergence, LinearOperator, svds
-
-    operator = LinearOperator((size, size), matvec=matvec, rmatvec=rmatvec, dtype=float)
-    try:
-        values = svds(
-            operator, k=1, which="LM", tol=1e-8, return_singular_vectors=False, random_state=0, maxiter=ARPACK_RESTARTS
-        )
-    except ArpackNoConvergence:
-        lower = power_norm(size, matvec, rmatvec)
-        if lower >= 1.0:  # enough for the verdict: no monotonic certificate
-            return lower, "lower bound (power iteration; ARPACK did not converge)"
-        if size <= DENSE_FALLBACK_LIMIT:
-            matrix = dense()
-            if not np.all(np.isfinite(matrix)):
-                return math.inf, "dense (ARPACK did not converge)"
-            return float(np.linalg.norm(matrix, 2)), "dense (ARPACK did not converge)"
-        if upper_bound is not None:
-            bound = upper_bound()
-            if bound < 1.0:
-                return bound, "upper bound (triangle inequality; ARPACK did not converge)"
-        return math.inf, "not computed: ARPACK did not converge"
-    return float(np.max(values)), "svds"
 
 
 def _error_map_certificate(loop: LoopPlant, law: LawStructure) -> PlantCertificate:
@@ -607,18 +133,9 @@ def _error_map_certificate(loop: LoopPlant, law: LawStructure) -> PlantCertifica
         if lower >= 1.0:
             norm, method = lower, "lower bound (power iteration; the symbol bound is not below 1)"
         else:
-            norm, method = _operator_norm(T.size, T.matvec, T.rmatvec, T.to_dense, T.norm_upper_bound)
+            norm, method = operator_norm(T.size, T.matvec, T.rmatvec, T.to_dense, T.norm_upper_bound)
     symbol = T.symbol_norm() if T.F is not None else None
     return PlantCertificate("", "error", radius, norm, method, norm_2_symbol=symbol)
-
-
-def _matrix_radius(matrix: np.ndarray) -> tuple[float, str]:
-    """Spectral radius of a dense map: LAPACK up to :data:`RADIUS_DENSE_LIMIT` rows, beyond that not computed
-    (``nan``: the caller bounds it by the 2-norm; ARPACK's ``eigs`` is unbounded in time on these far-from-normal
-    maps)."""
-    if matrix.shape[0] <= RADIUS_DENSE_LIMIT:
-        return _radius(matrix), "dense"
-    return math.nan, "not computed"
 
 
 def _dense_input_certificate(loop: LoopPlant, law: LawStructure) -> PlantCertificate:
@@ -628,7 +145,7 @@ def _dense_input_certificate(loop: LoopPlant, law: LawStructure) -> PlantCertifi
     M = dense_input_map(loop.A, loop.B, loop.C_measured, loop.p1, loop.p2, F, law.q_filter.matrix(), law.lead)
     if not np.all(np.isfinite(M)):
         return PlantCertificate("", INPUT_MAP, math.inf, math.inf, "overflow", "overflow")
-    norm, radius = float(np.linalg.norm(M, 2)), _radius(M)
+    norm, radius = float(np.linalg.norm(M, 2)), radius_of(M)
     verdict = MonotoneVerdict.MONOTONE if norm <= CONTRACTION_LIMIT else MonotoneVerdict.NOT_MONOTONE
     proof = Proof(BoundClaim.EXACT, BoundClaim.EXACT, verdict, CertificateMethod.DENSE)
     return PlantCertificate("", INPUT_MAP, radius, norm, "dense", "dense", proof=proof)
@@ -661,191 +178,6 @@ def map_certificate(loop: LoopPlant, law: LawStructure) -> PlantCertificate:
     return _input_map_certificate(loop, law)
 
 
-def matrix_certificate(matrix: np.ndarray, kind: str) -> PlantCertificate:
-    """Spectral radius and induced 2-norm of a trial-to-trial map given as a dense matrix.
-
-    For laws whose map has no Toeplitz structure (norm-optimal ILC). Up to :data:`DENSE_LIMIT` rows: a dense SVD
-    and eigenvalues (exact). Beyond: ``||T||_2 = sqrt(lambda_max(T^T T))`` from the largest eigenvalue of the Gram
-    matrix (LAPACK ``eigh`` on that one eigenvalue: exact to rounding, and unlike ARPACK unaffected by the
-    clustered top singular values these maps have); when it is below one it bounds the spectral radius
-    (``rho <= ||T||``, so the verdict needs no eigenvalues) and the method says so, else LAPACK's eigenvalues up
-    to :data:`RADIUS_DENSE_LIMIT` rows and beyond that "inconclusive at bound" the 2-norm.
-    """
-    from scipy.linalg import eigh
-
-    T = np.asarray(matrix, dtype=float)
-    if not np.all(np.isfinite(T)):
-        return PlantCertificate("", kind, math.inf, math.inf, "overflow")
-    size = T.shape[0]
-    if size <= DENSE_LIMIT:
-        return PlantCertificate("", kind, _radius(T), float(np.linalg.norm(T, 2)), "dense", "dense")
-    top = eigh(T.T @ T, eigvals_only=True, subset_by_index=[size - 1, size - 1])
-    norm = math.sqrt(max(float(top[0]), 0.0))
-    method = "dense (largest eigenvalue of T^T T)"
-    if norm < 1.0:
-        return PlantCertificate("", kind, norm, norm, method, "upper bound: the induced 2-norm")
-    radius, radius_method = _matrix_radius(T)
-    if math.isnan(radius):  # rho <= ||T||: an upper bound, not below one here
-        radius, radius_method = norm, f"inconclusive at bound {norm:.6g} (the induced 2-norm)"
-    return PlantCertificate("", kind, radius, norm, method, radius_method)
-
-
-#: ``norm_2_method`` of a certificate from :func:`matrix_norm_bound`.
-CHOLESKY_METHOD = "upper bound (Cholesky of rho^2 I - T^T T)"
-
-
-def _norm_estimate(gram: np.ndarray, column: np.ndarray | None) -> tuple[float, np.ndarray | None]:
-    """An estimate of ``||T||_2^2`` to try the Cholesky test at (neither bound nor certificate: the test decides),
-    and a start vector for :func:`_power_lower` (``None``: a random one).
-
-    Up to :data:`DENSE_LIMIT` columns (or without ``column``) the largest eigenvalue of the Gram matrix (LAPACK).
-    Beyond, the squared sup of the symbol of ``T``'s middle ``column`` (its two-sided impulse response there, by
-    FFT): the trial maps certified here are Toeplitz-like away from the trial's ends, and their top singular values
-    cluster within about 1e-6 of that sup (Krylov methods stall on such clusters: ARPACK needed seconds and did not
-    converge on NOILC's maps). The top singular vectors of such a map (left and right) are close to a sinusoid at
-    the sup's frequency, the start vector:
-    from it one power step reached within 3e-4 of the top eigenvalue on paper_sim's NOILC draws, where ten steps
-    from a random vector stayed 2.5 % below.
-    """
-    from scipy.linalg import eigh
-
-    size = gram.shape[0]
-    if size <= DENSE_LIMIT or column is None:
-        return float(eigh(gram, eigvals_only=True, subset_by_index=[size - 1, size - 1])[0]), None
-    return _column_estimate(column)
-
-
-def _column_estimate(column: np.ndarray) -> tuple[float, np.ndarray]:
-    """The squared sup of the symbol of a Toeplitz-like map's middle ``column`` (its two-sided impulse response
-    there, by FFT) and a sinusoid at the sup's frequency (:func:`_norm_estimate`)."""
-    from scipy.fft import next_fast_len
-
-    size = column.shape[0]
-    middle = size // 2
-    response = np.zeros(next_fast_len(4 * size))
-    response[: size - middle] = column[middle:]  # lags 0, 1, ...
-    response[response.shape[0] - middle :] = column[:middle]  # lags -middle .. -1, wrapped
-    magnitude = np.abs(np.fft.fft(response))
-    peak = int(np.argmax(magnitude))
-    return float(magnitude[peak]) ** 2, np.cos(2.0 * math.pi * peak / response.shape[0] * np.arange(size))
-
-
-def _power_lower(gram: np.ndarray, start: np.ndarray | None = None) -> float:
-    """A lower bound on ``lambda_max`` of a Gram matrix: the best Rayleigh quotient of a few power steps (two from
-    ``start``, ten from a random vector)."""
-    steps = 10 if start is None else 2
-    vector = np.asarray(np.random.default_rng(0).standard_normal((gram.shape[0],)) if start is None else start)
-    best = 0.0
-    for _ in range(steps):
-        norm = float(np.linalg.norm(vector))
-        if not norm > 0:
-            break
-        vector = vector / norm
-        image = np.asarray(gram @ vector)
-        best = max(best, float(np.dot(vector, image)))
-        vector = image
-    return best
-
-
-def _cholesky_succeeds(gram: np.ndarray, rho2: float) -> bool:
-    """Rump's test (Verification of positive definiteness, BIT 46, 2006): a floating-point Cholesky of
-    ``fl(A - c I)`` with ``A = fl(rho2 I - gram)`` runs to completion only if ``A`` is positive definite, for
-    ``c >= gamma_(n+1) / (1 - gamma_(n+1)) tr(A) + 4 n (2 (n + 1) + max A_ii) eta`` (``eta``: the smallest
-    subnormal). We take ``c`` with ``4 gamma_(2n+2)`` and ``16 n (2 (n + 2) + ...)`` to spare."""
-    from scipy.linalg import LinAlgError, cholesky
-
-    size = gram.shape[0]
-    shifted = -gram
-    diagonal = np.arange(size)
-    shifted[diagonal, diagonal] += rho2  # A = fl(rho2 I - gram), as the theorem's floating-point matrix
-    trace = float(np.sum(shifted[diagonal, diagonal]))
-    if not trace > 0:
-        return False
-    eta = math.ulp(0.0)
-    shift = 4.0 * _gamma(2 * size + 2) * trace + 16.0 * size * (2 * (size + 2) + rho2) * eta
-    shifted[diagonal, diagonal] -= shift
-    try:
-        cholesky(shifted, lower=False, overwrite_a=True, check_finite=False)
-    except LinAlgError:
-        return False
-    return True
-
-
-def matrix_norm_bound(matrix: np.ndarray, error: float = 0.0) -> float | None:
-    """A RIGOROUS upper bound on ``||T||_2`` for ``T = matrix + E``, ``||E||_2 <= error``; ``None`` when the test
-    fails at every gap of :data:`CHOLESKY_GAPS`.
-
-    ``||T||_2 < rho`` if and only if ``rho^2 I - T^T T`` is positive definite, which a Cholesky factorisation decides
-    (``n^3 / 3`` flops, no eigenvalue or singular value decomposition). ``rho^2``, an estimate of ``lambda_max`` of the
-    Gram matrix (:func:`_norm_estimate`), is widened by the gap; the rounding is accounted for:
-    the computed Gram matrix is within ``gamma_n ||T||_F^2`` of ``T^T T`` (2-norm), forming ``A = rho^2 I - gram``
-    rounds its diagonal by at most ``u (rho^2 + max gram_ii)``, and :func:`_cholesky_succeeds` proves ``A``
-    positive definite. So ``||matrix||_2^2 < rho^2 + u (rho^2 + max gram_ii) + gamma_n ||matrix||_F^2``, and
-    ``||T||_2`` is at most its square root plus ``error``. The bound is as tight as the estimate: at or below the
-    exact ``lambda_max`` (the LAPACK value of small maps), the first gap that succeeds; above it (a symbol estimate
-    of a large map, measured about 1.5e-7 relative above on paper_sim's NOILC draws), by that much. A poor estimate
-    (a map far from Toeplitz) passes only at a wide gap, or far above a power-iteration lower bound: bisection
-    (:data:`CHOLESKY_BISECTIONS` Cholesky tests) narrows it.
-    """
-    T = np.asarray(matrix, dtype=float)
-    if not np.all(np.isfinite(T)):
-        return None
-    gram = T.T @ T  # numpy computes a product with its own transpose by a symmetric rank-k update (syrk)
-    column = T[:, T.shape[1] // 2] if T.shape[0] == T.shape[1] else None
-    frobenius2 = float(np.einsum("ij,ij->", T, T)) * (1.0 + _gamma(T.shape[0] * T.shape[1]))
-    bound = gram_norm_bound(gram, _gamma(T.shape[0]) * frobenius2, column)
-    return None if bound is None else bound + error
-
-
-def gram_norm_bound(gram: np.ndarray, gram_error: float, column: np.ndarray | None = None) -> float | None:
-    """A RIGOROUS upper bound on ``sqrt(lambda_max(S))`` for a symmetric ``S`` within ``gram_error`` (2-norm) of the
-    computed ``gram`` (its upper triangle is read): :func:`matrix_norm_bound`'s Cholesky tests from the estimate of
-    :func:`_norm_estimate` (``column``: the middle column of the square map ``T``, if any); ``None`` when every gap
-    of :data:`CHOLESKY_GAPS` fails. ``S`` is ``T^T T`` or ``T T^T`` (the same largest eigenvalue, ``||T||_2^2``).
-    """
-    estimate, start = _norm_estimate(gram, column)
-    estimate = max(estimate, 0.0)
-    diagonal_max = float(np.max(np.diag(gram))) if gram.size else 0.0
-    failed, passed = 0.0, math.nan
-    for gap in CHOLESKY_GAPS:
-        if _cholesky_succeeds(gram, estimate * (1.0 + gap) + gram_error):
-            passed = estimate * (1.0 + gap) + gram_error
-            break
-        failed = estimate * (1.0 + gap) + gram_error
-    if math.isnan(passed):
-        return None
-    # A poor estimate (a map far from Toeplitz) passed only at a wide gap, or far above a lower bound (a few power
-    # steps: slow on the clustered spectra of Toeplitz-like maps, hence the 5 % before it counts): bisect. The
-    # estimate's sinusoid starts the power steps; where it falls short (a map unlike a Toeplitz one), random ones.
-    lower = _power_lower(gram, start)
-    if start is not None and passed > lower * (1.0 + 0.05):
-        lower = max(lower, _power_lower(gram))
-    wide = passed > failed * (1.0 + 1e-4) if failed > 0.0 else passed > lower * (1.0 + 0.05)
-    failed = max(failed, lower)
-    for _ in range(CHOLESKY_BISECTIONS if wide else 0):
-        middle = 0.5 * (failed + passed)
-        if _cholesky_succeeds(gram, middle):
-            passed = middle
-        else:
-            failed = middle
-    bound2 = (passed + UNIT_ROUNDOFF * (passed + diagonal_max) + gram_error) * (1.0 + 4.0 * UNIT_ROUNDOFF)
-    return math.nextafter(math.sqrt(bound2) * (1.0 + 2.0 * UNIT_ROUNDOFF), math.inf)
-
-
-def bounded_matrix_certificate(matrix: np.ndarray, kind: str, error: float = 0.0) -> PlantCertificate:
-    """:func:`matrix_certificate` by the Cholesky bound (:func:`matrix_norm_bound`) where that bound is a certificate.
-
-    When the bound is at most :data:`CONTRACTION_LIMIT` it is the certificate: ``norm_2`` is the bound (rigorous,
-    slightly above the exact norm: :func:`matrix_norm_bound`) and so is ``spectral_radius`` (``rho <= ||T||``).
-    Otherwise the exact dense path of :func:`matrix_certificate` decides. ``error`` bounds (2-norm) how far
-    ``matrix`` may be from the exact map (its rounding when it was formed, e.g. :func:`block_toeplitz_product`'s).
-    """
-    bound = matrix_norm_bound(matrix, error)
-    if bound is not None and bound <= CONTRACTION_LIMIT:
-        return PlantCertificate("", kind, bound, bound, CHOLESKY_METHOD, "upper bound: the induced 2-norm")
-    return matrix_certificate(matrix, kind)
-
-
 @dataclass(frozen=True)
 class _ScaledErrorMap:
     """The error map ``T(s) = I - s H F'`` of one single-output plant for every scale ``s`` of ``p2`` at once.
@@ -853,9 +185,10 @@ class _ScaledErrorMap:
     The rescale search of :func:`certify` evaluates tens of scales at every plant. ``H`` is linear in ``p2``, so
     the Toeplitz blocks are ``tau_j(s) = delta_j - s c_j`` with ``c = h * w`` (``h`` the unscaled Markov
     parameters, ``w`` the filter's weights) computed once, and so is their spectrum on the symbol grid: a scale
-    then costs one pass over that grid. The numbers are those of :meth:`LiftedErrorMap.spectral_radius` and
-    :meth:`LiftedErrorMap.symbol_upper_bound` (the same rigorous :func:`grid_bound`, with ``S_1``, ``S_2`` of
-    ``T(s)`` equal to ``s`` times those of ``c``), for pure Toeplitz maps (no correction
+    then costs one pass over that grid. The numbers are those of
+    :meth:`~foilc_hil.design.error_map.LiftedErrorMap.spectral_radius` and
+    :meth:`~foilc_hil.design.error_map.LiftedErrorMap.symbol_upper_bound` (the same rigorous :func:`grid_bound`,
+    with ``S_1``, ``S_2`` of ``T(s)`` equal to ``s`` times those of ``c``), for pure Toeplitz maps (no correction
     columns) longer than :data:`DENSE_LIMIT`; anything else, and any scale whose bound is not below one, takes
     :func:`map_certificate`.
     """
@@ -879,7 +212,7 @@ class _ScaledErrorMap:
         T = lifted_error_map(loop, law)
         if T.F is None or T.F.corrections.shape[1] or T.size <= DENSE_LIMIT or not np.all(np.isfinite(T.H.blocks)):
             return None
-        taus = T._taus()[:, 0, 0]
+        taus = T.taus()[:, 0, 0]
         c = -taus  # tau_j = delta_j - c_j
         c[0] += 1.0
         _, s1, s2 = moments(np.abs(c))

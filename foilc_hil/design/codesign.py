@@ -61,9 +61,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from foilc_hil.config import CodesignConfig, DivergentFilterPolicy, FractionalMemory, LawKind
-from foilc_hil.design.certificates import LawStructure, LoopPlant, certify, map_certificate, power_norm
+from foilc_hil.design.certificates import certify, map_certificate
 from foilc_hil.design.fractional import gl_weights
+from foilc_hil.design.lifted import LawStructure, LoopPlant
 from foilc_hil.design.lmi import LmiSolution
+from foilc_hil.design.map_norms import power_norm
 from foilc_hil.design.models import DiscreteModel, Uncertainty, uncertainty_vertices
 from foilc_hil.design.record import CertificateAction, CodesignRecord, Design, Timing
 from foilc_hil.errors import ConfigError
@@ -391,7 +393,7 @@ def _time_varying_draws(
 
 
 def _lower_norm(T: np.ndarray) -> float:
-    """A lower bound on ``||T||_2``: :func:`~foilc_hil.design.certificates.power_norm` with :data:`POWER_STEPS`
+    """A lower bound on ``||T||_2``: :func:`~foilc_hil.design.map_norms.power_norm` with :data:`POWER_STEPS`
     power iterations on ``T^T T`` from its fixed start (any ``v`` gives a lower bound; the iterations make it
     tight)."""
     return power_norm(T.shape[1], T.__matmul__, T.T.__matmul__, iterations=POWER_STEPS + 1)

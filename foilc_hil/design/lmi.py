@@ -91,7 +91,8 @@ from typing import Any, Literal
 import numpy as np
 
 from foilc_hil.config import DivergentFilterPolicy, LawKind
-from foilc_hil.design.certificates import LawStructure, certify
+from foilc_hil.design.certificates import certify
+from foilc_hil.design.lifted import LawStructure
 from foilc_hil.design.models import DiscreteModel, Uncertainty, uncertainty_vertices
 from foilc_hil.design.record import LMI_RELATIVE_MARGIN_MIN, Design, LmiChecks, LmiScaling, Timing
 from foilc_hil.errors import ConfigError, InputError, LmiInfeasibleError
@@ -683,7 +684,7 @@ def synthesize(
     uncertainty
         Its norm-bounded uncertainty; ``None``: none.
     law
-        How the law runs (:class:`~foilc_hil.design.certificates.LawStructure`: ``kp``, ``r``, trial length,
+        How the law runs (:class:`~foilc_hil.design.lifted.LawStructure`: ``kp``, ``r``, trial length,
         lead = the model's input delay, fractional memory, Q-filter); the certificates are of exactly this law.
     kind
         ``foilc`` or ``ioilc`` (IOILC certifies ``kp = 0``).

@@ -31,7 +31,7 @@ the update's scale, 1 unless :mod:`foilc_hil.design.admission` had to shrink it)
 ``r / (r + q sigma_i^2)`` in ``(0, 1)``: monotonic by construction; the vertices measure its robustness.
 
 * Trials of up to :data:`DENSE_LIMIT` samples: ``T`` dense, its exact spectral radius and 2-norm
-  (:func:`~foilc_hil.design.certificates.matrix_certificate`, method ``dense``).
+  (:func:`~foilc_hil.design.map_norms.matrix_certificate`, method ``dense``).
 * Longer trials: ``T`` as a :class:`~foilc_hil.design.trial_operator.TrialOperator` (``3 n`` states), its 2-norm
   from above by the structured Cholesky test of its dilation and bisection (:data:`STRUCTURED_METHOD`: exact to the
   bisection's ``1e-10`` and a rounding margin, ``O(N n^3)`` per test). Its spectral radius is bounded by that
@@ -65,13 +65,8 @@ import numpy as np
 
 from foilc_hil.config import DivergentFilterPolicy, FractionalMemory, LawKind, NoilcConfig
 from foilc_hil.design.admission import ScaledVerdict, admit
-from foilc_hil.design.certificates import (
-    CONTRACTION_LIMIT,
-    LawStructure,
-    dense_block_toeplitz,
-    markov_blocks,
-    matrix_certificate,
-)
+from foilc_hil.design.lifted import LawStructure, dense_block_toeplitz, markov_blocks
+from foilc_hil.design.map_norms import CONTRACTION_LIMIT, matrix_certificate
 from foilc_hil.design.models import DiscreteModel, Uncertainty, uncertainty_vertices
 from foilc_hil.design.record import (
     BoundClaim,

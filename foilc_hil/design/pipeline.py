@@ -20,9 +20,10 @@ from dataclasses import replace
 
 from foilc_hil.config import Config, DesignMethod, LawKind
 from foilc_hil.design.admission import ScaledVerdict, admit
-from foilc_hil.design.certificates import LawStructure, PTypeScales
+from foilc_hil.design.certificates import PTypeScales
 from foilc_hil.design.codesign import codesign
 from foilc_hil.design.gradient import certify_gradient
+from foilc_hil.design.lifted import LawStructure
 from foilc_hil.design.lmi import solve_lmi, synthesize
 from foilc_hil.design.models import (
     DiscreteModel,

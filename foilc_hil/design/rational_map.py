@@ -16,12 +16,12 @@ own ``P = L L^T`` (the same for every draw: formed once),
     T T^T = I - Q - Q^T + D^-1 N P N^T D^-T,
 
 every term a banded product or a banded triangular solve (:func:`_filter_rows`). ``T T^T`` has the eigenvalues of
-``T^T T``, so its Cholesky test bounds ``||T||_2`` (:func:`~foilc_hil.design.certificates.gram_norm_bound`).
+``T^T T``, so its Cholesky test bounds ``||T||_2`` (:func:`~foilc_hil.design.map_norms.gram_norm_bound`).
 
 Rigour
 ------
 Every rounding is bounded and added to the Gram matrix's error (2-norm, by Frobenius norms), as
-:func:`~foilc_hil.design.certificates.matrix_norm_bound` does for its own:
+:func:`~foilc_hil.design.map_norms.matrix_norm_bound` does for its own:
 
 * ``P``: the gain split row by row into slices of ``beta`` bits (Ozaki et al., Numer. Algorithms 59, 2012), whose
   products BLAS computes EXACTLY (every partial sum is an integer multiple of the slices' unit below ``2^53``), the
@@ -34,7 +34,7 @@ Every rounding is bounded and added to the Gram matrix's error (2-norm, by Frobe
   rigorously bounded residual ``r`` of ``D g = e_0`` (``D^-1 = Toeplitz(g) (I + Toeplitz(r))^-1``);
 * the assembly of ``T T^T`` (three additions per entry, ``gamma_3``), its upper triangle mirrored (``sqrt 2``);
 * the model: ``G`` is the Markov matrix of the blocks the certificates take as given (:func:`~foilc_hil.design.
-  certificates.markov_blocks`), which satisfy the recurrence only to rounding: ``D G = N + E`` with ``E`` the
+  lifted.markov_blocks`), which satisfy the recurrence only to rounding: ``D G = N + E`` with ``E`` the
   Toeplitz matrix of the recurrence's residual (bounded entry by entry), so ``||T - T'||_2 <= ||D^-1||_2 ||E||_2
   ||L||_F`` for the map ``T' = I - D^-1 N L`` the Cholesky test certifies; that is added to the bound.
 
@@ -54,12 +54,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from foilc_hil.design.certificates import (
-    UNIT_ROUNDOFF,
-    _gamma,
-    gram_norm_bound,
-    markov_blocks,
-)
+from foilc_hil.design.lifted import markov_blocks
+from foilc_hil.design.map_norms import UNIT_ROUNDOFF, gram_norm_bound, rounding_gamma
 
 __all__ = ["RATIONAL_METHOD", "GainGram", "rational_norm_bound"]
 
@@ -176,7 +172,7 @@ class GainGram:
         P11, P22 = L1 @ L1.T, L2 @ L2.T  # exact (syrk, symmetric)
         P12, P13 = L1 @ L2.T, L1 @ L3.T  # exact
         P = ((P11 + P22) + (P12 + P12.T)) + (P13 + P13.T)  # each sum symmetric: P is exactly symmetric
-        summed = _gamma(5) * (_frobenius(P11) + _frobenius(P22) + 2.0 * _frobenius(P12) + 2.0 * _frobenius(P13))
+        summed = rounding_gamma(5) * (_frobenius(P11) + _frobenius(P22) + 2.0 * _frobenius(P12) + 2.0 * _frobenius(P13))
         norms = [_frobenius(part) for part in (L, L2, L3, rest)]
         # left out: L2 L3^T + L3 L2^T + L3 L3^T + (L - rest) rest^T + rest L^T
         dropped = 2.0 * norms[1] * norms[2] + norms[2] ** 2 + 2.0 * (norms[0] + norms[3]) * norms[3]
@@ -196,16 +192,16 @@ def _inverse_norm(denominator: np.ndarray, length: int) -> float:
     residual = np.convolve(d, g)[:length]
     residual[0] -= 1.0
     k = d.shape[0]
-    bound = np.abs(residual) + 2.0 * _gamma(k + 1) * np.convolve(np.abs(d), np.abs(g))[:length]
-    r = float(np.sum(bound)) * (1.0 + _gamma(length))
+    bound = np.abs(residual) + 2.0 * rounding_gamma(k + 1) * np.convolve(np.abs(d), np.abs(g))[:length]
+    r = float(np.sum(bound)) * (1.0 + rounding_gamma(length))
     if not (math.isfinite(r) and r < 0.5):
         return math.inf
-    return float(np.sum(np.abs(g))) * (1.0 + _gamma(length)) / (1.0 - r) * (1.0 + NORM_SLACK)
+    return float(np.sum(np.abs(g))) * (1.0 + rounding_gamma(length)) / (1.0 - r) * (1.0 + NORM_SLACK)
 
 
 def rational_norm_bound(A: np.ndarray, B: np.ndarray, C: np.ndarray, lead: int, gram: GainGram) -> float | None:
     """A RIGOROUS upper bound on ``||I - G L||_2`` for ``G`` the lower-triangular Toeplitz matrix of
-    :func:`~foilc_hil.design.certificates.markov_blocks` ``(A, B, C, lead)`` and ``L = gram.gain`` (module notes);
+    :func:`~foilc_hil.design.lifted.markov_blocks` ``(A, B, C, lead)`` and ``L = gram.gain`` (module notes);
     ``None`` when the plant is not single-input single-output, ``D^-1`` is not bounded, or no Cholesky test passes."""
     L = gram.gain
     length = L.shape[0]
@@ -220,14 +216,14 @@ def rational_norm_bound(A: np.ndarray, B: np.ndarray, C: np.ndarray, lead: int, 
     nu = convolved[:k].copy()
     # E = D G - N: the recurrence's residual, every entry bounded (the first k are fl of the same sum: 0 + rounding)
     residual = np.abs(np.concatenate([np.zeros(k), convolved[k:]]))
-    residual += 2.0 * _gamma(k + 1) * np.convolve(np.abs(d), np.abs(h))[:length]
-    model = float(np.sum(residual)) * (1.0 + _gamma(length))
+    residual += 2.0 * rounding_gamma(k + 1) * np.convolve(np.abs(d), np.abs(h))[:length]
+    model = float(np.sum(residual)) * (1.0 + rounding_gamma(length))
     inverse = _inverse_norm(d[1:], length)
     if not math.isfinite(inverse):
         return None
     denominator = np.ascontiguousarray(d[1:])
     nu1, d1 = float(np.sum(np.abs(nu))), float(np.sum(np.abs(d[1:])))
-    solve = _gamma(2 * k + 1)
+    solve = rounding_gamma(2 * k + 1)
     Q = _filter_rows(nu, denominator, np.ascontiguousarray(L))
     Y = _filter_rows(nu, denominator, gram.P)
     Z = _filter_rows(nu, denominator, np.ascontiguousarray(Y.T))  # D^-1 N P N^T D^-T (P symmetric)
@@ -235,9 +231,9 @@ def rational_norm_bound(A: np.ndarray, B: np.ndarray, C: np.ndarray, lead: int, 
     error_q = inverse * solve * (nu1 * gram.frobenius + d1 * q)
     error_y = inverse * solve * (nu1 * gram.p_frobenius + d1 * y)
     # ||D^-1 N||_2 <= ||G||_2 + ||D^-1 E||_2 <= sum |h_j| + ||D^-1|| ||E||: far below ||D^-1|| |nu|_1
-    plant = float(np.sum(np.abs(h))) * (1.0 + _gamma(length)) + inverse * model
+    plant = float(np.sum(np.abs(h))) * (1.0 + rounding_gamma(length)) + inverse * model
     error_z = inverse * solve * (nu1 * y + d1 * z) + plant * error_y + plant**2 * gram.error
-    assembly = _gamma(3) * (math.sqrt(length) + 2.0 * q + z)
+    assembly = rounding_gamma(3) * (math.sqrt(length) + 2.0 * q + z)
     gram_error = math.sqrt(2.0) * (2.0 * error_q + error_z + assembly) * (1.0 + NORM_SLACK)
     M = _assemble(Q, Z)
     # the estimate: the symbol sup of T's middle column, as matrix_norm_bound's (T = I - Q)

@@ -19,18 +19,11 @@ from typing import Any
 import numpy as np
 
 from foilc_hil.config import Config, LawKind
-from foilc_hil.design.certificates import (
-    CONTRACTION_LIMIT,
-    UNIT_ROUNDOFF,
-    FftOperand,
-    LawStructure,
-    LoopPlant,
-    block_toeplitz_product,
-    bounded_matrix_certificate,
-    map_certificate,
-    markov_blocks,
-)
+from foilc_hil.design.certificates import map_certificate
+from foilc_hil.design.error_map import FftOperand, block_toeplitz_product
 from foilc_hil.design.gradient import lifted_gain
+from foilc_hil.design.lifted import LawStructure, LoopPlant, markov_blocks
+from foilc_hil.design.map_norms import CONTRACTION_LIMIT, UNIT_ROUNDOFF, bounded_matrix_certificate
 from foilc_hil.design.models import DiscreteModel
 from foilc_hil.design.noilc import trial_map
 from foilc_hil.design.pipeline import law_structure
@@ -115,7 +108,7 @@ def _lifted_certificate(
     function (:func:`~foilc_hil.design.rational_map.rational_norm_bound`: ``T T^T`` from the gain's ``gram`` in
     ``O(k L^2)``, one Cholesky test); where that is not a certificate, ``T`` is formed by FFT (no dense ``G`` and no
     ``O(L^3)`` product; ``operand()``: ``L`` transformed, once per chunk) with its rounding bound, for
-    :func:`~foilc_hil.design.certificates.bounded_matrix_certificate`. With a Q-filter (``gram`` is ``None``), the
+    :func:`~foilc_hil.design.map_norms.bounded_matrix_certificate`. With a Q-filter (``gram`` is ``None``), the
     input map as ``trial_map`` forms it."""
     if gram is None:
         matrix, kind = trial_map(A, B, model, gain, law)
