@@ -61,14 +61,18 @@ form ``E`` and ``D Z`` carry relative errors of a few ``1e-15`` (Higham's FFT bo
 :data:`ROUNDING_MARGIN` added to every upper bound (a margin, not a proof: as in
 :mod:`foilc_hil.design.trial_operator`). Everything runs in ``O(k N log N)`` per test: nothing ``N x N``.
 
-Module order: after :mod:`foilc_hil.design.lifted` and :mod:`foilc_hil.design.record`, before
+The pieces live beside it: the Toeplitz sections, signal algebra and symbol bound in
+:mod:`foilc_hil.design.toeplitz_section`, the structured test and its edge search in
+:mod:`foilc_hil.design.norm_test`.
+
+Module order: after :mod:`foilc_hil.design.lifted`, :mod:`foilc_hil.design.record`,
+:mod:`foilc_hil.design.toeplitz_section` and :mod:`foilc_hil.design.norm_test`, before
 :mod:`foilc_hil.design.certificates` (which calls :func:`input_map_certificate`).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -76,19 +80,26 @@ import numpy as np
 from foilc_hil.config import FractionalMemory, QFilterPhase
 from foilc_hil.design.convolution import fft_convolve
 from foilc_hil.design.lifted import (
-    SYMBOL_GRID_CAP,
-    SYMBOL_GRID_CAP_MIMO,
     LawStructure,
     LoopPlant,
     ScalarFilter,
-    grid_bound,
     markov_blocks,
-    symbol_grid,
     vector_norm,
     zero_history_filter,
 )
+from foilc_hil.design.map_norms import CONTRACTION_LIMIT
+from foilc_hil.design.norm_test import EXACT_TOLERANCE, FAST_TOLERANCE, EdgeSearch, NormTest
 from foilc_hil.design.qfilter import TrialQFilter
 from foilc_hil.design.record import BoundClaim, CertificateMethod, MonotoneVerdict, PlantCertificate, Proof
+from foilc_hil.design.toeplitz_section import (
+    CausalToeplitz,
+    SectionSymbol,
+    ToeplitzSection,
+    flat,
+    inner,
+    project_out,
+    wrapped,
+)
 from foilc_hil.progress import step
 
 __all__ = [
@@ -97,7 +108,6 @@ __all__ = [
     "EdgeProxy",
     "StructuredInputMap",
     "StructuredNorm",
-    "ToeplitzSection",
     "input_map_certificate",
     "structured_input_map",
     "triangular_radius",
@@ -111,16 +121,10 @@ ROUNDING_MARGIN = 1e-11
 FIRST_WIDENING = 1e-6
 #: Structured tests allowed per certificate in the default (bounded-time) mode.
 FAST_TESTS = 6
-#: Relative width of the bracket at which the default mode stops.
-FAST_TOLERANCE = 1e-4
-#: Relative width of the bracket at which the exact mode's search stops.
-EXACT_TOLERANCE = 1e-9
 #: A bracket at most this wide (relative) is reported as the exact value. Where the symbol's bound is the upper
 #: end (no test runs below it), the width is that of a finite Toeplitz section below its symbol's sup: about
 #: ``c (pi / N)^2`` (8e-6 at N = 1500, 5e-7 at N = 6000 on paper_sim's P-type with a zero-phase filter).
 EXACT_CLAIM_TOLERANCE = 1e-6
-#: Conjugate-gradient steps allowed per structured test.
-CG_STEPS = 150
 #: Power steps from a structured test's direction behind its lower bound.
 RATIO_STEPS = 2
 #: Power steps for the short trial's top singular vector (the edges' lower bound).
@@ -129,103 +133,6 @@ SHORT_POWER_STEPS = 40
 EXACT_RADIUS_DENSE_LIMIT = 6000
 #: Relative size of ``(I - P_U) E (I - P_V) x`` on random probes above which the structure counts as absent.
 STRUCTURE_TOLERANCE = 1e-9
-#: Unit roundoff of float64.
-UNIT_ROUNDOFF = 2.0**-53
-#: Admissible monotone certificate: the 2-norm must be at most this (the certificates' CONTRACTION_LIMIT).
-CONTRACTION_LIMIT = 1.0 - 1e-9
-
-
-# --- signals: (columns, channels, samples), time on the last (contiguous) axis ---------------------------------------
-
-
-def _fft_length(n: int) -> int:
-    """The FFT length of a linear convolution of two ``n``-sample signals (``next_fast_len(2n - 1)``)."""
-    from scipy.fft import next_fast_len
-
-    return int(next_fast_len(2 * n - 1, real=True))
-
-
-def _mix(spectrum: np.ndarray, signals: np.ndarray) -> np.ndarray:
-    """Per-frequency block products: ``spectrum`` ``(r, c, F)`` times ``signals`` ``(K, c, F)`` -> ``(K, r, F)``."""
-    if spectrum.shape[0] == spectrum.shape[1] == 1:
-        return signals * spectrum[0]
-    return np.einsum("rcf,kcf->krf", spectrum, signals)
-
-
-@dataclass(frozen=True)
-class CausalToeplitz:
-    """A causal block Toeplitz finite section ``y[t] = sum_(j <= t) blocks[t - j] x[j]`` by FFT."""
-
-    spectrum: np.ndarray  # (rows, cols, F) of the blocks (L, rows, cols)
-    n_samples: int
-    nfft: int
-
-    @classmethod
-    def of(cls, blocks: np.ndarray) -> CausalToeplitz:
-        """The section of ``blocks`` (``(L, rows, cols)``), transformed once."""
-        from scipy.fft import rfft
-
-        n = blocks.shape[0]
-        nfft = _fft_length(n)
-        return cls(rfft(np.ascontiguousarray(blocks.transpose(1, 2, 0)), n=nfft, axis=-1), n, nfft)
-
-    def apply(self, x: np.ndarray) -> np.ndarray:
-        """``T x`` for ``(K, cols, N)`` signals."""
-        from scipy.fft import irfft, rfft
-
-        mixed = _mix(self.spectrum, rfft(x, n=self.nfft, axis=-1))
-        return np.asarray(irfft(mixed, n=self.nfft, axis=-1)[..., : self.n_samples])
-
-    def adjoint(self, y: np.ndarray) -> np.ndarray:
-        """``T^T y``: the transposed blocks on the time-reversed signal, reversed back."""
-        from scipy.fft import irfft, rfft
-
-        mixed = _mix(self.spectrum.transpose(1, 0, 2), rfft(y[..., ::-1], n=self.nfft, axis=-1))
-        return np.asarray(irfft(mixed, n=self.nfft, axis=-1)[..., : self.n_samples][..., ::-1])
-
-
-@dataclass(frozen=True)
-class ToeplitzSection:
-    """``T_N(a)``: ``T[i, j] = a_(i - j)`` for two-sided block coefficients ``a_k``, ``|k| < N``, stored as
-    ``(2N - 1, m, m)`` with ``a_k`` at index ``k + N - 1``; products by FFT on ``(K, m, N)`` signals."""
-
-    coefficients: np.ndarray
-    spectrum: np.ndarray  # (m, m, F)
-    nfft: int
-
-    @classmethod
-    def of(cls, coefficients: np.ndarray) -> ToeplitzSection:
-        """The section of ``coefficients``, transformed once."""
-        from scipy.fft import next_fast_len, rfft
-
-        nfft = int(next_fast_len(coefficients.shape[0], real=True))
-        spectrum = rfft(np.ascontiguousarray(coefficients.transpose(1, 2, 0)), n=nfft, axis=-1)
-        return cls(coefficients, spectrum, nfft)
-
-    @property
-    def n_samples(self) -> int:
-        """``N``."""
-        return (self.coefficients.shape[0] + 1) // 2
-
-    def apply(self, x: np.ndarray) -> np.ndarray:
-        """``T x``: a circular convolution of length ``>= 2N - 1`` leaves outputs ``N-1 .. 2N-2`` un-aliased."""
-        from scipy.fft import irfft, rfft
-
-        n = self.n_samples
-        mixed = _mix(self.spectrum, rfft(x, n=self.nfft, axis=-1))
-        return np.asarray(irfft(mixed, n=self.nfft, axis=-1)[..., n - 1 : 2 * n - 1])
-
-    def adjoint(self, y: np.ndarray) -> np.ndarray:
-        """``T^T y = J T_N(a^T) J y`` (``J`` reverses time)."""
-        from scipy.fft import irfft, rfft
-
-        n = self.n_samples
-        mixed = _mix(self.spectrum.transpose(1, 0, 2), rfft(y[..., ::-1], n=self.nfft, axis=-1))
-        return np.asarray(irfft(mixed, n=self.nfft, axis=-1)[..., n - 1 : 2 * n - 1][..., ::-1])
-
-    def l1(self) -> float:
-        """``sum_k ||a_k||_F``: bounds ``||T||`` and the FFT products' rounding."""
-        return float(np.sum(np.linalg.norm(self.coefficients.reshape(self.coefficients.shape[0], -1), axis=1)))
 
 
 # --- the input map as the law runs it (exact products: the reference every structure is checked against) --------
@@ -391,230 +298,6 @@ def _corner_spaces(
     return _orthonormal(np.concatenate(ranges)), _orthonormal(np.concatenate(coranges))
 
 
-def _flat(x: np.ndarray) -> np.ndarray:
-    """``(K, m, N)`` signals as the columns of an ``(m N) x K`` matrix."""
-    return x.reshape(x.shape[0], x.shape[1] * x.shape[2]).T
-
-
-def _inner(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """``X^T Y`` for ``(K, m, N)`` and ``(L, m, N)`` signals (``K x L``), by ``einsum``."""
-    return np.asarray(np.einsum("kat,lat->kl", x, y))
-
-
-def _project_out(basis: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """``(I - P_basis) x`` for an orthonormal ``basis`` (both ``(K, m, N)``)."""
-    if basis.shape[0] == 0:
-        return x
-    return x - np.einsum("kl,kat->lat", _inner(basis, x), basis)
-
-
-def _orthonormalize(W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``Q``, ``R`` with ``Q`` orthonormal (``(kq, m, N)``) and ``W = R^T``-combinations of it: ``W_j = sum_i R[i, j]
-    Q_i`` to rounding, by two passes of the Gram matrix's eigen-decomposition (directions below ``1e-26`` of the
-    largest eigenvalue dropped: a change of ``W`` of at most ``1e-13`` of its norm, inside :data:`ROUNDING_MARGIN`).
-    ``einsum`` instead of a threaded QR (:func:`~foilc_hil.design.lifted.vector_norm`)."""
-    Q, R = W, np.eye(W.shape[0])
-    for _ in range(2):
-        values, vectors = np.linalg.eigh(_inner(Q, Q))
-        kept = values > 1e-26 * max(float(values[-1]), 0.0) if values.size else values > 0
-        if not np.any(kept):
-            return W[:0], np.zeros((0, W.shape[0]))
-        values, vectors = values[kept], vectors[:, kept]
-        Q = np.einsum("kj,kat->jat", vectors / np.sqrt(values), Q)
-        R = (np.sqrt(values)[:, None] * vectors.T) @ R
-    return Q, R
-
-
-def _centered_moments(coefficients: np.ndarray) -> tuple[float, float, float]:
-    """``S_j = sum_k |k|^j ||a_k||_2`` over ``|k| < N`` (two-sided, at ``k + N - 1``): the widening of the symbol's
-    grid sup (:func:`~foilc_hil.design.lifted.grid_bound` holds for any integer indices)."""
-    length = coefficients.shape[0]
-    lag = np.abs(np.arange(length) - (length - 1) // 2).astype(float)
-    if coefficients.shape[1] == coefficients.shape[2] == 1:
-        magnitudes = np.abs(coefficients[:, 0, 0])
-    else:
-        magnitudes = np.linalg.norm(coefficients, ord=2, axis=(1, 2))
-    return float(np.sum(magnitudes)), float(np.sum(lag * magnitudes)), float(np.sum(lag * lag * magnitudes))
-
-
-def _wrapped(coefficients: np.ndarray, points: int) -> np.ndarray:
-    """Two-sided coefficients folded onto ``points >= N`` (``a_k`` at ``k mod points``): their DFT is the symbol
-    at the ``points``-th roots of unity (``points = N``: the lags ``k`` and ``k - N`` share a point)."""
-    length = coefficients.shape[0]
-    n = (length + 1) // 2
-    out = np.zeros((points, *coefficients.shape[1:]))
-    out[:n] = coefficients[n - 1 :]
-    out[points - (n - 1) :] += coefficients[: n - 1]
-    return out
-
-
-@dataclass(frozen=True)
-class _Symbol:
-    """The symbol ``a0 - s a1`` on a grid, for every scale ``s`` in ``[0, 1]`` at once (single channel: the three
-    real arrays of ``|a0 - s a1|^2 = |a0|^2 - 2 s Re(a0 a1*) + s^2 |a1|^2``; several: the complex blocks)."""
-
-    grid: int
-    moments0: tuple[float, float, float]
-    moments1: tuple[float, float, float]
-    parts: tuple[np.ndarray, ...]
-
-    @classmethod
-    def of(cls, a0: np.ndarray, a1: np.ndarray) -> _Symbol:
-        """The symbol of ``a0 - s a1`` on a grid fine enough for :func:`~foilc_hil.design.lifted.grid_bound`."""
-        from scipy.fft import fft, rfft
-
-        m0, m1 = _centered_moments(a0), _centered_moments(a1)
-        joint = (m0[0] + m1[0], m0[1] + m1[1], m0[2] + m1[2])
-        length = a0.shape[0]
-        if a0.shape[1] == 1:
-            grid = symbol_grid(length, joint, SYMBOL_GRID_CAP)
-            # real coefficients: |a| is even in theta, half the grid (rfft) covers it
-            s0, s1 = rfft(_wrapped(a0, grid)[:, 0, 0]), rfft(_wrapped(a1, grid)[:, 0, 0])
-            parts: tuple[np.ndarray, ...] = (np.abs(s0) ** 2, np.real(s0 * np.conj(s1)), np.abs(s1) ** 2)
-        else:
-            grid = max(SYMBOL_GRID_CAP_MIMO, 1 << math.ceil(math.log2(length)))
-            parts = (fft(_wrapped(a0, grid), axis=0), fft(_wrapped(a1, grid), axis=0))
-        return cls(grid, m0, m1, parts)
-
-    def bound(self, scale: float) -> tuple[float, float]:
-        """A rigorous bound on ``sup |a0 - s a1|`` (the 2-norm of ``T_N(a0 - s a1)`` is at most that), and the
-        grid frequency of the peak."""
-        mom = tuple(a + scale * b for a, b in zip(self.moments0, self.moments1, strict=True))
-        moments3 = (mom[0], mom[1], mom[2])
-        if len(self.parts) == 3:
-            values = self.parts[0] - 2.0 * scale * self.parts[1] + scale * scale * self.parts[2]
-            peak_index = int(np.argmax(values))
-            peak = math.sqrt(max(0.0, float(values[peak_index])))
-            return grid_bound(peak, self.grid, moments3), 2.0 * math.pi * peak_index / self.grid
-        singular = np.linalg.svd(self.parts[0] - scale * self.parts[1], compute_uv=False)[:, 0]
-        peak_index = int(np.argmax(singular))
-        widened = float(singular[peak_index]) + moments3[1] * math.pi / self.grid
-        return min(widened, moments3[0]), 2.0 * math.pi * peak_index / self.grid
-
-
-# --- the exact test ||T + U_E V_E^T|| < gamma ------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class _TestOutcome:
-    """One structured test: passed (``||M|| < gamma``), the smallest eigenvalue of ``G^-1 - C`` for the bound of
-    ``G`` (increasing in ``gamma``; negative where the test fails), whether the failure is beyond the bound's slack
-    (then ``||M|| >= gamma``: a lower bound), the solution to warm-start the next test from, and the direction
-    ``x = Z G^-1 y`` of that smallest eigenvalue's ``y`` (``x^T (gamma^2 I - M^T M) x = y^T (G^-1 - C) y``: the
-    edge singular vector's approximation, whose ``||M x|| / ||x||`` is a lower bound)."""
-
-    gamma: float
-    passed: bool
-    margin: float
-    refuted: bool
-    solution: np.ndarray
-    direction: np.ndarray
-
-
-@dataclass(frozen=True)
-class _NormTest:
-    """The structured test of one map at one scale (module notes): ``T``, the rank-``2k`` correction
-    ``W C W^T = M^T M - T^T T`` with ``W`` orthonormal, ``tau >= ||T||`` and the circulant preconditioner's
-    symbol values."""
-
-    T: ToeplitzSection
-    W: np.ndarray  # (kw, m, N), orthonormal
-    C: np.ndarray  # (kw, kw)
-    tau: float
-    circulant: np.ndarray  # (N, m, m): the symbol at the N-th roots of unity
-
-    @classmethod
-    def of(cls, T: ToeplitzSection, Ue: np.ndarray, Ve: np.ndarray, tau: float, circulant: np.ndarray) -> _NormTest:
-        """The test of the map ``T + U_E V_E^T`` (``W`` orthonormalised: ``C`` carries its triangle)."""
-        k = Ue.shape[0]
-        W = np.concatenate([Ve, T.adjoint(Ue)])
-        C = np.block([[_inner(Ue, Ue), np.eye(k)], [np.eye(k), np.zeros((k, k))]])
-        basis, triangle = _orthonormalize(W)
-        return cls(T, np.ascontiguousarray(basis), triangle @ C @ triangle.T, tau, circulant)
-
-    def _operator(self, gamma: float, x: np.ndarray) -> np.ndarray:
-        """``D x = gamma^2 x - T^T T x``."""
-        return gamma * gamma * x - self.T.adjoint(self.T.apply(x))
-
-    def _preconditioner(self, gamma: float) -> Callable[[np.ndarray], np.ndarray]:
-        """``(gamma^2 I - C^T C)^-1`` for the circulant ``C`` with the symbol's values (floored: it only steers), on
-        real signals: the half spectrum (``rfft``; real coefficients make the rest its conjugate)."""
-        from scipy.fft import irfft, rfft
-
-        n = self.circulant.shape[0]
-        half = self.circulant[: n // 2 + 1]
-        m = half.shape[1]
-        blocks = gamma * gamma * np.eye(m) - np.einsum("fba,fbc->fac", half.conj(), half)
-        floor = 1e-12 * gamma * gamma
-        if m == 1:
-            inverse = 1.0 / np.maximum(blocks[:, 0, 0].real, floor)
-
-            def apply_scalar(x: np.ndarray) -> np.ndarray:
-                return np.asarray(irfft(rfft(x, axis=-1) * inverse, n=n, axis=-1))
-
-            return apply_scalar
-        inverse_blocks = np.linalg.inv(blocks + floor * np.eye(m))
-
-        def apply_blocks(x: np.ndarray) -> np.ndarray:
-            mixed = np.einsum("fab,kbf->kaf", inverse_blocks, rfft(x, axis=-1))
-            return np.asarray(irfft(mixed, n=n, axis=-1))
-
-        return apply_blocks
-
-    def run(self, gamma: float, start: np.ndarray | None = None) -> _TestOutcome:
-        """Decide ``||M|| < gamma`` (``gamma > tau``) by conjugate gradients on ``D Z = W`` and the Loewner
-        bound of ``G`` (module notes)."""
-        gap = gamma * gamma - self.tau * self.tau
-        precondition = self._preconditioner(gamma)
-        Z = np.zeros_like(self.W) if start is None else start.copy()
-        residual = self.W - self._operator(gamma, Z)
-        direction = precondition(residual)
-        rz = np.einsum("kat,kat->k", residual, direction)
-        for _ in range(CG_STEPS):
-            if float(np.einsum("kat,kat->", residual, residual)) <= 1e-9 * gap * gap:
-                break
-            image = self._operator(gamma, direction)
-            alpha = rz / np.maximum(np.einsum("kat,kat->k", direction, image), 1e-300)
-            Z += alpha[:, None, None] * direction
-            residual -= alpha[:, None, None] * image
-            preconditioned = precondition(residual)
-            rz_next = np.einsum("kat,kat->k", residual, preconditioned)
-            direction = preconditioned + (rz_next / np.maximum(rz, 1e-300))[:, None, None] * direction
-            rz = rz_next
-        residual = self.W - self._operator(gamma, Z)  # recomputed: the recurrence's residual drifts
-        passed, margin, refuted, combination = self._decide(gamma, Z, residual, gap)
-        direction = np.einsum("k,kat->at", combination, Z)[None]
-        return _TestOutcome(gamma, passed, margin, refuted, Z, direction)
-
-    def _decide(
-        self, gamma: float, Z: np.ndarray, residual: np.ndarray, gap: float
-    ) -> tuple[bool, float, bool, np.ndarray]:
-        """``G^-1 - C > 0`` with ``G`` replaced by its bound ``G_hat`` from above (module notes); refuted when the
-        smallest eigenvalue is below ``-2 slack ||G_hat^-1||^2`` (``G^-1 - G_hat^-1`` is at most about
-        ``slack ||G_hat^-1||^2``: then ``G^-1 - C`` is not positive definite either)."""
-        from scipy.linalg import LinAlgError, cho_factor, cho_solve
-
-        size = self.W.shape[1] * self.W.shape[2]
-        z_norm = vector_norm(Z)
-        fft_error = (3 * 12.0 * math.log2(self.T.nfft) + 4) * UNIT_ROUNDOFF * (gamma**2 + self.T.l1() ** 2) * z_norm
-        rho = vector_norm(residual) + fft_error
-        product = _inner(self.W, Z) + _inner(Z, residual)
-        slack = rho * rho / gap + 4.0 * size * UNIT_ROUNDOFF * z_norm * (math.sqrt(self.W.shape[0]) + rho)
-        bound = 0.5 * (product + product.T) + slack * np.eye(product.shape[0])
-        try:
-            factor = cho_factor(bound)
-        except LinAlgError:
-            return False, -math.inf, False, np.zeros(bound.shape[0])
-        inverse = cho_solve(factor, np.eye(bound.shape[0]))
-        X = inverse - self.C
-        eigenvalues, vectors = np.linalg.eigh(0.5 * (X + X.T))
-        tolerance = 1e-12 * (float(np.max(np.abs(eigenvalues))) + float(np.max(np.abs(self.C), initial=0.0)))
-        margin = float(eigenvalues[0])
-        inverse_norm = float(np.linalg.norm(inverse, 2))
-        refuted = margin < -2.0 * slack * inverse_norm * inverse_norm - tolerance
-        return margin > tolerance, margin, refuted, inverse @ vectors[:, 0]
-
-
 # --- one plant's map for every scale of p2 ---------------------------------------------------------------------------
 
 
@@ -642,7 +325,7 @@ class StructuredInputMap:
     operator: InputOperator
     a0: np.ndarray
     a1: np.ndarray
-    symbol: _Symbol
+    symbol: SectionSymbol
     circulant: tuple[np.ndarray, np.ndarray]
     U: np.ndarray
     V: np.ndarray
@@ -748,79 +431,16 @@ class StructuredInputMap:
         if Ue.shape[0] == 0:  # no correction: M is the Toeplitz section itself
             return StructuredNorm(tau * (1.0 + ROUNDING_MARGIN), min(lower, tau), tau, 0, True)
         circulant = self.circulant[0] - scale * self.circulant[1]
-        test = _NormTest.of(self.toeplitz(scale), Ue, Ve, tau, circulant)
+        test = NormTest.of(self.toeplitz(scale), Ue, Ve, tau, circulant)
         # above the symbol the lower bound is an edge's, from a short trial's vector: within about 1e-5 of it, so
         # the first test goes half the bracket's tolerance above it (one test where the edge sets the norm)
         widening = EXACT_TOLERANCE / 2 if exact else (FIRST_WIDENING if tau >= lower else FAST_TOLERANCE / 2)
         first = max(tau * (1.0 + FIRST_WIDENING), lower * (1.0 + widening))
-        search = _Secant(test, lambda x: self._ratio(scale, x), lower, exact, tests if not exact else 60)
+        search = EdgeSearch(test, lambda x: self._ratio(scale, x), lower, exact, tests if not exact else 60)
         upper, lower = search.run(first)
         residual = self.structure_residual * max(upper, 1.0) if math.isfinite(upper) else 0.0
         upper = upper * (1.0 + ROUNDING_MARGIN) + residual
         return StructuredNorm(upper, lower, tau, search.count, search.count == 1 and tau >= lower)
-
-
-class _Secant:
-    """The smallest ``gamma`` the structured test passes at. After each test the direction of its smallest margin
-    gives a lower bound (``||M x|| / ||x||``, by ``ratio``: at the edge singular value when the test ran near it);
-    the next ``gamma`` is that lower bound widened, or a secant step up on the margin (which grows like
-    ``2 gamma (gamma - ||M||)``), until the bracket is :data:`EXACT_TOLERANCE` (exact) or ``1e-5`` (fast) wide or
-    ``budget`` tests have run."""
-
-    def __init__(
-        self, test: _NormTest, ratio: Callable[[np.ndarray], float], lower: float, exact: bool, budget: int
-    ) -> None:
-        self.test = test
-        self.ratio = ratio
-        self.lower = lower
-        self.tolerance = EXACT_TOLERANCE if exact else FAST_TOLERANCE
-        self.budget = budget
-        self.count = 0
-        self._solution: np.ndarray | None = None
-
-    def _run(self, gamma: float, advance: Callable[[int], None]) -> _TestOutcome:
-        """One structured test at ``gamma``, warm-started; the lower bound from its direction."""
-        outcome = self.test.run(gamma, self._solution)
-        self._solution = outcome.solution
-        self.count += 1
-        advance(self.count)
-        self.lower = max(self.lower, gamma if outcome.refuted else 0.0, self.ratio(outcome.direction))
-        return outcome
-
-    def _next(self, outcome: _TestOutcome, low: float, high: float) -> float | None:
-        """The next ``gamma``, strictly between the largest failed one (or ``tau``) and the smallest passed one: a
-        Newton step on the test's margin (its derivative in ``gamma`` is ``2 gamma ||x||^2`` for the direction ``x``
-        of the smallest eigenvalue), overshooting a little up from a failure, else just above the lower bound, else
-        the bracket's middle; ``None`` when the bracket has no room left."""
-        floor = max(low, self.test.tau * (1.0 + 1e-12))
-        slope = 2.0 * outcome.gamma * float(np.sum(outcome.direction**2))
-        newton = outcome.gamma - outcome.margin / slope if slope > 0 and math.isfinite(outcome.margin) else math.nan
-        candidates = [self.lower * (1.0 + self.tolerance / 2.0)]
-        if math.isfinite(newton):
-            width = abs(newton - outcome.gamma)
-            candidates.insert(0, newton + (0.05 * width if not outcome.passed else 0.0) + self.tolerance * newton / 4)
-        for guess in candidates:
-            if floor < guess < high:
-                return guess
-        middle = 0.5 * (floor + high) if math.isfinite(high) else floor * (1.0 + 1e-3)
-        return middle if floor < middle < high else None
-
-    def run(self, first: float) -> tuple[float, float]:
-        """``(upper, lower)``: the smallest passing ``gamma`` (``inf`` if none) and the best lower bound. The
-        bracket counts as closed at ``max(lower, tau)`` (no test runs at or below the symbol's bound)."""
-        with step("structured 2-norm test", total=self.budget) as advance:
-            gamma: float | None = first
-            high, low = math.inf, 0.0
-            while gamma is not None and self.count < self.budget:
-                outcome = self._run(gamma, advance)
-                if outcome.passed:
-                    high = gamma
-                else:
-                    low = gamma
-                if high <= max(self.lower, self.test.tau) * (1.0 + self.tolerance):
-                    break
-                gamma = self._next(outcome, low, high)
-            return high, self.lower
 
 
 def _structure_residual(
@@ -829,13 +449,13 @@ def _structure_residual(
     """``max ||(I - P_U) E_j (I - P_V) x|| / (||M_j x'|| + ||T_j x'||)`` over two random probes ``x`` and both
     parts ``j`` (``x' = (I - P_V) x``): zero in exact arithmetic when the module notes' structure holds."""
     m, n = U.shape[1], U.shape[2]
-    probes = _project_out(V, np.random.default_rng(20260).standard_normal((2, m, n)))
+    probes = project_out(V, np.random.default_rng(20260).standard_normal((2, m, n)))
     images = operator.apply(probes)
     worst = 0.0
     for part in (0, 1):
         toeplitz = T[part].apply(probes)
         scale = vector_norm(images[part]) + vector_norm(toeplitz)
-        left = _project_out(U, images[part] - toeplitz)
+        left = project_out(U, images[part] - toeplitz)
         worst = max(worst, vector_norm(left) / max(scale, 1e-300))
     return worst if math.isfinite(worst) else math.inf
 
@@ -868,9 +488,9 @@ def structured_input_map(loop: LoopPlant, law: LawStructure) -> StructuredInputM
         return None
     mt_u, m_v = operator.adjoint(U), operator.apply(V)
     EtU = (mt_u[0] - T[0].adjoint(U), mt_u[1] - T[1].adjoint(U))
-    EV = (_project_out(U, m_v[0] - T[0].apply(V)), _project_out(U, m_v[1] - T[1].apply(V)))
-    circulant = (fft(_wrapped(a0, n), axis=0), fft(_wrapped(a1, n), axis=0))
-    symbol = _Symbol.of(a0, a1)
+    EV = (project_out(U, m_v[0] - T[0].apply(V)), project_out(U, m_v[1] - T[1].apply(V)))
+    circulant = (fft(wrapped(a0, n), axis=0), fft(wrapped(a1, n), axis=0))
+    symbol = SectionSymbol.of(a0, a1)
     return StructuredInputMap(
         operator, a0, a1, symbol, circulant, U, V, EtU, EV, residual, not anticausal, _short(loop, law)
     )
@@ -885,7 +505,7 @@ def _short(loop: LoopPlant, law: LawStructure) -> tuple[np.ndarray, np.ndarray]:
     )
     m = loop.B.shape[1]
     first, second = _operator(loop, short_law).apply(np.eye(m * short).reshape(m * short, m, short))
-    return _flat(first), _flat(second)
+    return flat(first), flat(second)
 
 
 def _operator(loop: LoopPlant, law: LawStructure) -> InputOperator:
@@ -943,7 +563,7 @@ def _dense_radius(smap: StructuredInputMap, scale: float) -> float:
     m, n = smap.U.shape[1], smap.n_samples
     with step("dense spectral radius of the input map", total=2) as advance:
         identity = np.eye(m * n).reshape(m * n, m, n)
-        dense = _flat(smap.apply(scale, identity))
+        dense = flat(smap.apply(scale, identity))
         advance(1)
         values = np.linalg.eigvals(dense)
         advance(2)
@@ -954,7 +574,7 @@ def _triangle_bound(smap: StructuredInputMap, scale: float, tau: float) -> float
     """``tau + ||E(s)||_2``: rigorous and cheap (``E = U_E V_E^T`` through two small QR factors), and loose."""
     Ue, Ve = smap.factors(scale)
     # ||U V^T||^2 = lambda_max(U^T U V^T V): both Gram matrices are k x k
-    product = _inner(Ue, Ue) @ _inner(Ve, Ve)
+    product = inner(Ue, Ue) @ inner(Ve, Ve)
     top = float(np.max(np.abs(np.linalg.eigvals(product)))) if product.size else 0.0
     return (tau + math.sqrt(top)) * (1.0 + ROUNDING_MARGIN)
 
