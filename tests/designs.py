@@ -11,8 +11,9 @@ from typing import Any
 import numpy as np
 
 from foilc_hil.config import LawKind
+from foilc_hil.design.certificate_record import Certificates
 from foilc_hil.design.models import DiscreteModel, Uncertainty
-from foilc_hil.design.record import Certificates, Design
+from foilc_hil.design.record import Design
 
 
 def plain_design(

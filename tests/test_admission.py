@@ -15,8 +15,8 @@ import yaml
 from foilc_hil.cli import main
 from foilc_hil.config import Config, load_config
 from foilc_hil.design.admission import admit
+from foilc_hil.design.certificate_record import CertificateAction
 from foilc_hil.design.pipeline import build_design
-from foilc_hil.design.record import CertificateAction
 from foilc_hil.errors import ConfigError, ConvergenceCertificateError
 from foilc_hil.laws.learning import make_law
 from tests.lifted_reference import config_plants

@@ -13,9 +13,9 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from foilc_hil.config import load_config
+from foilc_hil.design.certificate_record import NoilcWeights
 from foilc_hil.design.noilc import noilc_update
 from foilc_hil.design.pipeline import build_design
-from foilc_hil.design.record import NoilcWeights
 from foilc_hil.laws.learning import Noilc, make_law
 from foilc_hil.loop.simulation import simulate
 from tests.fuzz_settings import fuzz_settings

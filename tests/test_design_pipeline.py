@@ -220,6 +220,8 @@ DESIGN_ORDER = (
     "fractional",
     "qfilter",
     "ptype",
+    "json_fields",
+    "certificate_record",
     "record",
     "lifted",
     "map_norms",

@@ -21,20 +21,20 @@ import yaml
 
 from foilc_hil.cli import main
 from foilc_hil.config import FractionalMemory, LawKind, QFilterConfig, QFilterPhase
+from foilc_hil.design.certificate_record import (
+    Bounds,
+    CertificateAction,
+    Certificates,
+    GradientStep,
+    NoilcWeights,
+    PlantCertificate,
+)
 from foilc_hil.design.error_map import dense_error_map, dense_input_map, lifted_error_map
 from foilc_hil.design.frequency_picture import QFilterSpec, convergence_picture, law_symbol
 from foilc_hil.design.lifted import LawStructure, LoopPlant, dense_block_toeplitz, law_filter_matrix, markov_blocks
 from foilc_hil.design.models import DiscreteModel, Uncertainty, augment_input_delay, uncertainty_vertices
 from foilc_hil.design.qfilter import QFilter
-from foilc_hil.design.record import (
-    Bounds,
-    CertificateAction,
-    Certificates,
-    Design,
-    GradientStep,
-    NoilcWeights,
-    PlantCertificate,
-)
+from foilc_hil.design.record import Design
 from foilc_hil.io.mcap_log import McapLogWriter
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"

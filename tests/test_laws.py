@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 
 from foilc_hil.config import FractionalMemory, LawConfig, QFilterConfig
+from foilc_hil.design.certificate_record import Certificates
 from foilc_hil.design.certificates import certify_as_given, certify_p_type
 from foilc_hil.design.fractional import FractionalPD
 from foilc_hil.design.lifted import LawStructure, LoopPlant
 from foilc_hil.design.models import DiscreteModel, Uncertainty, augment_input_delay
 from foilc_hil.design.pipeline import law_kind
 from foilc_hil.design.qfilter import QFilter
-from foilc_hil.design.record import Certificates
 from foilc_hil.errors import ConfigError, InputError
 from foilc_hil.laws.learning import Foilc, Ioilc, PType, make_law
 from tests.designs import plain_design

@@ -14,10 +14,11 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from foilc_hil.config import load_config
+from foilc_hil.design.certificate_record import BoundClaim, CertificateMethod, MonotoneVerdict, NoilcWeights
 from foilc_hil.design.noilc import DENSE_LIMIT, STRUCTURED_METHOD, noilc_update, plant_operator
 from foilc_hil.design.pipeline import build_design
 from foilc_hil.design.qfilter import QFilter
-from foilc_hil.design.record import BoundClaim, CertificateMethod, Design, MonotoneVerdict, NoilcWeights
+from foilc_hil.design.record import Design
 from foilc_hil.design.trial_operator import TrialOperator
 from foilc_hil.loop.simulation import simulate
 from tests.fuzz_settings import fuzz_settings

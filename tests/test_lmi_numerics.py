@@ -13,10 +13,11 @@ import scipy.linalg
 
 from foilc_hil.config import load_config
 from foilc_hil.design import lmi
+from foilc_hil.design.certificate_record import LMI_RELATIVE_MARGIN_MIN, LmiChecks
+from foilc_hil.design.json_fields import jsonable
 from foilc_hil.design.lmi import SIGMA_BOUND, balance, lmi_matrix, roesser_model, solve_lmi
 from foilc_hil.design.models import DiscreteModel, Uncertainty, uncertainty_vertices
 from foilc_hil.design.pipeline import design_model
-from foilc_hil.design.record import LMI_RELATIVE_MARGIN_MIN, LmiChecks, jsonable
 from foilc_hil.errors import LmiInfeasibleError
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"

@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 
 from foilc_hil.config import Config, FractionalMemory, LawConfig, QFilterConfig, QFilterPhase, load_config
 from foilc_hil.design import qmap
+from foilc_hil.design.certificate_record import BoundClaim, CertificateMethod, MonotoneVerdict
 from foilc_hil.design.certificates import certify_as_given
 from foilc_hil.design.error_map import dense_input_map
 from foilc_hil.design.lifted import LawStructure, LoopPlant, law_filter_matrix
@@ -25,7 +26,7 @@ from foilc_hil.design.map_norms import CONTRACTION_LIMIT
 from foilc_hil.design.models import DiscreteModel, Uncertainty, augment_input_delay, discretize
 from foilc_hil.design.pipeline import build_design
 from foilc_hil.design.qfilter import QFilter
-from foilc_hil.design.record import BoundClaim, CertificateMethod, Design, MonotoneVerdict
+from foilc_hil.design.record import Design
 from foilc_hil.laws.learning import make_law
 from plant_emulator.linear import ContinuousModel
 from tests.designs import plain_design

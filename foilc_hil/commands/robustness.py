@@ -162,7 +162,7 @@ def execute(args: argparse.Namespace) -> CommandResult:
     from pathlib import Path
 
     from foilc_hil.config import load_config
-    from foilc_hil.design.record import jsonable
+    from foilc_hil.design.json_fields import jsonable
     from foilc_hil.errors import InputError
     from foilc_hil.loop.robustness import MonteCarloSettings, plot_robustness, run_robustness
     from foilc_hil.references import reference_profile

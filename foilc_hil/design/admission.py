@@ -30,8 +30,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from foilc_hil.config import DivergentFilterPolicy
+from foilc_hil.design.certificate_record import CertificateAction, GrowthBound
 from foilc_hil.design.certificates import ScaledVerdict
-from foilc_hil.design.record import CertificateAction, GrowthBound
 from foilc_hil.errors import ConvergenceCertificateError
 
 __all__ = ["Admission", "ScaledVerdict", "admit"]

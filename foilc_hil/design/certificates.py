@@ -45,9 +45,9 @@ What is exact and what is estimated
 * Uncertainty vertices are FROZEN (constant ``Delta``) plants; a time-varying ``Delta(t)`` makes the map
   non-Toeplitz and is covered only by the LMI of Theorem 1 and by simulation.
 
-Module order: after :mod:`foilc_hil.design.record` (whose typed :class:`~foilc_hil.design.record.Certificates`
-this module fills in), :mod:`foilc_hil.design.lifted`, :mod:`foilc_hil.design.map_norms`,
-:mod:`foilc_hil.design.error_map` and :mod:`foilc_hil.design.qmap`, before
+Module order: after :mod:`foilc_hil.design.certificate_record` (whose typed
+:class:`~foilc_hil.design.certificate_record.Certificates` this module fills in), :mod:`foilc_hil.design.lifted`,
+:mod:`foilc_hil.design.map_norms`, :mod:`foilc_hil.design.error_map` and :mod:`foilc_hil.design.qmap`, before
 :mod:`foilc_hil.design.lmi` (which certifies the gain it solves for).
 """
 
@@ -60,6 +60,18 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from foilc_hil.config import DivergentFilterPolicy, LawKind
+from foilc_hil.design.certificate_record import (
+    BoundClaim,
+    Bounds,
+    CertificateAction,
+    CertificateMethod,
+    Certificates,
+    GrowthBound,
+    MonotoneVerdict,
+    PlantCertificate,
+    Proof,
+    PTypeGain,
+)
 from foilc_hil.design.error_map import dense_input_map, lifted_error_map
 from foilc_hil.design.lifted import (
     SYMBOL_GRID_CAP,
@@ -87,19 +99,7 @@ from foilc_hil.design.qmap import (
     triangular_radius,
     unstructured_certificate,
 )
-from foilc_hil.design.record import (
-    BoundClaim,
-    Bounds,
-    CertificateAction,
-    CertificateMethod,
-    Certificates,
-    Design,
-    GrowthBound,
-    MonotoneVerdict,
-    PlantCertificate,
-    Proof,
-    PTypeGain,
-)
+from foilc_hil.design.record import Design
 from foilc_hil.errors import ConvergenceCertificateError
 from foilc_hil.progress import as_step
 

@@ -61,13 +61,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from foilc_hil.config import CodesignConfig, DivergentFilterPolicy, FractionalMemory, LawKind
+from foilc_hil.design.certificate_record import CertificateAction, CodesignRecord, Timing
 from foilc_hil.design.certificates import certify, map_certificate
 from foilc_hil.design.fractional import gl_weights
 from foilc_hil.design.lifted import LawStructure, LoopPlant
 from foilc_hil.design.lmi import LmiSolution
 from foilc_hil.design.map_norms import power_norm
 from foilc_hil.design.models import DiscreteModel, Uncertainty, uncertainty_vertices
-from foilc_hil.design.record import CertificateAction, CodesignRecord, Design, Timing
+from foilc_hil.design.record import Design
 from foilc_hil.errors import ConfigError
 from foilc_hil.progress import as_step
 

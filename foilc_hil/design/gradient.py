@@ -38,10 +38,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from foilc_hil.config import DivergentFilterPolicy, LawKind
+from foilc_hil.design.certificate_record import GradientStep, NoilcWeights
 from foilc_hil.design.lifted import LawStructure
 from foilc_hil.design.models import DiscreteModel, Uncertainty
 from foilc_hil.design.noilc import LiftedDesign, LiftedUpdate, certify_lifted, noilc_update, plant_norm, plant_operator
-from foilc_hil.design.record import Design, GradientStep, NoilcWeights
+from foilc_hil.design.record import Design
 from foilc_hil.design.trial_operator import TrialOperator
 from foilc_hil.errors import InputError
 

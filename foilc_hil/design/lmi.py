@@ -64,8 +64,8 @@ Independent checks (numpy, after the solve)
 -------------------------------------------
 * the LMI matrix rebuilt in numpy from the solved (unscaled) values has largest eigenvalue ``< 0``, and the scaled
   matrix ``Dg^-1 M Dg^-1`` a margin relative to its norm of at least
-  :data:`~foilc_hil.design.record.LMI_RELATIVE_MARGIN_MIN` (else LMI (31) holds only within rounding: the solution
-  and its ``gamma`` are refused, never returned);
+  :data:`~foilc_hil.design.certificate_record.LMI_RELATIVE_MARGIN_MIN` (else LMI (31) holds only within rounding:
+  the solution and its ``gamma`` are refused, never returned);
 * ``Qb, Qt`` have smallest eigenvalue ``> 0``;
 * at every uncertainty vertex (``Delta = +-1`` for scalars; for matrices the sign-diagonal partial isometries and
   seeded random ones, all extreme points of the unit spectral-norm ball), the closed loop
@@ -91,10 +91,11 @@ from typing import Any, Literal
 import numpy as np
 
 from foilc_hil.config import DivergentFilterPolicy, LawKind
+from foilc_hil.design.certificate_record import LMI_RELATIVE_MARGIN_MIN, LmiChecks, LmiScaling, Timing
 from foilc_hil.design.certificates import certify
 from foilc_hil.design.lifted import LawStructure
 from foilc_hil.design.models import DiscreteModel, Uncertainty, uncertainty_vertices
-from foilc_hil.design.record import LMI_RELATIVE_MARGIN_MIN, Design, LmiChecks, LmiScaling, Timing
+from foilc_hil.design.record import Design
 from foilc_hil.errors import ConfigError, InputError, LmiInfeasibleError
 from foilc_hil.progress import as_step
 

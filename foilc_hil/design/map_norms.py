@@ -13,7 +13,7 @@ A map's norm is needed in three strengths, and each function here says which one
 The limits every certificate shares live here too: :data:`CONTRACTION_LIMIT` (a monotone certificate's 2-norm is
 at most it) and :data:`DENSE_LIMIT` (up to it, norms and spectra are computed densely).
 
-Module order: after :mod:`foilc_hil.design.record` and :mod:`foilc_hil.design.lifted`, before
+Module order: after :mod:`foilc_hil.design.certificate_record` and :mod:`foilc_hil.design.lifted`, before
 :mod:`foilc_hil.design.error_map`, :mod:`foilc_hil.design.qmap` and :mod:`foilc_hil.design.certificates`.
 """
 
@@ -24,8 +24,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from foilc_hil.design.certificate_record import PlantCertificate
 from foilc_hil.design.lifted import vector_norm
-from foilc_hil.design.record import PlantCertificate
 
 __all__ = [
     "CHOLESKY_METHOD",

@@ -65,21 +65,21 @@ import numpy as np
 
 from foilc_hil.config import DivergentFilterPolicy, FractionalMemory, LawKind, NoilcConfig
 from foilc_hil.design.admission import ScaledVerdict, admit
-from foilc_hil.design.lifted import LawStructure, dense_block_toeplitz, markov_blocks
-from foilc_hil.design.map_norms import CONTRACTION_LIMIT, matrix_certificate
-from foilc_hil.design.models import DiscreteModel, Uncertainty, uncertainty_vertices
-from foilc_hil.design.record import (
+from foilc_hil.design.certificate_record import (
     BoundClaim,
     Bounds,
     CertificateAction,
     CertificateMethod,
     Certificates,
-    Design,
     MonotoneVerdict,
     NoilcWeights,
     PlantCertificate,
     Proof,
 )
+from foilc_hil.design.lifted import LawStructure, dense_block_toeplitz, markov_blocks
+from foilc_hil.design.map_norms import CONTRACTION_LIMIT, matrix_certificate
+from foilc_hil.design.models import DiscreteModel, Uncertainty, uncertainty_vertices
+from foilc_hil.design.record import Design
 from foilc_hil.design.trial_operator import TrialOperator
 from foilc_hil.errors import InputError
 from foilc_hil.progress import as_step

@@ -20,6 +20,7 @@ from dataclasses import replace
 
 from foilc_hil.config import Config, DesignMethod, LawKind
 from foilc_hil.design.admission import ScaledVerdict, admit
+from foilc_hil.design.certificate_record import Bounds, CertificateAction, PlantCertificate
 from foilc_hil.design.certificates import PTypeScales
 from foilc_hil.design.codesign import codesign
 from foilc_hil.design.gradient import certify_gradient
@@ -36,7 +37,7 @@ from foilc_hil.design.models import (
 from foilc_hil.design.noilc import certify_noilc
 from foilc_hil.design.ptype import p_type_gain
 from foilc_hil.design.qfilter import QFilter
-from foilc_hil.design.record import Bounds, CertificateAction, Design, PlantCertificate
+from foilc_hil.design.record import Design
 from foilc_hil.design.tuning import tune
 from foilc_hil.errors import ConfigError
 from foilc_hil.progress import step

@@ -65,7 +65,7 @@ The pieces live beside it: the Toeplitz sections, signal algebra and symbol boun
 :mod:`foilc_hil.design.toeplitz_section`, the structured test and its edge search in
 :mod:`foilc_hil.design.norm_test`.
 
-Module order: after :mod:`foilc_hil.design.lifted`, :mod:`foilc_hil.design.record`,
+Module order: after :mod:`foilc_hil.design.lifted`, :mod:`foilc_hil.design.certificate_record`,
 :mod:`foilc_hil.design.toeplitz_section` and :mod:`foilc_hil.design.norm_test`, before
 :mod:`foilc_hil.design.certificates` (which calls :func:`input_map_certificate`).
 """
@@ -78,6 +78,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from foilc_hil.config import FractionalMemory, QFilterPhase
+from foilc_hil.design.certificate_record import (
+    BoundClaim,
+    CertificateMethod,
+    MonotoneVerdict,
+    PlantCertificate,
+    Proof,
+)
 from foilc_hil.design.convolution import fft_convolve
 from foilc_hil.design.lifted import (
     LawStructure,
@@ -90,7 +97,6 @@ from foilc_hil.design.lifted import (
 from foilc_hil.design.map_norms import CONTRACTION_LIMIT
 from foilc_hil.design.norm_test import EXACT_TOLERANCE, FAST_TOLERANCE, EdgeSearch, NormTest
 from foilc_hil.design.qfilter import TrialQFilter
-from foilc_hil.design.record import BoundClaim, CertificateMethod, MonotoneVerdict, PlantCertificate, Proof
 from foilc_hil.design.toeplitz_section import (
     CausalToeplitz,
     SectionSymbol,

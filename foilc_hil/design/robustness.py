@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from foilc_hil.config import Config, LawKind
+from foilc_hil.design.certificate_record import PlantCertificate
 from foilc_hil.design.certificates import map_certificate
 from foilc_hil.design.error_map import FftOperand, block_toeplitz_product
 from foilc_hil.design.gradient import lifted_gain
@@ -28,7 +29,7 @@ from foilc_hil.design.models import DiscreteModel
 from foilc_hil.design.noilc import trial_map
 from foilc_hil.design.pipeline import law_structure
 from foilc_hil.design.rational_map import RATIONAL_METHOD, GainGram, rational_norm_bound
-from foilc_hil.design.record import Design, PlantCertificate
+from foilc_hil.design.record import Design
 
 __all__ = ["DrawCertificate", "Perturbation", "certify_draws", "running_law"]
 
