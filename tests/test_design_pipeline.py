@@ -237,6 +237,7 @@ DESIGN_ORDER = (
     "gradient",
     "lmi",
     "codesign",
+    "open_loop",
     "tuning",
     "pipeline",
 )

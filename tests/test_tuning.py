@@ -21,17 +21,15 @@ from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 
 from foilc_hil.config import load_config
-from foilc_hil.design.tuning import (
+from foilc_hil.design.open_loop import (
     CONTROL_CROSSOVER_RTOL,
     CONTROL_PHASE_TOL_DEG,
     OpenLoop,
     PlantTf,
-    evaluate_pair,
     frequency_sweep,
     oustaloup,
-    tune,
-    tune_loop,
 )
+from foilc_hil.design.tuning import evaluate_pair, tune, tune_loop
 from foilc_hil.errors import ConfigError, TuningInfeasibleError
 
 
