@@ -1,6 +1,7 @@
 """Code-shape rules of the project, checked on the source: no function over 80 lines unless its docstring says why;
-no class over 40 methods; no module of the stand-alone packages (``drivers``, ``plant_emulator``) over 900 lines
-(issue 27: the master was one class of 74 methods in a module of 1312 lines)."""
+no class over 40 methods; no module of the stand-alone packages (``drivers``, ``plant_emulator``) or of
+``foilc_hil.design`` over 900 lines (issue 27: the master was one class of 74 methods in a module of 1312 lines, the
+certificates one module of 1288)."""
 
 from __future__ import annotations
 
@@ -16,8 +17,8 @@ MAX_LINES = 80
 EXCUSE = "Longer than 80 lines because"
 MAX_METHODS = 40
 MAX_MODULE_LINES = 900
-#: the packages held to MAX_MODULE_LINES (foilc_hil's own large modules are other lines of work's)
-SIZED_PACKAGES = ("drivers", "plant_emulator")
+#: the packages held to MAX_MODULE_LINES, as directories (foilc_hil's other large modules are other lines of work's)
+SIZED_PACKAGES = ("drivers", "plant_emulator", "foilc_hil/design")
 
 
 def long_functions(source: str, limit: int = MAX_LINES) -> list[tuple[str, int]]:
@@ -63,9 +64,10 @@ def test_no_class_over_40_methods(path: Path) -> None:
     assert crowded_classes(path.read_text(encoding="utf-8")) == []
 
 
-@pytest.mark.parametrize("path", [path for path in SOURCES if path.relative_to(ROOT).parts[0] in SIZED_PACKAGES],
+@pytest.mark.parametrize("path", [path for path in SOURCES
+                                  if any(path.is_relative_to(ROOT / package) for package in SIZED_PACKAGES)],
                          ids=lambda path: str(path.relative_to(ROOT)))
-def test_no_module_of_the_stand_alone_packages_over_900_lines(path: Path) -> None:
+def test_no_module_of_the_sized_packages_over_900_lines(path: Path) -> None:
     assert len(path.read_text(encoding="utf-8").splitlines()) <= MAX_MODULE_LINES
 
 
