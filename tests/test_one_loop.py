@@ -23,9 +23,9 @@ from foilc_hil.design.record import Design
 from foilc_hil.errors import ConfigError
 from foilc_hil.io.mcap_log import McapLogWriter, read_log
 from foilc_hil.loop.bench import McapSink, TrialLoop, loop_settings
-from foilc_hil.loop.rig import RunRequest, run_rig
+from foilc_hil.loop.rig import RunRequest, plan_axis, run_rig
 from foilc_hil.loop.simulated_drive import SimulatedDrive
-from foilc_hil.loop.simulation import build_law, simulate
+from foilc_hil.loop.simulation import simulate
 from foilc_hil.references import reference_profile
 from plant_emulator.device import TimingMode
 from plant_emulator.physics import build_plant
@@ -127,7 +127,7 @@ def test_simulate_logs_what_the_trial_loop_on_a_simulated_drive_logs(tmp_path: P
     simulated = tmp_path / "simulate.mcap"
     result = simulate(config, law="foilc", trials=3, design=design, input_delay=1, out=simulated)
     by_hand = tmp_path / "trial_loop.mcap"
-    law, _, _ = build_law(config, "foilc", N, design=design, input_delay=1)
+    law = plan_axis(config, "foilc", N, design=design, input_delay=1).law
     drive = SimulatedDrive(build_plant(config.plant), sample_time=TS, input_delay=1)
     drive.enable()
     with McapLogWriter(by_hand, config_yaml=None, fsync=False) as writer:

@@ -1,27 +1,38 @@
-"""One run, one rig: the plan and the wiring of every ``foilc-hil run``, one axis or several.
+"""One run, one rig: the plan and the wiring of every run of the trial loop: ``foilc-hil run`` (one axis or
+several), the demo, the Python API's ``Bench`` and ``simulate``, ``foilc-hil simulate`` and the robustness Monte
+Carlo.
 
 :func:`plan_run` decides everything before anything is opened (each axis's design on its own model, its law and
-limits, the reference, the loop's settings); :func:`run_rig` opens what the plan needs, in this order, each closed
-in reverse on every exit path (``contextlib.ExitStack``):
+limits, the reference, the loop's settings). What answers the loop's SYNC is the plan's :class:`DriveKind`:
 
-1. the log (:class:`~foilc_hil.io.log_process.ProcessLogWriter`: a child process writes; started here, waited
-   for before the enable);
-2. the embedded emulator, one emulated drive per axis on one in-process channel (``bus.interface: embedded``);
-3. the realtime host setup (``bench.realtime``), undone after the confirmed stops;
-4. the bus (wrapped in each faulted axis's ``inject:``), one :class:`~drivers.network.DriveNetwork` and one
-   :class:`~drivers.cia402_master.Cia402Drive` per axis, each safe-stopped (read back) before any is closed and
-   before the log closes;
-5. the stop request (SIGINT, SIGTERM, a failed log writer), the progress view and the one
-   :class:`~foilc_hil.loop.bench.TrialLoop`.
+- ``DriveKind.CAN``: a CiA 402 drive over CAN, on a bus or the embedded emulator. :func:`run_rig` opens what the
+  plan needs, in this order, each closed in reverse on every exit path (``contextlib.ExitStack``):
 
-One axis is the one-member case of the same code: a single drive is a one-member network (as ``Cia402Drive.open``
-makes it), and the loop is handed the axis's own drive, law and limiter (scalar signals); several axes are handed
-to it behind :mod:`foilc_hil.loop.axes`' composites (``(m,)`` vectors).
+  1. the log (:class:`~foilc_hil.io.log_process.ProcessLogWriter`: a child process writes; started here, waited
+     for before the enable);
+  2. the embedded emulator, one emulated drive per axis on one in-process channel (``bus.interface: embedded``);
+  3. the realtime host setup (``bench.realtime``), undone after the confirmed stops;
+  4. the bus (wrapped in each faulted axis's ``inject:``), one :class:`~drivers.network.DriveNetwork` and one
+     :class:`~drivers.cia402_master.Cia402Drive` per axis, each safe-stopped (read back) before any is closed and
+     before the log closes;
+  5. the stop request (SIGINT, SIGTERM, a failed log writer), the progress view and the one
+     :class:`~foilc_hil.loop.bench.TrialLoop`.
+
+  One axis is the one-member case of the same code: a single drive is a one-member network (as
+  ``Cia402Drive.open`` makes it), and the loop is handed the axis's own drive, law and limiter (scalar signals);
+  several axes are handed to it behind :mod:`foilc_hil.loop.axes`' composites (``(m,)`` vectors).
+- ``DriveKind.SIMULATED``: the plant's physics behind a :class:`~foilc_hil.loop.simulated_drive.SimulatedDrive`,
+  no bus, one axis, in lockstep: the log is written in this process (the trials are short and there is no cycle to
+  keep), the drive resets its plant before each trial (no settle phase), the law clamps to the bench's limits and
+  the loop has no limiter of its own (so the drive may run a trial's sample cycles in one compiled call,
+  ``SimulatedDrive.run_whole_trial``), and no signal handler is installed (the Monte Carlo runs it on Dask's worker
+  threads).
 """
 
 from __future__ import annotations
 
 import contextlib
+import enum
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, cast
@@ -36,13 +47,13 @@ from drivers.realtime import RealtimeSession
 from foilc_hil.errors import DriveError, DriveFaultError, DriveNotStoppedError, FoilcHilError, InputError
 from foilc_hil.loop.axes import AxesSink, AxisGroup, AxisLaws, AxisLimiter, AxisOutcome
 from foilc_hil.loop.bench import (
+    CAN_INPUT_DELAY,
     BenchOutcome,
     LawLike,
     LimiterLike,
     LoopSettings,
     McapSink,
     TrialLoop,
-    build_design,
     command_limiter,
     logged_trials,
     loop_settings,
@@ -55,8 +66,16 @@ from plant_emulator.device import TimingMode
 if TYPE_CHECKING:
     from foilc_hil.config import Config
     from foilc_hil.design.record import Design
+    from foilc_hil.loop.simulated_drive import SimulatedDrive
 
-__all__ = ["AxisPlan", "Rig", "RunPlan", "RunReport", "RunRequest", "plan_run", "run_rig"]
+__all__ = ["AxisPlan", "DriveKind", "Rig", "RunPlan", "RunReport", "RunRequest", "plan_axis", "plan_run", "run_rig"]
+
+
+class DriveKind(enum.StrEnum):
+    """What answers the loop's SYNC (module docstring)."""
+
+    CAN = "can"  # a CiA 402 drive over CAN: a bus, or the embedded emulator (run, the demo, Bench)
+    SIMULATED = "simulated"  # the plant's physics behind SimulatedDrive, no bus (simulate, robustness)
 
 
 @dataclass(frozen=True)
@@ -88,6 +107,12 @@ class RunRequest:
     live
         A live view (``foilc_hil.live.publisher.LivePublisher``, ``run --live``): its ``attach(loop, drives)`` is
         called once the loop exists; it sees what the log sees and never holds the loop. ``None``: none.
+    drive
+        What answers the SYNC: a drive over CAN (``bus``, ``mode``, ``live`` apply), or the simulated plant.
+    input_delay
+        Cycles between the law's command and the plant applying it, for a design made here (and checked against a
+        given one): ``None`` is :data:`~foilc_hil.loop.bench.CAN_INPUT_DELAY`, the only delay of the CAN loop;
+        the simulated drive runs any (0: the ideal loop).
     """
 
     config: Any
@@ -101,6 +126,8 @@ class RunRequest:
     title: str = ""
     progress: ProgressView | None = None
     live: Any = None
+    drive: DriveKind = DriveKind.CAN
+    input_delay: int | None = None
 
 
 @dataclass(frozen=True)
@@ -172,12 +199,13 @@ class RunPlan:
     config: Config
     axes: tuple[AxisPlan, ...]
     law: LawLike  # what the loop calls: the axis's own law, or every axis's behind one (m,) law (AxisLaws)
-    limiter: LimiterLike  # the axis's limiter, or AxisLimiter
+    limiter: LimiterLike | None  # the axis's limiter, or AxisLimiter; None: the simulated drive (the law clamps)
     reference: np.ndarray  # (N,) for one axis, (N, m) for m
     settings: LoopSettings
     title: str
     injections: dict[int, tuple[Injection, ...]]  # node id -> the faults injected on that axis's bus or emulator
     stalls: LoopStalls | None = None  # the loop's own injections (stall@...): they stall every axis's one loop
+    drive: DriveKind = DriveKind.CAN
 
     @property
     def node_ids(self) -> tuple[int, ...]:
@@ -199,50 +227,116 @@ def plan_run(request: RunRequest) -> RunPlan:
     from foilc_hil.references import reference_profile
 
     config = request.config
+    simulated = request.drive is DriveKind.SIMULATED
+    trials = config.trials if request.trials is None else request.trials
+    if trials < 1:
+        raise ConfigError(f"must be >= 1, got {trials}", key="trials")
+    input_delay = _input_delay(request)
     if request.out is not None:
         check_log_path(request.out)  # before the (possibly slow) design
-    configs = tuple(axis_configs(config)) if config.axes else (config,)
+    # the simulated drive runs the document's own plant (simulate reads no axes:)
+    configs = tuple(axis_configs(config)) if config.axes and not simulated else (config,)
     if request.design is not None and len(configs) > 1:
         # one Design is one axis's model; applying it to every axis would run the others on the wrong model
         raise InputError("design: a precomputed design is one axis's; an axes: run designs each axis on its own model")
     law_kind = request.law or config.law.kind
     bus = request.bus if request.bus is not None else config.bus
-    require_actions(config.inject, emulator=bus.interface == "embedded")
-    injections = split_by_axis(config.inject, [axis.drive.node_id for axis in configs])  # a stray axis: exit 2
-    stalls = LoopStalls.of(config.inject)
-    injections = {node: kept for node, faults in injections.items()
-                  if (kept := tuple(i for i in faults if i.kind not in LOOP_KINDS))}
+    injections, stalls = ({}, None) if simulated else _injections(config, configs, bus)
     columns = [reference_profile(axis.reference, config.sample_time) for axis in configs]
     lengths = [column.shape[0] for column in columns]
     if len(set(lengths)) != 1:
         raise ConfigError(f"every axis's trial must have the same number of samples (one SYNC clock), got "
                           f"{lengths}", key="axes.reference")
-    axes = tuple(_plan_axis(axis, request, lengths[0]) for axis in configs)
-    where = "the embedded emulator" if bus.interface == "embedded" else f"{bus.interface}:{bus.channel}"
-    several = f" on {len(axes)} axes" if len(axes) > 1 else ""
+    kinds = [request.law or axis.law.kind for axis in configs]
+    axes = tuple(plan_axis(axis, kind, lengths[0], design=request.design, input_delay=input_delay)
+                 for axis, kind in zip(configs, kinds, strict=True))
+    if simulated and (axes[0].law.n_inputs != 1 or axes[0].law.n_outputs != 1):
+        raise ConfigError(f"the trial loop drives one axis; the law is {axes[0].law.n_outputs}x"
+                          f"{axes[0].law.n_inputs}", key="plant")
     return RunPlan(
         law_kind=law_kind,
-        trials=request.trials or config.trials,
+        trials=trials,
         bus=bus,
         config=config,
         axes=axes,
         law=axes[0].law if len(axes) == 1 else AxisLaws([axis.law for axis in axes]),
-        limiter=axes[0].limiter if len(axes) == 1 else AxisLimiter([axis.limiter for axis in axes]),
+        limiter=None if simulated else axes[0].limiter if len(axes) == 1 else AxisLimiter([a.limiter for a in axes]),
         reference=columns[0] if len(axes) == 1 else np.column_stack(columns),
-        settings=loop_settings(config, request.mode),
-        title=request.title or f"{law_kind.upper()}{several} on {where}",
+        settings=(loop_settings(config, TimingMode.LOCKSTEP, settle_between_trials=False) if simulated
+                  else loop_settings(config, request.mode)),
+        title=request.title or _title(law_kind, len(axes), None if simulated else bus),
         injections=injections,
         stalls=stalls,
+        drive=request.drive,
     )
 
 
-def _plan_axis(config: Config, request: RunRequest, n_samples: int) -> AxisPlan:
+def _input_delay(request: RunRequest) -> int:
+    """The loop's transport delay the design is made for (:attr:`RunRequest.input_delay`)."""
+    if request.input_delay is None:
+        return CAN_INPUT_DELAY
+    if request.input_delay < 0:
+        raise InputError(f"input_delay: must be >= 0, got {request.input_delay}")
+    if request.drive is DriveKind.CAN and request.input_delay != CAN_INPUT_DELAY:
+        raise InputError(f"input_delay: the CAN loop's is {CAN_INPUT_DELAY} (a drive latches its RPDO at the next "
+                         f"SYNC), got {request.input_delay}")
+    return request.input_delay
+
+
+def _injections(config: Config, configs: Sequence[Config],
+                bus: Any) -> tuple[dict[int, tuple[Injection, ...]], LoopStalls | None]:
+    """The faults ``inject:`` puts on each axis's bus or emulator (node id -> faults), and the loop's own stalls."""
+    require_actions(config.inject, emulator=bus.interface == "embedded")
+    injections = split_by_axis(config.inject, [axis.drive.node_id for axis in configs])  # a stray axis: exit 2
+    kept = {node: on_bus for node, faults in injections.items()
+            if (on_bus := tuple(i for i in faults if i.kind not in LOOP_KINDS))}
+    return kept, LoopStalls.of(config.inject)
+
+
+def _title(law_kind: str, axes: int, bus: Any) -> str:
+    """The progress view's title: the law, the axes and what runs them (``bus`` ``None``: the simulated plant)."""
+    if bus is None:
+        where = "the simulated plant"
+    else:
+        where = "the embedded emulator" if bus.interface == "embedded" else f"{bus.interface}:{bus.channel}"
+    several = f" on {axes} axes" if axes > 1 else ""
+    return f"{law_kind.upper()}{several} on {where}"
+
+
+def plan_axis(config: Config, kind: str, n_samples: int, *, design: Design | None = None,
+              input_delay: int = CAN_INPUT_DELAY) -> AxisPlan:
+    """One axis of a run: its design (:func:`foilc_hil.design.pipeline.build_design` for ``input_delay``, or
+    ``design`` checked against the axis), its law of ``n_samples`` samples and the bench's command limits.
+
+    The law clamps to the limiter's limits and learns from what is applied; the limiter stays as the safety layer.
+    Why the limits offline too: a sample whose error no command can remove (the demo's first samples: the reference
+    asks for more acceleration than the torque limit gives) is integrated trial after trial. Unclamped, the learned
+    command there grew by about 3,000 rpm a trial (93,700 rpm at trial 30 on the demo axis), a command the bench
+    would never send; clamped, the law learns from what is applied, as on the bench.
+
+    Raises
+    ------
+    ConfigError
+        ``design`` is of another law, or looks ahead over fewer samples than the plant's own delay.
+    """
+    from foilc_hil.design.pipeline import build_design, model_delay_samples
+    from foilc_hil.errors import ConfigError
     from foilc_hil.laws.learning import make_law
 
-    kind = request.law or config.law.kind
-    design = request.design if request.design is not None else build_design(config, kind, n_samples)
+    if design is None:
+        design = build_design(config, kind, n_samples, input_delay=input_delay)
+    elif design.law != kind and not (kind == "ioilc" and design.kp == 0):
+        raise ConfigError(f"the design is for law {design.law!r}, not {kind!r}", key="law.kind")
+    elif design.input_delay < model_delay_samples(config):
+        # The design's input_delay is the whole delay its law looks ahead over (transport + the plant's own); the
+        # drive adds only the difference, which cannot be negative. Running the law anyway would time every update
+        # against samples the plant has not answered yet.
+        raise ConfigError(
+            f"is {model_delay_samples(config)} sample(s), more than the design's input_delay "
+            f"{design.input_delay}: re-synthesize the design for this plant",
+            key="plant.delay",
+        )
     limiter = command_limiter(config)
-    # the law clamps to the limiter's limits and learns from what is applied; the limiter stays as the safety layer
     law = make_law(design, config.law, n_samples, limits=(limiter.lower, limiter.upper))
     return AxisPlan(config, design, law, limiter)
 
@@ -296,6 +390,8 @@ class Rig:
         return self._loop
 
     def __enter__(self) -> Rig:
+        if self.plan.drive is DriveKind.SIMULATED:
+            return self._enter_simulated()
         plan, request = self.plan, self.request
         with contextlib.ExitStack() as outer:
             outer.enter_context(self._partial_on_error())
@@ -324,6 +420,21 @@ class Rig:
                 request.live.attach(self._loop, self.drives)
             _commission(self.drives, plan, sink, self._session)
             self._open = outer.pop_all()
+        return self
+
+    def _enter_simulated(self) -> Rig:
+        """The simulated drive's rig: the log, the drive (enabled) and the loop; nothing to stop or to report."""
+        with contextlib.ExitStack() as stack:
+            sink = _open_log(stack, self.request, self.plan)
+            self.sinks.extend([sink] if sink is not None else [])
+            drive = _simulated_drive(self.plan)
+            self.drives = [drive]
+            progress = self.request.progress or _progress(self.plan, self.request.quiet)
+            stack.callback(progress.close)
+            # no signal handlers: simulate never installed any (and the Monte Carlo runs on Dask's worker threads)
+            self._loop = _trial_loop(self.plan, self.drives, sink, progress, StopRequest(), hook=drive.begin_trial)
+            drive.enable()
+            self._open = stack.pop_all()
         return self
 
     def __exit__(self, *exc: Any) -> bool:
@@ -385,14 +496,36 @@ def _trial_loop(plan: RunPlan, drives: Sequence[Any], sink: McapSink | None, pro
                      stop=stop, before_trial=hook, stalls=plan.stalls)
 
 
+def _simulated_drive(plan: RunPlan) -> SimulatedDrive:
+    """The plant's physics behind the drive interface; the law looks ahead over the transport delay and the plant's
+    own delay, the drive adds only the transport."""
+    from foilc_hil.design.pipeline import model_delay_samples
+    from foilc_hil.loop.simulated_drive import SimulatedDrive
+    from plant_emulator.physics import build_plant
+
+    config, law = plan.config, plan.axes[0].law
+    transport = law.input_delay - model_delay_samples(config)
+    return SimulatedDrive(build_plant(config.plant), sample_time=config.sample_time, input_delay=transport)
+
+
 def _open_log(stack: contextlib.ExitStack, request: RunRequest, plan: RunPlan) -> McapSink | None:
     """The log, written by a child process (a writer thread here would take the loop's GIL for every frame it
-    encodes); not waited for here: the child imports while the drives are commissioned (``McapSink.ready``)."""
+    encodes); not waited for here: the child imports while the drives are commissioned (``McapSink.ready``). The
+    simulated drive's is written in this process (no cycle to keep, no frames)."""
     from foilc_hil.config import dump_config
     from foilc_hil.io.log_process import ProcessLogWriter
 
     if request.out is None:
         return None
+    limiter = plan.axes[0].limiter
+    if plan.drive is DriveKind.SIMULATED:
+        from foilc_hil.io.mcap_log import McapLogWriter
+
+        simulated = McapLogWriter(request.out, config_yaml=dump_config(plan.config),
+                                  design=plan.axes[0].design.to_json(), fsync=False)
+        stack.callback(simulated.close)
+        # /ilc/trial records the limits the law clamped to (replay --verify rebuilds the law with them)
+        return McapSink(simulated, (limiter.lower, limiter.upper))
     writer = ProcessLogWriter.open(request.out, config_yaml=dump_config(plan.config),
                                    design=plan.axes[0].design.to_json(), wait=False)
     stack.callback(writer.close)
@@ -400,7 +533,6 @@ def _open_log(stack: contextlib.ExitStack, request: RunRequest, plan: RunPlan) -
         _log_axes(writer, plan)
         # each axis's /ilc/trial carries its own limits (AxesSink)
         return McapSink(writer, None)
-    limiter = plan.axes[0].limiter
     return McapSink(writer, (limiter.lower, limiter.upper))
 
 

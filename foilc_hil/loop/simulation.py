@@ -8,7 +8,8 @@ the plant for trial ``k`` (initial condition, disturbance armed from ``disturban
 ``t = 0 .. N-1`` the law gets the measured output ``y(t Ts)`` and returns ``u(t)``, and finally the trial arrays
 (values at ``(i + 1) Ts``, see :mod:`foilc_hil.references`) go to
 :meth:`~foilc_hil.laws.learning.LearningLaw.end_trial`. The divergence rule, the per-sample log and the metrics are
-the bench's. No plant dynamics and no trial loop are written here.
+the bench's. The rig of every run wires it (:mod:`foilc_hil.loop.rig`, ``DriveKind.SIMULATED``): no plant
+dynamics, no trial loop and no wiring are written here.
 
 The tables of ``docs/paper-reproduction.md`` (every law over seeds) are generated outside the package, by
 ``python -m benchmarks.reproduction``.
@@ -16,9 +17,8 @@ The tables of ``docs/paper-reproduction.md`` (every law over seeds) are generate
 
 from __future__ import annotations
 
-import contextlib
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -26,19 +26,16 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from foilc_hil.design.record import jsonable
-from foilc_hil.errors import ConfigError, LearningDivergedError
+from foilc_hil.errors import LearningDivergedError
 from foilc_hil.metrics import TrialMetrics
 
 if TYPE_CHECKING:
     from foilc_hil.config import Config
     from foilc_hil.design.record import Design
-    from foilc_hil.laws.learning import LearningLaw
-    from foilc_hil.loop.bench import McapSink, TrialRecord
-    from foilc_hil.loop.scheduler import CycleTiming
+    from foilc_hil.loop.bench import TrialRecord
 
 __all__ = [
     "SimulationResult",
-    "build_law",
     "plot_simulation",
     "simulate",
 ]
@@ -50,7 +47,7 @@ class SimulationResult:
     Attributes
     ----------
     law
-        ``foilc``, ``ioilc`` or ``p-type``.
+        ``foilc``, ``ioilc``, ``p-type``, ``noilc`` or ``gradient``.
     metrics
         One :class:`~foilc_hil.metrics.TrialMetrics` per completed trial.
     time
@@ -105,43 +102,7 @@ class SimulationResult:
         return document
 
 
-# --- design and law ---------------------------------------------------------------------------------------------
-
-
-def build_law(
-    config: Config, law: str, n_samples: int, *, design: Design | None = None, input_delay: int = 0
-) -> tuple[LearningLaw, Design | None, dict[str, Any]]:
-    """The law ``law`` for ``config`` with its design and certificates (:mod:`foilc_hil.design.pipeline`), clamping
-    to the bench's command limits (:func:`~foilc_hil.loop.bench.command_limiter`) as ``run`` builds it.
-
-    Why the limits offline too: a sample whose error no command can remove (the demo's first samples: the reference
-    asks for more acceleration than the torque limit gives) is integrated trial after trial. Unclamped, the learned
-    command there grew by about 3,000 rpm a trial (93,700 rpm at trial 30 on the demo axis), a command the bench
-    would never send; clamped, the law learns from what is applied, as on the bench.
-    """
-    from foilc_hil.design.pipeline import build_design, model_delay_samples
-    from foilc_hil.laws.learning import make_law
-    from foilc_hil.loop.bench import command_limiter
-
-    if design is None:
-        design = build_design(config, law, n_samples, input_delay=input_delay)
-    elif design.law != law and not (law == "ioilc" and design.kp == 0):
-        raise ConfigError(f"the design is for law {design.law!r}, not {law!r}", key="law.kind")
-    elif design.input_delay < model_delay_samples(config):
-        # The design's input_delay is the whole delay its law looks ahead over (transport + the plant's own); the
-        # simulated drive adds only the difference, which cannot be negative. Running the law anyway would time
-        # every update against samples the plant has not answered yet.
-        raise ConfigError(
-            f"is {model_delay_samples(config)} sample(s), more than the design's input_delay "
-            f"{design.input_delay}: re-synthesize the design for this plant",
-            key="plant.delay",
-        )
-    certificates = {} if design.certificates is None else design.certificates.to_json()
-    limiter = command_limiter(config)
-    return make_law(design, config.law, n_samples, limits=(limiter.lower, limiter.upper)), design, certificates
-
-
-# --- the trial loop: the bench's, on a simulated drive ----------------------------------------------------------
+# --- the trial loop: the bench's, on a simulated drive, through the one rig ---------------------------------------
 
 
 def simulate(
@@ -156,16 +117,18 @@ def simulate(
     """Run ``trials`` learning trials of ``law`` offline on ``build_plant(config.plant)``.
 
     The trials run in the bench's :class:`~foilc_hil.loop.bench.TrialLoop`, in lockstep, on a
-    :class:`~foilc_hil.loop.simulated_drive.SimulatedDrive` whose transport delay is the law's input delay; the
-    drive resets the plant before each trial, so there is no settle phase. The law clamps to the bench's command
-    limits (:func:`build_law`); the drive has none of its own (the plant's ``saturation`` acts inside the plant).
+    :class:`~foilc_hil.loop.simulated_drive.SimulatedDrive` whose transport delay is the law's input delay, wired
+    by the rig of every run (:class:`~foilc_hil.loop.rig.Rig`, ``DriveKind.SIMULATED``); the drive resets the plant
+    before each trial, so there is no settle phase. The law clamps to the bench's command limits
+    (:func:`~foilc_hil.loop.rig.plan_axis`); the drive has none of its own (the plant's ``saturation`` acts inside
+    the plant).
 
     Parameters
     ----------
     config
         The whole configuration (plant, reference, sample time, tuning, synthesis, law, bench).
     law
-        ``foilc``, ``ioilc`` or ``p-type``.
+        ``foilc``, ``ioilc``, ``p-type``, ``noilc`` or ``gradient``.
     trials
         Number of trials.
     design
@@ -183,68 +146,21 @@ def simulate(
         bench's rule (:class:`~foilc_hil.loop.safety.DivergenceGuard`): a trial's SSE above
         ``bench.divergence_factor`` times the best SSE so far.
     """
-    from foilc_hil.references import trial_samples
+    from foilc_hil.loop.rig import DriveKind, Rig, RunRequest
 
-    if trials < 1:
-        raise ConfigError(f"must be >= 1, got {trials}", key="trials")
-    n = trial_samples(config.reference, config.sample_time)
-    learning_law, used_design, certificates = build_law(config, law, n, design=design, input_delay=input_delay)
-    if learning_law.n_inputs != 1 or learning_law.n_outputs != 1:
-        raise ConfigError(
-            f"the trial loop drives one axis; the law is {learning_law.n_outputs}x{learning_law.n_inputs}", key="plant"
-        )
+    rig = Rig(RunRequest(config=config, out=out, law=law, trials=trials, design=design, drive=DriveKind.SIMULATED,
+                         input_delay=input_delay))
     started = time.perf_counter()
-    with contextlib.ExitStack() as stack:
-        limits = learning_law.limits
-        log = _open_log(stack, out, config, used_design, limits) if out is not None else None
-        collector = _TrialCollector(log)
-        stopped = _run_trials(config, learning_law, trials, collector)
-    return _result(config, law, collector.records, certificates, used_design, stopped, time.perf_counter() - started)
-
-
-class _TrialCollector:
-    """The loop's log sink offline: keeps every finished trial (the result's arrays) and passes it to the log."""
-
-    def __init__(self, log: McapSink | None) -> None:
-        self.log = log
-        self.records: list[TrialRecord] = []
-
-    def trial_finished(self, record: TrialRecord) -> None:
-        self.records.append(record)
-        if self.log is not None:
-            self.log.trial_finished(record)
-
-    def timing(self, records: Iterator[CycleTiming]) -> None:
-        if self.log is not None:
-            self.log.timing(records)
-
-
-def _run_trials(config: Config, law: LearningLaw, trials: int, collector: _TrialCollector) -> str:
-    """The bench's trial loop on a simulated drive, in lockstep; returns why it stopped early (``""``: it did not)."""
-    from foilc_hil.design.pipeline import model_delay_samples
-    from foilc_hil.loop.bench import TrialLoop, loop_settings
-    from foilc_hil.loop.simulated_drive import SimulatedDrive
-    from foilc_hil.references import reference_profile
-    from plant_emulator.device import TimingMode
-    from plant_emulator.physics import build_plant
-
-    # the law looks ahead over the transport delay and the plant's own delay; the drive adds only the transport
-    transport = law.input_delay - model_delay_samples(config)
-    drive = SimulatedDrive(build_plant(config.plant), sample_time=config.sample_time, input_delay=transport)
-    loop = TrialLoop(
-        drive,
-        law,
-        reference_profile(config.reference, config.sample_time),
-        None,
-        loop_settings(config, TimingMode.LOCKSTEP, settle_between_trials=False),
-        log=collector,
-        before_trial=drive.begin_trial,
-    )
-    drive.enable()
+    records: list[TrialRecord] = []
     try:
-        return loop.run(trials).stopped or ""
+        with rig:
+            records.extend(rig.loop.iter_trials(rig.plan.trials))
+        stopped = rig.loop.outcome.stopped or ""
     except LearningDivergedError as exc:  # a non-finite output or command: the trials before it are the result
-        return str(exc)
+        stopped = str(exc)
+    used = rig.plan.axes[0].design
+    certificates = {} if used.certificates is None else used.certificates.to_json()
+    return _result(config, law, records, certificates, used, stopped, time.perf_counter() - started)
 
 
 def _result(
@@ -282,24 +198,6 @@ def _result(
         stopped=stopped,
         seconds=seconds,
     )
-
-
-def _open_log(
-    stack: contextlib.ExitStack, out: str | Path, config: Config, design: Design | None,
-    limits: tuple[float, float] | None,
-) -> McapSink:
-    from foilc_hil.config import dump_config
-    from foilc_hil.io.mcap_log import McapLogWriter
-    from foilc_hil.loop.bench import McapSink
-
-    writer = McapLogWriter(
-        out,
-        config_yaml=dump_config(config),
-        design=design.to_json() if design is not None else None,
-        fsync=False,
-    )
-    stack.callback(writer.close)
-    return McapSink(writer, limits)  # /ilc/trial records the limits the law clamped to (replay --verify uses them)
 
 
 # --- plots ------------------------------------------------------------------------------------------------------
