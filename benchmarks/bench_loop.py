@@ -107,7 +107,7 @@ def loop_only(samples: int = 2000, trials: int = 5) -> dict[str, Any]:
         law,
         reference,
         CommandLimiter(-1e6, 1e6),
-        LoopSettings(period=sample_time, settle_time=sample_time, settle_tolerance=1e9),
+        LoopSettings(sample_time=sample_time, settle_time=sample_time, settle_tolerance=1e9),
     )
     started = time.perf_counter()
     outcome = loop.run(trials)

@@ -151,7 +151,8 @@ class Cia402Drive(Drive):
     cfg
         The ``drive:`` section (node id, mode, scales, limits, heartbeats, EDS).
     sample_time
-        The cycle period in seconds (SYNC, 0x1006).
+        The cycle period in seconds: the period of SYNC, written to the drive as 0x1006 and 0x60C2 by
+        :meth:`configure`. It enters the master here, once, and lives in :attr:`cyclic` (:attr:`sample_time`).
     od
         The drive's object dictionary (:func:`drivers.od.load_od`).
     network
@@ -182,7 +183,6 @@ class Cia402Drive(Drive):
                               f"0x{cob_id(FunctionCode.HEARTBEAT, cfg.node_id):03X}", key="drive.master_node_id")
         self.cfg = cfg
         self.node_id = check_node_id(cfg.node_id)
-        self.sample_time = sample_time
         self.od = od
         if network is not None and network.bus is not bus:
             raise DriveError(f"node {cfg.node_id}: the shared network is on another bus")
@@ -201,7 +201,7 @@ class Cia402Drive(Drive):
         self.heartbeat: HeartbeatMonitor = self.supervision.monitor
         self.nmt = NmtClient(self.link, self.heartbeat)
         self.emcy = EmcyConsumer(self.node_id, self.inbox)
-        self.cyclic = CyclicPath(self.link, self.inbox, self.heartbeat, cycle_period=sample_time)
+        self.cyclic = CyclicPath(self.link, self.inbox, self.heartbeat, sample_time=sample_time)
         self.startup = StartUp(self.link, self.sdo, self.nmt, self.supervision, self.cyclic, self.inbox)
         self.power = PowerStateCommands(self.link, self.cyclic, self.sdo, self.inbox,
                                         restore_communication=self._restore_communication)
@@ -307,13 +307,13 @@ class Cia402Drive(Drive):
     def _restore_communication(self) -> None:
         """After a heartbeat fault: NMT reset communication, boot-up, and the last :meth:`configure` again (reset
         communication restores the drive's 0x1000..0x1FFF defaults)."""
-        mode, period = self.cyclic.mode, self.cyclic.cycle_period
+        mode = self.cyclic.mode
         if mode is None:
             return
         self.heartbeat.disarm()
         self.link.operational = False
         self.nmt.reset_communication()
-        self.startup.configure(mode, period)
+        self.startup.configure(mode)
 
     def close(self) -> None:
         """NMT pre-operational and consumer heartbeat off (best effort), then release the Notifier, producer, tap."""
@@ -339,33 +339,32 @@ class Cia402Drive(Drive):
 
     # --- Drive: start-up (drivers.master.startup) -------------------------------------------------------------
 
-    def preflight(self, mode: OperationMode, cycle_period: float) -> PdoPlan:
+    def preflight(self, mode: OperationMode) -> PdoPlan:
         """What :meth:`configure` checks before it writes anything (:meth:`StartUp.preflight`); ``commission
         enable`` runs it too, so a drive ``run`` would refuse is refused there as well."""
-        return self.startup.preflight(mode, cycle_period)
+        return self.startup.preflight(mode)
 
-    def configure(self, mode: OperationMode, cycle_period: float) -> None:
-        """Configure PDOs, mode, timing and heartbeats over SDO, verify by reading back, then NMT start.
+    def configure(self, mode: OperationMode) -> None:
+        """Configure PDOs, mode, timing (:attr:`sample_time`) and heartbeats over SDO, verify by reading back,
+        then NMT start.
 
         Parameters
         ----------
         mode
             The CiA 402 mode of operation (``drive_cfg.operation_mode``: CSV, CST or PV).
-        cycle_period
-            The SYNC period in seconds (the config's ``sample_time``).
 
         Raises
         ------
         DriveError
             The drive lacks the mode or an object the plan maps, refuses a write, or reads back another value.
         """
-        self.startup.configure(mode, cycle_period)
+        self.startup.configure(mode)
 
-    def settings(self, mode: OperationMode, cycle_period: float) -> list[tuple[int, int, int, bool]]:
+    def settings(self, mode: OperationMode) -> list[tuple[int, int, int, bool]]:
         """The objects :meth:`configure` writes after the PDOs, in order, as ``(index, sub-index, value,
         optional)``: ``commission check`` reads them and ``commission info --dcf`` records them."""
         return [(index, sub, value, optional)
-                for index, sub, _, value, optional in self.startup.settings(mode, cycle_period)]
+                for index, sub, _, value, optional in self.startup.settings(mode)]
 
     # --- Drive: CiA 402 state machine (drivers.master.state402) -----------------------------------------------
 
@@ -408,12 +407,12 @@ class Cia402Drive(Drive):
 
     def start_clock(self, *, spin_margin: float = 0.0) -> str | None:
         """SYNC from a clock on this drive's network from now on (:meth:`DriveNetwork.start_clock`, at the cycle
-        period ``configure`` set); the clock's name (``"thread"``, ``"bcm"``), or None where the network has no
+        period :attr:`sample_time`); the clock's name (``"thread"``, ``"bcm"``), or None where the network has no
         cyclic receiver to read the bus on (the loop then sends SYNC itself)."""
         net = self.link.net
         if net.receiver is None:
             return None
-        return net.start_clock(self.cyclic.cycle_period, self.cyclic.clock_routes(), spin_margin=spin_margin).name
+        return net.start_clock(self.cyclic.sample_time, self.cyclic.clock_routes(), spin_margin=spin_margin).name
 
     def stop_clock(self) -> None:
         """Stop the network's SYNC clock (idempotent)."""
@@ -422,6 +421,11 @@ class Cia402Drive(Drive):
     def await_sync(self, after: int, timeout: float) -> SyncSeen:
         """The next SYNC of the clock after SYNC ``after``, read from the bus (:meth:`DriveNetwork.await_sync`)."""
         return self.link.net.await_sync(after, timeout)
+
+    @property
+    def sample_time(self) -> float:
+        """The cycle period in seconds, as the master was made with it (:attr:`cyclic` holds it)."""
+        return self.cyclic.sample_time
 
     @property
     def latched(self) -> float:

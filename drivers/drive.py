@@ -169,9 +169,9 @@ class Drive(ABC):
         listeners start here, and a connect that no drive answered leaves none behind."""
 
     @abstractmethod
-    def configure(self, mode: OperationMode, cycle_period: float) -> None:
-        """Configure PDOs, mode, cycle period, heartbeats and stop options over SDO, verify by reading back, then
-        start the node (NMT operational)."""
+    def configure(self, mode: OperationMode) -> None:
+        """Configure PDOs, mode, cycle period (the drive's sample time, given once, when it was made), heartbeats
+        and stop options over SDO, verify by reading back, then start the node (NMT operational)."""
 
     @abstractmethod
     def enable(self) -> None:

@@ -226,17 +226,17 @@ class DriveNetwork:
         self._master_node_id = master_node_id
         self._producer.start()
 
-    def sync(self, cycle_period: float) -> None:
+    def sync(self, sample_time: float) -> None:
         """Start a new cycle on every member, then send one SYNC.
 
-        On a synchronous bus ``cycle_period`` seconds of simulated time pass since the previous SYNC first (the
+        On a synchronous bus ``sample_time`` seconds of simulated time pass since the previous SYNC first (the
         drives' and the master's heartbeat timers fire on the way), and the answering TPDOs are in on return.
         """
         if self._clock is not None:  # the clock sends SYNC: its next one latches what was sent meanwhile
             return
         timebase = self.timebase
         if timebase.synchronous:
-            timebase.sleep(self._sync_at + cycle_period - timebase.now())
+            timebase.sleep(self._sync_at + sample_time - timebase.now())
             self._sync_at = timebase.now()
         if self.receiver is not None:  # late answers of the old cycle are its own, not the new one's
             self.receiver.drain()

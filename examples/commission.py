@@ -43,7 +43,7 @@ def commission(config: fh.Config, bus_config: drivers.BusConfig, nodes: range, l
                       f"serial {drive.read_object('Identity object', 'Serial number')}")
                 drive.write_object("Producer heartbeat time", 0, 250)
                 print(f"producer heartbeat time now {drive.read_object(0x1017)} ms")
-                drive.configure(config.drive.operation_mode, config.sample_time)
+                drive.configure(config.drive.operation_mode)
                 drive.enable()
                 print(f"enabled: statusword 0x{drive.read_object('Statusword'):04X}")
                 report = drive.safe_stop()

@@ -31,7 +31,7 @@ def main(group: str, node_id: int) -> dict[str, object]:
     try:
         info = master.connect()
         result["vendor_id"] = info.vendor_id
-        master.configure(OperationMode.CYCLIC_SYNC_VELOCITY, PERIOD)
+        master.configure(OperationMode.CYCLIC_SYNC_VELOCITY)
         master.enable()
         result["enabled_state"] = master.wait_feedback(1.0).state.name
         velocities = []

@@ -40,7 +40,7 @@ def main(group: str, nodes: list[int]) -> dict[str, object]:
             drive = Cia402Drive.on_network(network, cfg, sample_time=PERIOD)
             drives.append(drive)
             drive.connect()
-            drive.configure(OperationMode.CYCLIC_SYNC_VELOCITY, PERIOD)
+            drive.configure(OperationMode.CYCLIC_SYNC_VELOCITY)
             drive.enable()
         velocities: dict[int, float] = {}
         before = {drive.node_id: drive.cycle for drive in drives}

@@ -52,7 +52,7 @@ def test_scan_connect_sdo_by_name_enable_and_the_confirmed_stop(emulated: tuple[
             drive.read_object("No such object")
         with pytest.raises(drivers.InputError, match="Vendor"):
             drive.read_object("Identity object", "Vendor")
-        drive.configure(drive_cfg.operation_mode, SAMPLE_TIME)
+        drive.configure(drive_cfg.operation_mode)
         drive.enable()
         assert emulator.drive.state is drivers.State402.OPERATION_ENABLED
         report = drive.safe_stop()

@@ -113,7 +113,7 @@ class _CommissionedDrive:
     def connect(self) -> None:
         self.calls.append(f"connect {self.node_id}")
 
-    def configure(self, mode: object, sample_time: float) -> None:
+    def configure(self, mode: object) -> None:
         self.calls.append(f"configure {self.node_id}")
 
     def enable(self) -> None:

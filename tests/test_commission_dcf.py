@@ -63,7 +63,7 @@ def test_canopen_loads_the_dcf_with_the_values_the_configured_drive_holds(
             drive = Cia402Drive.open(master_bus, config.drive, sample_time=config.sample_time)
             with drive:
                 drive.connect()
-                drive.configure(config.drive.operation_mode, config.sample_time)
+                drive.configure(config.drive.operation_mode)
                 od = canopen.import_od(str(dcf))
                 values = _parameter_values(od)
                 held = {key: drive.read_object(*key) for key in values}

@@ -186,7 +186,7 @@ def enabled_drive(config: Config) -> Iterator[tuple[CommissionTarget, Cia402Driv
     with CommissionTarget(config, None) as target, Cia402Drive.open(target.bus, config.drive,
                                                                     sample_time=TS) as drive:
         drive.connect()
-        drive.configure(OperationMode.CYCLIC_SYNC_VELOCITY, TS)
+        drive.configure(OperationMode.CYCLIC_SYNC_VELOCITY)
         drive.enable()
         yield target, drive
 

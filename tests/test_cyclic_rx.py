@@ -108,7 +108,7 @@ def _masters(emulator: EmbeddedEmulator, receiver: CyclicReceiver | None) -> tup
     for node in (5, 6):
         drive = Cia402Drive.on_network(network, DriveConfig(node_id=node, velocity_scale=1000.0), sample_time=PERIOD)
         drive.connect()
-        drive.configure(OperationMode.CYCLIC_SYNC_VELOCITY, PERIOD)
+        drive.configure(OperationMode.CYCLIC_SYNC_VELOCITY)
         drives.append(drive)
     return network, drives
 

@@ -52,7 +52,7 @@ def _drives(network: DriveNetwork, nodes: tuple[int, ...] = NODES) -> list[Cia40
         cfg = DriveConfig(node_id=node, velocity_scale=1000.0)
         drive = Cia402Drive.on_network(network, cfg, sample_time=PERIOD)
         drive.connect()
-        drive.configure(OperationMode.CYCLIC_SYNC_VELOCITY, PERIOD)
+        drive.configure(OperationMode.CYCLIC_SYNC_VELOCITY)
         drives.append(drive)
     return drives
 

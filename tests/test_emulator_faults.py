@@ -265,7 +265,7 @@ def _master(emulator: EmbeddedEmulator, **drive: float) -> Cia402Drive:
     _MASTER_BUSES.append(bus)
     master = Cia402Drive.open(bus, cfg, sample_time=0.01)
     master.connect()
-    master.configure(OperationMode.CYCLIC_SYNC_VELOCITY, 0.01)
+    master.configure(OperationMode.CYCLIC_SYNC_VELOCITY)
     master.enable()
     for _ in range(3):
         master.set_target(100.0)

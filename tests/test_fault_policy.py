@@ -285,7 +285,7 @@ def _lossy_loop(lost: set[int], max_lost: int) -> tuple[Any, _LossyDrive, _Recor
 
     drive = _LossyDrive(lost)
     law = _RecordingLaw()
-    settings = LoopSettings(period=0.01, settle_between_trials=False, max_lost_feedback=max_lost)
+    settings = LoopSettings(sample_time=0.01, settle_between_trials=False, max_lost_feedback=max_lost)
     return TrialLoop(drive, law, np.zeros(4), None, settings), drive, law
 
 

@@ -162,7 +162,7 @@ class EnabledMaster:
             master = Cia402Drive.open(self.bus, cfg, sample_time=0.01)
             self.master = master
             master.connect()
-            master.configure(OperationMode.CYCLIC_SYNC_VELOCITY, 0.01)
+            master.configure(OperationMode.CYCLIC_SYNC_VELOCITY)
             master.enable()
         return self.master
 

@@ -75,7 +75,7 @@ def rig() -> Iterator[tuple[MiniServo, Cia402Drive, TxRecorder]]:
     drive.add_frame_listener(recorder)
     try:
         drive.connect()
-        drive.configure(OperationMode.CYCLIC_SYNC_VELOCITY, 0.002)
+        drive.configure(OperationMode.CYCLIC_SYNC_VELOCITY)
         drive.enable()
         yield servo, drive, recorder
     finally:

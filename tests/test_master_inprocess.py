@@ -51,7 +51,7 @@ def _enabled_master(bus: InProcessBus, **drive: float) -> Cia402Drive:
     cfg = DriveConfig.model_validate({"node_id": NODE, "velocity_scale": 1000.0, **drive})
     master = Cia402Drive.open(bus, cfg, sample_time=PERIOD)
     master.connect()
-    master.configure(OperationMode.CYCLIC_SYNC_VELOCITY, PERIOD)
+    master.configure(OperationMode.CYCLIC_SYNC_VELOCITY)
     master.enable()
     return master
 

@@ -284,7 +284,7 @@ def test_full_cycle_against_a_localnode_slave(servo: MiniServo, master_bus: can.
         started = time.perf_counter()
         info = drive.connect()
         connected = time.perf_counter()
-        drive.configure(OperationMode.CYCLIC_SYNC_VELOCITY, 0.002)
+        drive.configure(OperationMode.CYCLIC_SYNC_VELOCITY)
         configured = time.perf_counter()
         drive.enable()
         enabled = time.perf_counter()
@@ -338,7 +338,7 @@ def test_configure_rejects_a_mode_the_drive_lacks(servo: MiniServo, master_bus: 
     with Cia402Drive.open(master_bus, drive_config(), sample_time=0.002) as drive:
         drive.connect()
         with pytest.raises(ConfigError, match=r"drive\.mode.*does not support CYCLIC_SYNC_VELOCITY"):
-            drive.configure(OperationMode.CYCLIC_SYNC_VELOCITY, 0.002)
+            drive.configure(OperationMode.CYCLIC_SYNC_VELOCITY)
 
 
 def test_sdo_abort_is_decoded(servo: MiniServo, master_bus: can.BusABC) -> None:
@@ -458,7 +458,7 @@ def test_other_drive_without_optional_objects_but_with_0x60c2(channel: str, tmp_
         assert Obj.ABORT_CONNECTION_OPTION not in slave.node.object_dictionary
         with Cia402Drive.open(bus, drive_config(eds=str(eds)), sample_time=0.0005) as drive:
             drive.connect()
-            drive.configure(OperationMode.CYCLIC_SYNC_TORQUE, 0.0005)
+            drive.configure(OperationMode.CYCLIC_SYNC_TORQUE)
             assert (slave.value(0x60C2, 1), slave.value(0x60C2, 2)) == (5, -4)  # 5 x 10^-4 s
             assert slave.value(0x1600, 2) == 0x60710010  # CST maps target torque
             drive.enable()

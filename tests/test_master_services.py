@@ -125,7 +125,7 @@ class Net:
         """The network's count of SYNCs sent (``DriveNetwork.syncs_sent``: what a send returns)."""
         return self.syncs
 
-    def sync(self, cycle_period: float) -> None:
+    def sync(self, sample_time: float) -> None:
         for begin_cycle in self.members:
             begin_cycle()
         self.syncs += 1
@@ -214,7 +214,7 @@ class Rig:
             self.supervision.monitor = HeartbeatMonitor(NODE, clock=self.clock.now)
         self.monitor = self.supervision.monitor
         self.nmt = NmtClient(self.link, self.monitor)
-        self.cyclic = CyclicPath(self.link, self.inbox, self.monitor, cycle_period=PERIOD)
+        self.cyclic = CyclicPath(self.link, self.inbox, self.monitor, sample_time=PERIOD)
         self.net.members.append(self.cyclic.begin_cycle)
         self.restored = 0
         self.power = PowerStateCommands(self.link, self.cyclic, self.sdo, self.inbox,
@@ -228,7 +228,7 @@ class Rig:
     def started(self, mode: OperationMode = OperationMode.CYCLIC_SYNC_VELOCITY) -> CyclicPath:
         """The cyclic path as ``configure`` leaves it: codecs of the plan installed, the drive operational."""
         plan = pdo_plan(mode, NODE, OD)
-        self.cyclic.install(mode, PERIOD, plan.rpdos, plan.tpdos)
+        self.cyclic.install(mode, plan.rpdos, plan.tpdos)
         self.link.connected = self.link.operational = True
         return self.cyclic
 
@@ -677,7 +677,7 @@ def test_preflight_refuses_a_mode_the_drive_does_not_offer() -> None:
     rig = booting(Rig(sdo=Sdo(identity_store())))
     rig.startup.identify()
     with pytest.raises(ConfigError, match="does not support CYCLIC_SYNC_TORQUE") as refused:
-        rig.startup.preflight(OperationMode.CYCLIC_SYNC_TORQUE, PERIOD)
+        rig.startup.preflight(OperationMode.CYCLIC_SYNC_TORQUE)
     assert refused.value.key == "drive.mode"
     without_6502 = Rig(sdo=Sdo({}))
     assert without_6502.startup.supported_modes() == ()  # optional: any mode may be tried
@@ -686,7 +686,7 @@ def test_preflight_refuses_a_mode_the_drive_does_not_offer() -> None:
 def test_configure_writes_the_plan_reads_it_back_and_starts_the_drive() -> None:
     rig = booting(Rig(sdo=Sdo(identity_store())))
     rig.startup.identify()
-    rig.startup.configure(OperationMode.CYCLIC_SYNC_VELOCITY, PERIOD)
+    rig.startup.configure(OperationMode.CYCLIC_SYNC_VELOCITY)
     plan = pdo_plan(OperationMode.CYCLIC_SYNC_VELOCITY, NODE, OD)
     for layout in (*plan.rpdos, *plan.tpdos):
         store = rig.sdo_fake.store
@@ -709,7 +709,7 @@ def test_configure_refuses_a_value_the_drive_did_not_keep(index: int, subindex: 
     rig.sdo_fake.keep.add((index, subindex))
     rig.startup.identify()
     with pytest.raises(DriveError, match=f"0x{index:04X}:{subindex:02X} reads back"):
-        rig.startup.configure(OperationMode.CYCLIC_SYNC_VELOCITY, PERIOD)
+        rig.startup.configure(OperationMode.CYCLIC_SYNC_VELOCITY)
     assert not rig.link.operational
 
 
@@ -718,7 +718,7 @@ def test_configure_skips_an_optional_object_the_drive_refuses(caplog: pytest.Log
     rig = booting(Rig(sdo=Sdo(identity_store())))
     rig.sdo_fake.fail[Obj.QUICK_STOP_OPTION, 0] = SdoAbortedError(int(SdoAbortCode.NO_OBJECT))
     rig.startup.identify()
-    rig.startup.configure(OperationMode.CYCLIC_SYNC_VELOCITY, PERIOD)
+    rig.startup.configure(OperationMode.CYCLIC_SYNC_VELOCITY)
     assert "lacks optional object 0x605A:00" in caplog.text and rig.link.operational
 
 

@@ -138,7 +138,7 @@ def test_startup_trace_matches_the_documented_sequence() -> None:
     try:
         drive.add_frame_listener(record)
         drive.connect()
-        drive.configure(OperationMode.CYCLIC_SYNC_VELOCITY, 0.002)
+        drive.configure(OperationMode.CYCLIC_SYNC_VELOCITY)
         drive.enable()
         with lock:
             captured = [(m, d) for m, d in frames if not is_periodic_heartbeat(m)]

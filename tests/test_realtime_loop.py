@@ -121,7 +121,8 @@ def _run(lost: set[int], stalls: dict[int, float]) -> tuple[BenchOutcome, Script
     clock = FakeClock()
     drive = ScriptedDrive(clock, lost=lost, stalls=stalls)
     sink = Sink()
-    settings = LoopSettings(period=PERIOD, mode=TimingMode.REALTIME, settle_between_trials=False, max_lost_feedback=2)
+    settings = LoopSettings(sample_time=PERIOD, mode=TimingMode.REALTIME, settle_between_trials=False,
+                            max_lost_feedback=2)
     loop = TrialLoop(drive, ZeroLaw(), np.zeros(10), None, settings, log=sink, clock=clock, sleep=clock.sleep)
     return loop.run(1), drive, sink
 
@@ -169,7 +170,7 @@ def test_counts_of_the_log_agree_with_the_summary() -> None:
 def test_lockstep_has_no_deadlines_to_miss() -> None:
     clock = FakeClock()
     drive = ScriptedDrive(clock, lost=set(), stalls={3: 0.5})
-    settings = LoopSettings(period=PERIOD, settle_between_trials=False)
+    settings = LoopSettings(sample_time=PERIOD, settle_between_trials=False)
     timing = _timing(TrialLoop(drive, ZeroLaw(), np.zeros(10), None, settings, clock=clock, sleep=clock.sleep).run(1))
     assert timing.missed_deadlines == 0 and timing.skipped_deadlines == 0
     assert timing.jitter_p99_us is None and timing.realtime is None

@@ -149,7 +149,7 @@ def _loop(drive: _InMemoryDrive, gain: float, factor: float = 3.0) -> Any:
     B = np.array([[0.0], [1.0]])
     C = np.array([[1.0, 0.0]])
     law = PType(A, B, C, 100, input_delay=1, gain=gain)
-    settings = LoopSettings(period=0.01, settle_time=0.01, settle_tolerance=1e9, divergence_factor=factor)
+    settings = LoopSettings(sample_time=0.01, settle_time=0.01, settle_tolerance=1e9, divergence_factor=factor)
     return TrialLoop(drive, law, np.ones(100), CommandLimiter(-1e9, 1e9), settings), law
 
 

@@ -134,7 +134,7 @@ def test_what_the_master_says_each_sync_latched_is_what_the_bus_shows(emulator: 
     missed: list[tuple[int, bool]] = []  # (SYNC number of the command's cycle, the master's missed flag)
     try:
         drive.connect()
-        drive.configure(OperationMode.CYCLIC_SYNC_VELOCITY, PERIOD)
+        drive.configure(OperationMode.CYCLIC_SYNC_VELOCITY)
         drive.enable()
         assert drive.start_clock(spin_margin=0.0005) == "thread"
         number = network.syncs_sent

@@ -68,8 +68,9 @@ class CyclicPath:
         The drive; the inbox whose condition also guards the feedback, and whose errors a wait raises.
     monitor
         The drive's heartbeat (a wait raises its loss).
-    cycle_period
-        Seconds per cycle until ``configure`` sets its own (the bench's sample time).
+    sample_time
+        Seconds per cycle: the bench's sample time, the period of SYNC (its one home on the master's side; start-up
+        writes it to the drive as 0x1006 and 0x60C2, :func:`~drivers.master.plan.settings_rows`).
 
     Attributes
     ----------
@@ -77,8 +78,8 @@ class CyclicPath:
         The master's SYNC counter (written by the control thread under ``inbox.lock``).
     feedback
         The latest complete feedback, whatever cycle it answered (under ``inbox.lock``).
-    mode, cycle_period
-        What ``configure`` set up (``mode`` None before).
+    mode
+        What ``configure`` set up (None before).
     controlword, target_raw
         What the next RPDO carries.
     tpdo_frames
@@ -90,7 +91,7 @@ class CyclicPath:
         a clock only; the control thread writes it).
     """
 
-    def __init__(self, link: MasterLink, inbox: Inbox, monitor: HeartbeatMonitor, *, cycle_period: float) -> None:
+    def __init__(self, link: MasterLink, inbox: Inbox, monitor: HeartbeatMonitor, *, sample_time: float) -> None:
         self._link = link
         self._inbox = inbox
         self._monitor = monitor
@@ -102,7 +103,7 @@ class CyclicPath:
         self.feedback: Feedback | None = None
         self.tpdo_frames = 0
         self.mode: OperationMode | None = None
-        self.cycle_period = cycle_period
+        self.sample_time = sample_time
         self.rpdo: PdoLayout | None = None
         self.rpdo_codec: PdoCodec | None = None
         self.tpdo_codecs: dict[int, PdoCodec] = {}
@@ -116,8 +117,7 @@ class CyclicPath:
 
     # --- set-up (configure) -------------------------------------------------------------------------------------
 
-    def install(self, mode: OperationMode, cycle_period: float, rpdos: Iterable[PdoLayout],
-                tpdos: Iterable[PdoLayout]) -> None:
+    def install(self, mode: OperationMode, rpdos: Iterable[PdoLayout], tpdos: Iterable[PdoLayout]) -> None:
         """The codecs of the configured PDOs, the TPDOs subscribed; the RPDO carries disable voltage and target 0."""
         net = self._link.net
         for cob in list(self.tpdo_codecs):
@@ -143,7 +143,6 @@ class CyclicPath:
         for cob in tpdo_codecs:
             net.subscribe_cyclic(cob, self.on_tpdo)
         self.mode = mode
-        self.cycle_period = cycle_period
         self.controlword = int(Command402.DISABLE_VOLTAGE)
         self.target_raw = 0
 
@@ -175,7 +174,7 @@ class CyclicPath:
         """Send SYNC (through the network: every member starts a new cycle first); the cycle it opens."""
         if self._link.closed:  # require_open's test, inlined: every cycle
             self._link.require_open()
-        self._link.net.sync(self.cycle_period)
+        self._link.net.sync(self.sample_time)
         return self.cycle  # only this thread changes it (in begin_cycle, just now)
 
     def begin_cycle(self) -> None:
@@ -210,12 +209,12 @@ class CyclicPath:
         self._link.send(data_frame(self.rpdo_cob(), codec.encode(controlword, self.target_raw)))
         self.sync()
         feedback = self.await_feedback(self.exchange_timeout(), raise_on_fault=False, raise_errors=not ignore_errors)
-        timebase.sleep(self.cycle_period - (timebase.now() - start))
+        timebase.sleep(self.sample_time - (timebase.now() - start))
         return feedback
 
     def exchange_timeout(self) -> float:
         """How long one exchange of the state machine waits for its feedback."""
-        return min(self._link.cfg.state_timeout, max(0.2, 10 * self.cycle_period))
+        return min(self._link.cfg.state_timeout, max(0.2, 10 * self.sample_time))
 
     def fail_safe(self, command: Command402 = Command402.QUICK_STOP) -> None:
         """Best effort: command ``command`` with target 0 and apply it with one SYNC; never raises."""

@@ -40,17 +40,18 @@ Setting = tuple[int, int, SdoFormat, int, bool]
 """One object ``configure`` writes after the PDOs: index, sub-index, format, value, optional."""
 
 
-def interpolation_time_period(period: float) -> tuple[int, int]:
-    """0x60C2 encoding of ``period`` seconds: ``(value, exponent)`` with ``period = value * 10**exponent``.
+def interpolation_time_period(sample_time: float) -> tuple[int, int]:
+    """0x60C2 (interpolation time period) encoding of ``sample_time`` seconds: ``(value, exponent)`` with
+    ``sample_time = value * 10**exponent``.
 
     The largest exponent (-1 .. -6) giving an exact integer ``1 <= value <= 255`` is chosen. Raises
     :class:`ConfigError` when none does (e.g. 0.3 ms needs value 3, exponent -4: fine; 1.2345 ms: none).
     """
     for exponent in range(-1, -7, -1):
-        value = period / 10.0**exponent
+        value = sample_time / 10.0**exponent
         if 1 <= round(value) <= 255 and abs(value - round(value)) <= 1e-9 * value:
             return round(value), exponent
-    raise ConfigError(f"{period} s is not expressible in 0x60C2 (1..255 x 10^-1..10^-6 s)", key="sample_time")
+    raise ConfigError(f"{sample_time} s is not expressible in 0x60C2 (1..255 x 10^-1..10^-6 s)", key="sample_time")
 
 
 @dataclass(frozen=True, slots=True)
@@ -135,17 +136,22 @@ def pdo_plan(mode: OperationMode, node_id: int, od: ObjectDictionary | None) -> 
     return PdoPlan(rpdos, tpdos, tuple(notes))
 
 
-def settings_rows(cfg: DriveConfig, od: ObjectDictionary, mode: OperationMode, cycle_period: float) -> list[Setting]:
-    """The objects ``configure`` writes after the PDOs, in order: (index, sub, format, value, optional)."""
+def settings_rows(cfg: DriveConfig, od: ObjectDictionary, mode: OperationMode, sample_time: float) -> list[Setting]:
+    """The objects ``configure`` writes after the PDOs, in order: (index, sub, format, value, optional).
+
+    ``sample_time`` (seconds) goes to the drive in its two wire encodings, derived here and nowhere else: 0x1006,
+    the communication cycle period, in whole microseconds; 0x60C2, the interpolation time period, as
+    :func:`interpolation_time_period`'s ``value x 10^exponent`` seconds.
+    """
     consumer = HeartbeatConsumerEntry(cfg.master_node_id, cfg.heartbeat_consumer_ms).encode()
     rows: list[Setting] = [
         (Obj.MODES_OF_OPERATION, 0, I8, int(mode), False),
         (Obj.QUICK_STOP_OPTION, 0, I16, cfg.quick_stop_option, True),  # optional in CiA 402
         (Obj.ABORT_CONNECTION_OPTION, 0, I16, cfg.abort_connection_option, True),  # optional
-        (Obj.COMMUNICATION_CYCLE_PERIOD, 0, U32, round(cycle_period * 1e6), True),  # optional in CiA 301
+        (Obj.COMMUNICATION_CYCLE_PERIOD, 0, U32, round(sample_time * 1e6), True),  # optional in CiA 301
     ]
     if Obj.INTERPOLATION_TIME_PERIOD in od:  # cyclic synchronous modes take their cycle from here
-        value, exponent = interpolation_time_period(cycle_period)
+        value, exponent = interpolation_time_period(sample_time)
         rows += [
             (Obj.INTERPOLATION_TIME_PERIOD, 1, U8, value, True),
             (Obj.INTERPOLATION_TIME_PERIOD, 2, I8, exponent, True),

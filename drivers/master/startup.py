@@ -13,7 +13,6 @@ heartbeat is awaited before its loss detection is armed.
 from __future__ import annotations
 
 import logging
-import math
 
 from drivers.cia301 import RPDO_BASES, TPDO_BASES, CobIdEntry, NmtCommand, NmtState, SdoAbortCode, cob_id
 from drivers.cia402 import SUPPORTED_MODE_BITS, IdentitySub, Obj, OperationMode
@@ -93,14 +92,12 @@ class StartUp:
             raise
         return tuple(mode for mode, bit in SUPPORTED_MODE_BITS.items() if bits & bit)
 
-    def preflight(self, mode: OperationMode, cycle_period: float) -> PdoPlan:
+    def preflight(self, mode: OperationMode) -> PdoPlan:
         """What :meth:`configure` checks before it writes anything: the mode (0x6502), the PDOs the EDS allows
         (:func:`~drivers.master.plan.pdo_plan`), the settings it can encode; raises what ``configure`` would
         raise. The plan's notes name the optional objects the drive lacks."""
         link = self._link
         mode = OperationMode(mode)
-        if not (cycle_period > 0 and math.isfinite(cycle_period)):
-            raise ConfigError(f"must be a positive number of seconds, got {cycle_period}", key="cycle_period")
         supported = self.device_modes if self.device_modes is not None else self.supported_modes()
         if supported and mode not in supported:
             names = ", ".join(m.name for m in supported)
@@ -108,21 +105,21 @@ class StartUp:
                               key="drive.mode")
         plan = pdo_plan(mode, link.node_id, link.od)
         skipped = [f"0x{index:04X}:{sub:02X} not configured: the drive's EDS lacks it"
-                   for index, sub, _, _, optional in self.settings(mode, cycle_period)
+                   for index, sub, _, _, optional in self.settings(mode)
                    if optional and index not in link.od]
         return PdoPlan(plan.rpdos, plan.tpdos, (*plan.notes, *skipped))
 
-    def settings(self, mode: OperationMode, cycle_period: float) -> list[Setting]:
-        """The objects :meth:`configure` writes after the PDOs, in order (:func:`~drivers.master.plan.settings_rows`).
-        """
-        return settings_rows(self._link.cfg, self._link.od, mode, cycle_period)
+    def settings(self, mode: OperationMode) -> list[Setting]:
+        """The objects :meth:`configure` writes after the PDOs, in order (:func:`~drivers.master.plan.settings_rows`,
+        the sample time the cyclic path's)."""
+        return settings_rows(self._link.cfg, self._link.od, mode, self._cyclic.sample_time)
 
-    def configure(self, mode: OperationMode, cycle_period: float) -> None:
+    def configure(self, mode: OperationMode) -> None:
         """Configure PDOs, mode, timing and heartbeats over SDO, verify by reading back, then NMT start."""
         link, sdo, monitor = self._link, self._sdo, self._supervision.monitor
         link.require_connected()
         mode = OperationMode(mode)
-        plan = self.preflight(mode, cycle_period)
+        plan = self.preflight(mode)
         for note in plan.notes:
             logger.warning("node %d: %s", link.node_id, note)
         monitor.disarm()
@@ -131,7 +128,7 @@ class StartUp:
         self._inbox.reset()
         self._start_master_heartbeat()
         self._write_pdos(plan)
-        written = [row for row in self.settings(mode, cycle_period)
+        written = [row for row in self.settings(mode)
                    if (row[0] in link.od or not row[4]) and self._write_setting(row)]
         # read everything back: a drive may accept a write and keep another value
         for layout in (*plan.rpdos, *plan.tpdos):
@@ -139,7 +136,7 @@ class StartUp:
         for index, sub, fmt, value, _ in written:
             sdo.expect(index, sub, fmt, value)
         self._wait_mode_display(mode)
-        self._cyclic.install(mode, cycle_period, plan.rpdos, plan.tpdos)
+        self._cyclic.install(mode, plan.rpdos, plan.tpdos)
         beats_before = monitor.beats
         self._nmt.send(NmtCommand.START)
         link.operational = True

@@ -137,7 +137,7 @@ class PowerStateCommands:
             return feedback.state
         cyclic.controlword = controlword
         self._sdo.write(Obj.CONTROLWORD, 0, U16, controlword)
-        self._link.timebase.sleep(cyclic.cycle_period)
+        self._link.timebase.sleep(cyclic.sample_time)
         statusword = self._sdo.read(Obj.STATUSWORD, 0, U16)
         self.last_statusword = statusword
         try:

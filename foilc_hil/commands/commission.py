@@ -244,7 +244,7 @@ def _info(args: argparse.Namespace) -> CommandResult:
                 _shared_drives(target, drive_cfgs, config.sample_time) as drives:
             documents = tuple(read_info(drive).to_json() for drive in drives)
             # one DBC for the bus: every node's mapping as run will install it (each drive's preflight)
-            plans = [(drive.preflight(cfg.operation_mode, config.sample_time), cfg)
+            plans = [(drive.preflight(cfg.operation_mode), cfg)
                      for drive, cfg in zip(drives, drive_cfgs, strict=True)] if args.dbc else []
         result = _per_node("info", documents, "\n".join(render_info(document) for document in documents))
         if args.dbc:
@@ -256,7 +256,7 @@ def _info(args: argparse.Namespace) -> CommandResult:
         try:
             document = read_info(drive).to_json()
             if args.dbc or args.dcf:  # the mapping run will install on this drive (its preflight), not today's
-                plan = drive.preflight(drive_cfg.operation_mode, config.sample_time)
+                plan = drive.preflight(drive_cfg.operation_mode)
                 if args.dbc:
                     document["dbc"] = write_dbc([(plan, drive_cfg)], args.dbc).to_json()
                 if args.dcf:
@@ -415,7 +415,7 @@ def _identify(args: argparse.Namespace) -> CommandResult:
         with drive:  # safe stop and close on every exit path
             drive.connect()
             operation = OperationMode.CYCLIC_SYNC_TORQUE if mode == "cst" else OperationMode.CYCLIC_SYNC_VELOCITY
-            drive.configure(operation, sample_time)
+            drive.configure(operation)
             drive.enable()
             with step("identification: step tests", total=int(command.shape[0])) as advance:
                 record = identify.run_campaign(

@@ -174,10 +174,10 @@ def _probe(drive: Cia402Drive, index: int, subindex: int, *, needed: bool, what:
     return Check("object", Verdict.PASS, subject, f"{what}: present (now {value})")
 
 
-def _plan_checks(drive: Cia402Drive, mode: OperationMode, sample_time: float) -> list[Check]:
+def _plan_checks(drive: Cia402Drive, mode: OperationMode) -> list[Check]:
     """The preflight ``run`` makes, then every object of its plan and settings probed over SDO."""
     try:
-        plan = drive.preflight(mode, sample_time)
+        plan = drive.preflight(mode)
     except (DriveError, ConfigError) as exc:
         message = str(exc)
         return [Check("plan", Verdict.FAIL, _subject(message, "PDO plan"), message)]
@@ -189,7 +189,7 @@ def _plan_checks(drive: Cia402Drive, mode: OperationMode, sample_time: float) ->
         checks.append(_probe(drive, layout.communication_index, 1, needed=True, what=f"{layout.name} COB-ID"))
         checks += [_probe(drive, v.index, v.subindex, needed=True, what=f"mapped in {layout.name}")
                    for v in layout.variables]
-    for index, subindex, value, optional in drive.settings(mode, sample_time):
+    for index, subindex, value, optional in drive.settings(mode):
         if optional and index not in drive.od:
             continue  # the plan's notes said so already
         checks.append(_probe(drive, index, subindex, needed=not optional, what=f"run writes {value}"))
@@ -301,7 +301,7 @@ def check_drive(drive: Cia402Drive, config: Config, bus_load: Check) -> CheckRep
     if any(check.verdict is Verdict.FAIL and check.subject == _hex(Obj.DEVICE_TYPE) for check in checks):
         return CheckReport(drive.node_id, mode, (*checks, bus_load))
     checks.append(_mode_check(drive, mode))
-    checks += _plan_checks(drive, mode, config.sample_time)
+    checks += _plan_checks(drive, mode)
     checks.append(bus_load)
     checks += _heartbeat_checks(drive)
     checks += _sync_checks(drive, config.sample_time)

@@ -58,8 +58,7 @@ class DcfExport:
         }
 
 
-def configured_values(drive: Cia402Drive, plan: PdoPlan, mode: OperationMode,
-                      cycle_period: float) -> dict[tuple[int, int], int]:
+def configured_values(drive: Cia402Drive, plan: PdoPlan, mode: OperationMode) -> dict[tuple[int, int], int]:
     """``(index, sub-index) -> value`` of everything ``configure`` leaves on the drive (module docstring)."""
     values: dict[tuple[int, int], int] = {}
     for layouts, bases, base_index in ((plan.rpdos, RPDO_BASES, Obj.RPDO_COMMUNICATION),
@@ -75,7 +74,7 @@ def configured_values(drive: Cia402Drive, plan: PdoPlan, mode: OperationMode,
                     values[layout.mapping_index, sub] = variable.mapping_entry
             elif base_index + number - 1 in drive.od:
                 values[base_index + number - 1, 1] = cob_id(base, drive.node_id) | COB_ID_INVALID
-    for index, sub, value, optional in drive.settings(mode, cycle_period):
+    for index, sub, value, optional in drive.settings(mode):
         if index in drive.od or not optional:
             values[index, sub] = value
     return values
@@ -95,7 +94,7 @@ def write_dcf(drive: Cia402Drive, plan: PdoPlan, *, bitrate: int, path: str | Pa
     parser.optionxform = str  # type: ignore[assignment,method-assign]  # keep the EDS's key spelling
     parser.read(source, encoding="utf-8")
     sections = {name.upper(): name for name in parser.sections()}
-    values = configured_values(drive, plan, drive.cfg.operation_mode, drive.sample_time)
+    values = configured_values(drive, plan, drive.cfg.operation_mode)
     written: list[tuple[int, int, int]] = []
     for (index, sub), value in values.items():
         section = sections.get(_section(drive, index, sub).upper())

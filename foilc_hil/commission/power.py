@@ -146,7 +146,7 @@ def enable(drive: Cia402Drive, *, state_timeout: float, mode: OperationMode | No
     """
     report = PowerReport("enable", drive.node_id)
     if mode is not None:
-        plan = drive.preflight(mode, drive.sample_time)
+        plan = drive.preflight(mode)
         mapped = "; ".join(f"{layout.name}: " + ", ".join(f"0x{v.index:04X}" for v in layout.variables)
                            for layout in (*plan.rpdos, *plan.tpdos))
         report.notes.append(f"run can configure {mode.name}: {mapped}")

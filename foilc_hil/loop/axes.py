@@ -121,7 +121,7 @@ class AxisGroup:
         if net.receiver is None:
             return None
         echoes = {cob: callback for drive in self.drives for cob, callback in drive.cyclic.clock_routes().items()}
-        return cast(str, net.start_clock(first.cyclic.cycle_period, echoes, spin_margin=spin_margin).name)
+        return cast(str, net.start_clock(first.sample_time, echoes, spin_margin=spin_margin).name)
 
     def stop_clock(self) -> None:
         self.drives[0].stop_clock()

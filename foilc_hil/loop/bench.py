@@ -319,7 +319,7 @@ class BenchOutcome:
 class LoopSettings:
     """Timing and safety settings of the loop (from ``bench:`` and ``sample_time``)."""
 
-    period: float
+    sample_time: float  # seconds per cycle: the SYNC period, the deadline scheduler's and the trial records' period
     mode: TimingMode = TimingMode.LOCKSTEP
     watchdog_cycles: int = 5
     divergence_factor: float = 10.0
@@ -337,7 +337,7 @@ class LoopSettings:
     @property
     def settle_cycles(self) -> int:
         """Consecutive at-rest cycles that count as settled (at least one)."""
-        return max(1, math.ceil(self.settle_time / self.period - 1e-9))
+        return max(1, math.ceil(self.settle_time / self.sample_time - 1e-9))
 
     @property
     def feedback_timeout(self) -> float:
@@ -345,12 +345,12 @@ class LoopSettings:
         :data:`COMMAND_MARGIN_FRACTION` of a period before the next deadline), ``watchdog_cycles`` x the lockstep
         allowance in lockstep (no deadline there: only an expired bound makes a lost feedback)."""
         if self.mode is TimingMode.REALTIME:
-            return self.period
+            return self.sample_time
         return self.watchdog_cycles * self.lockstep_feedback_timeout
 
     @property
     def settle_timeout_cycles(self) -> int:
-        return math.ceil(max(SETTLE_TIMEOUT_FACTOR * self.settle_time, MIN_SETTLE_TIMEOUT) / self.period)
+        return math.ceil(max(SETTLE_TIMEOUT_FACTOR * self.settle_time, MIN_SETTLE_TIMEOUT) / self.sample_time)
 
 
 @dataclass(frozen=True)
@@ -510,14 +510,14 @@ class TrialLoop:
         self._held = 0.0  # the last good feedback: what the law is given again for a lost one
         self.guard = DivergenceGuard(settings.divergence_factor)
         self._noise_floor = NoiseFloorTracker()
-        self.timing = TimingRecorder(settings.mode, settings.period)
+        self.timing = TimingRecorder(settings.mode, settings.sample_time)
         realtime = settings.mode is TimingMode.REALTIME
         self.scheduler = (
-            DeadlineScheduler(settings.period, spin_margin=settings.realtime.spin_margin, clock=clock, sleep=sleep)
+            DeadlineScheduler(settings.sample_time, spin_margin=settings.realtime.spin_margin, clock=clock, sleep=sleep)
             if realtime
             else None
         )
-        self._command_margin = COMMAND_MARGIN_FRACTION * settings.period
+        self._command_margin = COMMAND_MARGIN_FRACTION * settings.sample_time
         self._sleep = sleep
         self._stalls = stalls
         # SYNC from a clock (realtime, bench.realtime.sync: clock, a drive that can): the loop runs on the SYNCs it
@@ -681,7 +681,7 @@ class TrialLoop:
         when = "after the last trial" if phase == "final" else f"before trial {trial}"
         raise DriveError(
             f"the axis did not come to rest {when}: |velocity| stayed above "
-            f"bench.settle_tolerance {tolerance:g} for {limit} cycles ({limit * self.settings.period:g} s)"
+            f"bench.settle_tolerance {tolerance:g} for {limit} cycles ({limit * self.settings.sample_time:g} s)"
         )
 
     def _run_trial(self, trial: int, total_trials: int) -> _RawTrial:
@@ -785,7 +785,7 @@ class TrialLoop:
         metrics = self._noise_floor.measured(update.metrics, error)
         record = TrialRecord(
             trial=raw.trial,
-            sample_time=self.settings.period,
+            sample_time=self.settings.sample_time,
             reference=self.reference,
             seen=raw.seen,
             control=raw.control,
@@ -842,7 +842,7 @@ class TrialLoop:
         self._received = received
         self._missing = False
         self._latency = received - self._sync_time
-        self._late = self.scheduler is not None and self._latency > LATE_FEEDBACK_FRACTION * self.settings.period
+        self._late = self.scheduler is not None and self._latency > LATE_FEEDBACK_FRACTION * self.settings.sample_time
         if feedback.state != State402.OPERATION_ENABLED:
             raise DriveFaultError(
                 f"the drive left OPERATION ENABLED (now {State402(feedback.state).name}) at cycle {self._cycle}"
@@ -884,7 +884,7 @@ class TrialLoop:
         if error is not None:
             self.timing.record(
                 self._sync_time, self._deadline, self._lateness, math.nan, math.nan, self._skipped, False, True,
-                self._received > self._deadline + self.settings.period,
+                self._received > self._deadline + self.settings.sample_time,
             )
             raise error from cause
         return self._held
@@ -894,7 +894,7 @@ class TrialLoop:
         if self._clocked:  # the command went out after the next SYNC (the bus object's order of sends): missed
             missed = cast(ClockedDriveLike, self._clock_drive).rpdo_sync_count > self._sync_number
         else:  # it went out after the next slot's SYNC should have latched it (NaN deadline: never)
-            missed = sent > self._deadline + self.settings.period
+            missed = sent > self._deadline + self.settings.sample_time
         self.timing.record(
             self._sync_time,
             self._deadline,
@@ -986,7 +986,7 @@ def loop_settings(config: Any, mode: TimingMode | None = None, *, settle_between
     """The loop's settings from ``sample_time`` and the ``bench:`` section; ``mode`` overrides ``bench.mode``."""
     bench = config.bench
     return LoopSettings(
-        period=config.sample_time,
+        sample_time=config.sample_time,
         mode=TimingMode(mode or bench.mode),
         watchdog_cycles=bench.watchdog_cycles,
         divergence_factor=bench.divergence_factor,

@@ -615,7 +615,7 @@ def _commission(drives: Sequence[Any], plan: RunPlan, sink: McapSink | None, ses
     if session is not None:
         session.__enter__()
     for drive, axis in zip(drives, plan.axes, strict=True):
-        drive.configure(axis.config.drive.operation_mode, plan.config.sample_time)
+        drive.configure(axis.config.drive.operation_mode)
     if sink is not None:
         _log_mappings(sink, drives, plan)
         sink.ready()

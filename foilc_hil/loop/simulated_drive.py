@@ -61,7 +61,7 @@ class SimulatedDrive(Drive):
     plant
         A single-input single-output plant (``plant_emulator.physics.build_plant``).
     sample_time
-        The period one SYNC advances the plant (seconds); :meth:`configure` may set another.
+        The period one SYNC advances the plant (seconds): the cycle period, given once.
     input_delay
         SYNCs between :meth:`set_target` and the step that applies the command, minus one: 1 is the CAN loop, 0 the
         ideal loop (the command acts over the very next period).
@@ -82,7 +82,7 @@ class SimulatedDrive(Drive):
         self.plant = plant
         # the plant's whole-trial capability, checked once (a protocol check costs more than a trial's Python)
         self._compiled: CompiledPlant | None = plant if whole_trials and isinstance(plant, CompiledPlant) else None
-        self.period = float(sample_time)
+        self.sample_time = float(sample_time)
         self.input_delay = int(input_delay)
         self.mode = OperationMode.CYCLIC_SYNC_VELOCITY
         # slot 0 is applied at the next step, the last one is new; a list: shifting it is cheaper than an array's
@@ -118,7 +118,7 @@ class SimulatedDrive(Drive):
             y = self.plant.output()
         else:
             self._command[0] = pending[0] if self._state is State402.OPERATION_ENABLED else 0.0
-            y = self.plant.step(self._command, self.period)
+            y = self.plant.step(self._command, self.sample_time)
         if self.input_delay:
             del pending[0]
             pending.append(pending[-1])  # the newest slot keeps its value: a drive holds its last set-point
@@ -159,7 +159,7 @@ class SimulatedDrive(Drive):
         plant = self._compiled
         if not (ready and isinstance(law, LearningLaw) and plant is not None):
             return None
-        program = plant.trial_program(n - 1, self.period)
+        program = plant.trial_program(n - 1, self.sample_time)
         if program is None:
             return None
         seen[0] = float(self.plant.output()[0])
@@ -209,10 +209,9 @@ class SimulatedDrive(Drive):
         """A simulated drive is always there: its identity is all zeros."""
         return DeviceInfo(0, 0, 0, 0, 0, 0, NmtState.PRE_OPERATIONAL, tuple(OperationMode))
 
-    def configure(self, mode: OperationMode, cycle_period: float) -> None:
-        """Record the mode (the plant's input is what its config says) and the period one SYNC advances."""
+    def configure(self, mode: OperationMode) -> None:
+        """Record the mode (the plant's input is what its config says)."""
         self.mode = mode
-        self.period = float(cycle_period)
 
     def enable(self) -> None:
         self._state = State402.OPERATION_ENABLED
