@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Any
 
 from drivers.cia402_master import PdoPlan
 from drivers.errors import ConfigError
@@ -121,7 +122,7 @@ class BusLoad:
             raise ConfigError(f"refused: {self.describe()}", key=key)
         return self
 
-    def to_json(self) -> dict[str, object]:
+    def to_json(self) -> dict[str, Any]:
         """The figures as a JSON object (``run --json``'s ``bus_load``)."""
         return {
             "bitrate": self.bitrate,

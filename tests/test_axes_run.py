@@ -14,6 +14,7 @@ import itertools
 import json
 from collections import Counter
 from pathlib import Path
+from typing import Any, cast
 
 import numpy as np
 import pytest
@@ -155,7 +156,7 @@ def test_a_precomputed_design_is_refused_for_axes(capsys: pytest.CaptureFixture[
     from foilc_hil.loop.rig import RunRequest, run_rig
 
     with pytest.raises(InputError, match=r"^design: "):
-        run_rig(RunRequest(config=load_config(SCARA), out=None, trials=1, design=object()))
+        run_rig(RunRequest(config=load_config(SCARA), out=None, trials=1, design=cast(Any, object())))
 
 
 def _runs(indices: list[int]) -> list[int]:

@@ -135,6 +135,6 @@ def test_a_realtime_axes_run_enters_the_host_setup_once_every_receive_path_exist
     drives = [_CommissionedDrive(node, calls) for node in (1, 2)]
     axis = SimpleNamespace(config=SimpleNamespace(drive=SimpleNamespace(operation_mode="csv")))
     plan = cast(Any, SimpleNamespace(axes=[axis, axis], config=SimpleNamespace(sample_time=0.0025)))
-    _commission(drives, plan, None, cast(Any, _Session(calls)))
+    _commission(cast(Any, drives), plan, None, cast(Any, _Session(calls)))
     assert calls == ["connect 1", "connect 2", "realtime host setup", "configure 1", "configure 2", "enable 1",
                      "enable 2"]

@@ -41,7 +41,12 @@ from foilc_hil.config import LawKind
 from foilc_hil.errors import ExitCode
 
 if TYPE_CHECKING:
+    from multiprocessing.queues import Queue
+
+    from foilc_hil.config import Config
+    from foilc_hil.design.record import Design
     from foilc_hil.io.mcap_log import LogContents
+    from foilc_hil.progress import RichRunsProgress
 
 HELP = "FOILC and IOILC side by side on the embedded emulator"
 
@@ -126,15 +131,15 @@ class LawRun:
 
 
 #: the queue a worker's runs report their progress to (set by the pool's initializer; None: no progress view)
-_EVENTS: Any = None
+_EVENTS: Queue[tuple[Any, ...] | None] | None = None
 
 
-def _set_events(events: Any) -> None:
+def _set_events(events: Queue[tuple[Any, ...] | None] | None) -> None:
     global _EVENTS
     _EVENTS = events
 
 
-def run_laws(config: Any, out_dir: Path, args: argparse.Namespace) -> tuple[dict[str, LawRun], float]:
+def run_laws(config: Config, out_dir: Path, args: argparse.Namespace) -> tuple[dict[str, LawRun], float]:
     """Design, then run and report every law of :data:`DEMO_LAWS`, each in its own worker process at once (the
     machine has two cores, and each run is one busy thread: the lockstep loop with its emulator); returns the runs
     and the seconds the designs took. The progress of both runs is shown by one view in this process."""
@@ -169,13 +174,13 @@ def run_laws(config: Any, out_dir: Path, args: argparse.Namespace) -> tuple[dict
             view.close()
 
 
-def _pump(events: Any, view: Any) -> None:
+def _pump(events: Queue[tuple[Any, ...] | None], view: RichRunsProgress) -> None:
     """The parent's side of the progress: every worker's event to the one view, until ``None``."""
     for item in iter(events.get, None):
         view.handle(*item)
 
 
-def _run_law(config: Any, law: str, trials: int | None, out_dir: Path, design: dict[str, Any],
+def _run_law(config: Config, law: str, trials: int | None, out_dir: Path, design: dict[str, Any],
              no_report: bool) -> LawRun:
     """One law over CAN on its own embedded emulator, then its report (runs in a worker process)."""
     from foilc_hil.design.record import Design
@@ -185,7 +190,7 @@ def _run_law(config: Any, law: str, trials: int | None, out_dir: Path, design: d
         return _run_and_report(config, law, trials, out_dir, Design.from_json(design), no_report)
 
 
-def _run_and_report(config: Any, law: str, trials: int | None, out_dir: Path, design: Any,
+def _run_and_report(config: Config, law: str, trials: int | None, out_dir: Path, design: Design,
                     no_report: bool) -> LawRun:
     from drivers.config import BusConfig
     from foilc_hil.loop.rig import RunRequest, run_rig
@@ -216,14 +221,14 @@ def _run_and_report(config: Any, law: str, trials: int | None, out_dir: Path, de
     return LawRun(document, (report.outcome.stopped or "diverged") if report.outcome.diverged else "", contents)
 
 
-def _design_one(config: Any, law: str, n_samples: int) -> dict[str, Any]:
+def _design_one(config: Config, law: str, n_samples: int) -> dict[str, Any]:
     """One law's design as JSON (runs in a worker process): the bench's own design for its CAN loop."""
     from foilc_hil.loop.bench import build_design
 
     return dict(build_design(config, law, n_samples).to_json())
 
 
-def design_all(pool: Executor, config: Any, laws: tuple[str, ...]) -> dict[str, dict[str, Any]]:
+def design_all(pool: Executor, config: Config, laws: tuple[str, ...]) -> dict[str, dict[str, Any]]:
     """The designs of every law as JSON, synthesised in parallel in ``pool``'s worker processes (the certificates
     of a 6000-sample trial are the slow part of the demo's start-up; the machine has two cores)."""
     from foilc_hil.references import trial_samples

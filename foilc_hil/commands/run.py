@@ -27,11 +27,16 @@ e.g. ``--inject drop-tpdo@2+10:count=3`` or ``--inject emulator-kill@3+25``.
 from __future__ import annotations
 
 import argparse
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from foilc_hil.commands import CommandResult, add_bus_options, bus_options
 from foilc_hil.errors import ExitCode
 from foilc_hil.live.options import add_live_options, live_options
+
+if TYPE_CHECKING:
+    from drivers.busload import BusLoad
+    from drivers.config import BusConfig
+    from foilc_hil.config import Config
 
 HELP = "run learning trials over CAN against a drive"
 
@@ -68,7 +73,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_live_options(parser, rows=True)
 
 
-def check_bus(bus: Any) -> None:
+def check_bus(bus: BusConfig) -> None:
     """Find a bad bus before the (possibly minutes-long) design: an interface python-can does not know is an
     :class:`~foilc_hil.errors.InputError` (exit 2); a bus that does not open (e.g. SocketCAN without the kernel
     module or the interface) is the :class:`~foilc_hil.errors.DriveError` of :func:`drivers.bus.open_bus`, with its
@@ -83,7 +88,7 @@ def check_bus(bus: Any) -> None:
     open_bus(bus).shutdown()
 
 
-def check_bus_load(config: Any, bus: Any) -> Any:
+def check_bus_load(config: Config, bus: BusConfig) -> BusLoad:
     """The worst-case :class:`~drivers.busload.BusLoad` of the run's schedule on ``bus``; a
     :class:`~foilc_hil.errors.ConfigError` naming ``bus.load_limit`` with the figures (exit 2) when over the limit.
 

@@ -20,6 +20,7 @@ import numpy as np
 from foilc_hil.io.schemas import METADATA_CLOSING, METADATA_LAYOUT
 
 if TYPE_CHECKING:
+    from foilc_hil.config import Config
     from foilc_hil.io.mcap_log import LogContents
 
 __all__ = [
@@ -148,7 +149,7 @@ def promises_closing(contents: LogContents) -> bool:
     return contents.metadata.get(METADATA_LAYOUT, {}).get("closing") == "1"
 
 
-def check_law_kind(config: Any, design: Mapping[str, Any]) -> Finding | None:
+def check_law_kind(config: Config, design: Mapping[str, Any]) -> Finding | None:
     """The config's ``law.kind`` is the law the design was made for (``foilc`` with ``kp = 0`` is IOILC's)."""
     kind = str(getattr(config.law.kind, "value", config.law.kind))
     law = str(design.get("law", kind))

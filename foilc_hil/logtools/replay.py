@@ -52,6 +52,7 @@ from foilc_hil.logtools.wire import WireMap, check_trial_wire, sync_windows, wir
 if TYPE_CHECKING:
     import can
 
+    from foilc_hil.config import Config
     from foilc_hil.io.mcap_log import LogContents
     from foilc_hil.metrics import NoiseFloorTracker
 
@@ -249,7 +250,7 @@ def _output_for_error(reference: float, error: float) -> float | None:
     return None
 
 
-def logged_config(contents: LogContents) -> Any:
+def logged_config(contents: LogContents) -> Config:
     """The run's :class:`~foilc_hil.config.Config` from the ``foilc_hil.config`` metadata.
 
     Raises
@@ -378,7 +379,7 @@ class _Checks:
     windows: list[Any]
 
 
-def _checks(contents: LogContents, config: Any, layout: int) -> _Checks:
+def _checks(contents: LogContents, config: Config | None, layout: int) -> _Checks:
     if config is None or layout == 1:  # logs before layout 2: their figures were computed another way
         return _Checks(records=False, tracker=None, wire=None, windows=[])
     from foilc_hil.io.schemas import METADATA_PDO_MAPPING
@@ -532,7 +533,7 @@ def _as_float(value: Any) -> float:
     return float(vector[0]) if vector is not None and vector.size == 1 else math.nan
 
 
-def _log_finding(contents: LogContents, config: Any, n: int, whole_log: bool) -> Finding | None:
+def _log_finding(contents: LogContents, config: Config, n: int, whole_log: bool) -> Finding | None:
     """The log as a whole: its closing record, the config's law against the design's, the design rebuilt."""
     if not promises_closing(contents):
         return None  # a log written before these records, or by hand: its commands and figures are what is checked
@@ -546,7 +547,7 @@ def _log_finding(contents: LogContents, config: Any, n: int, whole_log: bool) ->
     return check_law_kind(config, design) or check_design(design, _rebuilt_design(config, design, n))
 
 
-def _rebuilt_design(config: Any, design: Mapping[str, Any], n: int) -> dict[str, Any]:
+def _rebuilt_design(config: Config, design: Mapping[str, Any], n: int) -> dict[str, Any]:
     """The design the logged config gives for the logged law and input delay, as the log would hold it."""
     import json
 

@@ -106,7 +106,8 @@ from foilc_hil.progress import UPDATES_PER_TRIAL, NullProgress, ProgressView
 from plant_emulator.device import TimingMode
 
 if TYPE_CHECKING:
-
+    from foilc_hil.config import Config
+    from foilc_hil.design.record import Design
     from foilc_hil.io.log_process import ProcessLogWriter
     from foilc_hil.io.mcap_log import McapLogWriter
     from foilc_hil.loop.stalls import LoopStalls
@@ -967,14 +968,14 @@ _VECTOR = _Signals(slice(None), _vector, _vector, _peak, _require_all_finite)
 CAN_INPUT_DELAY = 1
 
 
-def build_design(config: Any, law: str, n_samples: int) -> Any:
+def build_design(config: Config, law: str, n_samples: int) -> Design:
     """The design of ``law`` for the bench's CAN loop (:func:`foilc_hil.design.pipeline.build_design`)."""
     from foilc_hil.design.pipeline import build_design as pipeline_design
 
     return pipeline_design(config, law, n_samples, input_delay=CAN_INPUT_DELAY)
 
 
-def command_limiter(config: Any) -> CommandLimiter:
+def command_limiter(config: Config) -> CommandLimiter:
     """Limits of the command in plant units: the drive's limit for the mode, and the plant's saturation."""
     drive = config.drive
     saturation = config.plant.saturation
@@ -982,7 +983,8 @@ def command_limiter(config: Any) -> CommandLimiter:
     return CommandLimiter.symmetric(limit, u_min=saturation.u_min, u_max=saturation.u_max)
 
 
-def loop_settings(config: Any, mode: TimingMode | None = None, *, settle_between_trials: bool = True) -> LoopSettings:
+def loop_settings(config: Config, mode: TimingMode | None = None, *,
+                  settle_between_trials: bool = True) -> LoopSettings:
     """The loop's settings from ``sample_time`` and the ``bench:`` section; ``mode`` overrides ``bench.mode``."""
     bench = config.bench
     return LoopSettings(

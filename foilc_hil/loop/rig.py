@@ -33,9 +33,10 @@ from __future__ import annotations
 
 import contextlib
 import enum
+import os
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any, cast
+from typing import TYPE_CHECKING, Any, Protocol, cast
 
 import numpy as np
 
@@ -64,11 +65,22 @@ from foilc_hil.progress import ProgressView
 from plant_emulator.device import TimingMode
 
 if TYPE_CHECKING:
+    from drivers.cia402_master import Cia402Drive
+    from drivers.config import BusConfig
     from foilc_hil.config import Config
     from foilc_hil.design.record import Design
+    from foilc_hil.io.log_process import ProcessLogWriter
+    from foilc_hil.laws.learning import LearningLaw
     from foilc_hil.loop.simulated_drive import SimulatedDrive
+    from plant_emulator.embedded import EmbeddedEmulator
 
 __all__ = ["AxisPlan", "DriveKind", "Rig", "RunPlan", "RunReport", "RunRequest", "plan_axis", "plan_run", "run_rig"]
+
+
+class LiveView(Protocol):
+    """A live view of a run (``foilc_hil.live.publisher.LivePublisher``, a rank above the loop)."""
+
+    def attach(self, loop: TrialLoop, drives: Sequence[Any]) -> None: ...
 
 
 class DriveKind(enum.StrEnum):
@@ -115,17 +127,17 @@ class RunRequest:
         the simulated drive runs any (0: the ideal loop).
     """
 
-    config: Any
-    out: Any
+    config: Config
+    out: str | os.PathLike[str] | None
     law: str | None = None
     trials: int | None = None
     mode: TimingMode | None = None
-    bus: Any = None
+    bus: BusConfig | None = None
     quiet: bool = True
-    design: Any = None
+    design: Design | None = None
     title: str = ""
     progress: ProgressView | None = None
-    live: Any = None
+    live: LiveView | None = None
     drive: DriveKind = DriveKind.CAN
     input_delay: int | None = None
 
@@ -181,7 +193,7 @@ class AxisPlan:
 
     config: Config
     design: Design
-    law: Any  # foilc_hil.laws.learning.LearningLaw
+    law: LearningLaw
     limiter: CommandLimiter
 
     @property
@@ -195,7 +207,7 @@ class RunPlan:
 
     law_kind: str
     trials: int
-    bus: Any
+    bus: BusConfig
     config: Config
     axes: tuple[AxisPlan, ...]
     law: LawLike  # what the loop calls: the axis's own law, or every axis's behind one (m,) law (AxisLaws)
@@ -284,7 +296,7 @@ def _input_delay(request: RunRequest) -> int:
 
 
 def _injections(config: Config, configs: Sequence[Config],
-                bus: Any) -> tuple[dict[int, tuple[Injection, ...]], LoopStalls | None]:
+                bus: BusConfig) -> tuple[dict[int, tuple[Injection, ...]], LoopStalls | None]:
     """The faults ``inject:`` puts on each axis's bus or emulator (node id -> faults), and the loop's own stalls."""
     require_actions(config.inject, emulator=bus.interface == "embedded")
     injections = split_by_axis(config.inject, [axis.drive.node_id for axis in configs])  # a stray axis: exit 2
@@ -293,7 +305,7 @@ def _injections(config: Config, configs: Sequence[Config],
     return kept, LoopStalls.of(config.inject)
 
 
-def _title(law_kind: str, axes: int, bus: Any) -> str:
+def _title(law_kind: str, axes: int, bus: BusConfig | None) -> str:
     """The progress view's title: the law, the axes and what runs them (``bus`` ``None``: the simulated plant)."""
     if bus is None:
         where = "the simulated plant"
@@ -377,8 +389,8 @@ class Rig:
         self._loop: TrialLoop | None = None
         self._session: RealtimeSession | None = None
         self._faulty: list[FaultyBus] = []
-        self.emulators: list[Any] = []  # the embedded emulators (plant_emulator.embedded), one per axis; [] on a bus
-        self.drives: list[Any] = []  # the masters (drivers.cia402_master.Cia402Drive), one per axis
+        self.emulators: list[EmbeddedEmulator] = []  # the embedded emulators, one per axis; [] on a bus
+        self.drives: list[Cia402Drive] = []  # the masters, one per axis ([] for the simulated drive)
         self._bus = ""
         self._open = contextlib.ExitStack()
 
@@ -428,11 +440,10 @@ class Rig:
             sink = _open_log(stack, self.request, self.plan)
             self.sinks.extend([sink] if sink is not None else [])
             drive = _simulated_drive(self.plan)
-            self.drives = [drive]
             progress = self.request.progress or _progress(self.plan, self.request.quiet)
             stack.callback(progress.close)
             # no signal handlers: simulate never installed any (and the Monte Carlo runs on Dask's worker threads)
-            self._loop = _trial_loop(self.plan, self.drives, sink, progress, StopRequest(), hook=drive.begin_trial)
+            self._loop = _trial_loop(self.plan, [drive], sink, progress, StopRequest(), hook=drive.begin_trial)
             drive.enable()
             self._open = stack.pop_all()
         return self
@@ -484,8 +495,8 @@ def _progress(plan: RunPlan, quiet: bool) -> ProgressView:
     return make_progress(plan.title, quiet=quiet)
 
 
-def _trial_loop(plan: RunPlan, drives: Sequence[Any], sink: McapSink | None, progress: ProgressView,
-                stop: StopRequest, hook: Callable[[int], None] | None) -> TrialLoop:
+def _trial_loop(plan: RunPlan, drives: Sequence[Cia402Drive] | Sequence[SimulatedDrive], sink: McapSink | None,
+                progress: ProgressView, stop: StopRequest, hook: Callable[[int], None] | None) -> TrialLoop:
     """The one loop: on the axis's own drive, law and limiter, or on the ``(m,)`` composites of several axes."""
     law, limiter = plan.law, plan.limiter
     if not plan.several:
@@ -536,7 +547,7 @@ def _open_log(stack: contextlib.ExitStack, request: RunRequest, plan: RunPlan) -
     return McapSink(writer, (limiter.lower, limiter.upper))
 
 
-def _log_axes(writer: Any, plan: RunPlan) -> None:
+def _log_axes(writer: ProcessLogWriter, plan: RunPlan) -> None:
     """Each axis's own config and design, for ``replay --verify`` and ``report`` of one axis."""
     from foilc_hil.config import dump_config
     from foilc_hil.io.mcap_log import encode_design
@@ -547,7 +558,7 @@ def _log_axes(writer: Any, plan: RunPlan) -> None:
         writer.add_metadata(f"{METADATA_AXIS_PREFIX}.{axis.node_id}.design", encode_design(axis.design.to_json()))
 
 
-def _start_emulators(stack: contextlib.ExitStack, plan: RunPlan) -> tuple[Any, list[Any]]:
+def _start_emulators(stack: contextlib.ExitStack, plan: RunPlan) -> tuple[BusConfig, list[EmbeddedEmulator]]:
     """``interface: embedded``: one emulated drive per axis (its own plant) on ONE in-process channel; returns the
     bus to open and the emulators. Injected faults act through a wrapper of the master's bus, which needs frames to
     pass its send and recv: the emulators then run threaded."""
@@ -562,8 +573,9 @@ def _start_emulators(stack: contextlib.ExitStack, plan: RunPlan) -> tuple[Any, l
     return emulators[0].bus_config, emulators
 
 
-def _open_drives(stack: contextlib.ExitStack, plan: RunPlan, bus_cfg: Any, sink: McapSink | None,
-                 stops: dict[int, StopReport], emulators: list[Any]) -> tuple[list[Any], list[FaultyBus]]:
+def _open_drives(stack: contextlib.ExitStack, plan: RunPlan, bus_cfg: BusConfig, sink: McapSink | None,
+                 stops: dict[int, StopReport],
+                 emulators: list[EmbeddedEmulator]) -> tuple[list[Cia402Drive], list[FaultyBus]]:
     """The bus (wrapped in each faulted axis's ``inject:``), one network, one master per axis (each safe-stopped on
     exit, its state read back)."""
     from drivers.bus import open_bus
@@ -600,12 +612,13 @@ def _open_drives(stack: contextlib.ExitStack, plan: RunPlan, bus_cfg: Any, sink:
     return drives, faulty
 
 
-def _record_stop(stops: dict[int, StopReport], drive: Any) -> None:
+def _record_stop(stops: dict[int, StopReport], drive: Cia402Drive) -> None:
     """Safe-stop one axis's drive and keep what its statusword confirmed."""
     stops[drive.node_id] = drive.safe_stop()
 
 
-def _commission(drives: Sequence[Any], plan: RunPlan, sink: McapSink | None, session: RealtimeSession | None) -> None:
+def _commission(drives: Sequence[Cia402Drive], plan: RunPlan, sink: McapSink | None,
+                session: RealtimeSession | None) -> None:
     """Connect every drive, enter the realtime ``session`` (if any: after connect, so the CAN receive thread exists
     to be raised; before the heartbeats are configured and SYNC is watched), configure every drive (NMT
     OPERATIONAL), log each PDO mapping, wait for the log writer, then enable every drive: the loop's first SYNC
@@ -623,7 +636,7 @@ def _commission(drives: Sequence[Any], plan: RunPlan, sink: McapSink | None, ses
         drive.enable()
 
 
-def _log_mappings(sink: McapSink, drives: Sequence[Any], plan: RunPlan) -> None:
+def _log_mappings(sink: McapSink, drives: Sequence[Cia402Drive], plan: RunPlan) -> None:
     """Log the PDO mapping ``configure`` installed on each axis (``export --format dbc`` reads it): the first axis's
     also as the single-axis record, where readers of one axis find it."""
     from drivers.cia402_master import pdo_plan
@@ -640,7 +653,8 @@ def _log_mappings(sink: McapSink, drives: Sequence[Any], plan: RunPlan) -> None:
             sink.writer.add_metadata(METADATA_PDO_MAPPING, record)
 
 
-def cyclic_receiver(stack: contextlib.ExitStack, settings: LoopSettings, bus_cfg: Any) -> CyclicReceiver | None:
+def cyclic_receiver(stack: contextlib.ExitStack, settings: LoopSettings,
+                    bus_cfg: BusConfig) -> CyclicReceiver | None:
     """Realtime with ``bench.realtime.cyclic_receive: loop``: the loop thread receives the TPDOs itself
     (:mod:`drivers.cyclic_rx`; closed on ``stack``). The caller leaves it out under injected faults: they act on the
     master's bus object, which a second one would bypass."""
@@ -690,7 +704,7 @@ def stop_error(report: StopReport, node_id: int, subject: str) -> DriveError | N
 # --- the report and the truth about the stops ---------------------------------------------------------------------
 
 
-def _design_summary(design: Any) -> dict[str, Any]:
+def _design_summary(design: Design) -> dict[str, Any]:
     return {"kp": design.kp, "r": design.r, "input_delay": design.input_delay, "gain_scale": design.gain_scale,
             "certificates": design.to_json().get("certificates", {})}
 
