@@ -77,7 +77,9 @@ def test_the_shipped_scara_config_has_four_different_pmsm_axes() -> None:
 )
 def test_bad_axis_entries_exit_2_naming_the_field(tmp_path: Path, capsys: pytest.CaptureFixture[str], axes: str,
                                                   expected: str, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr("foilc_hil.loop.bench.build_design", _refuse)
+    from foilc_hil.design import pipeline
+
+    monkeypatch.setattr(pipeline, "build_design", _refuse)  # where the rig makes a design
     config = _write(tmp_path, f"axes: {axes}\n")
     code = main(["run", "--config", str(config), "--out", str(tmp_path / "x.mcap"), "--json"])
     captured = capsys.readouterr()
@@ -104,7 +106,9 @@ def test_the_bus_load_counts_every_axis_and_refuses_four_axes_at_1_khz(
     names = [frame["name"] for frame in load.to_json()["frames"]]
     assert names.count("SYNC") == 1 and sum("master heartbeat" in name for name in names) == 1
     assert {f"node {node} TPDO2" for node in (1, 2, 3, 4)} <= set(names)
-    monkeypatch.setattr("foilc_hil.loop.bench.build_design", _refuse)
+    from foilc_hil.design import pipeline
+
+    monkeypatch.setattr(pipeline, "build_design", _refuse)  # where the rig makes a design
     fast = tmp_path / "fast.yaml"
     fast.write_text(SCARA.read_text(encoding="utf-8").replace("sample_time: 0.0025", "sample_time: 0.001"),
                     encoding="utf-8")

@@ -103,7 +103,9 @@ def test_run_honours_can_interface_before_the_design(monkeypatch: pytest.MonkeyP
     def refuse(*args: object, **kwargs: object) -> None:
         raise AssertionError("the design started before the bus was checked")
 
-    monkeypatch.setattr("foilc_hil.loop.bench.build_design", refuse)
+    from foilc_hil.design import pipeline
+
+    monkeypatch.setattr(pipeline, "build_design", refuse)  # where the rig makes a design
     _env(monkeypatch, interface="canbus9000", channel="x")
     assert main(["run", "--out", str(tmp_path / "x.mcap"), "--json"]) == 2
     assert "unknown interface 'canbus9000'" in json.loads(capsys.readouterr().out)["error"]["message"]

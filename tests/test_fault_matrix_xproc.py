@@ -99,17 +99,17 @@ def _wait(predicate: Any, limit: float) -> bool:
 
 def _share_one_design() -> None:
     """Every row has the same plant: make the design once in this process (it is not what is tested)."""
-    import foilc_hil.loop.bench as bench
+    from foilc_hil.design import pipeline
 
-    design = bench.build_design
-    cache: dict[tuple[str, int], Any] = {}
+    design = pipeline.build_design
+    cache: dict[tuple[str, int, int], Any] = {}
 
-    def shared(config: Any, law: str, n_samples: int) -> Any:
-        if (law, n_samples) not in cache:
-            cache[(law, n_samples)] = design(config, law, n_samples)
-        return cache[(law, n_samples)]
+    def shared(config: Any, law: str, n_samples: int, *, input_delay: int) -> Any:
+        if (law, n_samples, input_delay) not in cache:
+            cache[(law, n_samples, input_delay)] = design(config, law, n_samples, input_delay=input_delay)
+        return cache[(law, n_samples, input_delay)]
 
-    bench.build_design = shared
+    pipeline.build_design = shared
 
 
 def _hurt_when_a_trial_is_logged(emulator: subprocess.Popen[bytes], out: Path, signal_name: str) -> threading.Thread:

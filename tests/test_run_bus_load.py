@@ -43,7 +43,9 @@ def no_design(monkeypatch: pytest.MonkeyPatch) -> None:
     def refuse(*args: Any, **kwargs: Any) -> None:
         raise AssertionError("the design started before the bus load was checked")
 
-    monkeypatch.setattr("foilc_hil.loop.bench.build_design", refuse)
+    from foilc_hil.design import pipeline
+
+    monkeypatch.setattr(pipeline, "build_design", refuse)  # where the rig makes a design
 
 
 @pytest.mark.usefixtures("no_design")
