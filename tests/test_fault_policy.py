@@ -310,7 +310,7 @@ def test_losses_in_a_row_beyond_the_limit_abort_after_quick_stop() -> None:
 
 
 def test_timing_records_carry_the_lost_feedback_flag() -> None:
-    from foilc_hil.loop.bench import McapSink
+    from foilc_hil.loop.log_sink import McapSink
     from foilc_hil.loop.scheduler import CycleTiming
 
     class Writer:

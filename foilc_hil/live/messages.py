@@ -57,7 +57,7 @@ def sample_documents(samples: TrialSamples, limit: int) -> list[bytes]:
 
 
 def trial_document(record: TrialRecord, limits: Sequence[float] | None) -> bytes:
-    """The ``/ilc/trial`` document the log writes for ``record`` (``foilc_hil.loop.bench.McapSink``'s fields, in its
+    """The ``/ilc/trial`` document the log writes for ``record`` (``foilc_hil.loop.log_sink.McapSink``'s fields, in its
     order): the metrics, the ends of the output, the axis and first SYNC where known, and with ``limits`` (the limits
     the law clamped to) the clamp count, the limits and the fault counts."""
     ends: dict[str, Any] = {"initial_output": float(record.seen[0]), "final_output": float(record.seen[-1])}
@@ -77,7 +77,7 @@ def trial_document(record: TrialRecord, limits: Sequence[float] | None) -> bytes
 
 def timing_documents(records: Iterable[CycleTiming], previous: float | None) -> tuple[list[bytes], float | None]:
     """The ``/timing`` documents of a block of cycles and the block's last SYNC time (``previous``: the one before
-    the block, for the first cycle's period), as ``foilc_hil.loop.bench.McapSink.timing`` logs them."""
+    the block, for the first cycle's period), as ``foilc_hil.loop.log_sink.McapSink.timing`` logs them."""
     documents = []
     for record in records:
         period_us = (record.sync_time - previous) * 1e6 if previous is not None else 0.0

@@ -53,12 +53,11 @@ from foilc_hil.loop.bench import (
     LawLike,
     LimiterLike,
     LoopSettings,
-    McapSink,
     TrialLoop,
     command_limiter,
-    logged_trials,
     loop_settings,
 )
+from foilc_hil.loop.log_sink import McapSink, logged_trials
 from foilc_hil.loop.safety import CommandLimiter, StopRequest
 from foilc_hil.loop.stalls import LoopStalls
 from foilc_hil.progress import ProgressView
