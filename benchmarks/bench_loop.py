@@ -89,6 +89,10 @@ def _first_order_config(sample_time: float, duration: float) -> Any:
 
 def loop_only(samples: int = 2000, trials: int = 5) -> dict[str, Any]:
     """The trial loop's own per-cycle cost (no CAN)."""
+    from foilc_hil.config import LawKind
+    from foilc_hil.design.models import DiscreteModel, Uncertainty
+    from foilc_hil.design.ptype import p_type_default_gain
+    from foilc_hil.design.record import Design
     from foilc_hil.laws.learning import PType
     from foilc_hil.loop.bench import LoopSettings, TrialLoop
     from foilc_hil.loop.safety import CommandLimiter
@@ -101,7 +105,10 @@ def loop_only(samples: int = 2000, trials: int = 5) -> dict[str, Any]:
     B = np.array([[0.0], [1.0]])
     C = np.array([[1.0, 0.0]])
     reference = np.ones(samples)
-    law = PType(A, B, C, samples, input_delay=1)
+    gamma = p_type_default_gain(A, B, C, 1)
+    model = DiscreteModel(A, B, C, sample_time, input_delay=1, C_measured=C)
+    design = Design(LawKind.P_TYPE, model, Uncertainty.none(2, 1), np.hstack([np.zeros((1, 2)), gamma]), 0.0, 1.0)
+    law = PType(design, samples)
     loop = TrialLoop(
         InMemoryDrive(a, b, sample_time),
         law,

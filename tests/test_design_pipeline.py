@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -19,8 +20,8 @@ from foilc_hil.design.pipeline import build_design, law_kind
 from foilc_hil.design.ptype import p_type_default_gain
 from foilc_hil.design.qfilter import QFilter
 from foilc_hil.design.record import Design
-from foilc_hil.errors import ConfigError, ConvergenceCertificateError
-from foilc_hil.laws.learning import PType, make_law
+from foilc_hil.errors import ConfigError, ConvergenceCertificateError, InputError
+from foilc_hil.laws.learning import Foilc, PType, make_law
 from foilc_hil.loop import bench, rig, simulation
 from foilc_hil.references import trial_samples
 from tests.test_bench_e2e import bench_config
@@ -137,6 +138,83 @@ def _lifted_input_map(design: Design, Q: np.ndarray, n: int) -> np.ndarray:
     return Q - full @ G_y
 
 
+@pytest.mark.parametrize("kind", list(LawKind))
+def test_the_law_runs_the_filter_and_gains_its_certificates_were_computed_with(
+    kind: LawKind, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """One home: the pipeline builds the Q-filter once; the certificates take it on the trial, the design holds that
+    object and the law runs it (the same object, not one built again from the config), with the design's gains and
+    ``kp``, ``r`` bit for bit."""
+    structures: list[Any] = []
+    certify = pipeline._design
+
+    def recording(config: Config, law: LawKind, model: Any, uncertainty: Any, structure: Any) -> Design:
+        structures.append(structure)
+        return certify(config, law, model, uncertainty, structure)
+
+    monkeypatch.setattr(pipeline, "_design", recording)
+    config = _config(tuning={"kp": 0.02, "r": 0.5})
+    n = trial_samples(config.reference, config.sample_time)
+    design = build_design(config, kind, n, input_delay=1)
+    law = make_law(design, config.law, n)
+    (structure,) = structures
+    assert structure.q_filter is not None and design.q_filter is not None
+    assert law.q_filter is design.q_filter and design.q_filter is structure.q_filter.filter
+    assert design.certificates is not None and design.certificates.q_filter
+    np.testing.assert_array_equal(law._error_gain, design.p2)  # p2 (Gamma for P-type): the design's
+    if isinstance(law, Foilc):  # and IOILC
+        np.testing.assert_array_equal(law._p1, design.p1)
+        assert (law.kp, law.r) == (design.kp, design.r) == (structure.kp, structure.r)
+    # the filter and the gains survive the design's JSON (the log's foilc_hil.design record): replay runs them
+    logged = Design.from_json(json.loads(json.dumps(design.to_json())))
+    assert logged.q_filter is not None and logged.q_filter.to_json() == design.q_filter.to_json()
+    replayed = make_law(logged, config.law, n)
+    assert replayed.q_filter is logged.q_filter
+    np.testing.assert_array_equal(logged.q_filter.matrix(n), design.q_filter.matrix(n))
+
+
+def test_a_law_is_not_given_another_filter_than_its_certificates() -> None:
+    """``law.q_filter`` must be the design's filter, and the design must hold the filter its certificates were
+    computed with: otherwise the certificates would not be of the law that runs."""
+    config = _config()
+    n = trial_samples(config.reference, config.sample_time)
+    design = build_design(config, "p-type", n, input_delay=1)
+    other = _config(law={"q_filter": {"cutoff": 120.0, "order": 2}, "p_type_gain": 0.5})
+    with pytest.raises(ConfigError, match=r"law\.q_filter: is cutoff=120\.0"):
+        make_law(design, other.law, n)
+    with pytest.raises(ConfigError, match=r"law\.q_filter: is none"):
+        make_law(design, _config(law={"p_type_gain": 0.5}).law, n)
+    unfiltered = Design.from_json({key: value for key, value in design.to_json().items() if key != "q_filter"})
+    assert unfiltered.q_filter is None  # a design logged before designs recorded their filter
+    with pytest.raises(ConfigError, match=r"law\.q_filter"):
+        make_law(unfiltered, config.law, n)
+    with pytest.raises(InputError, match=r"design\.q_filter: the certificates were computed with a Q-filter"):
+        make_law(unfiltered, _config(law={"p_type_gain": 0.5}).law, n)
+    with pytest.raises(InputError, match=r"design\.q_filter: must be a QFilter at the design's sample time"):
+        replace(design, q_filter=QFilter(150.0, 2, 2 * SAMPLE_TIME))
+
+
+def test_replay_runs_a_logged_designs_filter_and_audits_it() -> None:
+    """``replay --verify`` runs the logged design's filter; a design logged before designs recorded theirs gets the
+    one its run built from the logged config's section; the audit holds a logged filter against the config's."""
+    from foilc_hil.logtools.audit import check_design
+    from foilc_hil.logtools.replay import _with_logged_q_filter
+
+    config = _config()
+    n = trial_samples(config.reference, config.sample_time)
+    document = build_design(config, "p-type", n, input_delay=1).to_json()
+    logged = Design.from_json(document)
+    assert _with_logged_q_filter(logged, document, config) is logged
+    earlier = {key: value for key, value in document.items() if key != "q_filter"}
+    restored = _with_logged_q_filter(Design.from_json(earlier), earlier, config)
+    assert restored.q_filter is not None and restored.q_filter.is_of(config.law.q_filter)
+    assert make_law(restored, config.law, n).q_filter is restored.q_filter
+    assert check_design(document, document) is None and check_design(earlier, document) is None
+    tampered = {**document, "q_filter": {**document["q_filter"], "cutoff": 120.0}}
+    finding = check_design(tampered, document)
+    assert finding is not None and "q_filter.cutoff" in finding.reason
+
+
 def test_the_q_filter_is_certified_not_ignored() -> None:
     """The bench used to certify without the Q-filter the law applies over CAN; on this plant the LMI gain then
     looked monotonic, while the law as it runs (Q-filter in the loop) is not: the pipeline now refuses it."""
@@ -159,13 +237,14 @@ def test_p_type_is_a_design_with_the_configured_or_default_gain() -> None:
     document = design.to_json()
     assert document["Qb"] is None and document["certificates"]["gain"] == [[0.5]]
     assert json.dumps(Design.from_json(json.loads(json.dumps(document))).to_json()) == json.dumps(document)
-    default = build_design(_config(law={"p_type_gain": None}), "p-type", n, input_delay=1)
+    default_config = _config(law={"p_type_gain": None})
+    default = build_design(default_config, "p-type", n, input_delay=1)
     expected = p_type_default_gain(default.A, default.B, default.measured_output, 1)
     np.testing.assert_array_equal(default.p2, expected)
-    # the law built from the design runs that gain (and the same one PType picks by itself)
-    law = make_law(default, config.law, n)
+    # the law built from the design runs that gain (with the design's config: the other's Q-filter is refused)
+    law = make_law(default, default_config.law, n)
     assert isinstance(law, PType)
-    np.testing.assert_array_equal(law.gain, PType(default.A, default.B, default.measured_output, n, input_delay=1).gain)
+    np.testing.assert_array_equal(law.gain, expected)
 
 
 def test_ioilc_needs_no_tuning_spec_and_unknown_laws_name_the_key() -> None:

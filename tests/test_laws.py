@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import itertools
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 import pytest
 
-from foilc_hil.config import FractionalMemory, LawConfig, QFilterConfig
+from foilc_hil.config import FractionalMemory, LawConfig, LawKind, QFilterConfig
 from foilc_hil.design.certificate_record import Certificates
 from foilc_hil.design.certificates import certify_as_given, certify_p_type
 from foilc_hil.design.fractional import FractionalPD
@@ -18,7 +19,7 @@ from foilc_hil.design.pipeline import law_kind
 from foilc_hil.design.qfilter import QFilter
 from foilc_hil.errors import ConfigError, InputError
 from foilc_hil.laws.learning import Foilc, Ioilc, PType, make_law
-from tests.designs import plain_design
+from tests.designs import p_type_design, plain_design
 
 TS = 0.05
 
@@ -148,8 +149,10 @@ def test_foilc_with_input_delay_matches_brute_force(memory: str) -> None:
 def test_ioilc_equals_foilc_with_kp_zero_bit_for_bit() -> None:
     n = 40
     ref = _reference(n, 2)
-    ioilc = Ioilc(_design(A2, B2, C2, P2, kp=0.5, r=0.7), n)
+    ioilc = Ioilc(_design(A2, B2, C2, P2, kp=0.0, r=0.7, law="ioilc"), n)
     foilc = Foilc(_design(A2, B2, C2, P2, kp=0.0, r=0.7), n)
+    with pytest.raises(InputError, match=r"design\.kp"):  # the law runs the design's kp: it sets none aside
+        Ioilc(_design(A2, B2, C2, P2, kp=0.5, r=0.7), n)
     a = _run_law(ioilc, A2, B2, C2, ref, 4, n, x0=[0.1, 0.0])
     b = _run_law(foilc, A2, B2, C2, ref, 4, n, x0=[0.1, 0.0])
     for k in range(4):
@@ -227,7 +230,7 @@ def _p_type_certificates(A: np.ndarray, B: np.ndarray, C: np.ndarray, n: int, ga
 def test_p_type_default_gain_converges_monotonically() -> None:
     n = 60
     A, B, C = _first_order(0.1)
-    law = PType(A, B, C, n)
+    law = PType(p_type_design(A, B, C, sample_time=0.1), n)
     cert = _p_type_certificates(A, B, C, n, law.gain)
     assert cert.p_type is not None and cert.p_type.frequency_bound < 1.0
     assert cert.norm_2 <= cert.p_type.frequency_bound + 1e-9  # the symbol bounds the lifted norm
@@ -257,7 +260,7 @@ def test_p_type_update_matches_lifted_formula() -> None:
     n = 25
     A, B, C = _first_order(0.1)
     gamma = 0.7
-    law = PType(A, B, C, n, gain=gamma)
+    law = PType(p_type_design(A, B, C, gamma, sample_time=0.1), n)
     G = _lifted_plant(A, B, C, n)
     ref = np.sin(np.arange(1, n + 1) * 0.3)
     e = ref.copy()  # trial 1 runs u = 0 from rest: y = 0
@@ -308,8 +311,10 @@ def test_q_filter_never_amplifies(cutoff: float, order: int, ts: float, n: int) 
 
 def test_make_law_with_q_filter_stores_filtered_feedforward() -> None:
     n = 80
-    design = _design(A2, B2, C2, P2, kp=0.0)
-    law = make_law(design, LawConfig(q_filter=QFilterConfig(cutoff=10.0, order=2)), n)
+    section = QFilterConfig(cutoff=10.0, order=2)
+    design = replace(_design(A2, B2, C2, P2, kp=0.0), q_filter=QFilter.of(section, TS))
+    law = make_law(design, LawConfig(q_filter=section), n)
+    assert law.q_filter is design.q_filter  # the design's filter, not one built again
     ref = _reference(n, 2)
     commands = _run_law(law, A2, B2, C2, ref, 2, n, x0=[0.2, 0.1])
     assert law.q_filter is not None
@@ -387,7 +392,7 @@ def test_law_with_limits_learns_from_what_is_applied(kind: str) -> None:
 
     def build(limits):
         if kind == "p-type":
-            return PType(A, B, C, n, gain=0.8 / float(B[0, 0]), limits=limits)
+            return PType(p_type_design(A, B, C, 0.8 / float(B[0, 0]), sample_time=ts), n, limits=limits)
         return Foilc(design, n, limits=limits)
 
     clamped_ff, clamped_rmse = _saturated_run(build((-limit, limit)), A, B, C, ref, trials, n, limit)
@@ -423,7 +428,7 @@ def test_law_refuses_a_design_certified_for_another_fractional_memory() -> None:
     with pytest.raises(ConfigError, match=r"law\.fractional_memory"):
         Foilc(_design(A2, B2, C2, P2), 10, fractional_memory="whole")
     # IOILC has no fractional operator: any recorded memory is fine
-    assert Ioilc(design, 10).kp == 0.0
+    assert Ioilc(replace(design, law=LawKind.IOILC, kp=0.0), 10).kp == 0.0
 
 
 @pytest.mark.parametrize("law", ["foilc", "ioilc", "p-type"])
@@ -441,7 +446,9 @@ def test_make_law_compiles_the_step_for_its_own_argument_types(law: str, monkeyp
 
     law_step_for = learning.law_step_for
     monkeypatch.setattr(learning, "law_step_for", recording)
-    built = make_law(_design(A2, B2, C2, P2, law=law), LawConfig(), 10)
+    # each law's own design: IOILC's has kp = 0, P-type's P = (0 Gamma)
+    P = np.hstack([np.zeros((1, 2)), P2[:, 2:]]) if law == "p-type" else P2
+    built = make_law(_design(A2, B2, C2, P, kp=0.3 if law == "foilc" else 0.0, law=law), LawConfig(), 10)
     assert len(resolved) == 1  # before any trial
     built.begin_trial()
     assert resolved[1] == resolved[0]  # the trial's types are those resolved at construction

@@ -225,12 +225,15 @@ def test_a_monotone_certificate_bounds_the_growth_of_the_input_from_trial_to_tri
     model = discretize(ContinuousModel(np.array([[-1.23]]), np.array([[1.68]]), np.array([[1.0]])), TS)
     P = np.array([[-0.3, 0.6 * 1.23 / 1.68 / (1 + kp * TS**-r)]])
     section = QFilterConfig(cutoff=0.2 * math.pi / TS, order=2, phase=phase)
-    law_structure = LawStructure(kp, r, TS, n, 0, FractionalMemory.CONTROLLABLE, QFilter.of(section, TS).on(n))
+    q_filter = QFilter.of(section, TS)
+    law_structure = LawStructure(kp, r, TS, n, 0, FractionalMemory.CONTROLLABLE, q_filter.on(n))
     certificates = certify_as_given(model, Uncertainty.none(1, 1), P, law_structure, require_monotonic=True)
     nominal = certificates.plants[0]
     assert certificates.monotonic and nominal.proof is not None and n > 600  # beyond the dense limit
     assert nominal.proof.method in (CertificateMethod.SYMBOL, CertificateMethod.STRUCTURED)
-    design = plain_design(model.A, model.B, model.C, P, kp=kp, r=r, sample_time=TS, certificates=certificates)
+    design = plain_design(
+        model.A, model.B, model.C, P, kp=kp, r=r, sample_time=TS, certificates=certificates, q_filter=q_filter
+    )
     law = make_law(design, LawConfig(q_filter=section), n)
     t = np.arange(1, n + 1) * TS
     reference = np.column_stack([np.sin(2 * t) + 0.5 * np.sign(np.sin(7 * t))])

@@ -143,12 +143,13 @@ class _InMemoryDrive:
 def _loop(drive: _InMemoryDrive, gain: float, factor: float = 3.0) -> Any:
     from foilc_hil.laws.learning import PType
     from foilc_hil.loop.bench import LoopSettings, TrialLoop
+    from tests.designs import p_type_design
 
     a_d, b_d = drive.a_d, drive.b_d
     A = np.array([[a_d, b_d], [0.0, 0.0]])
     B = np.array([[0.0], [1.0]])
     C = np.array([[1.0, 0.0]])
-    law = PType(A, B, C, 100, input_delay=1, gain=gain)
+    law = PType(p_type_design(A, B, C, gain, sample_time=0.01, input_delay=1), 100)
     settings = LoopSettings(sample_time=0.01, settle_time=0.01, settle_tolerance=1e9, divergence_factor=factor)
     return TrialLoop(drive, law, np.ones(100), CommandLimiter(-1e9, 1e9), settings), law
 

@@ -115,7 +115,7 @@ def law_structure(config: Config, law: LawKind, n_samples: int, *, input_delay: 
     """How ``law`` runs for ``config`` (the certificates' :class:`LawStructure`), tuning FOILC if needed."""
     kp, r = _fractional_parameters(config, law)
     q_filter = None
-    if config.law.q_filter is not None:  # the filter the law builds too (QFilter.of), on this trial length
+    if config.law.q_filter is not None:  # built once: the design holds this object and the law runs it
         q_filter = QFilter.of(config.law.q_filter, config.sample_time).on(n_samples)
     return LawStructure(
         kp=kp,
@@ -202,7 +202,8 @@ def _p_type(config: Config, model: DiscreteModel, uncertainty: Uncertainty, stru
 
 
 def build_design(config: Config, law: str, n_samples: int, *, input_delay: int) -> Design:
-    """The design of ``law`` for ``config``'s plant, certified as the law will run.
+    """The design of ``law`` for ``config``'s plant, certified as the law will run: the gains, ``kp``, ``r`` and the
+    Q-filter (:attr:`~foilc_hil.design.record.Design.q_filter`) the law takes from it are the ones certified.
 
     Parameters
     ----------
@@ -235,7 +236,8 @@ def build_design(config: Config, law: str, n_samples: int, *, input_delay: int) 
     steps.step("gain and certificates of the law as it runs")
     design = _design(config, kind, model, uncertainty, structure)
     steps.step("done")
-    return design
+    # the filter the certificates were computed with, for the law to run: one object, built once
+    return replace(design, q_filter=None if structure.q_filter is None else structure.q_filter.filter)
 
 
 def _design(

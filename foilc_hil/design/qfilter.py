@@ -21,10 +21,12 @@ steady-state initial conditions; Gustafsson's method) makes the operator non-sym
 passes: the first (causal) or last (zero-phase, the backward pass) few filter time constants of the trial are
 attenuated.
 
-One home: the law (:mod:`foilc_hil.laws.learning`) and the certificates (:mod:`foilc_hil.design.pipeline`) both
-build the filter with :meth:`QFilter.of` from the same ``law.q_filter`` section; :meth:`QFilter.apply` is what the
-law runs, :meth:`QFilter.matrix` is that operator on the columns of the identity, and :meth:`QFilter.realization`
-the state-space form of one pass that the structured certificates use (the tests check all three agree).
+One home: the design pipeline (:func:`foilc_hil.design.pipeline.law_structure`) builds the filter once, with
+:meth:`QFilter.of` from the ``law.q_filter`` section; the certificates take it on the trial (:meth:`QFilter.on`),
+the :class:`~foilc_hil.design.record.Design` holds that same object (and records its parameters, :meth:`to_json`),
+and the law (:mod:`foilc_hil.laws.learning`) runs the design's. :meth:`QFilter.apply` is what the law runs,
+:meth:`QFilter.matrix` is that operator on the columns of the identity, and :meth:`QFilter.realization` the
+state-space form of one pass that the structured certificates use (the tests check all three agree).
 """
 
 from __future__ import annotations
@@ -94,8 +96,20 @@ class QFilter:
 
     @classmethod
     def of(cls, config: QFilterConfig, sample_time: float) -> QFilter:
-        """The filter of a ``law.q_filter`` section: the one constructor the law and the certificates share."""
+        """The filter of a ``law.q_filter`` section (the design pipeline's one build of the law's filter)."""
         return cls(config.cutoff, config.order, sample_time, config.phase)
+
+    def is_of(self, config: QFilterConfig | None) -> bool:
+        """Whether this is the filter of the ``law.q_filter`` section ``config`` (at this filter's sample time)."""
+        return config is not None and (float(config.cutoff), int(config.order), QFilterPhase(config.phase)) == (
+            self.cutoff,
+            self.order,
+            self.phase,
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        """``{"cutoff", "order", "phase"}``: the design's ``q_filter`` (its sample time is the design's)."""
+        return {"cutoff": self.cutoff, "order": self.order, "phase": str(self.phase)}
 
     def apply(self, u: np.ndarray) -> np.ndarray:
         """Filter a whole trial along time (axis 0); ``u`` is ``(N,)`` or ``(N, m)``. Returns a new array.

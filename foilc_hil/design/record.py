@@ -42,10 +42,19 @@ from typing import Any, cast
 
 import numpy as np
 
-from foilc_hil.config import LawKind
+from foilc_hil.config import LawKind, QFilterPhase
 from foilc_hil.design.certificate_record import Certificates
-from foilc_hil.design.json_fields import jsonable, matrix_rows, read_mapping, read_matrix, read_number
+from foilc_hil.design.json_fields import (
+    jsonable,
+    matrix_rows,
+    read_mapping,
+    read_matrix,
+    read_number,
+    read_optional,
+    read_typed,
+)
 from foilc_hil.design.models import DiscreteModel, Uncertainty
+from foilc_hil.design.qfilter import QFilter
 from foilc_hil.errors import InputError
 
 #: ``jsonable`` is :mod:`foilc_hil.design.json_fields`'s; ``foilc_hil.loop.simulation`` (another line of work's
@@ -81,6 +90,10 @@ class Design:
         ``1.0`` unless the certificate step rescaled ``p2`` (``P`` holds the rescaled gain).
     certificates
         Convergence certificates of the law as it runs; ``None`` for a design given by hand (tests).
+    q_filter
+        The Q-filter the certificates were computed with and the law runs (:mod:`foilc_hil.design.qfilter`): the
+        object the design pipeline built once from ``law.q_filter``, at this design's sample time; ``None``
+        without one.
     """
 
     law: LawKind
@@ -96,6 +109,7 @@ class Design:
     theta: float | None = None
     gain_scale: float = 1.0
     certificates: Certificates | None = None
+    q_filter: QFilter | None = None
 
     def __post_init__(self) -> None:
         try:
@@ -125,6 +139,10 @@ class Design:
             if not math.isfinite(float(value)):
                 raise InputError(f"design.{name}: must be finite")
             object.__setattr__(self, name, float(value))
+        if self.q_filter is not None and not (
+            isinstance(self.q_filter, QFilter) and self.q_filter.sample_time == self.sample_time
+        ):
+            raise InputError(f"design.q_filter: must be a QFilter at the design's sample time, got {self.q_filter!r}")
 
     @staticmethod
     def _check_shape(name: str, matrix: np.ndarray, shape: tuple[int, int]) -> None:
@@ -247,6 +265,8 @@ class Design:
                 "C_measured": matrix_rows(self.measured_output),
             }
         )
+        if self.q_filter is not None:  # an addition (docs/interface.md): absent from earlier documents
+            document["q_filter"] = self.q_filter.to_json()
         return document
 
     @classmethod
@@ -294,4 +314,17 @@ class Design:
             theta=None if lmi_absent else read_number(document, "theta", "design"),
             gain_scale=read_number(document, "gain_scale", "design") if "gain_scale" in document else 1.0,
             certificates=Certificates.from_json(certificates) if certificates else None,
+            q_filter=read_optional(document, "q_filter", lambda value: _read_q_filter(value, model.sample_time)),
         )
+
+
+def _read_q_filter(value: Any, sample_time: float) -> QFilter:
+    """The design's ``q_filter`` document (:meth:`~foilc_hil.design.qfilter.QFilter.to_json`) at ``sample_time``."""
+    where = "design.q_filter"
+    document = read_mapping(value, where)
+    cutoff, order = read_number(document, "cutoff", where), read_typed(document, "order", int, where)
+    phase = read_typed(document, "phase", str, where)
+    try:
+        return QFilter(cutoff, order, sample_time, QFilterPhase(phase))
+    except ValueError as exc:  # an unknown phase, or a filter QFilter refuses (a ConfigError)
+        raise InputError(f"{where}: {exc}") from None

@@ -62,8 +62,9 @@ feedforward and drops the previous-trial record the same way, so the next trial 
 restored feedforward before learning resumes.
 
 Optional Q-filter: after each trial the feedforward stored for the next trial is ``Q(u_k)`` (zero phase or
-causal, ``law.q_filter.phase``; :mod:`foilc_hil.design.qfilter`, built by :meth:`~foilc_hil.design.qfilter.QFilter.of`
-from the same section as the certificates' filter).
+causal, ``law.q_filter.phase``; :mod:`foilc_hil.design.qfilter`). The law runs the design's filter
+(:attr:`~foilc_hil.design.record.Design.q_filter`: the object the certificates were computed with), as it runs the
+design's gains and ``kp``, ``r``: nothing the design computed is computed again here.
 
 Determinism: every operation is a fixed sequence of numpy calls on fixed-shape float64 arrays (no threads, no
 reductions whose order depends on data), so the same design, configuration and measured outputs give
@@ -88,7 +89,6 @@ import numpy as np
 from foilc_hil.config import FractionalMemory, LawConfig, LawKind
 from foilc_hil.design.fractional import FractionalPD, History
 from foilc_hil.design.gradient import lifted_update
-from foilc_hil.design.ptype import p_type_gain
 from foilc_hil.design.qfilter import QFilter
 from foilc_hil.design.record import Design
 from foilc_hil.errors import ConfigError, InputError, LearningDivergedError
@@ -405,9 +405,7 @@ class Foilc(LearningLaw):
     design
         The synthesized design (``A, B, C`` possibly augmented by ``input_delay``; ``P``; ``kp``, ``r``).
     n_samples
-        ``N``, samples per trial.
-    q_filter
-        Optional zero-phase Q-filter for the feedforward.
+        ``N``, samples per trial. The Q-filter, if any, is the design's (:attr:`Design.q_filter`).
     fractional_memory
         ``"controllable"`` (default) or ``"trial"``: where the fractional operator's memory starts (module
         notes). Must match the memory the design was certified with, when the design records it.
@@ -422,7 +420,6 @@ class Foilc(LearningLaw):
         design: Design,
         n_samples: int,
         *,
-        q_filter: QFilter | None = None,
         fractional_memory: FractionalMemory | str = FractionalMemory.CONTROLLABLE,
         limits: tuple[float, float] | None = None,
     ) -> None:
@@ -433,7 +430,7 @@ class Foilc(LearningLaw):
             n_outputs=p,
             input_delay=d,
             error_gain=design.p2,
-            q_filter=q_filter,
+            q_filter=design.q_filter,
             limits=limits,
         )
         try:
@@ -443,7 +440,7 @@ class Foilc(LearningLaw):
                 f"must be 'controllable' or 'trial', got {fractional_memory!r}", key="law.fractional_memory"
             ) from None
         self.design = design
-        self.kp = self._kp(design)
+        self.kp = float(design.kp)
         self.r = design.r
         self.fractional_memory = memory
         certified = design.certificates.fractional_memory if design.certificates and self.kp > 0 else None
@@ -479,10 +476,6 @@ class Foilc(LearningLaw):
         self._x = np.zeros((n_samples, n))
         self._x_prev = np.zeros((n_samples, n))
 
-    @staticmethod
-    def _kp(design: Design) -> float:
-        return float(design.kp)
-
     def _learning_signal(self, error: np.ndarray) -> np.ndarray:
         if self._fractional is None:
             return error.copy()
@@ -516,59 +509,51 @@ class Foilc(LearningLaw):
 
 
 class Ioilc(Foilc):
-    """The integer-order 2D law: :class:`Foilc` with ``kp = 0`` (``E = e``), run with its own design's gain."""
+    """The integer-order 2D law: :class:`Foilc` with ``kp = 0`` (``E = e``), run with its own design's gain; the
+    design's ``kp`` must be 0 (an IOILC design's is), the law does not set it aside."""
 
     kind = LawKind.IOILC
 
-    @staticmethod
-    def _kp(design: Design) -> float:
-        return 0.0
+    def __init__(
+        self,
+        design: Design,
+        n_samples: int,
+        *,
+        fractional_memory: FractionalMemory | str = FractionalMemory.CONTROLLABLE,
+        limits: tuple[float, float] | None = None,
+    ) -> None:
+        if design.kp != 0.0:
+            raise InputError(f"design.kp: IOILC runs kp = 0 (E = e), the design has {design.kp!r}")
+        super().__init__(design, n_samples, fractional_memory=fractional_memory, limits=limits)
 
 
 class PType(LearningLaw):
-    """Arimoto P-type ILC, ``u_k(t) = u_{k-1}(t) + Gamma e_{k-1}[t + d]``.
+    """Arimoto P-type ILC, ``u_k(t) = u_{k-1}(t) + Gamma e_{k-1}[t + d]``, with the gain of a P-type design.
 
     Parameters
     ----------
-    A, B, C
-        Discrete nominal model, augmented by ``input_delay`` like a design's, with ``C`` the MEASURED output map;
-        used only for the default gain.
+    design
+        A design with ``P = (0 Gamma)`` (:func:`foilc_hil.design.pipeline.build_design`'s P-type design, whose
+        ``Gamma`` is ``law.p_type_gain`` or :func:`foilc_hil.design.ptype.p_type_default_gain`, certified): the law
+        runs its ``Gamma``, input delay and Q-filter.
     n_samples
         ``N``.
-    input_delay
-        ``d``.
-    gain
-        ``Gamma``: a scalar ``g`` (``Gamma = g I``, ``m x p``), an ``m x p`` matrix (a P-type design's ``p2``, as
-        :func:`make_law` passes it), or ``None`` for :func:`foilc_hil.design.ptype.p_type_default_gain`.
-    q_filter
-        Optional zero-phase Q-filter.
     limits
         Optional ``(lower, upper)`` command limits (saturation-aware learning, module notes).
     """
 
     kind = LawKind.P_TYPE
 
-    def __init__(
-        self,
-        A: np.ndarray,
-        B: np.ndarray,
-        C: np.ndarray,
-        n_samples: int,
-        *,
-        input_delay: int = 0,
-        gain: float | np.ndarray | None = None,
-        q_filter: QFilter | None = None,
-        limits: tuple[float, float] | None = None,
-    ) -> None:
-        C = np.asarray(C, dtype=float)
-        gamma = p_type_gain(gain, A, B, C, input_delay)
+    def __init__(self, design: Design, n_samples: int, *, limits: tuple[float, float] | None = None) -> None:
+        if np.any(design.p1 != 0.0):
+            raise InputError("design.p1: a P-type law has no state term, P = (0 Gamma)")
         super().__init__(
             n_samples=n_samples,
-            n_inputs=np.shape(B)[1],
-            n_outputs=C.shape[0],
-            input_delay=input_delay,
-            error_gain=gamma,
-            q_filter=q_filter,
+            n_inputs=design.n_inputs,
+            n_outputs=design.n_outputs,
+            input_delay=design.input_delay,
+            error_gain=design.p2,
+            q_filter=design.q_filter,
             limits=limits,
         )
         self.gain = self._error_gain.copy()
@@ -591,20 +576,13 @@ class Noilc(LearningLaw):
         A ``noilc`` design (:func:`foilc_hil.design.noilc.certify_noilc`).
     n_samples
         ``N``, samples per trial.
-    q_filter, limits
-        As for every law (module notes).
+    limits
+        As for every law (module notes); the Q-filter, if any, is the design's.
     """
 
     kind = LawKind.NOILC
 
-    def __init__(
-        self,
-        design: Design,
-        n_samples: int,
-        *,
-        q_filter: QFilter | None = None,
-        limits: tuple[float, float] | None = None,
-    ) -> None:
+    def __init__(self, design: Design, n_samples: int, *, limits: tuple[float, float] | None = None) -> None:
         if design.law is not self.kind:
             raise InputError(f"design.law: {type(self).__name__} runs a {self.kind} design, got {design.law}")
         super().__init__(
@@ -613,7 +591,7 @@ class Noilc(LearningLaw):
             n_outputs=design.n_outputs,
             input_delay=design.input_delay,
             error_gain=design.p2,
-            q_filter=q_filter,
+            q_filter=design.q_filter,
             limits=limits,
         )
         self._update = lifted_update(design, self.n_samples) if self.input_delay < n_samples else None
@@ -647,38 +625,49 @@ def make_law(
     """Build the law ``design.law`` (``foilc``, ``ioilc``, ``p-type``, ``noilc``, ``gradient``) for ``n_samples``
     samples per trial.
 
-    ``design`` gives the gain (``P``; ``p2 = Gamma`` for P-type), the model and the input delay;
-    ``law_cfg.q_filter`` adds a Q-filter; ``law_cfg.fractional_memory`` picks the fractional operator's memory
-    (FOILC). ``limits``: the command limits the law clamps to and learns from (module notes; the bench passes its
-    limiter's).
+    ``design`` gives everything the law runs that the design computed: the gain (``P``; ``p2 = Gamma`` for P-type),
+    ``kp``, ``r``, the model, the input delay and the Q-filter (:attr:`~foilc_hil.design.record.Design.q_filter`, the
+    object its certificates were computed with); ``law_cfg.q_filter`` must be that filter's section (else
+    :class:`~foilc_hil.errors.ConfigError`: the certificates would not be of the law that runs), and
+    ``law_cfg.fractional_memory`` picks the fractional operator's memory (FOILC). ``limits``: the command limits the
+    law clamps to and learns from (module notes; the bench passes its limiter's).
 
     The law's compiled step is ready when this returns (:meth:`LearningLaw.compile_step`): never compiled in a
     control loop's first cycle.
     """
+    _check_q_filter(design, law_cfg)
     law = _new_law(design, law_cfg, n_samples, limits)
     law.compile_step()
     return law
 
 
+def _check_q_filter(design: Design, law_cfg: LawConfig) -> None:
+    """The law runs the design's Q-filter: refuse a ``law.q_filter`` section it is not, and a design whose
+    certificates were computed with a filter it does not hold (or without the one it holds)."""
+    held, section = design.q_filter, law_cfg.q_filter
+    if not (held.is_of(section) if held is not None else section is None):
+        asked = "none" if section is None else f"cutoff={section.cutoff}, order={section.order}, phase={section.phase}"
+        raise ConfigError(
+            f"is {asked} but the design was certified with {held!r}: the certificates would not be of the law that "
+            "runs; build the design from this config",
+            key="law.q_filter",
+        )
+    certified = None if design.certificates is None else design.certificates.q_filter
+    if certified is not None and certified != (held is not None):
+        raise InputError(
+            f"design.q_filter: the certificates were computed {'with' if certified else 'without'} a Q-filter, the "
+            f"design holds {held!r}"
+        )
+
+
 def _new_law(design: Design, law_cfg: LawConfig, n_samples: int, limits: tuple[float, float] | None) -> LearningLaw:
-    # the one constructor the certificates' LawStructure uses too (foilc_hil.design.pipeline.law_structure)
-    q_filter = None if law_cfg.q_filter is None else QFilter.of(law_cfg.q_filter, design.sample_time)
     memory = law_cfg.fractional_memory
     if design.law is LawKind.NOILC:
-        return Noilc(design, n_samples, q_filter=q_filter, limits=limits)
+        return Noilc(design, n_samples, limits=limits)
     if design.law is LawKind.GRADIENT:
-        return Gradient(design, n_samples, q_filter=q_filter, limits=limits)
+        return Gradient(design, n_samples, limits=limits)
     if design.law is LawKind.FOILC:
-        return Foilc(design, n_samples, q_filter=q_filter, fractional_memory=memory, limits=limits)
+        return Foilc(design, n_samples, fractional_memory=memory, limits=limits)
     if design.law is LawKind.IOILC:
-        return Ioilc(design, n_samples, q_filter=q_filter, fractional_memory=memory, limits=limits)
-    return PType(
-        design.A,
-        design.B,
-        design.measured_output,
-        n_samples,
-        input_delay=design.input_delay,
-        gain=design.p2,
-        q_filter=q_filter,
-        limits=limits,
-    )
+        return Ioilc(design, n_samples, fractional_memory=memory, limits=limits)
+    return PType(design, n_samples, limits=limits)

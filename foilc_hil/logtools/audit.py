@@ -162,12 +162,14 @@ def check_law_kind(config: Config, design: Mapping[str, Any]) -> Finding | None:
 _TIMES = ("seconds",)
 #: the gains the law runs with: rebuilt bit for bit or the design is not the one the config gives
 _GAINS = ("law", "kp", "r", "input_delay", "sample_time", "gain_scale", "P", "p1", "p2")
+#: what the law runs that designs record since an addition: compared where the log has it (earlier logs lack it)
+_ADDED = ("q_filter",)
 
 
 def check_design(logged: Mapping[str, Any], rebuilt: Mapping[str, Any]) -> Finding | None:
     """The logged design against the one the logged config gives: the gains equal, the certificates within
     :data:`DESIGN_RTOL` (their solver's last digits); the first field that differs."""
-    for key in _GAINS:
+    for key in (*_GAINS, *(added for added in _ADDED if added in logged)):
         if key in logged or key in rebuilt:
             path = _differs(logged.get(key), rebuilt.get(key), key, rtol=1e-9)
             if path:
