@@ -11,7 +11,7 @@ shortest the bus-load limit of 70 % and the config's 0.5 s trial allow, see the 
 with the realtime sections of configs/realtime_1khz.yaml (:func:`realtime_config`), against, in turn:
 
 - ``one``: ONE ``plant-emulator --mode realtime --node-id 1,2,3,4`` process answering each SYNC for all four nodes
-  (every node with the config's base plant: the emulator's ``--node-id`` list shares one plant section);
+  (each node with its axis's plant from the config's ``axes:``, as in a process of its own);
 - ``four``: four ``plant-emulator --mode realtime`` processes, each with its axis's own config
   (:func:`foilc_hil.config.axis_configs`).
 
@@ -21,6 +21,11 @@ answer time (its TPDO1 after the SYNC), TPDO1 lost on the way to the bench (rece
 by the bench) and RPDO1 lost on the way out (logged as sent by the bench, not received). The bench's own counts
 (missed and skipped deadlines, lost feedback) come from its ``--json`` document; lost feedback per axis from its
 log (SYNC periods in which the bench logged no TPDO1 of that node).
+
+The emulators' CPU per cycle: the user and system time of every emulator process (``/proc/PID/stat``) over the
+bench's run, divided by the SYNCs the receiver saw meanwhile. ``--receive-filter off`` starts the emulators with
+:func:`drivers.receive_filter.install_id_filter` replaced by one that installs nothing (an A/B measurement of the
+kernel-side filter; the product has no such switch: it filters wherever the bus can).
 """
 
 from __future__ import annotations
@@ -108,10 +113,16 @@ def realtime_config(work: Path, period: float | None = None) -> Path:
     return path
 
 
-def _emulator_commands(topology: str, config: Path, work: Path) -> list[list[str]]:
+#: the emulator's entry point with the receive filter left out (``--receive-filter off``, A/B only)
+_UNFILTERED = ("import sys, drivers.receive_filter as f; f.install_id_filter = lambda bus, ids: f.FilterKind.NONE; "
+               "from plant_emulator.cli import main; sys.exit(main())")
+
+
+def _emulator_commands(topology: str, config: Path, work: Path, filtered: bool = True) -> list[list[str]]:
     from foilc_hil.config import axis_configs, dump_config, load_config
 
-    base = [sys.executable, "-m", "plant_emulator", "--bus", BUS, "--mode", "realtime"]
+    entry = ["-m", "plant_emulator"] if filtered else ["-c", _UNFILTERED]
+    base = [sys.executable, *entry, "--bus", BUS, "--mode", "realtime"]
     if topology == "one":
         return [[*base, "--config", str(config), "--node-id", "1,2,3,4"]]
     commands = []
@@ -122,7 +133,15 @@ def _emulator_commands(topology: str, config: Path, work: Path) -> list[list[str
     return commands
 
 
-def _run(topology: str, trials: int, work: Path, law: str | None, period: float | None) -> dict[str, Any]:
+def _cpu_seconds(pid: int) -> float:
+    """User plus system CPU time of process ``pid`` so far (``/proc/PID/stat`` fields 14 and 15)."""
+    with open(f"/proc/{pid}/stat", encoding="ascii") as stat:
+        fields = stat.read().rsplit(")", 1)[1].split()  # after the command name, which may hold spaces
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _run(topology: str, trials: int, work: Path, law: str | None, period: float | None,
+         filtered: bool = True) -> dict[str, Any]:
     """One bench run against ``topology``'s emulators, seen by the receiver."""
     from foilc_hil.config import axis_configs, load_config
     from foilc_hil.io.mcap_log import read_log
@@ -132,7 +151,7 @@ def _run(topology: str, trials: int, work: Path, law: str | None, period: float 
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     emulators, logs = [], []
     try:
-        for k, command in enumerate(_emulator_commands(topology, config, work)):
+        for k, command in enumerate(_emulator_commands(topology, config, work, filtered)):
             logs.append(work / f"emulator-{topology}-{k}.stderr")
             with logs[-1].open("w") as stderr:
                 emulators.append(subprocess.Popen(command, stderr=stderr, cwd=ROOT, env=env))
@@ -142,12 +161,14 @@ def _run(topology: str, trials: int, work: Path, law: str | None, period: float 
             time.sleep(0.1)
         load_before = os.getloadavg()[0]
         receiver = _start_receiver(out)
+        cpu_before = [_cpu_seconds(emulator.pid) for emulator in emulators]
         run = subprocess.run(
             [sys.executable, "-m", "foilc_hil.cli", "run", "--config", str(config), "--bus", BUS, "--mode",
              "realtime", "--trials", str(trials), "--out", str(log), "--json", "--quiet",
              *(["--law", law] if law else [])],
             capture_output=True, text=True, cwd=ROOT, env=env,
         )
+        cpu = sum(_cpu_seconds(e.pid) for e in emulators) - sum(cpu_before)
         frames, dropped = _stop_receiver(receiver, out)
     finally:
         for emulator in emulators:  # only the emulators started above, by their own handles
@@ -170,6 +191,9 @@ def _run(topology: str, trials: int, work: Path, law: str | None, period: float 
         "load_average_1min_before": load_before,
         "load_average_1min_after": os.getloadavg()[0],
         "trials_completed": len(document.get("trials", [])),
+        "receive_filter": "on" if filtered else "off",
+        "emulator_filters": sorted({_filter_of(path) for path in logs}),
+        "emulator_cpu_us_per_sync": 1e6 * cpu / syncs.size if syncs.size else None,
         "timing": timing,
         "missed_deadline_fraction": timing.get("missed_deadlines", 0) / cycles if cycles else None,
         "receiver": {**sync_statistics(syncs, period), "syncs_sent_by_bench": sent_syncs,
@@ -180,22 +204,31 @@ def _run(topology: str, trials: int, work: Path, law: str | None, period: float 
     }
 
 
+def _filter_of(emulator_log: Path) -> str:
+    """The receive filter an emulator's ready line names (``-``: it names none)."""
+    for line in emulator_log.read_text().splitlines():
+        if "receive filter " in line:
+            return line.rsplit("receive filter ", 1)[1].rstrip(")")
+    return "-"
+
+
 def _inside(trials: int, topologies: Sequence[str], law: str | None = None,
-            period: float | None = None) -> dict[str, Any]:
+            period: float | None = None, filtered: bool = True) -> dict[str, Any]:
     """The whole measurement (run inside the private namespace)."""
     for step in NETNS_SETUP:
         subprocess.run(shlex.split(step), check=True)
     with tempfile.TemporaryDirectory(prefix="foilc-realtime-axes-") as directory:
-        runs = [_run(topology, trials, Path(directory), law, period) for topology in topologies]
+        runs = [_run(topology, trials, Path(directory), law, period, filtered) for topology in topologies]
     return {"config": str(SCARA.relative_to(ROOT)), "trials": trials, "cpus": os.cpu_count(), "runs": runs}
 
 
 def collect(trials: int = TRIALS, topologies: Sequence[str] = TOPOLOGIES, law: str | None = None,
-            period: float | None = None) -> dict[str, Any]:
+            period: float | None = None, filtered: bool = True) -> dict[str, Any]:
     """Run the measurement in a private network namespace (``unshare --net``); the results document."""
     command = [sys.executable, "-m", "benchmarks.realtime_axes", "--inside", "--trials", str(trials),
                "--emulators", *topologies, *(["--law", law] if law else []),
-               *(["--period", repr(period)] if period is not None else [])]
+               *(["--period", repr(period)] if period is not None else []),
+               "--receive-filter", "on" if filtered else "off"]
     result = subprocess.run(["unshare", "--net", "--", *command], capture_output=True, text=True, cwd=ROOT,
                             env={**os.environ, "PYTHONPATH": str(ROOT)}, check=True)
     document: dict[str, Any] = json.loads(result.stdout)
@@ -216,7 +249,9 @@ def summary(document: dict[str, Any]) -> str:
             f"{_us(deviation.get('p50'))}/{_us(deviation.get('p99'))}/{_us(deviation.get('max'))} us, empty slots "
             f"{receiver.get('empty_slots', '-')}, SYNCs lost {receiver['syncs_lost']}; bench: cycles "
             f"{timing.get('cycles', '-')}, missed deadlines {timing.get('missed_deadlines', '-')}, skipped "
-            f"{timing.get('skipped_deadlines', '-')}, lost feedback {timing.get('missing_feedback', '-')}")
+            f"{timing.get('skipped_deadlines', '-')}, lost feedback {timing.get('missing_feedback', '-')}; "
+            f"trials {run['trials_completed']}; emulator CPU {_us(run.get('emulator_cpu_us_per_sync'))} us per SYNC "
+            f"(receive filter {', '.join(run.get('emulator_filters', ['-']))})")
         for axis in run["axes"]:
             answer = axis["emulator_answer_us"]
             lines.append(
@@ -239,6 +274,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--law", help="the run's --law (default: the config's, IOILC)")
     parser.add_argument("--period", type=float,
                         help=f"SYNC period in s (default: the config's 2.5 ms; shortest allowed {SHORTEST_PERIOD!r})")
+    parser.add_argument("--receive-filter", choices=("on", "off"), default="on",
+                        help="off: the emulators install no receive filter (an A/B measurement)")
     parser.add_argument("--summary", metavar="JSON", help="print the text summary of a results file and exit")
     parser.add_argument("--inside", action="store_true", help=argparse.SUPPRESS)  # already in the namespace
     args = parser.parse_args(argv)
@@ -246,9 +283,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stdout.write(summary(json.loads(Path(args.summary).read_text(encoding="utf-8"))))
         return 0
     if args.inside:
-        sys.stdout.write(json.dumps(_inside(args.trials, args.emulators, args.law, args.period)))
+        filtered = args.receive_filter == "on"
+        sys.stdout.write(json.dumps(_inside(args.trials, args.emulators, args.law, args.period, filtered)))
         return 0
-    emit(collect(args.trials, args.emulators, args.law, args.period), args.out)
+    emit(collect(args.trials, args.emulators, args.law, args.period, args.receive_filter == "on"), args.out)
     return 0
 
 

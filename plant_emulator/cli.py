@@ -12,8 +12,11 @@ says how many SYNCs it served and the drive's final CiA 402 and NMT states.
 
 ``--node-id 1,2,3,4`` emulates several drives in the one process, one :class:`~plant_emulator.device.VirtualDrive`
 per node, each with its own end of the one bus (a virtual drive takes its bus object over) and answering every
-SYNC; the ``k``-th node's physics has the seed ``plant.seed + emulator.seed + k`` (the first is the single-node
-one). It prints one ready line and one final line per node.
+SYNC. A node that is an entry of the config's ``axes:`` list gets that axis's ``plant`` and ``drive`` sections
+(where it gives them) and the seed ``plant.seed + emulator.seed`` of its own plant, exactly what a process of its
+own (``--config`` of that axis alone) would build, so one process serves the same four axes as four processes do;
+any other node has the top-level plant, the ``k``-th with the seed ``plant.seed + emulator.seed + k`` (the first
+is the single-node one). It prints one ready line and one final line per node.
 
 ``--inject`` (repeatable, :mod:`drivers.faults`) injects faults on the drive's side for cross-process runs: the
 emulator kinds (``emulator-kill``, ``emcy-over-current``, ...) and the bus kinds on its own bus (e.g. ``nmt-stop``
@@ -46,6 +49,16 @@ if TYPE_CHECKING:
 PROG = "plant-emulator"
 
 
+class EmulatorAxis(Section):
+    """The parts of one ``axes:`` entry the emulator uses (a section given replaces the top-level one)."""
+
+    model_config = ConfigDict(extra="ignore", frozen=True, populate_by_name=True)
+
+    node_id: int = Field(ge=1, le=127)
+    plant: PlantConfig | None = None
+    drive: DriveConfig | None = None
+
+
 class EmulatorDocument(Section):
     """The parts of a bench config the emulator uses; every other section is ignored here."""
 
@@ -55,6 +68,7 @@ class EmulatorDocument(Section):
     emulator: EmulatorConfig = EmulatorConfig()
     sample_time: float = Field(default=0.01, gt=0)
     drive: DriveConfig = DriveConfig()
+    axes: tuple[EmulatorAxis, ...] = ()
 
 
 class _OneLineParser(argparse.ArgumentParser):
@@ -124,22 +138,27 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _build_drives(settings: EmulatorDocument, nodes: tuple[int, ...]) -> list[VirtualDrive]:
-    """One virtual drive per node id; the ``k``-th with the physics seed ``plant.seed + emulator.seed + k``."""
+    """One virtual drive per node id: an axis of ``axes:`` with its own plant and drive sections (module docstring),
+    any other node the ``k``-th with the physics seed ``plant.seed + emulator.seed + k``."""
     from plant_emulator.device import VirtualDrive
     from plant_emulator.physics import build_plant
 
-    seed = settings.plant.seed + settings.emulator.seed
-    return [
-        VirtualDrive(
-            build_plant(settings.plant, seed=seed + k),
+    axes = {axis.node_id: axis for axis in settings.axes}
+    drives = []
+    for k, node in enumerate(nodes):
+        axis = axes.get(node)
+        plant = axis.plant if axis is not None and axis.plant is not None else settings.plant
+        drive = axis.drive if axis is not None and axis.drive is not None else settings.drive
+        offset = 0 if axis is not None else k  # an axis's plant is seeded as in a process of its own
+        drives.append(VirtualDrive(
+            build_plant(plant, seed=plant.seed + settings.emulator.seed + offset),
             node_id=node,
             cycle_period=settings.sample_time,
             settings=settings.emulator,
-            velocity_scale=settings.drive.velocity_scale,
-            torque_scale=settings.drive.torque_scale,
-        )
-        for k, node in enumerate(nodes)
-    ]
+            velocity_scale=drive.velocity_scale,
+            torque_scale=drive.torque_scale,
+        ))
+    return drives
 
 
 def _serve(args: argparse.Namespace) -> int:
@@ -172,7 +191,8 @@ def _serve(args: argparse.Namespace) -> int:
             drive.start(bus)
             print(
                 f"{PROG}: ready: node {drive.node_id} on {bus_cfg.interface}:{bus_cfg.channel} "
-                f"({settings.plant.model}, {drive.timing.value}, {settings.sample_time * 1e3:g} ms)",
+                f"({settings.plant.model}, {drive.timing.value}, {settings.sample_time * 1e3:g} ms, receive filter "
+                f"{drive.receive_filter})",
                 file=sys.stderr,
                 flush=True,
             )

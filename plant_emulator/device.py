@@ -66,6 +66,7 @@ from drivers.cia402 import Obj, State402
 from drivers.errors import InputError
 from drivers.inprocess import InProcessBus, LockstepClock, connect_network, subscribe_cyclic, timebase_of
 from drivers.od import DEFAULT_EDS
+from drivers.receive_filter import FilteredNetwork
 from drivers.timing import TimingMode  # its home is below the loop and the emulator; the old name stays
 from plant_emulator.application import APPLICATION_OBJECTS, Cia402Application, FaultKind
 from plant_emulator.axis import Axis
@@ -200,7 +201,9 @@ class VirtualDrive:
         if isinstance(clock, LockstepClock) and self.timing is TimingMode.REALTIME:
             raise InputError("a realtime drive ticks on the wall clock: give it a wall-clock bus, not a lockstep one")
         self.supervisor.clock = clock.now
-        network = canopen.Network(bus)
+        # a wall-clock bus of several nodes: the kernel drops the other nodes' frames before this drive's receive
+        # thread wakes for them (drivers.receive_filter); the in-process bus delivers by COB-ID already
+        network = canopen.Network(bus) if isinstance(bus, InProcessBus) else FilteredNetwork(bus)
         network.NOTIFIER_CYCLE = NOTIFIER_CYCLE
         self._connect(network)
         self.node.link = network
@@ -355,6 +358,13 @@ class VirtualDrive:
     def emcy_log(self) -> list[tuple[int, int]]:
         """Every EMCY (code, register) the drive raised, sent or not (for tests and the CLI)."""
         return self.application.emcy_log
+
+    @property
+    def receive_filter(self) -> str:
+        """Where frames of COB-IDs the drive does not subscribe to are dropped (:class:`drivers.receive_filter.
+        FilterKind`: ``can_raw_filter``, ``bpf``), or ``none``: canopen drops them in Python."""
+        link = self.node.link
+        return str(link.filter_kind) if isinstance(link, FilteredNetwork) else "none"
 
     @property
     def cycle_period(self) -> float:
