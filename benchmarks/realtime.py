@@ -49,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks import host_floor
+from benchmarks import frame_recorder, host_floor
 from benchmarks.output import emit
 from drivers.cia301 import SYNC_COB_ID, FunctionCode, cob_id
 from drivers.realtime import CpuLatencyRequest
@@ -73,42 +73,7 @@ FULL = {"trials": 10, "time_scale": 1.0, "peer_seconds": 10.0}
 QUICK = {"trials": 2, "time_scale": 0.2, "peer_seconds": 3.0}
 CONDITIONS = ("quiet", "load")
 
-# The instrument: every frame's COB-ID and kernel timestamp. Its socket gets a 16 MiB receive buffer (the default
-# 208 KiB holds about 0.1 s of this traffic: a stall of the receiver longer than that dropped datagrams, which then
-# read as frames the bench lost), and it says how many datagrams its socket still dropped (/proc/net/udp's "drops"
-# of its inode), so a frame it missed is never taken for one the bench or the emulator lost.
-_RECEIVER = """
-import os, signal, socket, sys, can, numpy as np
-bus = can.Bus(interface="udp_multicast", channel=sys.argv[1])
-with socket.socket(fileno=os.dup(bus.fileno())) as sock:  # the same socket (a duplicate descriptor)
-    try:
-        # root may go past net.core.rmem_max; 33 is Linux's SO_RCVBUFFORCE (Python names it from 3.12 on)
-        sock.setsockopt(socket.SOL_SOCKET, getattr(socket, "SO_RCVBUFFORCE", 33), 1 << 24)
-    except OSError:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 24)
-inode = os.fstat(bus.fileno()).st_ino
-def dropped():
-    for table in ("/proc/net/udp", "/proc/net/udp6"):
-        with open(table) as rows_of_table:
-            for line in list(rows_of_table)[1:]:
-                fields = line.split()
-                if int(fields[9]) == inode:
-                    return int(fields[-1])
-    return -1
-rows, stop = [], []
-signal.signal(signal.SIGTERM, lambda *a: stop.append(1))
-print("listening", flush=True)
-while not stop:
-    m = bus.recv(0.1)
-    if m is not None:
-        # the RPDO's target too: what the drive latches at the next SYNC (the bench's latched, checked from here)
-        target = int.from_bytes(bytes(m.data[2:6]), "little", signed=True) if m.arbitration_id == 0x201 else 0
-        rows.append((m.arbitration_id, m.timestamp, target))
-drops = dropped()
-bus.shutdown()
-np.save(sys.argv[2], np.array(rows, dtype=float).reshape(-1, 3))
-print("dropped", drops, flush=True)
-"""
+# The instrument is benchmarks.frame_recorder (kernel timestamps, a 16 MiB receive buffer, its socket's drops).
 
 _CANOPEN_PEER = """
 import sys, time, canopen
@@ -199,20 +164,16 @@ def _python() -> str:
 
 
 def _start_receiver(out: Path) -> subprocess.Popen[str]:
-    cmd = ["chrt", "-f", str(RECEIVER_FIFO), _python(), "-c", _RECEIVER, GROUP, str(out)]
-    receiver = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True, cwd=ROOT)
-    assert receiver.stdout is not None
-    receiver.stdout.readline()  # "listening": the socket is joined before anything is sent
-    return receiver
+    return frame_recorder.start(GROUP, out, fifo=RECEIVER_FIFO)
 
 
 def _stop_receiver(receiver: subprocess.Popen[str], out: Path) -> tuple[np.ndarray, int | None]:
-    """The frames the receiver saw, and the datagrams its socket dropped (None: it did not say)."""
-    receiver.send_signal(signal.SIGTERM)
-    said, _ = receiver.communicate(timeout=60)
-    words = said.split()
-    dropped = int(words[-1]) if len(words) >= 2 and words[-2] == "dropped" and int(words[-1]) >= 0 else None
-    return np.load(out), dropped
+    """The frames the receiver saw as ``(id, timestamp, target)`` rows (``target``: node 1's RPDO1 target, what the
+    drive latches at the next SYNC; 0 for other frames), and the datagrams its socket dropped (None: not said)."""
+    recording = frame_recorder.stop(receiver, out)
+    targets = [int.from_bytes(data[2:6], "little", signed=True) if can_id == RPDO1_ID else 0
+               for can_id, data in zip(recording.frames[:, 0], recording.data, strict=True)]
+    return np.column_stack([recording.frames, np.array(targets, dtype=float)]), recording.dropped
 
 
 @functools.cache  # read once: every privileged peer and each condition's floor probe ask
@@ -238,7 +199,7 @@ def _privileged(fifo: bool) -> contextlib.AbstractContextManager[CpuLatencyReque
 
 
 def _peer(name: str, script: str, seconds: float, fifo: bool, work: Path) -> dict[str, Any]:
-    out = work / f"peer-{name}-{fifo}.npy"
+    out = work / f"peer-{name}-{fifo}.json"
     receiver = _start_receiver(out)
     prefix = ["chrt", "-f", str(PEER_FIFO)] if fifo else []
     with _privileged(fifo) as held:
@@ -265,7 +226,7 @@ def _bench_config(work: Path, trials: int, time_scale: float) -> Path:
 
 
 def _bench(config: Path, work: Path, tag: str) -> dict[str, Any]:
-    out, log = work / f"bench-{tag}.npy", work / f"bench-{tag}.mcap"
+    out, log = work / f"bench-{tag}.json", work / f"bench-{tag}.mcap"
     emulator_log = work / f"emulator-{tag}.stderr"
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     with emulator_log.open("w") as stderr:

@@ -146,7 +146,7 @@ def _run(topology: str, trials: int, work: Path, law: str | None, period: float 
     from foilc_hil.config import axis_configs, load_config
     from foilc_hil.io.mcap_log import read_log
 
-    out, log = work / f"axes-{topology}.npy", work / f"axes-{topology}.mcap"
+    out, log = work / f"axes-{topology}.json", work / f"axes-{topology}.mcap"
     config = realtime_config(work, period)
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     emulators, logs = [], []

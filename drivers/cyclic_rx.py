@@ -58,6 +58,7 @@ class CyclicReceiver:
         self.spin = float(spin)
         self._routes: dict[int, Callback] = {}
         self.frames = 0  # routed frames dispatched
+        self._held: can.Message | None = None  # received, not dispatched yet (dispatch_until stopped before it)
 
     def route(self, can_id: int, callback: Callback) -> None:
         """Dispatch frames with ``can_id`` to ``callback`` from now on (other frames are dropped)."""
@@ -78,6 +79,9 @@ class CyclicReceiver:
         Until ``spin_until`` (``time.monotonic()``; a wait sets it to its start plus :attr:`spin`) ``recv`` does not
         block.
         """
+        if self._held is not None:
+            held, self._held = self._held, None
+            return self._dispatch(held)
         recv = self.bus.recv
         now = time.monotonic()
         if now < spin_until:
@@ -96,11 +100,30 @@ class CyclicReceiver:
     def drain(self) -> bool:
         """Dispatch every frame already received (before a new cycle begins they answer the old one; at the end of
         a wait, e.g. one given no time at all, they may complete it); True when any was routed."""
-        recv = self.bus.recv
         routed = False
+        if self._held is not None:
+            held, self._held = self._held, None
+            routed = self._dispatch(held)
+        recv = self.bus.recv
         while (msg := recv(0.0)) is not None:
             routed = self._dispatch(msg) or routed
         return routed
+
+    def dispatch_until(self, done: Callable[[], bool], stop_id: int) -> bool | None:
+        """Dispatch the frames already received, in order, until ``done()`` holds (True) or the next frame has
+        ``stop_id`` (kept, undispatched, for the next :meth:`poll` or :meth:`drain`: False); None when the queue ran
+        dry first. Which came first on the bus, an echo ``done`` waits for or a frame ``stop_id``, read no further."""
+        recv = self.bus.recv
+        while not done():
+            msg = self._held if self._held is not None else recv(0.0)
+            self._held = None
+            if msg is None:
+                return None
+            if msg.arbitration_id == stop_id and not msg.is_error_frame:
+                self._held = msg
+                return False
+            self._dispatch(msg)
+        return True
 
     def _dispatch(self, msg: can.Message) -> bool:
         callback = self._routes.get(msg.arbitration_id)

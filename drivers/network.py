@@ -19,7 +19,8 @@ previous SYNC first, as for a single drive.
 
 SYNC from a clock (realtime, :mod:`drivers.sync_clock`): between :meth:`DriveNetwork.start_clock` and
 :meth:`DriveNetwork.stop_clock` a producer of its own sends SYNC (the kernel's broadcast manager on ``socketcan``, a
-thread elsewhere) and :meth:`DriveNetwork.sync` sends none. The control thread reads the bus instead, on its cyclic
+process of its own on ``udp_multicast``, :mod:`drivers.sync_process`, a thread elsewhere) and
+:meth:`DriveNetwork.sync` sends none. The control thread reads the bus instead, on its cyclic
 receiver, in the order the bus delivered it: each SYNC's echo starts a new cycle on every member (so a TPDO answers
 the SYNC before it on the wire, as ``replay --verify`` cuts the log), and each member's own RPDO echo is what the
 drive latches at the next SYNC (:attr:`drivers.master.cyclic.CyclicPath.latched`). :meth:`DriveNetwork.await_sync`
@@ -49,6 +50,7 @@ from drivers.heartbeat import HeartbeatProducer
 from drivers.inprocess import connect_network, subscribe_cyclic, timebase_of
 from drivers.scan import ScanResult, scan_bus
 from drivers.sync_clock import BroadcastSync, SyncClock, SyncProducer
+from drivers.sync_process import ProcessSync
 
 __all__ = ["DriveNetwork", "SyncSeen", "UnknownFrameCounter", "received_elsewhere"]
 
@@ -134,6 +136,8 @@ class DriveNetwork:
         self._clock: SyncClock | None = None
         self._echo_routes: tuple[int, ...] = ()
         self._seen_time = math.nan  # the last SYNC echo's time (perf_counter), from its bus timestamp
+        self._process_sync: ProcessSync | None = None  # started with the receive path, waiting for start_clock
+        self._last_due = math.nan  # the slot of the last SYNC a producer process sent (await_sync)
 
     @property
     def listening(self) -> bool:
@@ -180,6 +184,8 @@ class DriveNetwork:
             self.tap.detach()
             raise DriveError(f"cannot listen on the bus: {exc}; one DriveNetwork must own the bus's Notifier "
                              "(drives share it with Cia402Drive.on_network; add_frame_listener sees frames)") from exc
+        if self.receiver is not None and self._process_sync is None:  # a realtime bench's: see drivers.sync_process
+            self._process_sync = self._spawn_process_sync()
 
     def scan(self, nodes: Sequence[int] = range(1, 128), *, listen: float = 1.2, nmt_reset: bool = False,
              sdo_timeout: float = 0.3) -> ScanResult:
@@ -256,7 +262,8 @@ class DriveNetwork:
         return self._clock
 
     def start_clock(self, period: float, echoes: Mapping[int, Callback], *, spin_margin: float = 0.0) -> SyncClock:
-        """SYNC from a clock from now on (module docstring): the broadcast manager on ``socketcan``, else a thread.
+        """SYNC from a clock from now on (module docstring): the broadcast manager on ``socketcan``, a producer
+        process on ``udp_multicast`` (:class:`~drivers.sync_process.ProcessSync`), else a thread.
 
         Parameters
         ----------
@@ -286,14 +293,46 @@ class DriveNetwork:
         self._echo_routes = tuple(echoes)
         self.syncs_seen = self.syncs_sent
         clock: SyncClock
+        process, self._process_sync = self._process_sync, None
+        if process is None:
+            process = self._spawn_process_sync()
         if type(self.bus).__name__ == "SocketcanBus":  # python-can's socketcan bus: the kernel holds the period
             clock = BroadcastSync(self.bus, self._sync_message, period)
+        elif process is not None:  # across processes: a process of its own
+            process.start(period)
+            clock = process
+            self._last_due = math.nan
         else:
             producer = SyncProducer(self._clock_send, period, spin_margin=spin_margin)
             producer.start()
             clock = producer
         self._clock = clock
         return clock
+
+    @property
+    def counts_on_echo(self) -> bool:
+        """True while the running clock's SYNCs are counted as their echoes are read (the broadcast manager, a
+        process): a frame sent now goes out after SYNCs this process has not read yet, so which SYNC it follows is
+        known only from its own echo's place among them (:meth:`echo_before_sync`)."""
+        return isinstance(self._clock, BroadcastSync | ProcessSync)
+
+    def echo_before_sync(self, echoed: Callable[[], bool]) -> bool | None:
+        """Whether the echo of a frame just sent (``echoed()`` turns true once its handler saw it) came before the
+        next SYNC on the bus: the frames before it are dispatched in bus order, a SYNC echo before it is kept for
+        :meth:`await_sync` (none is read past, so every cycle still begins at its own SYNC); None when its echo is
+        not in yet. On the loopback of ``udp_multicast`` and ``vcan`` a frame sent is queued on every socket before
+        its send returns."""
+        if self.receiver is None:
+            return None
+        return self.receiver.dispatch_until(echoed, SYNC_COB_ID)
+
+    def _spawn_process_sync(self) -> ProcessSync | None:
+        """A SYNC producer process on this network's ``udp_multicast`` channel, ready and not started; None on any
+        other interface."""
+        multicast = getattr(self.bus, "_multicast", None)  # python-can keeps udp_multicast's group and port there
+        if type(self.bus).__name__ != "UdpMulticastBus" or multicast is None:
+            return None
+        return ProcessSync("udp_multicast", multicast.group, port=multicast.port)
 
     def stop_clock(self) -> None:
         """Stop the clock (idempotent): no SYNC goes out after this returns, and :meth:`sync` sends them again."""
@@ -320,6 +359,8 @@ class DriveNetwork:
         if clock is None or receiver is None:
             raise DriveError("await_sync: the SYNC clock is not running")
         end = time.perf_counter() + timeout
+        if isinstance(clock, ProcessSync) and clock.error is not None:  # a child's fault: at once, not at timeout
+            raise DriveError(f"SYNC stopped after SYNC {after}: {clock.error}")
         while self.syncs_seen <= after:
             left = end - time.perf_counter()
             if left <= 0.0:
@@ -329,9 +370,14 @@ class DriveNetwork:
             receiver.poll(left)
         number = after + 1
         record = clock.record(number)
-        if record is None:
-            return SyncSeen(number, self._seen_time, math.nan, 0)
-        return SyncSeen(number, record.sent, record.due, record.skipped)
+        if record is not None:
+            return SyncSeen(number, record.sent, record.due, record.skipped)
+        if isinstance(clock, ProcessSync):  # its grid is known: the slot this SYNC was sent in, from its echo
+            due = clock.slot_of(self._seen_time)
+            skipped = max(0, round((due - self._last_due) / clock.period) - 1) if math.isfinite(self._last_due) else 0
+            self._last_due = due
+            return SyncSeen(number, self._seen_time, due, skipped)
+        return SyncSeen(number, self._seen_time, math.nan, 0)
 
     def _clock_send(self, stamp: Callable[[int], None]) -> int:
         """The producer's send: one SYNC under canopen's send lock, counted there."""
@@ -345,7 +391,7 @@ class DriveNetwork:
     def _on_sync_echo(self, can_id: int, data: bytearray, timestamp: float) -> None:
         """A SYNC on the bus (control thread): every member's new cycle begins."""
         self.syncs_seen += 1
-        if isinstance(self._clock, BroadcastSync):  # the kernel sent it: counted as it is seen
+        if isinstance(self._clock, BroadcastSync | ProcessSync):  # the kernel or a process sent it: counted as seen
             with self.network.send_lock:
                 self.syncs_sent += 1
         # its bus timestamp is wall-clock (python-can): only its age is used, on this process's perf_counter
@@ -357,6 +403,9 @@ class DriveNetwork:
         """Stop the SYNC clock, the master heartbeat and the receive path, detach the tap (idempotent); the bus
         stays open."""
         self.stop_clock()
+        process, self._process_sync = self._process_sync, None
+        if process is not None:
+            process.stop()
         if self._producer is not None:
             self._producer.stop()
             self._producer = None

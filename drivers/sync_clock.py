@@ -5,13 +5,15 @@ bus is late with it. Here SYNC comes from a clock of its own, and the loop runs 
 bus (:meth:`drivers.network.DriveNetwork.await_sync`): it has one period to send the next command, and a missed
 cycle never delays the next SYNC.
 
-Two producers, one per kind of interface:
+Three producers, one per kind of interface (the third, a process of its own for ``udp_multicast``, is
+:class:`drivers.sync_process.ProcessSync`: a thread in the bench's interpreter waits for the GIL when its SYNC is
+due):
 
 :class:`BroadcastSync` (``socketcan``)
     python-can's ``send_periodic``, whose period the kernel's broadcast manager (BCM) holds: no thread of this process
     is on the SYNC's path at all. The process learns each SYNC's time from its echo on the loop's own socket (a
     raw CAN socket receives the frames of every other socket on the interface, the BCM's included).
-:class:`SyncProducer` (every other interface: ``udp_multicast``, ``virtual``)
+:class:`SyncProducer` (every other interface: ``virtual``, any without a process of its own)
     A dedicated thread with absolute deadlines ``t0 + k * period`` on :func:`time.perf_counter`, a sleep until
     ``spin_margin`` before each and a spin for the rest (as :class:`foilc_hil.loop.scheduler.DeadlineScheduler`
     waits), started from the loop thread inside the realtime session: it inherits the loop's SCHED_FIFO priority
@@ -83,7 +85,7 @@ class SyncClock(Protocol):
 
     @property
     def name(self) -> str:
-        """``"thread"`` or ``"bcm"`` (``timing.sync_clock`` in ``--json``)."""
+        """``"thread"``, ``"bcm"`` or ``"process"`` (``timing.sync_clock`` in ``--json``)."""
         ...
 
     @property

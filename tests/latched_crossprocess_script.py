@@ -3,16 +3,16 @@ processes with missed deadlines induced two ways, watched by an independent rece
 
 Processes, all over ``udp_multicast`` on the namespace's own loopback:
 
-- the **receiver** (the instrument, nothing of this project imported): every frame with its kernel timestamp, on a
-  socket with a 16 MiB receive buffer, and how many datagrams its socket still dropped;
+- the **receiver** (the instrument, :mod:`benchmarks.frame_recorder`, nothing of the product imported): every frame
+  with its kernel timestamp, on a socket with a 16 MiB receive buffer, and how many datagrams its socket dropped;
 - ``plant-emulator`` and ``foilc-hil run`` (the config handed in: realtime, with ``stall@...`` injected);
 - the **stopper**: counts the SYNCs on the bus and, right after the SYNCs numbered in ``STOPS``, stops the whole
   bench process with SIGSTOP for :data:`STOP_SECONDS`, then SIGCONT.
 
 Usage: ``python tests/latched_crossprocess_script.py GROUP CONFIG OUT_DIR``; writes ``frames.json`` (the
-receiver's ``[id, timestamp, data hex]`` rows), ``bench.json`` (``run --json``), ``stops.json`` (each stop's SYNC
-count and the wall-clock times of its SIGSTOP and SIGCONT, the clock of the receiver's timestamps) and ``dropped``
-(the receiver's socket drops), and exits with the bench's code. Never run it in the host namespace.
+recorder's document: its frames and its socket's drops), ``bench.json`` (``run --json``) and ``stops.json`` (each
+stop's SYNC count and the wall-clock times of its SIGSTOP and SIGCONT, the clock of the receiver's timestamps), and
+exits with the bench's code. Never run it in the host namespace.
 """
 
 from __future__ import annotations
@@ -24,38 +24,13 @@ import sys
 import time
 from pathlib import Path
 
+from benchmarks import frame_recorder
+
 ROOT = Path(__file__).resolve().parents[1]
 #: SYNC counts (from the bench's first) after which the stopper stops the bench: with 200-cycle settles and
 #: 300-sample trials, some fall in trials, some between them
 STOPS = (350, 450, 1300, 1400, 1500)
 STOP_SECONDS = 0.03
-
-_RECEIVER = """
-import json, os, signal, socket, sys, can
-bus = can.Bus(interface="udp_multicast", channel=sys.argv[1])
-with socket.socket(fileno=os.dup(bus.fileno())) as sock:
-    sock.setsockopt(socket.SOL_SOCKET, getattr(socket, "SO_RCVBUFFORCE", 33), 1 << 24)
-inode = os.fstat(bus.fileno()).st_ino
-def dropped():
-    with open("/proc/net/udp") as table:
-        for line in list(table)[1:]:
-            fields = line.split()
-            if int(fields[9]) == inode:
-                return int(fields[-1])
-    return -1
-rows, stop = [], []
-signal.signal(signal.SIGTERM, lambda *a: stop.append(1))
-print("listening", flush=True)
-while not stop:
-    m = bus.recv(0.1)
-    if m is not None:
-        rows.append((m.arbitration_id, m.timestamp, bytes(m.data).hex()))
-drops = dropped()
-bus.shutdown()
-with open(sys.argv[2], "w") as out:
-    json.dump(rows, out)
-print("dropped", drops, flush=True)
-"""
 
 _STOPPER = """
 import json, os, signal, sys, time, can
@@ -99,9 +74,7 @@ def _started(process: subprocess.Popen[str], what: str) -> None:
 def main(group: str, config: str, out_dir: Path) -> int:
     python = sys.executable
     bus = f"udp_multicast:{group}"
-    receiver = subprocess.Popen([python, "-c", _RECEIVER, group, str(out_dir / "frames.json")],
-                                stdout=subprocess.PIPE, text=True)
-    _started(receiver, "the receiver")
+    receiver = frame_recorder.start(group, out_dir / "frames.json")
     emulator_log = (out_dir / "emulator.stderr").open("w")
     emulator = subprocess.Popen([python, "-m", "plant_emulator", "--config", config, "--bus", bus, "--mode",
                                  "realtime"], stderr=emulator_log, cwd=ROOT)
@@ -122,9 +95,7 @@ def main(group: str, config: str, out_dir: Path) -> int:
     emulator.send_signal(signal.SIGINT)
     emulator.wait(timeout=30)
     emulator_log.close()
-    receiver.send_signal(signal.SIGTERM)
-    tail, _ = receiver.communicate(timeout=60)
-    (out_dir / "dropped").write_text(tail.split()[-1] if tail.split() else "-1")
+    frame_recorder.stop(receiver, out_dir / "frames.json")
     return code
 
 

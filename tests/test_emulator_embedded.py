@@ -14,7 +14,7 @@ import pytest
 
 from foilc_hil.config import Config, load_config
 from foilc_hil.errors import ExitCode
-from plant_emulator.cli import load_settings, main
+from plant_emulator.cli import _build_drives, load_settings, main
 from plant_emulator.config import DisturbanceConfig, PlantConfig
 from plant_emulator.embedded import EmbeddedEmulator
 from plant_emulator.settings import EmulatorConfig
@@ -66,6 +66,29 @@ def test_cli_loads_only_its_sections(tmp_path: Path) -> None:
     assert settings.emulator == EmulatorConfig(timing="realtime")
     assert settings.sample_time == 0.005
     assert load_config(config).emulator.timing == "realtime"  # the bench reads the same section alike
+
+
+def test_one_process_serves_each_axis_with_its_own_plant_as_its_own_process_would(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    import plant_emulator.physics as physics
+
+    built: list[tuple[PlantConfig, int | None]] = []
+    original = physics.build_plant
+
+    def recording(plant: PlantConfig, seed: int | None = None) -> physics.Plant:
+        built.append((plant, seed))
+        return original(plant, seed=seed)
+
+    monkeypatch.setattr(physics, "build_plant", recording)
+    scara = Path(__file__).resolve().parents[1] / "configs" / "scara_4axis.yaml"
+    settings = load_settings(str(scara), {"drive.node_id": None, "emulator.timing": None})
+    _build_drives(settings, (1, 2, 3, 4, 9))
+    shared = built[:]
+    for axis in settings.axes:  # each axis alone, as four processes build it (the axis's sections in place)
+        _build_drives(settings.model_copy(update={"plant": axis.plant, "axes": ()}), (axis.node_id,))
+    assert shared[:4] == built[5:]
+    assert len({plant.pmsm.inertia for plant, _seed in shared[:4]}) == 4
+    assert shared[4] == (settings.plant, settings.plant.seed + settings.emulator.seed + 4)  # not an axis
 
 
 @pytest.mark.parametrize(

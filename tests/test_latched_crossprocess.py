@@ -113,10 +113,11 @@ def _trial_blocks(timing: list[dict[str, Any]], trial: int) -> list[dict[str, An
 
 
 def test_every_sample_latched_and_every_missed_deadline_agree_with_the_wire(run: Path) -> None:
-    assert (run / "dropped").read_text().strip() == "0"  # the instrument lost nothing
-    wire = Wire(json.loads((run / "frames.json").read_text()))
+    recording = json.loads((run / "frames.json").read_text())
+    assert recording["dropped"] == 0  # the instrument lost nothing
+    wire = Wire(recording["frames"])
     document = json.loads((run / "bench.json").read_text())
-    assert document["timing"]["sync_clock"] == "thread"
+    assert document["timing"]["sync_clock"] == "process"  # udp_multicast: SYNC from a process of its own
     contents = read_log(run / "run.mcap")
     records = {int(r["trial"]): r for r in contents.trials}
     assert sorted(records) == list(range(1, TRIALS + 1))
@@ -136,7 +137,7 @@ def test_every_sample_latched_and_every_missed_deadline_agree_with_the_wire(run:
 
 
 def test_the_sync_keeps_its_period_while_the_loop_thread_stalls(run: Path) -> None:
-    wire = Wire(json.loads((run / "frames.json").read_text()))
+    wire = Wire(json.loads((run / "frames.json").read_text())["frames"])
     contents = read_log(run / "run.mcap")
     first = int(next(r for r in contents.trials if int(r["trial"]) == STALL_TRIAL)["first_sync"])
     stalled = first + STALL_SAMPLE  # the SYNC of the stalled cycle
@@ -149,13 +150,13 @@ def test_the_sync_keeps_its_period_while_the_loop_thread_stalls(run: Path) -> No
     assert wire.trial_missed(first, n)[STALL_SAMPLE]
 
 
-def test_sigstop_of_the_whole_bench_stopped_its_clock_too(run: Path) -> None:
-    """No SYNC while the bench process is stopped (from 2 ms after the SIGSTOP, for the one in flight, to the
-    SIGCONT): its producer is a thread of the stopped process. The misses it caused are in the first test."""
-    wire = Wire(json.loads((run / "frames.json").read_text()))
+def test_sigstop_of_the_whole_bench_does_not_stop_its_clock(run: Path) -> None:
+    """SYNC keeps its period while the whole bench process is stopped: its producer is a process of its own
+    (``drivers.sync_process``). The misses the stops caused are in the first test."""
+    wire = Wire(json.loads((run / "frames.json").read_text())["frames"])
     stops = json.loads((run / "stops.json").read_text())
     assert len(stops) >= 2, "the stopper stopped the bench too few times"
     for _, stopped, resumed in stops:
-        inside = [t for t in wire.sync_times if stopped + 0.002 < t < resumed]
-        assert not inside, (stopped, resumed, inside)
-        assert any(t >= resumed for t in wire.sync_times)  # and the clock went on after it
+        inside = [t for t in wire.sync_times if stopped - PERIOD < t < resumed + PERIOD]
+        gaps = [b - a for a, b in itertools.pairwise(inside)]
+        assert len(inside) >= 2 and max(gaps) <= 3 * PERIOD, (stopped, resumed, gaps)

@@ -85,7 +85,9 @@ class CyclicPath:
     tpdo_frames
         TPDOs decoded (under ``inbox.lock``).
     rpdo_sync_count
-        The network's count of SYNCs sent when the last RPDO went out (in the bus object's send order).
+        The network's count of SYNCs sent when the last RPDO went out (in the bus object's send order); with a
+        clock counted on its echoes (the broadcast manager, a producer process), from the RPDO's echo: the SYNCs
+        read so far, plus one when a SYNC's echo came before it (:meth:`DriveNetwork.echo_before_sync`).
     latched_raw
         The target of the last RPDO echo before the last SYNC echo: what the drive latched at that SYNC (SYNC from
         a clock only; the control thread writes it).
@@ -114,6 +116,7 @@ class CyclicPath:
         self.rpdo_sync_count = 0
         self.latched_raw = 0
         self._echoed_raw = 0  # the target of the last RPDO echo seen on the bus
+        self._rpdos_sent = self._rpdo_echoes = 0  # RPDOs sent and their echoes seen (SYNC counted on its echo)
 
     # --- set-up (configure) -------------------------------------------------------------------------------------
 
@@ -168,6 +171,14 @@ class CyclicPath:
         raw = low if raw < low else high if raw > high else raw
         self.target_raw = raw
         self.rpdo_sync_count = link.send(data_frame(cob, codec.encode(self.controlword, raw)))
+        net = link.net
+        if net.counts_on_echo:  # SYNCs not read yet may have gone out before it: its echo's place among them says
+            self._rpdos_sent += 1
+            seen, number = net.syncs_seen, self._rpdos_sent
+            # this RPDO's own echo: earlier ones (a burst after a stall) may still be queued before it
+            before = net.echo_before_sync(lambda: self._rpdo_echoes >= number)
+            if before is not None:
+                self.rpdo_sync_count = seen if before else seen + 1
         return raw / scale
 
     def sync(self) -> int:
@@ -370,6 +381,7 @@ class CyclicPath:
         """The RPDO's echo handler by COB-ID, for :meth:`drivers.network.DriveNetwork.start_clock`; the drive holds
         the last RPDO sent until an echo says otherwise."""
         self._echoed_raw = self.latched_raw = self.target_raw
+        self._rpdos_sent = self._rpdo_echoes = 0  # the clock's receiver dropped what came before (start_clock)
         return {self.rpdo_cob(): self.on_rpdo_echo}
 
     def on_rpdo_echo(self, can_id: int, data: bytearray, timestamp: float) -> None:
@@ -378,6 +390,7 @@ class CyclicPath:
         codec = self.rpdo_codec
         if codec is None:
             return
+        self._rpdo_echoes += 1
         try:
             self._echoed_raw = codec.decode(data)[1]
         except ProtocolError:  # not ours to judge (the tap logged it): the drive keeps what it had
