@@ -263,7 +263,9 @@ def _bench_figures(document: dict[str, Any], frames: np.ndarray, log: Path) -> d
     import yaml
 
     scale = float(yaml.safe_load(CONFIG.read_text(encoding="utf-8"))["drive"]["velocity_scale"])
-    sent_syncs = sum(1 for f in contents.frames if f["id"] == SYNC_ID and f["dir"] == "tx")
+    # every SYNC on the bus comes back to the bench's receive socket (the multicast loop), whoever sent it: the loop, a
+    # thread or a process; so the log holds each as received, and only the loop's also as sent
+    sent_syncs = sum(1 for f in contents.frames if f["id"] == SYNC_ID and f["dir"] == "rx")
     logged_tpdo = sum(1 for f in contents.frames if f["id"] == TPDO1_ID and f["dir"] == "rx")
     latency = np.array([r["feedback_latency_us"] for r in contents.timing if r["feedback_latency_us"] is not None])
     syncs = frames[frames[:, 0] == SYNC_ID, 1]
@@ -280,7 +282,7 @@ def _bench_figures(document: dict[str, Any], frames: np.ndarray, log: Path) -> d
         "receiver": {
             **sync_statistics(syncs),
             "emulator_answer_us": _quantiles(answer_times(frames) * 1e6),
-            "syncs_sent_by_bench": sent_syncs,
+            "syncs_on_bench_log": sent_syncs,
             "syncs_lost": sent_syncs - int(syncs.size),
             "tpdo1_received": int(np.sum(frames[:, 0] == TPDO1_ID)),
             "tpdo1_lost_to_bench": int(np.sum(frames[:, 0] == TPDO1_ID)) - logged_tpdo,
@@ -571,7 +573,8 @@ def markdown(document: dict[str, Any]) -> str:
             f"latency p50/p99/max {_us(bench['feedback_latency_us']['p50'])}/{_us(bench['feedback_latency_us']['p99'])}"
             f"/{_us(bench['feedback_latency_us']['max'])} us; emulator answer p99 "
             f"{_us(receiver.get('emulator_answer_us', {}).get('p99'))} us; frames lost: SYNC "
-            f"{receiver['syncs_lost']} (logged sent by the bench, not seen by the receiver), TPDO1 "
+            f"{receiver['syncs_lost']} (on the bench's log, received from the bus whoever sent it, not seen by the "
+            "receiver), TPDO1 "
             f"{receiver['tpdo1_lost_to_bench']} (seen by the receiver, not logged by the bench; negative: the bench "
             f"logged more than the receiver saw); the receiver's socket dropped "
             f"{_dropped(receiver.get('receiver_dropped'))}.",

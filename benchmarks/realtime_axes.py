@@ -177,7 +177,7 @@ def _run(topology: str, trials: int, work: Path, law: str | None, period: float 
     document: dict[str, Any] = json.loads(run.stdout) if run.stdout.strip() else {"error": run.stderr.strip()}
     logged = read_log(log).frames if log.exists() else []
     period = load_config(config).sample_time
-    sent_syncs = sum(1 for f in logged if f["id"] == SYNC_COB_ID and f["dir"] == "tx")
+    sent_syncs = sum(1 for f in logged if f["id"] == SYNC_COB_ID and f["dir"] == "rx")
     syncs = frames[frames[:, 0] == SYNC_COB_ID, 1]
     timing = document.get("timing", {})
     cycles = timing.get("cycles") or 0
@@ -196,7 +196,7 @@ def _run(topology: str, trials: int, work: Path, law: str | None, period: float 
         "emulator_cpu_us_per_sync": 1e6 * cpu / syncs.size if syncs.size else None,
         "timing": timing,
         "missed_deadline_fraction": timing.get("missed_deadlines", 0) / cycles if cycles else None,
-        "receiver": {**sync_statistics(syncs, period), "syncs_sent_by_bench": sent_syncs,
+        "receiver": {**sync_statistics(syncs, period), "syncs_on_bench_log": sent_syncs,
                      "syncs_lost": sent_syncs - int(syncs.size), "receiver_dropped": dropped},
         "axes": [_axis_figures(frames, logged, axis.drive.node_id) for axis in axis_configs(load_config(config))],
         "emulator_stderr_tail": [path.read_text().splitlines()[-3:] for path in logs],
