@@ -66,9 +66,10 @@ bench: $(STAMP)
 	$(BIN)/python -m benchmarks.run --out benchmarks/results.json --doc docs/benchmarks.md
 
 # 1 kHz realtime across processes in a private network namespace (root; its duration: docs/benchmarks.md), vs canopen
-# and python-can
+# and python-can; then four axes (configs/scara_4axis.yaml) at 2.5 ms, 5 runs each with one and four emulator processes
 bench-realtime: $(STAMP)
 	$(BIN)/python -m benchmarks.realtime --out benchmarks/realtime.json
+	$(BIN)/python -m benchmarks.realtime_axes --runs 5 --out benchmarks/realtime_axes.json
 
 # 200 lockstep trials on the PMSM emulator (uncertainty, load disturbance), watched for leaks (docs/reliability.md)
 soak: $(STAMP)

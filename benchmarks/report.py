@@ -341,10 +341,16 @@ def _missed(results: dict[str, Any]) -> list[str]:
                 figures = shown + (f" against the peer's {cell(row['peer'])}{unit}" if row["peer"] else "")
                 lines.append(f"- **realtime, {row['condition']}: {row['target']}**: {figures}.")
         lines.append(f"- The realtime targets above are bounded by {REALTIME_WHY[0]}. Tried: {REALTIME_WHY[1]}.")
+    if AXES_RESULTS.exists():
+        from benchmarks.realtime_axes import targets as axes_targets
+
+        lines += [f"- **four axes, {row['condition']}: {row['target']}**: {row['bench']}."
+                  for row in axes_targets(orjson.loads(AXES_RESULTS.read_bytes())) if not row["met"]]
     return [*lines, *OUTSIDE, ""]
 
 
 REALTIME_RESULTS = Path(__file__).with_name("realtime.json")
+AXES_RESULTS = Path(__file__).with_name("realtime_axes.json")  # make bench-realtime's four-axes runs
 
 
 def _realtime() -> list[str]:
@@ -356,7 +362,13 @@ def _realtime() -> list[str]:
 
     note = ("*From `make bench-realtime` (`benchmarks/realtime.json`), a separate run: its date is its own, not "
             "this page's.*")
-    return [note, "", markdown(orjson.loads(REALTIME_RESULTS.read_bytes())), ""]
+    section = [note, "", markdown(orjson.loads(REALTIME_RESULTS.read_bytes())), ""]
+    if AXES_RESULTS.exists():
+        from benchmarks.realtime_axes import markdown as axes_markdown
+
+        section += ["*From `make bench-realtime` (`benchmarks/realtime_axes.json`).*", "",
+                    axes_markdown(orjson.loads(AXES_RESULTS.read_bytes())), ""]
+    return section
 
 
 def write(results_path: Path, doc_path: Path) -> None:
