@@ -61,6 +61,31 @@ def test_the_receiver_dispatches_only_its_routes(channel: str, spin: float) -> N
         sender.shutdown()
 
 
+def test_dispatch_until_tells_which_came_first_and_never_reads_past_a_sync(channel: str) -> None:
+    """An RPDO's own echo against the next SYNC (a clock counted on its echoes): frames before either are dispatched,
+    a SYNC first is kept for the next poll, an earlier echo of the same COB-ID is not taken for this one."""
+    sender = can.Bus(interface="virtual", channel=channel)
+    receiver = CyclicReceiver(can.Bus(interface="virtual", channel=channel))
+    got: list[int] = []
+    try:
+        for can_id in (0x080, 0x201):
+            receiver.route(can_id, lambda can_id, data, _: got.append(can_id))
+
+        def echoes() -> int:
+            return got.count(0x201)
+
+        for can_id in (0x181, 0x201, 0x080, 0x201):  # an old echo, a SYNC, then this RPDO's echo
+            sender.send(_frame(can_id))
+        assert receiver.dispatch_until(lambda: echoes() >= 2, 0x080) is False  # the SYNC came first
+        assert got == [0x201]  # the old echo dispatched, the SYNC kept
+        assert receiver.poll(1.0) and got == [0x201, 0x080]  # the kept SYNC is the next frame
+        assert receiver.dispatch_until(lambda: echoes() >= 2, 0x080) is True and got == [0x201, 0x080, 0x201]
+        assert receiver.dispatch_until(lambda: echoes() >= 3, 0x080) is None  # not in yet: not known
+    finally:
+        receiver.close()
+        sender.shutdown()
+
+
 def test_a_sync_first_dispatches_the_answers_of_the_cycle_before(channel: str) -> None:
     """A TPDO in the queue when the next SYNC is sent arrived for the old cycle: it must not answer the new one."""
     bus = can.Bus(interface="virtual", channel=channel)

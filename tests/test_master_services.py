@@ -119,6 +119,7 @@ class Net:
         self.syncs = 0
         self.on_sync: Callable[[], None] = lambda: None
         self.heartbeats: list[tuple[int, float]] = []
+        self.counts_on_echo = False  # the loop's SYNC (or a thread's), counted as sent
 
     @property
     def syncs_sent(self) -> int:

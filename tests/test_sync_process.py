@@ -126,6 +126,7 @@ print(" ".join(repr(s) for s in stamps), "|", clock.summary)
 
 
 @pytest.mark.netns
+@pytest.mark.slow
 def test_its_syncs_reach_the_bus_on_their_period_grid() -> None:
     reason = _unshare_available()
     if reason is not None:
