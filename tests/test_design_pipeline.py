@@ -197,16 +197,16 @@ def test_a_law_is_not_given_another_filter_than_its_certificates() -> None:
 def test_replay_runs_a_logged_designs_filter_and_audits_it() -> None:
     """``replay --verify`` runs the logged design's filter; a design logged before designs recorded theirs gets the
     one its run built from the logged config's section; the audit holds a logged filter against the config's."""
+    from foilc_hil.design.record import with_logged_q_filter
     from foilc_hil.logtools.audit import check_design
-    from foilc_hil.logtools.replay import _with_logged_q_filter
 
     config = _config()
     n = trial_samples(config.reference, config.sample_time)
     document = build_design(config, "p-type", n, input_delay=1).to_json()
     logged = Design.from_json(document)
-    assert _with_logged_q_filter(logged, document, config) is logged
+    assert with_logged_q_filter(logged, document, config.law.q_filter) is logged
     earlier = {key: value for key, value in document.items() if key != "q_filter"}
-    restored = _with_logged_q_filter(Design.from_json(earlier), earlier, config)
+    restored = with_logged_q_filter(Design.from_json(earlier), earlier, config.law.q_filter)
     assert restored.q_filter is not None and restored.q_filter.is_of(config.law.q_filter)
     assert make_law(restored, config.law, n).q_filter is restored.q_filter
     assert check_design(document, document) is None and check_design(earlier, document) is None

@@ -5,13 +5,15 @@ against the lifted (finite-trial, dense) map it claims to be the limit of -- the
 matrix built from Markov parameters by the certificates' second method, or from the law's definition -- and
 against python-control's evaluation of the plant's transfer function; the Q-filter's response against the
 operator the law runs (``QFilter.matrix``) and a time-domain pass; the curve's peak against the certificates' own
-symbol norm. ``synthesize --plots`` and ``report`` draw it.
+symbol norm, with and without a Q-filter (the picture draws the design's filter, the one the law runs and the
+certificates were computed with). ``synthesize --plots`` and ``report`` draw it.
 """
 
 from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +22,7 @@ import pytest
 import yaml
 
 from foilc_hil.cli import main
-from foilc_hil.config import FractionalMemory, LawKind, QFilterConfig, QFilterPhase
+from foilc_hil.config import FractionalMemory, LawConfig, LawKind, QFilterConfig, QFilterPhase
 from foilc_hil.design.certificate_record import (
     Bounds,
     CertificateAction,
@@ -30,12 +32,14 @@ from foilc_hil.design.certificate_record import (
     PlantCertificate,
 )
 from foilc_hil.design.error_map import dense_error_map, dense_input_map, lifted_error_map
-from foilc_hil.design.frequency_picture import QFilterSpec, convergence_picture, law_symbol
+from foilc_hil.design.frequency_picture import convergence_picture, law_symbol
 from foilc_hil.design.lifted import LawStructure, LoopPlant, dense_block_toeplitz, law_filter_matrix, markov_blocks
 from foilc_hil.design.models import DiscreteModel, Uncertainty, augment_input_delay, uncertainty_vertices
 from foilc_hil.design.qfilter import QFilter
+from foilc_hil.design.qmap import structured_input_map
 from foilc_hil.design.record import Design
 from foilc_hil.io.mcap_log import McapLogWriter
+from foilc_hil.laws.learning import make_law
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 TS = 0.01
@@ -45,23 +49,24 @@ PLANT = DiscreteModel(np.array([[0.6, 0.2], [-0.1, 0.3]]), np.array([[1.0], [0.5
 UNCERTAINTY = Uncertainty(np.array([[0.05], [0.0]]), np.array([[1.0, 0.0]]), np.array([[0.04], [0.0]]), np.eye(1))
 
 
-def _certificates(n_samples: int, lead: int, **extra: Any) -> Certificates:
+def _certificates(n_samples: int, lead: int, *, q_filter: bool = False, **extra: Any) -> Certificates:
     """Placeholder certificates (the picture reads only the trial length, the 2-norm and, for the lifted laws, their
     step or weights)."""
     bounds = Bounds(0.5, 0.5)
     return Certificates(
         spectral_radius=0.5, norm_2=0.5, monotonic_required=True, n_samples=n_samples, lead=lead,
         fractional_memory=FractionalMemory.CONTROLLABLE, filter_first_weight=1.0, naive_without_filter=bounds,
-        designed=bounds, vertices=0, q_filter=False, action=CertificateAction.NONE, gain_scale=1.0, asymptotic=True,
-        monotonic=True, plants=(PlantCertificate("nominal", "error", 0.5, 0.5, "dense"),), **extra,
+        designed=bounds, vertices=0, q_filter=q_filter, action=CertificateAction.NONE, gain_scale=1.0,
+        asymptotic=True, monotonic=True, plants=(PlantCertificate("nominal", "error", 0.5, 0.5, "dense"),), **extra,
     )  # fmt: skip
 
 
 def _design(law: LawKind, P: np.ndarray, *, kp: float = 0.0, r: float = 1.0, n_samples: int = 400,
-            **extra: Any) -> Design:
+            q_filter: QFilter | None = None, **extra: Any) -> Design:
+    """A design of ``law`` (with ``q_filter``, the filter its law runs, as the pipeline makes it)."""
     model, uncertainty = augment_input_delay(PLANT, 1, UNCERTAINTY)
-    return Design(law=law, model=model, uncertainty=uncertainty, P=P, kp=kp, r=r,
-                  certificates=_certificates(n_samples, model.input_delay, **extra))
+    return Design(law=law, model=model, uncertainty=uncertainty, P=P, kp=kp, r=r, q_filter=q_filter,
+                  certificates=_certificates(n_samples, model.input_delay, q_filter=q_filter is not None, **extra))
 
 
 def _foilc(n_samples: int = 400) -> Design:
@@ -103,37 +108,67 @@ def test_the_curves_peak_is_the_certificates_symbol_norm() -> None:
 def test_zero_phase_q_filter_is_the_operator_the_law_runs() -> None:
     """``|H|^2`` against the middle column of ``QFilter.matrix`` (forward and backward ``sosfilt``, as the law)."""
     n, centre = 1024, 512
-    spec = QFilterSpec(cutoff=40.0, order=2)
+    q_filter = QFilter(40.0, 2, TS)
     w = 2 * math.pi * np.arange(1, n // 2 + 1) / n
-    truth = _column_dft(QFilter(40.0, 2, TS).matrix(n)[:, centre], centre, w)
-    assert np.max(np.abs(spec.response(w, TS) - truth)) < 1e-9
+    truth = _column_dft(q_filter.matrix(n)[:, centre], centre, w)
+    assert np.max(np.abs(q_filter.response(w) - truth)) < 1e-9
 
 
 def test_causal_q_filter_is_one_pass() -> None:
     from scipy import signal
 
-    spec = QFilterSpec(cutoff=40.0, order=4, phase=QFilterPhase.CAUSAL)
+    q_filter = QFilter(40.0, 4, TS, phase=QFilterPhase.CAUSAL)
     impulse = np.zeros(1024)
     impulse[0] = 1.0
     nyquist = math.pi / TS
     h = signal.sosfilt(signal.butter(4, 40.0 / nyquist, output="sos"), impulse)
     w = np.geomspace(1e-3, math.pi, 50)
-    assert np.max(np.abs(spec.response(w, TS) - _column_dft(h, 0, w))) < 1e-12
-    assert QFilterSpec.from_settings(QFilterConfig(cutoff=40.0, order=4, phase="causal")) == spec
-    assert QFilterSpec.from_settings(QFilterConfig(cutoff=40.0)).phase is QFilterPhase.ZERO
+    assert np.max(np.abs(q_filter.response(w) - _column_dft(h, 0, w))) < 1e-12
+    assert np.array_equal(QFilter.of(QFilterConfig(cutoff=40.0, order=4, phase="causal"), TS).response(w),
+                          q_filter.response(w))
+    assert QFilter.of(QFilterConfig(cutoff=40.0), TS).phase is QFilterPhase.ZERO
 
 
 def test_with_a_q_filter_the_curve_is_the_lifted_input_maps_middle_column() -> None:
     """IOILC with state feedback and a zero-phase Q-filter: the input map ``M = R (Q - P2 S F Gy - P1 Gz)`` of the
-    certificates, dense, is Toeplitz away from the trial's edges; its middle column gives the curve."""
-    design = _design(LawKind.IOILC, np.array([[-0.2, 0.1, -0.3, 0.4]]))
+    certificates, dense, is Toeplitz away from the trial's edges; its middle column gives the curve (both with the
+    design's Q-filter)."""
     n, centre = 600, 300
-    Q = QFilter(60.0, 2, TS).matrix(n)
+    design = _design(LawKind.IOILC, np.array([[-0.2, 0.1, -0.3, 0.4]]), n_samples=n, q_filter=QFilter(60.0, 2, TS))
+    assert design.q_filter is not None
+    Q = design.q_filter.matrix(n)
     M = dense_input_map(design.A, design.B, design.measured_output, design.p1, design.p2, np.eye(n), Q,
                         design.input_delay)
     w = 2 * math.pi * np.arange(1, n // 2 + 1) / n
-    got = law_symbol(design, w, q_filter=QFilterSpec(60.0, 2))[:, 0, 0]
+    got = law_symbol(design, w)[:, 0, 0]
     assert np.max(np.abs(got - _column_dft(M[:, centre], centre, w))) < 1e-8
+
+
+@pytest.mark.parametrize("phase", [QFilterPhase.ZERO, QFilterPhase.CAUSAL])
+def test_the_picture_draws_the_filter_the_law_runs_and_the_certificates_use(phase: QFilterPhase) -> None:
+    """The picture's filter is the design's object, the one the law runs; its curve's peak is the symbol norm of the
+    Toeplitz part the structured certificates compute with that filter (``foilc_hil.design.qmap``, on its own path:
+    Markov parameters and the filter's realization). A picture drawn with any other filter misses that norm."""
+    n = 1000
+    gamma = np.array([[0.0, 0.0, 0.0, 0.7]])
+    design = _design(LawKind.P_TYPE, gamma, n_samples=n, q_filter=QFilter(60.0, 2, TS, phase))
+    assert design.q_filter is not None
+    law = make_law(design, LawConfig(kind=LawKind.P_TYPE, q_filter=QFilterConfig(cutoff=60.0, phase=phase)), n)
+    picture = convergence_picture(design, points=50)
+    assert picture.q_filter is law.q_filter is design.q_filter
+    assert picture.to_json()["q_filter"] == {"cutoff": 60.0, "order": 2, "phase": str(phase)}
+    loop = LoopPlant(design.A, design.B, design.measured_output, design.p1, design.p2)
+    structure = LawStructure(design.kp, design.r, TS, n, lead=design.input_delay, q_filter=design.q_filter.on(n))
+    smap = structured_input_map(loop, structure)
+    assert smap is not None
+    symbol = smap.symbol
+    assert len(symbol.parts) == 3  # one channel: |a0 - s a1|^2 on the grid's half, at s = 1
+    squared = symbol.parts[0] - 2.0 * symbol.parts[1] + symbol.parts[2]
+    certified = math.sqrt(float(np.max(squared)))
+    w = 2 * math.pi * np.arange(1, squared.size) / symbol.grid
+    assert float(np.max(np.abs(law_symbol(design, w)[:, 0, 0]))) == pytest.approx(certified, rel=1e-9)
+    other = replace(design, q_filter=QFilter(90.0, 2, TS, phase))
+    assert float(np.max(np.abs(law_symbol(other, w)[:, 0, 0]))) != pytest.approx(certified, rel=1e-3)
 
 
 def test_p_type_is_one_minus_gamma_z_g_by_python_control() -> None:
@@ -187,8 +222,8 @@ def test_noilc_curve_is_the_lifted_norm_optimal_map() -> None:
 
 
 def test_picture_has_the_nominal_plant_and_every_vertex() -> None:
-    design = _foilc()
-    picture = convergence_picture(design, q_filter=QFilterSpec(60.0, 2), points=200)
+    design = replace(_foilc(), q_filter=QFilter(60.0, 2, TS))
+    picture = convergence_picture(design, points=200)
     vertices = list(uncertainty_vertices(design.uncertainty))
     assert [curve.plant for curve in picture.curves] == ["nominal"] + [f"vertex {k}" for k in
                                                                        range(1, len(vertices) + 1)]
@@ -197,7 +232,7 @@ def test_picture_has_the_nominal_plant_and_every_vertex() -> None:
     assert picture.frequency[0] == pytest.approx(math.pi / (399 * TS))
     w = picture.frequency * TS
     dA, dB = vertices[-1]
-    expected = np.abs(law_symbol(design, w, plant=(design.A + dA, design.B + dB), q_filter=QFilterSpec(60.0, 2)))
+    expected = np.abs(law_symbol(design, w, plant=(design.A + dA, design.B + dB)))
     assert np.allclose(picture.curves[-1].magnitude, expected[:, 0, 0], rtol=1e-12, atol=0)
     summary = picture.to_json()
     assert summary["worst_peak"] == max(curve.peak for curve in picture.curves)

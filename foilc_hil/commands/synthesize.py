@@ -24,7 +24,6 @@ from foilc_hil.commands import CommandResult
 from foilc_hil.config import DesignMethod, LawKind
 
 if TYPE_CHECKING:
-    from foilc_hil.config import Config
     from foilc_hil.design.frequency_picture import ConvergencePicture
     from foilc_hil.design.record import Design
 
@@ -145,7 +144,7 @@ def execute(args: argparse.Namespace) -> CommandResult:
     design = build_design(config, config.law.kind, n_samples, input_delay=args.input_delay)
     document, text = design.to_json(), _text(design)
     if args.plots is not None:
-        picture, path = _draw_convergence(design, config, args.plots)
+        picture, path = _draw_convergence(design, args.plots)
         summary = picture.to_json()
         document = {**document, "plots": [str(path)], "convergence": summary}
         text += (
@@ -155,15 +154,14 @@ def execute(args: argparse.Namespace) -> CommandResult:
     return CommandResult(document=document, text=text)
 
 
-def _draw_convergence(design: Design, config: Config, directory: str) -> tuple[ConvergencePicture, Path]:
-    """``--plots DIR``: the picture of convergence of ``design`` with the config's Q-filter, as ``convergence.png``.
-    matplotlib is imported here only (the design never needs it)."""
-    from foilc_hil.design.frequency_picture import QFilterSpec, convergence_picture
+def _draw_convergence(design: Design, directory: str) -> tuple[ConvergencePicture, Path]:
+    """``--plots DIR``: the picture of convergence of ``design`` with its Q-filter (the config's, built once by the
+    design), as ``convergence.png``. matplotlib is imported here only (the design never needs it)."""
+    from foilc_hil.design.frequency_picture import convergence_picture
     from foilc_hil.errors import InputError
     from foilc_hil.logtools.report import plot_convergence
 
-    settings = config.law.q_filter
-    picture = convergence_picture(design, q_filter=None if settings is None else QFilterSpec.from_settings(settings))
+    picture = convergence_picture(design)
     out = Path(directory)
     try:
         out.mkdir(parents=True, exist_ok=True)

@@ -25,8 +25,10 @@ The map drawn is the one :mod:`foilc_hil.design.certificates` certifies (the lif
   it runs on. Their lifted gains are not Toeplitz; the formula is their long-trial limit, away from the trial's
   edges.
 
-``Q(z)`` is the Q-filter's frequency response: the Butterworth ``H`` of :class:`~foilc_hil.design.qfilter.QFilter`,
-``|H|^2`` for the zero-phase (forward-backward) filter the law runs, ``H`` for a causal one; ``1`` without a filter.
+``Q(z)`` is the frequency response of the design's Q-filter (:attr:`~foilc_hil.design.record.Design.q_filter`, the
+object the certificates were computed with and the law runs; :meth:`~foilc_hil.design.qfilter.QFilter.response`):
+the Butterworth ``|H|^2`` for the zero-phase (forward-backward) filter, ``H`` for a causal one; ``1`` without a
+filter.
 The law stores ``Q u_{k-1}`` and adds the learning term unfiltered, hence ``Q - L G`` rather than ``Q (1 - L G)``;
 the two agree without a filter.
 
@@ -44,48 +46,17 @@ from typing import Any
 
 import numpy as np
 
-from foilc_hil.config import LawKind, QFilterConfig, QFilterPhase
+from foilc_hil.config import LawKind
 from foilc_hil.design.fractional import gl_weights
 from foilc_hil.design.models import uncertainty_vertices
+from foilc_hil.design.qfilter import QFilter
 from foilc_hil.design.record import Design
 from foilc_hil.errors import InputError
 
-__all__ = ["ConvergenceCurve", "ConvergencePicture", "QFilterSpec", "convergence_picture", "law_symbol"]
+__all__ = ["ConvergenceCurve", "ConvergencePicture", "convergence_picture", "law_symbol"]
 
 #: frequencies drawn, log-spaced from the lowest a trial resolves (pi / L rad/sample) to Nyquist
 POINTS = 600
-
-
-@dataclass(frozen=True)
-class QFilterSpec:
-    """The Q-filter the law runs with: Butterworth ``order``, one pass's -3 dB ``cutoff`` (rad/s), its ``phase``
-    (:class:`~foilc_hil.config.QFilterPhase`: forward-backward, ``|H|^2`` with no phase, or one causal pass, ``H``)."""
-
-    cutoff: float
-    order: int
-    phase: QFilterPhase = QFilterPhase.ZERO
-
-    @classmethod
-    def from_settings(cls, settings: QFilterConfig) -> QFilterSpec:
-        """From the ``law.q_filter`` section the law runs (:meth:`foilc_hil.design.qfilter.QFilter.of`'s)."""
-        return cls(float(settings.cutoff), int(settings.order), QFilterPhase(settings.phase))
-
-    @property
-    def label(self) -> str:
-        """``"zero-phase"`` or ``"causal"``, for a picture's legend."""
-        return "zero-phase" if self.phase is QFilterPhase.ZERO else "causal"
-
-    def response(self, w: np.ndarray, sample_time: float) -> np.ndarray:
-        """``Q(e^jw)`` at ``w`` rad/sample: ``|H|^2`` (zero-phase) or ``H`` (causal), ``H`` the Butterworth of
-        :class:`~foilc_hil.design.qfilter.QFilter` (the same ``butter`` call, second-order sections)."""
-        from scipy import signal  # only with a Q-filter, as QFilter itself
-
-        nyquist = math.pi / sample_time
-        if not 0 < self.cutoff < nyquist:
-            raise InputError(f"law.q_filter.cutoff: must be between 0 and Nyquist {nyquist:g} rad/s, got {self.cutoff}")
-        sos = signal.butter(self.order, self.cutoff / nyquist, btype="low", output="sos")
-        _, h = signal.sosfreqz(sos, worN=w)
-        return np.asarray(np.abs(h) ** 2 if self.phase is QFilterPhase.ZERO else h)
 
 
 @dataclass(frozen=True)
@@ -116,7 +87,7 @@ class ConvergencePicture:
     sample_time, n_samples, learnable
         ``Ts``, the trial's ``N`` and its ``L = N - d`` learnable samples (the fractional filter's length).
     q_filter
-        The Q-filter, or ``None``.
+        The design's Q-filter, or ``None``.
     certified_norm_2, norm_2_method
         The certificate's worst induced 2-norm of the finite-trial map and how it was obtained (``None`` for a design
         without certificates).
@@ -129,7 +100,7 @@ class ConvergencePicture:
     sample_time: float
     n_samples: int
     learnable: int
-    q_filter: QFilterSpec | None
+    q_filter: QFilter | None
     certified_norm_2: float | None
     norm_2_method: str | None
 
@@ -159,9 +130,7 @@ class ConvergencePicture:
             "worst_plant": worst.plant,
             "worst_frequency": at,
             "below_one": bool(worst.peak < 1.0),
-            "q_filter": None
-            if self.q_filter is None
-            else {"cutoff": self.q_filter.cutoff, "order": self.q_filter.order, "phase": str(self.q_filter.phase)},
+            "q_filter": None if self.q_filter is None else self.q_filter.to_json(),
             "certified_norm_2": self.certified_norm_2,
             "norm_2_method": self.norm_2_method,
         }
@@ -225,7 +194,6 @@ def law_symbol(
     w: np.ndarray,
     *,
     plant: tuple[np.ndarray, np.ndarray] | None = None,
-    q_filter: QFilterSpec | None = None,
     n_samples: int | None = None,
 ) -> np.ndarray:
     """``M(e^jw)`` of ``design``'s law, ``(K, m, m)`` complex, at ``w`` rad/sample (module notes).
@@ -233,13 +201,12 @@ def law_symbol(
     Parameters
     ----------
     design
-        The design (its law, gain, model and, for gradient and NOILC, the step or weights in its certificates).
+        The design (its law, gain, model, Q-filter and, for gradient and NOILC, the step or weights in its
+        certificates).
     w
         Frequencies in rad/sample, in ``(0, pi]``.
     plant
         ``(A, B)`` of the plant the law runs on (e.g. an uncertainty vertex); ``None``: the design's nominal model.
-    q_filter
-        The law's Q-filter, or ``None`` (``Q = 1``).
     n_samples
         The trial length ``N`` (the fractional filter's truncation at ``N - d``); ``None``: the certificates'.
     """
@@ -249,7 +216,7 @@ def law_symbol(
     learnable = _learnable(design, n_samples)
     A, B = plant if plant is not None else (design.A, design.B)
     z = np.exp(1j * frequencies)
-    q = np.ones(z.shape, dtype=complex) if q_filter is None else q_filter.response(frequencies, design.sample_time)
+    q = np.ones(z.shape, dtype=complex) if design.q_filter is None else design.q_filter.response(frequencies)
     if design.law in (LawKind.GRADIENT, LawKind.NOILC):
         return _lifted_law_symbol(design, A, B, z, q, learnable)
     m = B.shape[1]
@@ -280,12 +247,10 @@ def _magnitude(M: np.ndarray) -> np.ndarray:
     return np.asarray(np.linalg.svd(M, compute_uv=False)[:, 0])
 
 
-def convergence_picture(
-    design: Design, *, q_filter: QFilterSpec | None = None, n_samples: int | None = None, points: int = POINTS
-) -> ConvergencePicture:
+def convergence_picture(design: Design, *, n_samples: int | None = None, points: int = POINTS) -> ConvergencePicture:
     """``|M(e^jw)|`` of the law at the nominal plant and at every uncertainty vertex, for the picture.
 
-    ``q_filter`` is the law's Q-filter (``law.q_filter``, :meth:`QFilterSpec.from_settings`); ``n_samples`` the
+    The law's Q-filter is the design's (:attr:`~foilc_hil.design.record.Design.q_filter`); ``n_samples`` the
     trial length (default: the certificates'). The frequency grid is ``points`` log-spaced values from
     ``pi / L`` to ``pi`` rad/sample, given in rad/s.
     """
@@ -296,9 +261,9 @@ def convergence_picture(
         (f"vertex {k}", design.A + dA, design.B + dB)
         for k, (dA, dB) in enumerate(uncertainty_vertices(design.uncertainty), start=1)
     ]
+    n_samples = learnable + design.input_delay
     curves = tuple(
-        ConvergenceCurve(name, _magnitude(law_symbol(design, w, plant=(A, B), q_filter=q_filter,
-                                                     n_samples=learnable + design.input_delay)))
+        ConvergenceCurve(name, _magnitude(law_symbol(design, w, plant=(A, B), n_samples=n_samples)))
         for name, A, B in plants
     )
     certificates = design.certificates
@@ -313,9 +278,9 @@ def convergence_picture(
         frequency=w / design.sample_time,
         curves=curves,
         sample_time=design.sample_time,
-        n_samples=learnable + design.input_delay,
+        n_samples=n_samples,
         learnable=learnable,
-        q_filter=q_filter,
+        q_filter=design.q_filter,
         certified_norm_2=norm_2,
         norm_2_method=method,
     )

@@ -25,8 +25,9 @@ One home: the design pipeline (:func:`foilc_hil.design.pipeline.law_structure`) 
 :meth:`QFilter.of` from the ``law.q_filter`` section; the certificates take it on the trial (:meth:`QFilter.on`),
 the :class:`~foilc_hil.design.record.Design` holds that same object (and records its parameters, :meth:`to_json`),
 and the law (:mod:`foilc_hil.laws.learning`) runs the design's. :meth:`QFilter.apply` is what the law runs,
-:meth:`QFilter.matrix` is that operator on the columns of the identity, and :meth:`QFilter.realization` the
-state-space form of one pass that the structured certificates use (the tests check all three agree).
+:meth:`QFilter.matrix` is that operator on the columns of the identity, :meth:`QFilter.realization` the
+state-space form of one pass that the structured certificates use (the tests check all three agree), and
+:meth:`QFilter.response` its frequency response, which the picture of convergence draws.
 """
 
 from __future__ import annotations
@@ -125,6 +126,15 @@ class QFilter:
             return np.ascontiguousarray(forward, dtype=float)
         backward = signal.sosfilt(self._sos, forward[::-1], axis=0)[::-1]
         return np.ascontiguousarray(backward, dtype=float)
+
+    def response(self, w: np.ndarray) -> np.ndarray:
+        """``Q(e^jw)`` at ``w`` rad/sample: the frequency response of the operator :meth:`apply` runs, away from the
+        trial's zero-state edges (the picture of convergence, :mod:`foilc_hil.design.frequency_picture`): ``|H|^2``
+        (zero phase) or ``H`` (causal), ``H`` one pass of this filter's second-order sections."""
+        from scipy import signal
+
+        _, h = signal.sosfreqz(self._sos, worN=w)
+        return np.asarray(np.abs(h) ** 2 if self.phase is QFilterPhase.ZERO else h)
 
     def matrix(self, n_samples: int) -> np.ndarray:
         """The ``(N, N)`` matrix ``Q`` with ``Q @ u == apply(u)`` for every ``(N,)`` signal ``u``."""

@@ -37,12 +37,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, cast
 
 import numpy as np
 
-from foilc_hil.config import LawKind, QFilterPhase
+from foilc_hil.config import LawKind, QFilterConfig, QFilterPhase
 from foilc_hil.design.certificate_record import Certificates
 from foilc_hil.design.json_fields import (
     jsonable,
@@ -59,7 +59,7 @@ from foilc_hil.errors import InputError
 
 #: ``jsonable`` is :mod:`foilc_hil.design.json_fields`'s; ``foilc_hil.loop.simulation`` (another line of work's
 #: module) imports it from here until it imports it from there
-__all__ = ["Design", "jsonable"]
+__all__ = ["Design", "jsonable", "with_logged_q_filter"]
 
 
 _LMI_KEYS = ("Qb", "Qt", "gamma", "tau", "theta")
@@ -328,3 +328,12 @@ def _read_q_filter(value: Any, sample_time: float) -> QFilter:
         return QFilter(cutoff, order, sample_time, QFilterPhase(phase))
     except ValueError as exc:  # an unknown phase, or a filter QFilter refuses (a ConfigError)
         raise InputError(f"{where}: {exc}") from None
+
+
+def with_logged_q_filter(design: Design, document: Mapping[str, Any], section: QFilterConfig | None) -> Design:
+    """``design``, read from a log's ``document``, with the Q-filter its run built: its own (a design records it
+    since the addition), or, for a design logged before designs recorded it, the filter of the logged config's
+    ``law.q_filter`` ``section``, which the run built (``replay --verify`` runs it, ``report`` draws it)."""
+    if "q_filter" in document or section is None:
+        return design
+    return replace(design, q_filter=QFilter.of(section, design.sample_time))

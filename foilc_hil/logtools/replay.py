@@ -32,7 +32,7 @@ import math
 import struct
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
@@ -53,7 +53,6 @@ if TYPE_CHECKING:
     import can
 
     from foilc_hil.config import Config
-    from foilc_hil.design.record import Design
     from foilc_hil.io.mcap_log import LogContents
     from foilc_hil.metrics import NoiseFloorTracker
 
@@ -304,24 +303,14 @@ def law_from_log(contents: LogContents, n_samples: int) -> LawLike:
         from foilc_hil.design.pipeline import build_design
 
         return make_law(build_design(config, LawKind.P_TYPE, n_samples, input_delay=0), config.law, n_samples)
-    from foilc_hil.design.record import Design
+    from foilc_hil.design.record import Design, with_logged_q_filter
 
     try:
         design = Design.from_json(design_doc)
     except InputError as exc:
         raise LogFormatError(f"{contents.path}: metadata foilc_hil.design: {exc}") from None
-    return make_law(_with_logged_q_filter(design, design_doc, config), config.law, n_samples,
+    return make_law(with_logged_q_filter(design, design_doc, config.law.q_filter), config.law, n_samples,
                     limits=_logged_limits(contents))
-
-
-def _with_logged_q_filter(design: Design, document: Mapping[str, Any], config: Config) -> Design:
-    """``design`` with the Q-filter its run built: its own (a design records it since the addition), or, for a design
-    logged before designs recorded it, the filter of the logged config's ``law.q_filter``, which the run built."""
-    if "q_filter" in document or config.law.q_filter is None:
-        return design
-    from foilc_hil.design.qfilter import QFilter
-
-    return replace(design, q_filter=QFilter.of(config.law.q_filter, design.sample_time))
 
 
 def _logged_limits(contents: LogContents) -> tuple[float, float] | None:

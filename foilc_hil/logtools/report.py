@@ -354,9 +354,12 @@ def plot_convergence(picture: ConvergencePicture, path: str | Path) -> Path:
         ax.axhline(picture.certified_norm_2, color="tab:red", linestyle=":", linewidth=1.5,
                    label=f"certificate's ||map||_2: {picture.certified_norm_2:.4g} at N = {picture.n_samples}{method}")
     if picture.q_filter is not None:
+        from foilc_hil.config import QFilterPhase
+
         q = picture.q_filter
+        phase = "zero-phase" if q.phase is QFilterPhase.ZERO else "causal"
         ax.axvline(q.cutoff, color="tab:green", linestyle="-.", linewidth=1.2,
-                   label=f"Q-filter cutoff {q.cutoff:.4g} rad/s (order {q.order}, {q.label})")
+                   label=f"Q-filter cutoff {q.cutoff:.4g} rad/s (order {q.order}, {phase})")
     worst = picture.worst
     at = float(f[int(np.argmax(worst.magnitude))])
     ax.plot([at], [worst.peak], "o", color="tab:red" if worst.peak >= 1 else "tab:blue", markersize=5,
@@ -377,19 +380,19 @@ def plot_convergence(picture: ConvergencePicture, path: str | Path) -> Path:
 
 
 def _convergence(contents: LogContents, directory: Path) -> tuple[Path, dict[str, Any]] | None:
-    """The picture of convergence of the logged design (with the logged config's Q-filter), or ``None`` when the log
-    has no design that reads back as a whole (a synthetic or a damaged record: the rest of the report stands)."""
-    from foilc_hil.design.frequency_picture import QFilterSpec, convergence_picture
-    from foilc_hil.design.record import Design
+    """The picture of convergence of the logged design (with the Q-filter its run built:
+    :func:`~foilc_hil.design.record.with_logged_q_filter`), or ``None`` when the log has no design that reads back as
+    a whole (a synthetic or a damaged record: the rest of the report stands)."""
+    from foilc_hil.design.frequency_picture import convergence_picture
+    from foilc_hil.design.record import Design, with_logged_q_filter
 
     if contents.design is None:
         return None
     try:
-        design = Design.from_json(contents.design)
         config = _logged_config(contents)
         settings = None if config is None else config.law.q_filter
-        q_filter = None if settings is None else QFilterSpec.from_settings(settings)
-        picture = convergence_picture(design, q_filter=q_filter)
+        design = with_logged_q_filter(Design.from_json(contents.design), contents.design, settings)
+        picture = convergence_picture(design)
     except (FoilcHilError, np.linalg.LinAlgError):
         return None
     return plot_convergence(picture, directory / "convergence.png"), picture.to_json()
