@@ -34,7 +34,7 @@ from foilc_hil.design.certificate_record import CertificateAction, GrowthBound
 from foilc_hil.design.certificates import ScaledVerdict
 from foilc_hil.errors import ConvergenceCertificateError
 
-__all__ = ["Admission", "ScaledVerdict", "admit"]
+__all__ = ["Admission", "admit"]
 
 #: The smallest gain scale the search considers.
 SMALLEST_SCALE = 1e-3

@@ -64,7 +64,7 @@ from typing import Any
 import numpy as np
 
 from foilc_hil.config import DivergentFilterPolicy, FractionalMemory, LawKind, NoilcConfig
-from foilc_hil.design.admission import ScaledVerdict, admit
+from foilc_hil.design.admission import admit
 from foilc_hil.design.certificate_record import (
     BoundClaim,
     Bounds,
@@ -76,6 +76,7 @@ from foilc_hil.design.certificate_record import (
     PlantCertificate,
     Proof,
 )
+from foilc_hil.design.certificates import ScaledVerdict
 from foilc_hil.design.lifted import LawStructure, dense_block_toeplitz, markov_blocks
 from foilc_hil.design.map_norms import CONTRACTION_LIMIT, matrix_certificate
 from foilc_hil.design.models import DiscreteModel, Uncertainty, uncertainty_vertices

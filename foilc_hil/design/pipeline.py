@@ -19,9 +19,9 @@ import time
 from dataclasses import replace
 
 from foilc_hil.config import Config, DesignMethod, LawKind
-from foilc_hil.design.admission import ScaledVerdict, admit
+from foilc_hil.design.admission import admit
 from foilc_hil.design.certificate_record import Bounds, CertificateAction, PlantCertificate
-from foilc_hil.design.certificates import PTypeScales
+from foilc_hil.design.certificates import PTypeScales, ScaledVerdict
 from foilc_hil.design.codesign import codesign
 from foilc_hil.design.gradient import certify_gradient
 from foilc_hil.design.lifted import LawStructure

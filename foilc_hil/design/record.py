@@ -45,7 +45,6 @@ import numpy as np
 from foilc_hil.config import LawKind, QFilterConfig, QFilterPhase
 from foilc_hil.design.certificate_record import Certificates
 from foilc_hil.design.json_fields import (
-    jsonable,
     matrix_rows,
     read_mapping,
     read_matrix,
@@ -57,9 +56,7 @@ from foilc_hil.design.models import DiscreteModel, Uncertainty
 from foilc_hil.design.qfilter import QFilter
 from foilc_hil.errors import InputError
 
-#: ``jsonable`` is :mod:`foilc_hil.design.json_fields`'s; ``foilc_hil.loop.simulation`` (another line of work's
-#: module) imports it from here until it imports it from there
-__all__ = ["Design", "jsonable", "with_logged_q_filter"]
+__all__ = ["Design", "with_logged_q_filter"]
 
 
 _LMI_KEYS = ("Qb", "Qt", "gamma", "tau", "theta")

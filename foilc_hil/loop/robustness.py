@@ -54,7 +54,8 @@ from typing import Any
 import numpy as np
 
 from foilc_hil.config import Config, LawKind
-from foilc_hil.design.certificates import CONTRACTION_LIMIT, LawStructure
+from foilc_hil.design.lifted import LawStructure
+from foilc_hil.design.map_norms import CONTRACTION_LIMIT
 from foilc_hil.design.pipeline import build_design, design_model
 from foilc_hil.design.record import Design
 from foilc_hil.design.robustness import DrawCertificate, Perturbation, certify_draws, running_law

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from foilc_hil.design.record import jsonable
+from foilc_hil.design.json_fields import jsonable
 from foilc_hil.errors import LearningDivergedError
 from foilc_hil.metrics import TrialMetrics
 
