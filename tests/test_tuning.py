@@ -24,6 +24,7 @@ from foilc_hil.config import load_config
 from foilc_hil.design.open_loop import (
     CONTROL_CROSSOVER_RTOL,
     CONTROL_PHASE_TOL_DEG,
+    ControlCheck,
     OpenLoop,
     PlantTf,
     frequency_sweep,
@@ -84,9 +85,10 @@ def test_feasible_with_one_cycle_delay_matches_closed_form() -> None:
     assert len(result.solutions) == 1
     assert result.achieved_crossover == pytest.approx(70.0, rel=1e-6)
     assert result.achieved_phase_margin_deg == pytest.approx(70.0, abs=1e-4)
-    check = result.checks["python_control"]
-    assert check["agrees_with_sweep"] is True
-    assert check["closed_loop_stable"] is True
+    check = result.checks.python_control
+    assert check is not None
+    assert check.agrees_with_sweep is True
+    assert check.closed_loop_stable is True
     document = result.to_json()
     assert {"K", "kp", "r", "crossover", "phase_margin_deg", "plant", "achieved"} <= set(document)
     assert document["plant"] == {"num": [1.68], "den": [1.0, 1.23], "delay": 0.01}
@@ -195,16 +197,54 @@ def test_evaluate_pair_round_trip_and_direct_evaluation() -> None:
     assert direct.mode == "direct"
     assert direct.achieved_crossover == pytest.approx(5.0, rel=1e-5)
     assert direct.achieved_phase_margin_deg == pytest.approx(55.0, abs=1e-3)
-    assert direct.checks["python_control"]["agrees_with_sweep"] is True
+    assert direct.checks.python_control is not None
+    assert direct.checks.python_control.agrees_with_sweep is True
 
 
 def test_evaluate_pair_without_crossover_reports_none() -> None:
     # |L| = |1 + kp (jw)^r| * 1.68 / |jw + 1.23| stays above 1 when kp is large and r is close to 1
     result = evaluate_pair(OpenLoop(PlantTf(PAPER_NUM, PAPER_DEN, 0.0), 1.0, 3.0, 1.05))
     assert result.achieved_crossover is None and result.crossover is None
-    assert result.checks["warnings"]
+    assert result.checks.warnings
     w = np.logspace(-3, 4, 500)
     assert np.all(np.abs(OpenLoop(PlantTf(PAPER_NUM, PAPER_DEN, 0.0), 1.0, 3.0, 1.05).response(w)) > 1)
+
+
+def test_a_pair_without_crossover_but_with_a_gain_margin_is_documented_and_rendered() -> None:
+    """No gain crossover, but a phase crossover (the delay): the sweep's note and gain margin in the document, and
+    the text summary (it read the untyped checks' ``phase_crossover``, absent there, and raised KeyError)."""
+    from foilc_hil.commands.tune import render
+
+    result = evaluate_pair(OpenLoop(PlantTf([0.001], PAPER_DEN, 0.01), 1.0, 0.01, 0.5))
+    assert result.achieved_crossover is None and result.checks.python_control is None
+    sweep = result.to_json()["checks"]["sweep"]
+    assert list(sweep) == ["w_min", "w_max", "crossings", "gain_margin_db", "note"]
+    assert sweep["crossings"] == [] and sweep["gain_margin_db"] > 0 and "no gain crossover" in sweep["note"]
+    text = render(result)
+    assert f"gain margin {sweep['gain_margin_db']:.3g} dB at" in text and "warning: |L| stays below 1" in text
+
+
+def test_checks_documents_keep_their_keys_in_order() -> None:
+    """The ``tune`` document's ``checks`` (docs/interface.md) from the typed checks: each variant's keys, in order."""
+    plain = ControlCheck("m", 1.0, 2.0, closed_loop_max_real_pole=-1.0, closed_loop_stable=True)
+    assert list(plain.to_json()) == ["method", "crossover", "phase_margin_deg", "closed_loop_max_real_pole",
+                                     "closed_loop_stable"]
+    compared = dataclasses.replace(plain, agrees_with_sweep=True).to_json()
+    assert list(compared)[-2:] == ["agrees_with_sweep", "tolerance"] and compared["agrees_with_sweep"] is True
+    improper = ControlCheck("m", 1.0, 2.0, closed_loop_note="not computed: improper", agrees_with_sweep=False)
+    assert improper.to_json() == {
+        "method": "m", "crossover": 1.0, "phase_margin_deg": 2.0, "closed_loop_stable": None,
+        "closed_loop_note": "not computed: improper", "agrees_with_sweep": False,
+        "tolerance": {"crossover_rel": CONTROL_CROSSOVER_RTOL, "phase_margin_deg": CONTROL_PHASE_TOL_DEG},
+    }  # fmt: skip
+    failed = ControlCheck("python-control stability_margins", agrees_with_sweep=False, error="overflow")
+    assert failed.to_json() == {"method": "python-control stability_margins", "error": "overflow",
+                                "agrees_with_sweep": False}
+    solved = tune_loop(PlantTf(PAPER_NUM, PAPER_DEN, 0.01), 70.0, 70.0, flat_phase=True, python_control=False)
+    assert list(solved.to_json()["checks"]) == ["warnings", "sweep", "plant_phase_deg", "plant_gain", "pd_phase_deg",
+                                                "plant_phase_slope_deg_per_rad_s", "selection"]
+    assert list(solved.to_json()["checks"]["sweep"]) == ["w_min", "w_max", "points_per_decade", "crossings",
+                                                         "gain_margin_db", "phase_crossover", "tolerance"]
 
 
 @pytest.mark.parametrize("alpha", [-0.5, -0.2, 0.3, 0.5])
@@ -230,10 +270,12 @@ def test_python_control_check_agrees(
     num: list[float], den: list[float], delay: float, wc: float, pm: float, flat: bool
 ) -> None:
     result = tune_loop(PlantTf(num, den, delay), wc, pm, flat_phase=flat)
-    check = result.checks["python_control"]
-    assert check["agrees_with_sweep"] is True
-    assert abs(check["crossover"] / result.achieved_crossover - 1) <= CONTROL_CROSSOVER_RTOL
-    assert abs(check["phase_margin_deg"] - result.achieved_phase_margin_deg) <= CONTROL_PHASE_TOL_DEG
+    check = result.checks.python_control
+    assert check is not None and check.crossover is not None and check.phase_margin_deg is not None
+    assert result.achieved_crossover is not None and result.achieved_phase_margin_deg is not None
+    assert check.agrees_with_sweep is True
+    assert abs(check.crossover / result.achieved_crossover - 1) <= CONTROL_CROSSOVER_RTOL
+    assert abs(check.phase_margin_deg - result.achieved_phase_margin_deg) <= CONTROL_PHASE_TOL_DEG
 
 
 def test_flat_phase_with_delay_is_flagged() -> None:
@@ -241,10 +283,10 @@ def test_flat_phase_with_delay_is_flagged() -> None:
     rolls off: the tuner must say so rather than hide it."""
     result = tune_loop(PlantTf(PAPER_NUM, PAPER_DEN, 0.01), 70.0, 70.0, flat_phase=True)
     assert result.r > 1
-    warnings = " ".join(result.checks["warnings"])
+    warnings = " ".join(result.checks.warnings)
     assert "does not roll off" in warnings
-    assert result.checks["sweep"]["gain_margin_db"] < 0
-    assert result.checks["python_control"]["closed_loop_stable"] is False
+    assert result.checks.sweep.gain_margin_db is not None and result.checks.sweep.gain_margin_db < 0
+    assert result.checks.python_control is not None and result.checks.python_control.closed_loop_stable is False
 
 
 def test_bad_parameters_are_named() -> None:
@@ -275,7 +317,7 @@ def test_tune_from_config(tmp_path: Path) -> None:
         tune(load_config(_config(tmp_path, "{phase_margin_deg: 45}")))
     both = tune(load_config(_config(tmp_path, "{crossover: 70, phase_margin_deg: 70, kp: 1.0, r: 0.5}")))
     assert both.mode == "spec"
-    assert both.checks["configured_pair"]["kp"] == 1.0
+    assert both.checks.configured_pair is not None and both.checks.configured_pair.kp == 1.0
     pair = tune(load_config(_config(tmp_path, "{kp: 1.0, r: 0.5}")))
     assert pair.mode == "direct" and pair.kp == 1.0 and pair.r == 0.5
 

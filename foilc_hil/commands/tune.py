@@ -79,23 +79,23 @@ def render(result: TuningResult) -> str:
     spec_margin = result.phase_margin_deg if result.mode == "spec" else None
     lines.append(f"{'crossover rad/s':18}{_number(spec_crossover):>12}{_number(result.achieved_crossover):>12}")
     lines.append(f"{'phase margin deg':18}{_number(spec_margin):>12}{_number(result.achieved_phase_margin_deg):>12}")
-    sweep = result.checks.get("sweep", {})
-    if sweep.get("gain_margin_db") is not None:
-        lines.append(f"gain margin {sweep['gain_margin_db']:.3g} dB at {sweep['phase_crossover']:.4g} rad/s (sweep)")
-    check = result.checks.get("python_control")
-    if check is not None and check.get("crossover") is not None:
-        agrees = check.get("agrees_with_sweep")
+    sweep = result.checks.sweep
+    if sweep.gain_margin_db is not None:
+        lines.append(f"gain margin {sweep.gain_margin_db:.3g} dB at {sweep.phase_crossover:.4g} rad/s (sweep)")
+    check = result.checks.python_control
+    if check is not None and check.crossover is not None:
         lines.append(
-            f"python-control (Oustaloup/Pade model): crossover {check['crossover']:.6g} rad/s, phase margin "
-            f"{check['phase_margin_deg']:.4g} deg -> {'agrees' if agrees else 'DISAGREES'} with the sweep"
+            f"python-control (Oustaloup/Pade model): crossover {check.crossover:.6g} rad/s, phase margin "
+            f"{check.phase_margin_deg:.4g} deg -> {'agrees' if check.agrees_with_sweep else 'DISAGREES'} with the "
+            "sweep"
             + (
-                f"; closed loop {'stable' if check['closed_loop_stable'] else 'UNSTABLE'}"
-                if check.get("closed_loop_stable") is not None
+                f"; closed loop {'stable' if check.closed_loop_stable else 'UNSTABLE'}"
+                if check.closed_loop_stable is not None
                 else ""
             )
         )
     if len(result.solutions) > 1:
-        lines.append(f"{len(result.solutions)} solutions found; chosen by: {result.checks.get('selection', '')}")
-    for warning in result.checks.get("warnings", []):
+        lines.append(f"{len(result.solutions)} solutions found; chosen by: {result.checks.selection}")
+    for warning in result.checks.warnings:
         lines.append(f"warning: {warning}")
     return "\n".join(lines)

@@ -40,6 +40,7 @@ __all__ = [
     "CONTROL_PHASE_TOL_DEG",
     "SWEEP_POINTS_PER_DECADE",
     "Coefficients",
+    "ControlCheck",
     "Crossing",
     "OpenLoop",
     "PlantTf",
@@ -95,6 +96,57 @@ class SweepResult:
         if not self.crossings:
             return None
         return min(self.crossings, key=lambda c: c.phase_margin_deg)
+
+
+@dataclass(frozen=True)
+class ControlCheck:
+    """What :func:`control_check` found: python-control's margins of ``L`` on a rational model.
+
+    Attributes
+    ----------
+    method
+        How the model was made and checked (python-control's version, Oustaloup's order and band, Padé's order).
+    crossover, phase_margin_deg
+        The gain crossover nearest the one asked about (rad/s) and its phase margin (deg); ``None``: none found.
+    closed_loop_max_real_pole, closed_loop_stable
+        The closed loop's largest real part of a pole (rad/s) and whether it is negative; ``None``: not computed.
+    closed_loop_note
+        Why the closed loop was not computed (an improper loop has no state-space feedback), or ``None``.
+    agrees_with_sweep
+        Whether crossover and phase margin agree with the dense sweep's crossing within ``CONTROL_CROSSOVER_RTOL`` /
+        ``CONTROL_PHASE_TOL_DEG``; ``None``: no crossing was given to compare with.
+    error
+        Why the check could not run (it then never counts as agreement), or ``None``.
+    """
+
+    method: str
+    crossover: float | None = None
+    phase_margin_deg: float | None = None
+    closed_loop_max_real_pole: float | None = None
+    closed_loop_stable: bool | None = None
+    closed_loop_note: str | None = None
+    agrees_with_sweep: bool | None = None
+    error: str | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        """The ``tune`` document's ``checks.python_control``: the keys that apply, in this order."""
+        if self.error is not None:
+            return {"method": self.method, "error": self.error, "agrees_with_sweep": False}
+        document: dict[str, Any] = {
+            "method": self.method,
+            "crossover": self.crossover,
+            "phase_margin_deg": self.phase_margin_deg,
+        }
+        if self.closed_loop_note is None:
+            document["closed_loop_max_real_pole"] = self.closed_loop_max_real_pole
+            document["closed_loop_stable"] = self.closed_loop_stable
+        else:
+            document["closed_loop_stable"] = None
+            document["closed_loop_note"] = self.closed_loop_note
+        if self.agrees_with_sweep is not None:
+            document["agrees_with_sweep"] = self.agrees_with_sweep
+            document["tolerance"] = {"crossover_rel": CONTROL_CROSSOVER_RTOL, "phase_margin_deg": CONTROL_PHASE_TOL_DEG}
+        return document
 
 
 # --- the plant and the open loop -------------------------------------------------------------------------------
@@ -317,12 +369,12 @@ def oustaloup(
     return -zero_freqs, -pole_freqs, w_high**alpha
 
 
-def control_check(loop: OpenLoop, crossover: float, reference: Crossing | None = None) -> dict[str, Any]:
+def control_check(loop: OpenLoop, crossover: float, reference: Crossing | None = None) -> ControlCheck:
     """python-control's margins of ``L`` with ``s^r`` -> ``s^n`` times Oustaloup, and delay -> Padé.
 
     Frequencies are scaled by ``crossover`` (``s = wc * sigma``) so the polynomials stay well conditioned.
-    Returns the crossover nearest ``crossover``, its phase margin, the closed-loop poles' largest real part,
-    and, when ``reference`` (the dense sweep's crossing) is given, whether both agree within
+    Returns (:class:`ControlCheck`) the crossover nearest ``crossover``, its phase margin, the closed-loop poles'
+    largest real part, and, when ``reference`` (the dense sweep's crossing) is given, whether both agree within
     ``CONTROL_CROSSOVER_RTOL`` / ``CONTROL_PHASE_TOL_DEG``.
     """
     import control
@@ -353,43 +405,42 @@ def control_check(loop: OpenLoop, crossover: float, reference: Crossing | None =
             _, pm, _, _, wgc, _ = control.stability_margins(model, returnall=True)
     except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
         # the check could not run: say so; it never counts as agreement
-        return {"method": "python-control stability_margins", "error": str(exc), "agrees_with_sweep": False}
+        return ControlCheck("python-control stability_margins", agrees_with_sweep=False, error=str(exc))
     wgc = np.atleast_1d(np.asarray(wgc, dtype=float))
     pm = np.atleast_1d(np.asarray(pm, dtype=float))
-    result: dict[str, Any] = {
-        "method": (
-            f"python-control {control.__version__} stability_margins; s^r = s^{integer_part} * Oustaloup(s^"
-            f"{alpha:.4g}, order {_OUSTALOUP_ORDER}) on [wc/{_OUSTALOUP_SPAN:g}, {_OUSTALOUP_SPAN:g} wc]; delay: "
-            f"Pade order {pade_order}"
-        ),
-        "crossover": None,
-        "phase_margin_deg": None,
-    }
+    method = (
+        f"python-control {control.__version__} stability_margins; s^r = s^{integer_part} * Oustaloup(s^"
+        f"{alpha:.4g}, order {_OUSTALOUP_ORDER}) on [wc/{_OUSTALOUP_SPAN:g}, {_OUSTALOUP_SPAN:g} wc]; delay: "
+        f"Pade order {pade_order}"
+    )
+    found: Crossing | None = None
     if wgc.size:
         i = int(np.argmin(np.abs(np.log(wgc))))
-        result["crossover"] = float(wgc[i] * wc)
-        result["phase_margin_deg"] = float(wrap_deg(pm[i]))
+        found = Crossing(float(wgc[i] * wc), float(wrap_deg(pm[i])))
+    max_real: float | None = None
+    stable: bool | None = None
+    note: str | None = None
     try:
         closed = control.feedback(model, 1)
         max_real = float(np.max(np.real(closed.poles()))) * wc
-        result["closed_loop_max_real_pole"] = max_real
-        result["closed_loop_stable"] = bool(max_real < 0)
+        stable = bool(max_real < 0)
     except (ValueError, np.linalg.LinAlgError) as exc:  # an improper loop has no state-space feedback
-        result["closed_loop_stable"] = None
-        result["closed_loop_note"] = f"not computed: {exc}"
-    if reference is not None:
-        result.update(_agreement(result, reference))
-    return result
-
-
-def _agreement(result: dict[str, Any], reference: Crossing) -> dict[str, Any]:
-    """Whether python-control's crossover and phase margin agree with the dense sweep's, and the tolerances."""
-    agrees = (
-        result["crossover"] is not None
-        and abs(result["crossover"] - reference.frequency) <= CONTROL_CROSSOVER_RTOL * reference.frequency
-        and abs(wrap_deg(result["phase_margin_deg"] - reference.phase_margin_deg)) <= CONTROL_PHASE_TOL_DEG
+        note = f"not computed: {exc}"
+    return ControlCheck(
+        method,
+        crossover=None if found is None else found.frequency,
+        phase_margin_deg=None if found is None else found.phase_margin_deg,
+        closed_loop_max_real_pole=max_real,
+        closed_loop_stable=stable,
+        closed_loop_note=note,
+        agrees_with_sweep=None if reference is None else _agrees(found, reference),
     )
-    return {
-        "agrees_with_sweep": bool(agrees),
-        "tolerance": {"crossover_rel": CONTROL_CROSSOVER_RTOL, "phase_margin_deg": CONTROL_PHASE_TOL_DEG},
-    }
+
+
+def _agrees(found: Crossing | None, reference: Crossing) -> bool:
+    """Whether python-control's crossover and phase margin agree with the dense sweep's crossing ``reference``."""
+    return bool(
+        found is not None
+        and abs(found.frequency - reference.frequency) <= CONTROL_CROSSOVER_RTOL * reference.frequency
+        and abs(wrap_deg(found.phase_margin_deg - reference.phase_margin_deg)) <= CONTROL_PHASE_TOL_DEG
+    )

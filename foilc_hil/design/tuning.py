@@ -39,7 +39,7 @@ which is positive exactly when ``0 < theta < a``: the PD term adds between 0 and
   increasing from 0 and crosses the constant ``-d arg G / dw`` once (checked on 120 random specs). The
   bracketing still searches for several roots, as a guard. ``K = 1 / (|P| |G(j wc)|)``. An answer with
   ``r`` near 2 sits where the phase of ``(j w)^r`` is near 180 deg and the PD term is nearly a pure double
-  differentiator: :func:`tune` warns (``checks["warnings"]``) when ``r > FLAT_PHASE_ORDER_WARNING``.
+  differentiator: :func:`tune` warns (``checks.warnings``) when ``r > FLAT_PHASE_ORDER_WARNING``.
 
 Choosing among solutions: the largest worst-case phase margin over all gain crossovers found in the sweep
 window, then the largest gain margin, then the smallest ``kp`` (the smallest instantaneous gain
@@ -56,13 +56,14 @@ margins on an Oustaloup/Padé model of the loop, which must agree with the sweep
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from foilc_hil.design.open_loop import (
     SWEEP_POINTS_PER_DECADE,
+    ControlCheck,
     Crossing,
     OpenLoop,
     PlantTf,
@@ -80,7 +81,11 @@ if TYPE_CHECKING:
 __all__ = [
     "DENSE_CROSSOVER_RTOL",
     "DENSE_PHASE_TOL_DEG",
+    "SELECTION",
+    "ConfiguredPair",
+    "LoopShape",
     "LoopSolution",
+    "TuningChecks",
     "TuningResult",
     "evaluate_pair",
     "tune",
@@ -96,6 +101,13 @@ _EDGE = np.concatenate([np.logspace(-12, -2.5, 120), np.linspace(10**-2.5, 1 - 1
 #: fractions u in (0, 1) of the r interval, dense near both ends where the residuals blow up
 #: Above this order the tuner warns: ``(j w)^r`` then has a phase near 180 deg (a near double differentiator).
 FLAT_PHASE_ORDER_WARNING = 1.8
+#: how :func:`tune_loop` chooses among several solutions (the order of :func:`_ranked_solutions`)
+SELECTION = (
+    "solutions with a positive (or no) gain margin first, then the largest worst-case phase margin over all "
+    "crossovers, then the largest gain margin, then the smallest kp"
+)
+#: the sweep's note when ``|L|`` never crosses 1 in its window
+_NO_CROSSOVER = "|L| does not cross 1 in the window: no gain crossover (infinite phase margin)"
 _GRID_FRACTIONS = np.unique(np.concatenate([_EDGE, 1.0 - _EDGE]))
 
 
@@ -112,6 +124,97 @@ class LoopSolution:
     worst_phase_margin_deg: float
     gain_margin_db: float | None
     n_crossings: int
+
+
+@dataclass(frozen=True)
+class LoopShape:
+    """What a solved specification was solved with at ``wc``: the plant's phase (deg) and gain, the phase the PD term
+    supplies (deg) and, with flat phase, the plant's phase slope (deg per rad/s; ``None`` without)."""
+
+    plant_phase_deg: float
+    plant_gain: float
+    pd_phase_deg: float
+    plant_phase_slope_deg_per_rad_s: float | None = None
+
+
+@dataclass(frozen=True)
+class ConfiguredPair:
+    """The configured ``kp``, ``r`` evaluated beside a solved specification: its achieved crossover and phase margin
+    (``None``: no gain crossover)."""
+
+    kp: float
+    r: float
+    crossover: float | None
+    phase_margin_deg: float | None
+
+
+@dataclass(frozen=True)
+class TuningChecks:
+    """How a tuning answer was checked (the ``tune`` document's ``checks``).
+
+    Attributes
+    ----------
+    warnings
+        Plain-language warnings: what the answer does not guarantee about the whole loop.
+    sweep
+        The dense sweep of the chosen loop (no crossings: ``|L|`` never crosses 1 in its window).
+    python_control
+        python-control's cross-check (:func:`~foilc_hil.design.open_loop.control_check`), or ``None`` (not asked
+        for, or no crossing to check).
+    shape
+        A solved specification's plant and PD phases at ``wc`` (``None`` for a given pair).
+    configured_pair
+        The configured pair, evaluated beside a solved specification, or ``None``.
+    """
+
+    warnings: tuple[str, ...]
+    sweep: SweepResult
+    python_control: ControlCheck | None = None
+    shape: LoopShape | None = None
+    configured_pair: ConfiguredPair | None = None
+
+    @property
+    def selection(self) -> str:
+        """How the answer was chosen among several solutions (:data:`SELECTION`; ``""`` for a given pair)."""
+        return "" if self.shape is None else SELECTION
+
+    def to_json(self) -> dict[str, Any]:
+        """The ``checks`` document: the keys that apply, in this order."""
+        document: dict[str, Any] = {"warnings": list(self.warnings), "sweep": _sweep_json(self.sweep)}
+        if self.python_control is not None:
+            document["python_control"] = self.python_control.to_json()
+        if self.shape is not None:
+            document["plant_phase_deg"] = self.shape.plant_phase_deg
+            document["plant_gain"] = self.shape.plant_gain
+            document["pd_phase_deg"] = self.shape.pd_phase_deg
+            if self.shape.plant_phase_slope_deg_per_rad_s is not None:
+                document["plant_phase_slope_deg_per_rad_s"] = self.shape.plant_phase_slope_deg_per_rad_s
+            document["selection"] = SELECTION
+        if self.configured_pair is not None:
+            document["configured_pair"] = asdict(self.configured_pair)
+        return document
+
+
+def _sweep_json(sweep: SweepResult) -> dict[str, Any]:
+    """``checks.sweep``: the window, its crossings and gain margin, and the tolerances (the note without a
+    crossing)."""
+    if not sweep.crossings:
+        return {
+            "w_min": sweep.w_min,
+            "w_max": sweep.w_max,
+            "crossings": [],
+            "gain_margin_db": sweep.gain_margin_db,
+            "note": _NO_CROSSOVER,
+        }
+    return {
+        "w_min": sweep.w_min,
+        "w_max": sweep.w_max,
+        "points_per_decade": SWEEP_POINTS_PER_DECADE,
+        "crossings": [asdict(c) for c in sweep.crossings],
+        "gain_margin_db": sweep.gain_margin_db,
+        "phase_crossover": sweep.phase_crossover,
+        "tolerance": {"crossover_rel": DENSE_CROSSOVER_RTOL, "phase_margin_deg": DENSE_PHASE_TOL_DEG},
+    }
 
 
 @dataclass(frozen=True)
@@ -134,9 +237,9 @@ class TuningResult:
     plant_delay: float
     achieved_crossover: float | None
     achieved_phase_margin_deg: float | None
+    checks: TuningChecks
     mode: str = "spec"  # "spec": solved; "direct": kp and r given
     solutions: tuple[LoopSolution, ...] = ()
-    checks: dict[str, Any] = field(default_factory=dict)
 
     @property
     def plant(self) -> dict[str, Any]:
@@ -165,7 +268,7 @@ class TuningResult:
                 "mode": self.mode,
                 "flat_phase": self.flat_phase,
                 "solutions": [asdict(s) for s in self.solutions],
-                "checks": self.checks,
+                "checks": self.checks.to_json(),
             }
         )
 
@@ -319,7 +422,7 @@ def _candidates(spec: _Spec, slope_g: float, flat_phase: bool) -> list[OpenLoop]
 
 
 def _ranked_solutions(wc: float, candidates: list[OpenLoop]) -> list[tuple[LoopSolution, SweepResult, OpenLoop]]:
-    """Each candidate with its dense sweep, best first (the selection rule of ``checks["selection"]``)."""
+    """Each candidate with its dense sweep, best first (the selection rule :data:`SELECTION`)."""
     ranked: list[tuple[LoopSolution, SweepResult, OpenLoop]] = []
     for loop in candidates:
         sweep = frequency_sweep(loop, wc * 1e-3, wc * 1e3)
@@ -379,7 +482,7 @@ def tune_loop(
     flat_phase
         Also require ``d arg L / dw = 0`` at ``wc`` and solve ``K``; otherwise ``K = 1``.
     python_control
-        Also cross-check the answer with python-control's margins (``checks["python_control"]``); the design
+        Also cross-check the answer with python-control's margins (``checks.python_control``); the design
         pipeline, which keeps only ``kp`` and ``r``, passes ``False``: importing python-control costs a process
         about 1.5 s (it imports matplotlib), more than the whole design on paper_sim.
 
@@ -402,16 +505,13 @@ def tune_loop(
     ranked = _ranked_solutions(spec.wc, _candidates(spec, slope_g, flat_phase))
     chosen, sweep, loop = ranked[0]
     achieved = _achieved(spec, chosen, sweep)
-    checks = _checks(loop, sweep, achieved, python_control=python_control)
-    checks["plant_phase_deg"] = math.degrees(spec.phase_g)
-    checks["plant_gain"] = spec.gain
-    checks["pd_phase_deg"] = math.degrees(spec.theta)
-    if flat_phase:
-        checks["plant_phase_slope_deg_per_rad_s"] = math.degrees(slope_g)
-    checks["selection"] = (
-        "solutions with a positive (or no) gain margin first, then the largest worst-case phase margin over all "
-        "crossovers, then the largest gain margin, then the smallest kp"
+    shape = LoopShape(
+        plant_phase_deg=math.degrees(spec.phase_g),
+        plant_gain=spec.gain,
+        pd_phase_deg=math.degrees(spec.theta),
+        plant_phase_slope_deg_per_rad_s=math.degrees(slope_g) if flat_phase else None,
     )
+    checks = replace(_checks(loop, sweep, achieved, python_control=python_control), shape=shape)
     return TuningResult(
         K=chosen.K,
         kp=chosen.kp,
@@ -442,22 +542,13 @@ def _reachable_margins(pm_low: float) -> str:
     return f"phase margins reachable at this crossover: {text} deg"
 
 
-def _checks(loop: OpenLoop, sweep: SweepResult, achieved: Crossing, *, python_control: bool) -> dict[str, Any]:
-    checks: dict[str, Any] = {
-        "warnings": _warnings(sweep, achieved, loop.gain_at(sweep.w_max)) + _order_warning(loop.r),
-        "sweep": {
-            "w_min": sweep.w_min,
-            "w_max": sweep.w_max,
-            "points_per_decade": SWEEP_POINTS_PER_DECADE,
-            "crossings": [asdict(c) for c in sweep.crossings],
-            "gain_margin_db": sweep.gain_margin_db,
-            "phase_crossover": sweep.phase_crossover,
-            "tolerance": {"crossover_rel": DENSE_CROSSOVER_RTOL, "phase_margin_deg": DENSE_PHASE_TOL_DEG},
-        },
-    }
-    if python_control:
-        checks["python_control"] = control_check(loop, achieved.frequency, achieved)
-    return checks
+def _checks(loop: OpenLoop, sweep: SweepResult, achieved: Crossing, *, python_control: bool) -> TuningChecks:
+    """The warnings and checks of ``loop``, whose sweep crosses at ``achieved`` (python-control's if asked)."""
+    return TuningChecks(
+        warnings=tuple(_warnings(sweep, achieved, loop.gain_at(sweep.w_max)) + _order_warning(loop.r)),
+        sweep=sweep,
+        python_control=control_check(loop, achieved.frequency, achieved) if python_control else None,
+    )
 
 
 def _warnings(sweep: SweepResult, achieved: Crossing, loop_at_w_max: float) -> list[str]:
@@ -506,24 +597,17 @@ def evaluate_pair(loop: OpenLoop, *, python_control: bool = True) -> TuningResul
     w_max = min(max(corners) * 1e3, 1e7)
     sweep = frequency_sweep(loop, w_min, w_max, points_per_decade=1000)
     worst = sweep.worst()
-    checks: dict[str, Any]
     if worst is not None:
         checks = _checks(loop, sweep, worst, python_control=python_control)
     else:
         loop_at_w_max = loop.gain_at(w_max)
-        checks = {
-            "warnings": [
+        checks = TuningChecks(
+            warnings=(
                 f"|L| stays {'above' if loop_at_w_max > 1 else 'below'} 1 over [{sweep.w_min:.4g}, "
-                f"{sweep.w_max:.4g}] rad/s: no gain crossover"
-            ],
-            "sweep": {
-                "w_min": sweep.w_min,
-                "w_max": sweep.w_max,
-                "crossings": [],
-                "gain_margin_db": sweep.gain_margin_db,
-                "note": "|L| does not cross 1 in the window: no gain crossover (infinite phase margin)",
-            },
-        }
+                f"{sweep.w_max:.4g}] rad/s: no gain crossover",
+            ),
+            sweep=sweep,
+        )
     return TuningResult(
         K=float(loop.K),
         kp=float(loop.kp),
@@ -547,7 +631,7 @@ def tune(config: Config, *, python_control: bool = True) -> TuningResult:
 
     A complete spec (``tuning.crossover`` and ``tuning.phase_margin_deg``) is solved; otherwise a given
     ``tuning.kp``/``tuning.r`` pair is evaluated. When both are present the spec is solved and the given pair is
-    evaluated too (``checks["configured_pair"]``). ``python_control=False`` leaves out python-control's
+    evaluated too (``checks.configured_pair``). ``python_control=False`` leaves out python-control's
     cross-check (:func:`tune_loop`); the dense sweep's check of the answer always runs.
 
     Raises
@@ -582,12 +666,8 @@ def tune(config: Config, *, python_control: bool = True) -> TuningResult:
         if has_pair:
             assert tuning.kp is not None and tuning.r is not None
             pair = evaluate_pair(OpenLoop(plant, 1.0, tuning.kp, tuning.r), python_control=python_control)
-            result.checks["configured_pair"] = {
-                "kp": pair.kp,
-                "r": pair.r,
-                "crossover": pair.achieved_crossover,
-                "phase_margin_deg": pair.achieved_phase_margin_deg,
-            }
+            configured = ConfiguredPair(pair.kp, pair.r, pair.achieved_crossover, pair.achieved_phase_margin_deg)
+            result = replace(result, checks=replace(result.checks, configured_pair=configured))
         return result
     assert tuning.kp is not None and tuning.r is not None
     return evaluate_pair(OpenLoop(plant, 1.0, tuning.kp, tuning.r), python_control=python_control)
