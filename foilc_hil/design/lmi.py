@@ -85,7 +85,7 @@ import math
 import time
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -102,8 +102,11 @@ from foilc_hil.progress import as_step
 __all__ = [
     "SIGMA_BOUND",
     "LmiSolution",
+    "LmiVerification",
     "RoesserModel",
     "Scaling",
+    "SpectralChecks",
+    "VertexChecks",
     "balance",
     "lmi_matrix",
     "roesser_model",
@@ -283,6 +286,39 @@ class LmiSolution:
     status: str
     checks: LmiChecks
     seconds: float = 0.0  # wall-clock time of the solve and its checks (informational)
+
+
+@dataclass(frozen=True)
+class SpectralChecks:
+    """The eigenvalue checks of the solved LMI matrix and of ``Q``, with the margin relative to the norm of the scaled
+    matrix ``Dg^-1 M Dg^-1`` (the one solved) and of ``M`` itself (:func:`verify_lmi_solution`)."""
+
+    lmi_max_eigenvalue: float
+    Qb_min_eigenvalue: float
+    Qt_min_eigenvalue: float
+    relative_margin: float
+    relative_margin_unscaled: float
+    Q_condition: float
+
+
+@dataclass(frozen=True)
+class VertexChecks:
+    """Theorem 1's Lyapunov decrease and 1D radii: the worst over the nominal model and the ``vertices_checked``
+    uncertainty vertices."""
+
+    lyapunov_max_eigenvalue: float
+    time_radius: float
+    trial_radius: float
+    vertices_checked: int
+
+
+@dataclass(frozen=True)
+class LmiVerification:
+    """What :func:`verify_lmi_solution` measured on a solution it confirmed, and its gain ``P = J Q^-1``."""
+
+    spectral: SpectralChecks
+    vertices: VertexChecks
+    P: np.ndarray
 
 
 def lmi_matrix(
@@ -482,17 +518,16 @@ def _condition(Qb: np.ndarray, Qt: np.ndarray) -> float:
     return float(np.max(values) / np.min(values)) if np.min(values) > 0 else math.inf
 
 
-def _spectral_checks(M: np.ndarray, congruence: np.ndarray, Qb: np.ndarray, Qt: np.ndarray) -> dict[str, Any]:
-    """The eigenvalue checks of the solved LMI matrix and ``Q``, with the margin relative to the norm of the scaled
-    matrix ``Dg^-1 M Dg^-1`` (the one solved) and of ``M`` itself."""
-    return {
-        "lmi_max_eigenvalue": float(np.max(np.linalg.eigvalsh((M + M.T) / 2))),
-        "Qb_min_eigenvalue": float(np.min(np.linalg.eigvalsh(Qb))),
-        "Qt_min_eigenvalue": float(np.min(np.linalg.eigvalsh(Qt))),
-        "relative_margin": _relative_margin(M / np.outer(congruence, congruence)),
-        "relative_margin_unscaled": _relative_margin(M),
-        "Q_condition": _condition(Qb, Qt),
-    }
+def _spectral_checks(M: np.ndarray, congruence: np.ndarray, Qb: np.ndarray, Qt: np.ndarray) -> SpectralChecks:
+    """The eigenvalue checks of the solved LMI matrix and ``Q`` (:class:`SpectralChecks`)."""
+    return SpectralChecks(
+        lmi_max_eigenvalue=float(np.max(np.linalg.eigvalsh((M + M.T) / 2))),
+        Qb_min_eigenvalue=float(np.min(np.linalg.eigvalsh(Qb))),
+        Qt_min_eigenvalue=float(np.min(np.linalg.eigvalsh(Qt))),
+        relative_margin=_relative_margin(M / np.outer(congruence, congruence)),
+        relative_margin_unscaled=_relative_margin(M),
+        Q_condition=_condition(Qb, Qt),
+    )
 
 
 def verify_lmi_solution(
@@ -503,9 +538,9 @@ def verify_lmi_solution(
     tau: float,
     theta: float,
     scaling: Scaling | None = None,
-) -> dict[str, Any]:
+) -> LmiVerification:
     """The independent numpy checks of the module notes on ``values`` in the original coordinates (``scaling``: the
-    coordinates they were solved in, for the relative margin). Returns the measured numbers.
+    coordinates they were solved in, for the relative margin). Returns the measured numbers and the gain.
 
     Raises
     ------
@@ -531,13 +566,13 @@ def verify_lmi_solution(
     if not np.allclose(M, M.T, rtol=0, atol=1e-12 * max(1.0, float(np.max(np.abs(M))))):
         raise LmiInfeasibleError("LMI (31): the assembled matrix is not symmetric (internal error)")
     congruence = np.ones(M.shape[0]) if scaling is None else scaling.congruence(roesser)
-    checks = _spectral_checks(M, congruence, Qb, Qt)
-    lmi_max, qb_min, qt_min = checks["lmi_max_eigenvalue"], checks["Qb_min_eigenvalue"], checks["Qt_min_eigenvalue"]
+    spectral = _spectral_checks(M, congruence, Qb, Qt)
+    lmi_max, qb_min, qt_min = spectral.lmi_max_eigenvalue, spectral.Qb_min_eigenvalue, spectral.Qt_min_eigenvalue
     if not lmi_max < 0:
         raise LmiInfeasibleError(f"LMI (31): largest eigenvalue of the solved matrix is {lmi_max:.3g}, not < 0")
-    if not checks["relative_margin"] >= LMI_RELATIVE_MARGIN_MIN:
+    if not spectral.relative_margin >= LMI_RELATIVE_MARGIN_MIN:
         raise LmiInfeasibleError(
-            f"LMI (31) holds only within rounding (margin {checks['relative_margin']:.3g} of its norm, below "
+            f"LMI (31) holds only within rounding (margin {spectral.relative_margin:.3g} of its norm, below "
             f"{LMI_RELATIVE_MARGIN_MIN:g}): gamma = {values['gamma']:.6g} is not confirmed"
         )
     if not (qb_min > 0 and qt_min > 0):
@@ -547,18 +582,16 @@ def verify_lmi_solution(
     rates = np.block(
         [[tau * np.linalg.inv(Qb), np.zeros((n, Qt.shape[0]))], [np.zeros((Qt.shape[0], n)), theta * np.linalg.inv(Qt)]]
     )
-    checks.update(_vertex_checks(model, uncertainty, P, np.linalg.inv(Q), rates))
-    checks["P"] = P
-    return checks
+    return LmiVerification(spectral, _vertex_checks(model, uncertainty, P, np.linalg.inv(Q), rates), P)
 
 
 def _vertex_checks(
     model: DiscreteModel, uncertainty: Uncertainty, P: np.ndarray, Qinv: np.ndarray, rates: np.ndarray
-) -> dict[str, Any]:
+) -> VertexChecks:
     """Theorem 1's Lyapunov decrease and 1D radii at the nominal model and every vertex; the worst of each."""
     n = model.n_states
     p1, p2 = P[:, :n], P[:, n:]
-    worst: dict[str, Any] = {"lyapunov_max_eigenvalue": -math.inf, "time_radius": 0.0, "trial_radius": 0.0}
+    worst_lyapunov, worst_time, worst_trial = -math.inf, 0.0, 0.0
     cases: list[tuple[np.ndarray, np.ndarray]] = [(np.zeros_like(model.A), np.zeros_like(model.B))]
     cases.extend(uncertainty_vertices(uncertainty))
     for index, (dA, dB) in enumerate(cases):
@@ -578,11 +611,10 @@ def _vertex_checks(
             raise LmiInfeasibleError(
                 f"Theorem 1: trial-direction block unstable at {where} (radius {trial_radius:.4g})"
             )
-        worst["lyapunov_max_eigenvalue"] = max(worst["lyapunov_max_eigenvalue"], lyapunov)
-        worst["time_radius"] = max(worst["time_radius"], time_radius)
-        worst["trial_radius"] = max(worst["trial_radius"], trial_radius)
-    worst["vertices_checked"] = len(cases) - 1
-    return worst
+        worst_lyapunov = max(worst_lyapunov, lyapunov)
+        worst_time = max(worst_time, time_radius)
+        worst_trial = max(worst_trial, trial_radius)
+    return VertexChecks(worst_lyapunov, worst_time, worst_trial, vertices_checked=len(cases) - 1)
 
 
 @as_step("LMI (31)")
@@ -626,11 +658,11 @@ def solve_lmi(
             continue
         values = scaling.unscale(solved)
         try:
-            checks = verify_lmi_solution(model, uncertainty, values, tau=tau, theta=theta, scaling=scaling)
+            verified = verify_lmi_solution(model, uncertainty, values, tau=tau, theta=theta, scaling=scaling)
         except LmiInfeasibleError as exc:
             failures.append(f"{name}: {exc}")
             continue
-        P = checks.pop("P")
+        P = verified.P
         record = LmiChecks(
             solver=name,
             status=status,
@@ -645,7 +677,8 @@ def solve_lmi(
                 sigma_bound=SIGMA_BOUND,
                 Q_condition=_condition(solved["Qb"], solved["Qt"]),
             ),
-            **checks,
+            **asdict(verified.spectral),
+            **asdict(verified.vertices),
         )
         return LmiSolution(
             P=P,
