@@ -51,6 +51,7 @@ __all__ = [
 UDP_HEADER = 8
 _SO_ATTACH_FILTER = getattr(socket, "SO_ATTACH_FILTER", 26)  # Linux's <asm-generic/socket.h>
 _ACCEPT, _DROP = 0xFFFFFFFF, 0  # a socket filter returns the bytes to keep: all, or none
+_STANDARD_MASK, _EXTENDED_MASK = 0x7FF, 0x1FFFFFFF  # every bit of an 11-bit and of a 29-bit identifier
 
 
 @enum.unique
@@ -166,8 +167,9 @@ def install_id_filter(bus: can.BusABC, ids: Iterable[int]) -> FilterKind:
     kind = type(bus).__name__
     try:
         if kind == "SocketcanBus":
-            bus.set_filters([{"can_id": can_id, "can_mask": 0x1FFFFFFF if can_id > 0x7FF else 0x7FF,
-                              "extended": can_id > 0x7FF} for can_id in wanted])
+            extended = [can_id > _STANDARD_MASK for can_id in wanted]
+            bus.set_filters([{"can_id": can_id, "can_mask": _EXTENDED_MASK if wide else _STANDARD_MASK,
+                              "extended": wide} for can_id, wide in zip(wanted, extended, strict=True)])
             return FilterKind.CAN_RAW_FILTER
         if kind == "UdpMulticastBus":
             _attach_bpf(bus.fileno(), udp_id_filter(wanted))

@@ -199,21 +199,27 @@ def _die_with_parent(libc: Any, parent: int) -> None:
         raise SystemExit(f"sync_process: parent {parent} is gone")
 
 
-def _realtime(libc: Any, fifo: int | None) -> list[str]:
-    """The host setup (module docstring); one line per step not applied."""
-    problems = []
+def _prepare(libc: Any) -> list[str]:
+    """The host setup that takes time, done before ``ready`` (memory locked: faulting every page in took tens of
+    milliseconds, which fell between the loop's last SYNC and the clock's first); one line per step not applied."""
     gc.collect()
     gc.freeze()
     gc.disable()
     libc.prctl(_PR_SET_TIMERSLACK, ctypes.c_ulong(1), 0, 0, 0)
-    if fifo is not None:
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(fifo))
-        except OSError as exc:
-            problems.append(f"SCHED_FIFO {fifo}: {exc.strerror}")
-        if libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) != 0:
-            problems.append(f"mlockall: {os.strerror(ctypes.get_errno())}")
-    return problems
+    if libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) != 0:
+        return [f"mlockall: {os.strerror(ctypes.get_errno())}"]
+    return []
+
+
+def _raise_priority(fifo: int | None) -> list[str]:
+    """SCHED_FIFO at ``fifo`` (None: normal scheduling kept); one line when refused."""
+    if fifo is None:
+        return []
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(fifo))
+    except OSError as exc:
+        return [f"SCHED_FIFO {fifo}: {exc.strerror}"]
+    return []
 
 
 def _serve(bus: Any, period_ns: int, t0: int, libc: Any, stopped: list[int]) -> tuple[int, int]:
@@ -266,12 +272,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         from drivers.receive_filter import install_id_filter
 
         install_id_filter(bus, ())  # it sends only: the bus's frames are dropped before they queue on its socket
+        prepared = _prepare(libc)
         print("ready", flush=True)
         words = sys.stdin.readline().split()  # the end of input (the bench stopped us first): words == []
         if stopped or len(words) != 3 or words[0] != "go":
             return 0
         period, fifo = float(words[1]), int(words[2]) or None
-        problems = _realtime(libc, fifo)
+        problems = [*(prepared if fifo is not None else []), *_raise_priority(fifo)]  # asked for realtime: all
         period_ns = round(period * 1e9)
         t0 = time.clock_gettime_ns(time.CLOCK_MONOTONIC) + period_ns
         print("started", f"t0={t0}", f"fifo={fifo}", *(f"not applied: {p}" for p in problems), flush=True)
