@@ -21,8 +21,11 @@ import sys
 
 import pytest
 
-#: the modules whose kernels are compiled (or loaded from numba's cache) when they are imported
-KERNEL_MODULES = ("foilc_hil.design.fractional", "foilc_hil.laws.kernels", "foilc_hil.loop.trial_kernel",
+#: the modules whose kernels are compiled (or loaded from numba's cache) when they are imported (the design's own
+#: kernels too: lifted_kernel alone is about 10 CPU-s to compile, which each worker otherwise spent at once, in
+#: whichever test first reached a NOILC or gradient design)
+KERNEL_MODULES = ("foilc_hil.design.fractional", "foilc_hil.design.gl_kernel", "foilc_hil.design.lifted_kernel",
+                  "foilc_hil.design.rational_map", "foilc_hil.laws.kernels", "foilc_hil.loop.trial_kernel",
                   "plant_emulator.physics.kernels", "plant_emulator.physics.trial")
 
 
