@@ -126,6 +126,7 @@ def test_errors_are_the_products(config: Any, design: Any, tmp_path: Path) -> No
         fh.Bench(several)
 
 
+@pytest.mark.slow
 def test_to_pandas_holds_every_sample(config: Any, design: Any, tmp_path: Path) -> None:
     pandas = pytest.importorskip("pandas")  # the [pandas] extra; the dev extra installs it
     out = tmp_path / "sim.mcap"

@@ -280,7 +280,9 @@ def _paper_model(ts: float) -> DiscreteModel:
     return discretize(ContinuousModel(np.array([[-1.23]]), np.array([[1.68]]), np.array([[1.0]])), ts)
 
 
-@pytest.mark.parametrize("memory", MEMORIES)
+# the law's default memory in the inner loop, both in `make test`
+@pytest.mark.parametrize("memory", [pytest.param(memory, marks=() if memory is FractionalMemory.CONTROLLABLE
+                                                 else pytest.mark.slow) for memory in MEMORIES])
 def test_rescale_fixes_a_filter_that_breaks_the_naive_gain_and_refuse_raises(memory: FractionalMemory) -> None:
     model = _paper_model(0.01)
     unc = Uncertainty.none(1, 1)

@@ -113,6 +113,7 @@ def test_bad_uncertainty_names_the_key(tmp_path: Path, capsys: pytest.CaptureFix
     assert "plant.uncertainty.H1" in err
 
 
+@pytest.mark.slow
 def test_exact_tightens_the_certificate_of_a_q_filtered_law(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """``--exact`` (``synthesis.exact_certificates``): the same map, a bound no looser than the fast one's, and the
     method says it is the structured exact test."""

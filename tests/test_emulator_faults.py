@@ -136,7 +136,9 @@ def test_sustained_torque_limit_is_an_over_current_fault() -> None:
 
 @pytest.mark.parametrize(
     ("option", "state_after"),
-    ABORT_REACTIONS,
+    # one reaction in the inner loop (each case waits out a heartbeat consumer time), all four in `make test`
+    [pytest.param(*reaction, marks=() if reaction[0] is AbortConnectionOption.FAULT else pytest.mark.slow)
+     for reaction in ABORT_REACTIONS],
 )
 def test_heartbeat_loss_reacts_per_0x6007(option: int, state_after: State402) -> None:
     with Harness() as h:
@@ -226,6 +228,7 @@ def test_lockstep_has_no_sync_loss() -> None:
         assert h.drive.state is State402.OPERATION_ENABLED
 
 
+@pytest.mark.slow
 def test_send_emcy_and_stop_responding() -> None:
     with Harness() as h:
         h.drive.send_emcy(0xFF01, 0x80)
@@ -354,7 +357,9 @@ def test_short_rpdo_is_refused_with_emcy() -> None:
 @pytest.mark.parametrize("command", [NmtCommand.STOP, NmtCommand.ENTER_PRE_OPERATIONAL])
 @pytest.mark.parametrize(
     ("option", "state_after"),
-    ABORT_REACTIONS,
+    # one reaction per command in the inner loop, all four in `make test`
+    [pytest.param(*reaction, marks=() if reaction[0] is AbortConnectionOption.FAULT else pytest.mark.slow)
+     for reaction in ABORT_REACTIONS],
 )
 def test_leaving_operational_reacts_per_0x6007(command: NmtCommand, option: int, state_after: State402) -> None:
     """Outside OPERATIONAL no RPDO reaches the drive: the drive applies its abort-connection reaction itself."""

@@ -69,6 +69,7 @@ def _run(seed: int, cycles: int = 120) -> list[bytes]:
     return frames
 
 
+@pytest.mark.slow
 def test_same_seed_gives_identical_feedback() -> None:
     first, second, other = _run(seed=7), _run(seed=7), _run(seed=8)
     assert len(first) == len(second) > 0

@@ -164,6 +164,7 @@ def test_nmt_reset_node_restores_defaults_and_boots() -> None:
         assert h.recorder.frames[heartbeat].count(b"\x00") == boots + 2  # a boot-up message per reset
 
 
+@pytest.mark.slow
 def test_nmt_states_gate_pdo_and_sdo() -> None:
     with Harness() as h:
         h.sync()  # pre-operational: no PDO

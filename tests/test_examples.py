@@ -36,7 +36,9 @@ def test_the_commissioning_script(monkeypatch: pytest.MonkeyPatch, capsys: pytes
     assert "stop: confirmed, SWITCH_ON_DISABLED" in out
 
 
-@pytest.mark.parametrize("where", [(), ("--bench",)], ids=["simulate", "bench"])
+# the bench's whole run is `make test`'s; the inner loop runs the example on simulate
+@pytest.mark.parametrize("where", [pytest.param((), id="simulate"),
+                                   pytest.param(("--bench",), id="bench", marks=pytest.mark.slow)])
 def test_comparing_two_laws_on_a_piecewise_reference(where: tuple[str, ...], monkeypatch: pytest.MonkeyPatch,
                                                      capsys: pytest.CaptureFixture[str]) -> None:
     out = run_example("compare_laws.py", "--laws", "ioilc,p-type", "--trials", "2", *where, monkeypatch=monkeypatch,

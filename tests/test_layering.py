@@ -172,6 +172,7 @@ def test_function_local_imports_are_seen() -> None:
     assert imports_of("foilc_hil.design.x", source, MODULES) >= {"foilc_hil.loop", "drivers.cia402"}
 
 
+@pytest.mark.slow
 def test_a_planted_cycle_is_found() -> None:
     """The checker fails on a cycle planted through a function-local import (the shape that hid one before)."""
     planted = {module: set(targets) for module, targets in project_graph().items()}

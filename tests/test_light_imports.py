@@ -76,10 +76,12 @@ def test_the_design_path_does_not_load(loaded: set[str], module: str) -> None:
     assert module not in loaded, f"{module} was imported by the design path of synthesize"
 
 
+@pytest.mark.slow
 def test_the_design_path_does_not_load_scipy_signal(loaded: set[str]) -> None:
     assert "scipy.signal" not in loaded
 
 
+@pytest.mark.slow
 def test_the_command_module_alone_loads_no_design(tmp_path: Path) -> None:
     """Importing the command (as ``foilc-hil --help`` and the parser do) loads neither cvxpy nor scipy."""
     code = "import sys, foilc_hil.commands.synthesize; print(sorted(m for m in ('cvxpy', 'scipy') if m in sys.modules))"

@@ -122,6 +122,7 @@ def test_fault_statusword_without_emcy_raises_drive_fault(rig: tuple[MiniServo, 
     recorder.assert_commanded_safe()
 
 
+@pytest.mark.slow
 def test_heartbeat_loss_is_detected_and_fault_reset_restores_communication(
     rig: tuple[MiniServo, Cia402Drive, TxRecorder],
 ) -> None:

@@ -485,6 +485,7 @@ def test_interpolation_time_period_rejects_unencodable() -> None:
         interpolation_time_period(0.0012345)
 
 
+@pytest.mark.slow
 def test_silent_sdo_server_is_a_timeout_naming_the_object(servo: MiniServo, master_bus: can.BusABC) -> None:
     with Cia402Drive.open(master_bus, drive_config(sdo_timeout=0.05), sample_time=0.002) as drive:
         drive.connect()

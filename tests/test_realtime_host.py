@@ -24,6 +24,7 @@ def _fifo_permitted() -> bool:
     return True
 
 
+@pytest.mark.slow
 def test_gc_and_switch_interval_are_set_for_the_session_and_restored() -> None:
     interval = sys.getswitchinterval()
     assert gc.isenabled()
@@ -37,6 +38,7 @@ def test_gc_and_switch_interval_are_set_for_the_session_and_restored() -> None:
     assert sys.getswitchinterval() == interval
 
 
+@pytest.mark.slow
 def test_the_timer_slack_is_one_nanosecond_in_the_session_and_restored() -> None:
     before = realtime._timer_slack()
     if before is None:
@@ -122,6 +124,7 @@ def _latency_device_usable() -> bool:
     return True
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not _latency_device_usable(), reason=f"{realtime.CPU_LATENCY_DEVICE} cannot be opened here "
                     "(no PM QoS device, or not root): the refusal is tested below")
 def test_the_cpu_latency_request_is_in_force_for_the_session_and_dropped_after() -> None:

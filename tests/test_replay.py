@@ -287,6 +287,7 @@ def test_play_frames_keeps_absolute_deadlines_without_drift(rate: float) -> None
         assert msg.arbitration_id == frames[k]["id"] and msg.timestamp == 0.0
 
 
+@pytest.mark.slow
 def test_replay_cli_emits_the_tx_frames_on_a_virtual_bus(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path = tmp_path / "run.mcap"
     run_fake_bench(path, trials=1)

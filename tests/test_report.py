@@ -80,6 +80,7 @@ def test_report_writes_plots_and_summaries(tmp_path: Path, capsys: pytest.Captur
     assert "Truncated" not in markdown
 
 
+@pytest.mark.slow
 def test_report_without_timing_and_with_vector_signals(tmp_path: Path) -> None:
     log = tmp_path / "mimo.mcap"
     _write(log, trials=2, timing=False, mimo=True)

@@ -131,6 +131,7 @@ def test_per_draw_certificates_match_a_numpy_lifted_map_of_the_drawn_plant(confi
         assert outcome.spectral_radius == pytest.approx(max(abs(np.linalg.eigvals(T))), rel=1e-6)
 
 
+@pytest.mark.slow
 def test_one_and_two_workers_agree_and_figures_match_a_direct_simulation(config: Config, client: Any) -> None:
     settings = MonteCarloSettings(samples=5, seed=3, trials=4, noise=0.002, tolerance=0.01)
     one = run_robustness(config, [LawKind.IOILC], settings, client=client, workers=1).to_json()

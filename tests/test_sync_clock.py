@@ -124,6 +124,7 @@ def _reconstruct(frames: list[tuple[int, bytes]]) -> list[int | None]:
     return latched
 
 
+@pytest.mark.slow
 def test_what_the_master_says_each_sync_latched_is_what_the_bus_shows(emulator: EmbeddedEmulator) -> None:
     bus_cfg: BusConfig = emulator.bus_config
     witness = can.Bus(interface="virtual", channel=bus_cfg.channel)  # the independent observer

@@ -78,6 +78,7 @@ def test_the_anticipating_thread_delivers_every_frame_and_catches_syncs_awake() 
             end.shutdown()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("margin", [0.0, 0.0002])
 def test_a_realtime_drive_anticipates_sync_only_when_asked(margin: float) -> None:
     settings = EmulatorConfig(timing="realtime", realtime=EmulatorRealtimeConfig(sync_anticipation=margin))
