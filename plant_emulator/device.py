@@ -70,7 +70,7 @@ from drivers.receive_filter import FilteredNetwork
 from drivers.timing import TimingMode  # its home is below the loop and the emulator; the old name stays
 from plant_emulator.application import APPLICATION_OBJECTS, Cia402Application, FaultKind
 from plant_emulator.axis import Axis
-from plant_emulator.motion import AxisPhysics, default_units
+from plant_emulator.motion import PHYSICS_THREAD_PREFIX, AxisPhysics, default_units
 from plant_emulator.node import EmulatedNode, load_object_dictionary
 from plant_emulator.pdo_engine import PDO_AREAS, PdoEngine
 from plant_emulator.physics.base import Plant
@@ -227,7 +227,7 @@ class VirtualDrive:
             self._start_thread(lambda: self.supervisor.run(self._stop_event), "drive-supervision")
         if self.timing is TimingMode.REALTIME:
             self._start_thread(lambda: self.physics.run_realtime(self._stop_event, self._lock, self._emit_trace,
-                                                                 lambda: self._sync_at), "drive-physics")
+                                                                 lambda: self._sync_at), PHYSICS_THREAD_PREFIX)
 
     def _connect(self, network: canopen.Network) -> None:
         """Start the receive path: realtime on a python-can bus with ``emulator.realtime.sync_anticipation``, a

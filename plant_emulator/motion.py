@@ -26,7 +26,7 @@ import numpy as np
 from canopen import objectdictionary as cod
 
 from drivers.cia402 import Obj, OperationMode, QuickStopOption
-from drivers.realtime import RealtimeSession, collect_young
+from drivers.realtime import NOTIFIER_THREAD_PREFIX, RealtimeConfig, RealtimeSession, collect_young
 from plant_emulator.application import Cia402Application, FaultKind
 from plant_emulator.axis import Axis, Units, toward
 from plant_emulator.node import EmulatedNode
@@ -234,7 +234,7 @@ class AxisPhysics:
         the ticks are kept that fraction of a period after the SYNCs (:func:`phased_tick`).
         """
         phase = self.settings.realtime.tick_phase
-        with RealtimeSession(self.settings.realtime):
+        with physics_session(self.settings.realtime):
             next_tick = time.perf_counter()
             ticks = 0
             while not stop.is_set():
@@ -254,6 +254,24 @@ class AxisPhysics:
                 ticks += 1
                 if ticks % GC_EVERY_TICKS == 0:
                     collect_young()
+
+
+#: the name of each drive's physics thread begins with this (``VirtualDrive`` names it ``drive-physics-NODE``)
+PHYSICS_THREAD_PREFIX = "drive-physics"
+
+
+def physics_session(config: RealtimeConfig) -> RealtimeSession:
+    """The host setup a physics thread enters: the cyclic priority for itself, every receive thread AND every other
+    drive's physics thread of the process, the helper priority for the rest.
+
+    Why the physics threads: a process of several drives (``plant-emulator --node-id 1,2,3,4``) enters one session
+    per drive, and a session demotes every thread it does not name cyclic: the fourth drive's session demoted the
+    first three drives' physics threads to the helper priority, below every cyclic thread of the host, where one
+    preempted while holding its drive's lock holds that drive's SYNC handling with it (priority inversion). Runs of
+    that process failed on node 1 alone (no TPDO for 21 SYNCs; its SYNC-loss EMCY) while nodes 2-4 answered."""
+    cyclic = [thread for thread in threading.enumerate()
+              if thread.name.startswith((PHYSICS_THREAD_PREFIX, NOTIFIER_THREAD_PREFIX))]
+    return RealtimeSession(config, cyclic_threads=cyclic)
 
 
 def phased_tick(tick: float, sync: float | None, period: float, phase: float) -> float:

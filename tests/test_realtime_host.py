@@ -49,6 +49,34 @@ def test_the_timer_slack_is_one_nanosecond_in_the_session_and_restored() -> None
     assert realtime._timer_slack() == before
 
 
+@pytest.mark.skipif(not _fifo_permitted(), reason="this host does not permit SCHED_FIFO (the refusal is tested above)")
+def test_a_drive_physics_session_keeps_the_other_drives_physics_threads_cyclic() -> None:
+    """Several drives in one process: each physics thread enters its session in turn; a later one must not demote
+    the earlier ones (plant_emulator.motion.physics_session)."""
+    from plant_emulator.motion import PHYSICS_THREAD_PREFIX, physics_session
+
+    release, entered = threading.Event(), [threading.Event(), threading.Event()]
+
+    def physics(k: int) -> None:
+        with physics_session(RealtimeConfig(sched_fifo_priority=30, gc="on", switch_interval=None)):
+            entered[k].set()
+            release.wait(10)
+
+    threads = [threading.Thread(target=physics, args=(k,), name=f"{PHYSICS_THREAD_PREFIX}-{k + 1}") for k in (0, 1)]
+    try:
+        threads[0].start()
+        assert entered[0].wait(10)
+        threads[1].start()
+        assert entered[1].wait(10)
+        for thread in threads:  # both at the cyclic priority: the second session left the first one's alone
+            assert thread.native_id is not None
+            assert os.sched_getparam(thread.native_id).sched_priority == 30, thread.name
+    finally:
+        release.set()
+        for thread in threads:
+            thread.join()
+
+
 @pytest.mark.slow
 def test_a_refused_fifo_is_reported_and_normal_scheduling_kept(monkeypatch: pytest.MonkeyPatch) -> None:
     def refuse(pid: int, policy: int, param: os.sched_param) -> None:
