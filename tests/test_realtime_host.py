@@ -55,12 +55,13 @@ def test_a_drive_physics_session_keeps_the_other_drives_physics_threads_cyclic()
     the earlier ones (plant_emulator.motion.physics_session)."""
     from plant_emulator.motion import PHYSICS_THREAD_PREFIX, physics_session
 
-    release, entered = threading.Event(), [threading.Event(), threading.Event()]
+    release, entered = [threading.Event(), threading.Event()], [threading.Event(), threading.Event()]
+    before = os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
 
     def physics(k: int) -> None:
         with physics_session(RealtimeConfig(sched_fifo_priority=30, gc="on", switch_interval=None)):
             entered[k].set()
-            release.wait(10)
+            release[k].wait(10)
 
     threads = [threading.Thread(target=physics, args=(k,), name=f"{PHYSICS_THREAD_PREFIX}-{k + 1}") for k in (0, 1)]
     try:
@@ -72,9 +73,10 @@ def test_a_drive_physics_session_keeps_the_other_drives_physics_threads_cyclic()
             assert thread.native_id is not None
             assert os.sched_getparam(thread.native_id).sched_priority == 30, thread.name
     finally:
-        release.set()
-        for thread in threads:
-            thread.join()
+        for k in (1, 0):  # in reverse: each session restores the scheduling it found (this thread's too)
+            release[k].set()
+            threads[k].join()
+    assert (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority) == before
 
 
 @pytest.mark.slow
