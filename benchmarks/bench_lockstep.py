@@ -213,7 +213,7 @@ def _config(plant: str, sample_time: float, duration: float) -> Any:
 
 @functools.cache
 def _design(plant: str, sample_time: float, duration: float) -> Any:
-    from foilc_hil.loop.bench import build_design
+    from foilc_hil.loop.settings import build_design
     from foilc_hil.references import trial_samples
 
     config = _config(plant, sample_time, duration)

@@ -94,8 +94,9 @@ def loop_only(samples: int = 2000, trials: int = 5) -> dict[str, Any]:
     from foilc_hil.design.ptype import p_type_default_gain
     from foilc_hil.design.record import Design
     from foilc_hil.laws.learning import PType
-    from foilc_hil.loop.bench import LoopSettings, TrialLoop
+    from foilc_hil.loop.bench import TrialLoop
     from foilc_hil.loop.safety import CommandLimiter
+    from foilc_hil.loop.settings import LoopSettings
 
     sample_time = 0.001
     a, b = -1.23, 1.68

@@ -153,7 +153,7 @@ def _run(trials: int = 3) -> tuple[int, float, float]:
     time of the control thread: what a loaded machine leaves least distorted)."""
     from drivers.config import BusConfig
     from foilc_hil.config import load_config
-    from foilc_hil.loop import bench
+    from foilc_hil.loop import bench, settings
     from foilc_hil.references import trial_samples
     from plant_emulator.device import TimingMode
 
@@ -167,7 +167,7 @@ def _run(trials: int = 3) -> tuple[int, float, float]:
         "drive.heartbeat_consumer_ms": 2000,
     })
     if not _DESIGN:  # made once per process, not timed: every run has the same config
-        _DESIGN.append(bench.build_design(config, "foilc", trial_samples(config.reference, config.sample_time)))
+        _DESIGN.append(settings.build_design(config, "foilc", trial_samples(config.reference, config.sample_time)))
     design = _DESIGN[0]
     spent: list[tuple[float, float]] = []
     original = bench.TrialLoop.run

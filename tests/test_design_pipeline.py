@@ -22,7 +22,7 @@ from foilc_hil.design.qfilter import QFilter
 from foilc_hil.design.record import Design
 from foilc_hil.errors import ConfigError, ConvergenceCertificateError, InputError
 from foilc_hil.laws.learning import Foilc, PType, make_law
-from foilc_hil.loop import bench, rig, simulation
+from foilc_hil.loop import rig, settings, simulation
 from foilc_hil.references import trial_samples
 from tests.test_bench_e2e import bench_config
 
@@ -72,8 +72,8 @@ def _without_timing(design: Design) -> dict[str, Any]:
 def test_bench_and_simulate_build_identical_designs_with_the_q_filter(kind: LawKind) -> None:
     config = _config(tuning={"kp": 0.02, "r": 0.5})
     n = trial_samples(config.reference, config.sample_time)
-    delay = bench.CAN_INPUT_DELAY
-    on_bench = bench.build_design(config, kind, n)
+    delay = settings.CAN_INPUT_DELAY
+    on_bench = settings.build_design(config, kind, n)
     via_law = rig.plan_axis(config, kind, n, input_delay=delay).design  # what simulate's plan calls
     certificates = via_law.certificates.to_json() if via_law.certificates is not None else {}
     assert json.dumps(_without_timing(on_bench)) == json.dumps(_without_timing(via_law))

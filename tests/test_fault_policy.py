@@ -281,7 +281,8 @@ class _RecordingLaw:
 
 
 def _lossy_loop(lost: set[int], max_lost: int) -> tuple[Any, _LossyDrive, _RecordingLaw]:
-    from foilc_hil.loop.bench import LoopSettings, TrialLoop
+    from foilc_hil.loop.bench import TrialLoop
+    from foilc_hil.loop.settings import LoopSettings
 
     drive = _LossyDrive(lost)
     law = _RecordingLaw()

@@ -22,9 +22,10 @@ from foilc_hil.design.models import DiscreteModel, augment_input_delay
 from foilc_hil.design.record import Design
 from foilc_hil.errors import ConfigError
 from foilc_hil.io.mcap_log import McapLogWriter, read_log
-from foilc_hil.loop.bench import TrialLoop, loop_settings
+from foilc_hil.loop.bench import TrialLoop
 from foilc_hil.loop.log_sink import McapSink
 from foilc_hil.loop.rig import RunRequest, plan_axis, run_rig
+from foilc_hil.loop.settings import loop_settings
 from foilc_hil.loop.simulated_drive import SimulatedDrive
 from foilc_hil.loop.simulation import simulate
 from foilc_hil.references import reference_profile

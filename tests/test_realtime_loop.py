@@ -15,8 +15,9 @@ import pytest
 from drivers.cia402 import State402
 from drivers.drive import Feedback
 from foilc_hil.errors import FeedbackTimeoutError
-from foilc_hil.loop.bench import COMMAND_MARGIN_FRACTION, BenchOutcome, LoopSettings, TrialLoop
+from foilc_hil.loop.bench import COMMAND_MARGIN_FRACTION, BenchOutcome, TrialLoop
 from foilc_hil.loop.scheduler import CycleTiming, TimingSummary
+from foilc_hil.loop.settings import LoopSettings
 from plant_emulator.device import TimingMode
 
 PERIOD = 0.001

@@ -142,7 +142,8 @@ class _InMemoryDrive:
 
 def _loop(drive: _InMemoryDrive, gain: float, factor: float = 3.0) -> Any:
     from foilc_hil.laws.learning import PType
-    from foilc_hil.loop.bench import LoopSettings, TrialLoop
+    from foilc_hil.loop.bench import TrialLoop
+    from foilc_hil.loop.settings import LoopSettings
     from tests.designs import p_type_design
 
     a_d, b_d = drive.a_d, drive.b_d

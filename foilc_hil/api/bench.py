@@ -22,7 +22,7 @@ if TYPE_CHECKING:
 
 __all__ = ["Bench", "design", "load_config", "simulate"]
 
-#: the CAN loop applies a command one SYNC after it computes it (foilc_hil.loop.bench.CAN_INPUT_DELAY)
+#: the CAN loop applies a command one SYNC after it computes it (foilc_hil.loop.settings.CAN_INPUT_DELAY)
 _BENCH_INPUT_DELAY = 1
 
 

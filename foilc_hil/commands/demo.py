@@ -223,7 +223,7 @@ def _run_and_report(config: Config, law: str, trials: int | None, out_dir: Path,
 
 def _design_one(config: Config, law: str, n_samples: int) -> dict[str, Any]:
     """One law's design as JSON (runs in a worker process): the bench's own design for its CAN loop."""
-    from foilc_hil.loop.bench import build_design
+    from foilc_hil.loop.settings import build_design
 
     return dict(build_design(config, law, n_samples).to_json())
 

@@ -10,7 +10,7 @@ vectors for outputs and commands:
   every axis (the loop's abort path calls :meth:`AxisGroup.quick_stop`); :func:`foilc_hil.loop.rig.run_rig` then
   safe-stops each drive and reports one :class:`~drivers.drive.StopReport` per axis, read back from each drive.
 - :class:`AxisLaws`: one :class:`~foilc_hil.laws.learning.LearningLaw` per axis, each designed and certified on its
-  own model (:func:`foilc_hil.loop.bench.build_design` of the axis's config, :func:`foilc_hil.config.axis_configs`).
+  own model (:func:`foilc_hil.loop.settings.build_design` of the axis's config, :func:`foilc_hil.config.axis_configs`).
 - :class:`AxisLimiter`: one :class:`~foilc_hil.loop.safety.CommandLimiter` per axis.
 - :class:`AxesSink`: splits each finished trial into one record per axis; every ``/ilc/sample`` and ``/ilc/trial``
   message carries ``axis`` (the node id) -- docs/interface-additions.md.

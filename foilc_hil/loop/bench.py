@@ -7,16 +7,17 @@ One trial of ``N`` samples runs ``N + 1`` SYNC cycles on the drive's cyclic path
 The last cycle (``i = N``) only reads ``y(N Ts)``; its RPDO is a zero command. The trial arrays follow
 :mod:`foilc_hil.references` (``output[i] = y((i + 1) Ts)``), so ``output[i] = y_{i+1}``. The drive applies an
 RPDO at the next SYNC, so ``u_i`` acts from ``(i + 1) Ts``: a one-cycle transport delay that the design models
-with ``input_delay = 1`` (see :func:`build_design`).
+with ``input_delay = 1`` (see :func:`foilc_hil.loop.settings.build_design`).
 
-The drive is any :class:`drivers.drive.Drive`: :func:`run_bench` runs the loop over a CiA 402 drive on CAN (or the
-embedded emulator); ``foilc-hil simulate`` runs the same loop, in lockstep, on a
+The drive is any :class:`drivers.drive.Drive`: the rig of every run (:mod:`foilc_hil.loop.rig`) hands the loop a
+CiA 402 drive on CAN (or the embedded emulator), or, for ``foilc-hil simulate``, in lockstep, a
 :class:`~foilc_hil.loop.simulated_drive.SimulatedDrive` (:func:`foilc_hil.loop.simulation.simulate`).
 
 Between trials the axis is brought back to rest over the same cyclic path (zero command, which in CSV/PV is a
 braking velocity set-point and in CST lets a stable axis coast down), until ``|y| <= bench.settle_tolerance`` for
-``bench.settle_time``; a settle that does not finish within :data:`SETTLE_TIMEOUT_FACTOR` x ``settle_time`` (at
-least :data:`MIN_SETTLE_TIMEOUT` seconds of cycles) raises :class:`~foilc_hil.errors.DriveError`.
+``bench.settle_time``; a settle that does not finish within
+:data:`~foilc_hil.loop.settings.SETTLE_TIMEOUT_FACTOR` x ``settle_time`` (at least
+:data:`~foilc_hil.loop.settings.MIN_SETTLE_TIMEOUT` seconds of cycles) raises :class:`~foilc_hil.errors.DriveError`.
 
 Timing modes (:mod:`foilc_hil.loop.scheduler`): ``lockstep`` sends the next SYNC as soon as the command of the
 previous one is out; ``realtime`` has each SYNC on an absolute deadline (period ``sample_time``), measures
@@ -34,9 +35,9 @@ the law and the drive, and the frame tap enqueues CAN frames for the log writer 
 ``/ilc/trial`` and ``/timing`` messages are built after the trial.
 
 Safety (:mod:`foilc_hil.loop.safety`): commands are clamped to the drive limits and the plant saturation. The
-wait for each SYNC's feedback is bounded (:attr:`LoopSettings.feedback_timeout`: in realtime until
-:data:`COMMAND_MARGIN_FRACTION` of a period before the next deadline,
-``bench.watchdog_cycles`` x :data:`LOCKSTEP_FEEDBACK_TIMEOUT` in lockstep, a liveness timeout for a drive in another
+wait for each SYNC's feedback is bounded (:attr:`~foilc_hil.loop.settings.LoopSettings.feedback_timeout`: in
+realtime until :data:`COMMAND_MARGIN_FRACTION` of a period before the next deadline, ``bench.watchdog_cycles`` x
+:data:`~foilc_hil.loop.settings.LOCKSTEP_FEEDBACK_TIMEOUT` in lockstep, a liveness timeout for a drive in another
 process; on the embedded emulator's synchronous bus the drive's answer is in when ``sync`` returns, so
 ``wait_feedback`` decides at once and no time bound applies at all) -- no further SYNC is sent while
 waiting, the drive holds its last command, and realtime feedback that arrives after half a period is counted late.
@@ -83,7 +84,7 @@ from typing import TYPE_CHECKING, Any, Protocol, cast
 import numpy as np
 
 from drivers.cia402 import State402
-from drivers.realtime import BenchRealtimeConfig, SyncSource, collect_young, demote_current_thread
+from drivers.realtime import SyncSource, collect_young, demote_current_thread
 from foilc_hil.errors import (
     DriveError,
     DriveFaultError,
@@ -93,7 +94,6 @@ from foilc_hil.errors import (
 from foilc_hil.io.records import TrialSamples
 from foilc_hil.laws.learning import TrialUpdate
 from foilc_hil.loop.safety import (
-    CommandLimiter,
     DivergenceGuard,
     DivergenceVerdict,
     FeedbackWatchdog,
@@ -101,32 +101,21 @@ from foilc_hil.loop.safety import (
     require_finite,
 )
 from foilc_hil.loop.scheduler import CycleTiming, DeadlineScheduler, TimingRecorder, TimingSummary
+from foilc_hil.loop.settings import LoopSettings
 from foilc_hil.metrics import NoiseFloorTracker, TrialMetrics
 from foilc_hil.progress import UPDATES_PER_TRIAL, NullProgress, ProgressView
 from plant_emulator.device import TimingMode
 
 if TYPE_CHECKING:
-    from foilc_hil.config import Config
-    from foilc_hil.design.record import Design
     from foilc_hil.loop.stalls import LoopStalls
 
 __all__ = [
-    "MIN_SETTLE_TIMEOUT",
-    "SETTLE_TIMEOUT_FACTOR",
     "BenchOutcome",
     "FaultCounts",
-    "LoopSettings",
     "TrialLoop",
     "TrialRecord",
 ]
 
-#: the settle phase gives up after this many times ``bench.settle_time`` ...
-SETTLE_TIMEOUT_FACTOR = 20.0
-#: ... but never sooner than this many seconds of cycles
-MIN_SETTLE_TIMEOUT = 5.0
-#: lockstep over a wall-clock bus (a drive in another process): how long to wait for one cycle's TPDO feedback before
-#: counting it missing (seconds); a liveness timeout, not a deadline. Unused on a synchronous bus (nothing to wait for)
-LOCKSTEP_FEEDBACK_TIMEOUT = 0.1
 #: realtime: feedback arriving later than this fraction of the period after its SYNC counts as late (the command
 #: then has less than half a period to reach the drive before the next SYNC)
 LATE_FEEDBACK_FRACTION = 0.5
@@ -312,44 +301,6 @@ class BenchOutcome:
     settle_cycles: int = 0
     faults: FaultCounts = field(default_factory=FaultCounts)  # over the whole run, settle phases included
     trial_faults: list[FaultCounts] = field(default_factory=list)  # per completed trial
-
-
-@dataclass(frozen=True)
-class LoopSettings:
-    """Timing and safety settings of the loop (from ``bench:`` and ``sample_time``)."""
-
-    sample_time: float  # seconds per cycle: the SYNC period, the deadline scheduler's and the trial records' period
-    mode: TimingMode = TimingMode.LOCKSTEP
-    watchdog_cycles: int = 5
-    divergence_factor: float = 10.0
-    settle_time: float = 0.5
-    settle_tolerance: float = 1.0
-    lockstep_feedback_timeout: float = LOCKSTEP_FEEDBACK_TIMEOUT
-    #: ``bench.faults.lost_feedback``: consecutive lost feedbacks tolerated (the law holds the last good one)
-    max_lost_feedback: int = 3
-    #: False when the drive itself starts every trial at rest (the simulated drive resets its plant in
-    #: ``before_trial``): no settle phase between trials
-    settle_between_trials: bool = True
-    #: ``bench.realtime``: the host setup of a realtime run (its ``spin_margin`` is the scheduler's)
-    realtime: BenchRealtimeConfig = field(default_factory=BenchRealtimeConfig)
-
-    @property
-    def settle_cycles(self) -> int:
-        """Consecutive at-rest cycles that count as settled (at least one)."""
-        return max(1, math.ceil(self.settle_time / self.sample_time - 1e-9))
-
-    @property
-    def feedback_timeout(self) -> float:
-        """The bound of one SYNC's wait for feedback: at most the period in realtime (the wait ends
-        :data:`COMMAND_MARGIN_FRACTION` of a period before the next deadline), ``watchdog_cycles`` x the lockstep
-        allowance in lockstep (no deadline there: only an expired bound makes a lost feedback)."""
-        if self.mode is TimingMode.REALTIME:
-            return self.sample_time
-        return self.watchdog_cycles * self.lockstep_feedback_timeout
-
-    @property
-    def settle_timeout_cycles(self) -> int:
-        return math.ceil(max(SETTLE_TIMEOUT_FACTOR * self.settle_time, MIN_SETTLE_TIMEOUT) / self.sample_time)
 
 
 @dataclass(frozen=True)
@@ -957,42 +908,3 @@ class _Signals:
 
 _SCALAR = _Signals(0, float, _first, abs, require_finite)
 _VECTOR = _Signals(slice(None), _vector, _vector, _peak, _require_all_finite)
-
-
-# --- a whole run: design, law, bus or embedded emulator, drive, log ---------------------------------------------
-
-
-#: the CAN loop applies a command one SYNC after it is computed (the drive latches RPDOs at the next SYNC)
-CAN_INPUT_DELAY = 1
-
-
-def build_design(config: Config, law: str, n_samples: int) -> Design:
-    """The design of ``law`` for the bench's CAN loop (:func:`foilc_hil.design.pipeline.build_design`)."""
-    from foilc_hil.design.pipeline import build_design as pipeline_design
-
-    return pipeline_design(config, law, n_samples, input_delay=CAN_INPUT_DELAY)
-
-
-def command_limiter(config: Config) -> CommandLimiter:
-    """Limits of the command in plant units: the drive's limit for the mode, and the plant's saturation."""
-    drive = config.drive
-    saturation = config.plant.saturation
-    limit = drive.torque_limit if drive.mode == "cst" else drive.velocity_limit
-    return CommandLimiter.symmetric(limit, u_min=saturation.u_min, u_max=saturation.u_max)
-
-
-def loop_settings(config: Config, mode: TimingMode | None = None, *,
-                  settle_between_trials: bool = True) -> LoopSettings:
-    """The loop's settings from ``sample_time`` and the ``bench:`` section; ``mode`` overrides ``bench.mode``."""
-    bench = config.bench
-    return LoopSettings(
-        sample_time=config.sample_time,
-        mode=TimingMode(mode or bench.mode),
-        watchdog_cycles=bench.watchdog_cycles,
-        divergence_factor=bench.divergence_factor,
-        settle_time=bench.settle_time,
-        settle_tolerance=bench.settle_tolerance,
-        max_lost_feedback=bench.faults.lost_feedback,
-        settle_between_trials=settle_between_trials,
-        realtime=bench.realtime,
-    )

@@ -47,18 +47,10 @@ from drivers.faults import LOOP_KINDS, FaultyBus, Injection, InjectionReport, re
 from drivers.realtime import RealtimeSession
 from foilc_hil.errors import DriveError, DriveFaultError, DriveNotStoppedError, FoilcHilError, InputError
 from foilc_hil.loop.axes import AxesSink, AxisGroup, AxisLaws, AxisLimiter, AxisOutcome
-from foilc_hil.loop.bench import (
-    CAN_INPUT_DELAY,
-    BenchOutcome,
-    LawLike,
-    LimiterLike,
-    LoopSettings,
-    TrialLoop,
-    command_limiter,
-    loop_settings,
-)
+from foilc_hil.loop.bench import BenchOutcome, LawLike, LimiterLike, TrialLoop
 from foilc_hil.loop.log_sink import McapSink, logged_trials
 from foilc_hil.loop.safety import CommandLimiter, StopRequest
+from foilc_hil.loop.settings import CAN_INPUT_DELAY, LoopSettings, command_limiter, loop_settings
 from foilc_hil.loop.stalls import LoopStalls
 from foilc_hil.progress import ProgressView
 from plant_emulator.device import TimingMode
@@ -122,7 +114,7 @@ class RunRequest:
         What answers the SYNC: a drive over CAN (``bus``, ``mode``, ``live`` apply), or the simulated plant.
     input_delay
         Cycles between the law's command and the plant applying it, for a design made here (and checked against a
-        given one): ``None`` is :data:`~foilc_hil.loop.bench.CAN_INPUT_DELAY`, the only delay of the CAN loop;
+        given one): ``None`` is :data:`~foilc_hil.loop.settings.CAN_INPUT_DELAY`, the only delay of the CAN loop;
         the simulated drive runs any (0: the ideal loop).
     """
 
