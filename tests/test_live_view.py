@@ -278,7 +278,7 @@ class _StuckServer:
 def _record(trial: int) -> Any:
     import numpy as np
 
-    from foilc_hil.loop.bench import TrialRecord
+    from foilc_hil.loop.interfaces import TrialRecord
     from foilc_hil.metrics import trial_metrics
 
     n = 4

@@ -15,7 +15,8 @@ import pytest
 from drivers.cia402 import State402
 from drivers.drive import Feedback
 from foilc_hil.errors import FeedbackTimeoutError
-from foilc_hil.loop.bench import COMMAND_MARGIN_FRACTION, BenchOutcome, TrialLoop
+from foilc_hil.loop.bench import COMMAND_MARGIN_FRACTION, TrialLoop
+from foilc_hil.loop.interfaces import BenchOutcome
 from foilc_hil.loop.scheduler import CycleTiming, TimingSummary
 from foilc_hil.loop.settings import LoopSettings
 from plant_emulator.device import TimingMode

@@ -23,7 +23,8 @@ from foilc_hil.design.pipeline import build_design
 from foilc_hil.design.record import Design
 from foilc_hil.errors import LearningDivergedError
 from foilc_hil.laws.learning import make_law
-from foilc_hil.loop.bench import TrialLoop, TrialRecord, WholeTrial
+from foilc_hil.loop.bench import TrialLoop
+from foilc_hil.loop.interfaces import TrialRecord, WholeTrial
 from foilc_hil.loop.scheduler import CycleTiming
 from foilc_hil.loop.settings import loop_settings
 from foilc_hil.loop.simulated_drive import SimulatedDrive

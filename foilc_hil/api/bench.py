@@ -16,7 +16,7 @@ if TYPE_CHECKING:
     from drivers.drive import StopReport
     from foilc_hil.config import Config
     from foilc_hil.design.record import Design
-    from foilc_hil.loop.bench import TrialRecord
+    from foilc_hil.loop.interfaces import TrialRecord
     from foilc_hil.loop.rig import Rig, RunReport
     from plant_emulator.embedded import EmbeddedEmulator
 

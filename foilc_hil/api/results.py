@@ -14,7 +14,7 @@ from foilc_hil.errors import LogFormatError
 from foilc_hil.metrics import TrialMetrics
 
 if TYPE_CHECKING:
-    from foilc_hil.loop.bench import TrialRecord
+    from foilc_hil.loop.interfaces import TrialRecord
 
 __all__ = ["TrialResult"]
 

@@ -23,7 +23,7 @@ from foilc_hil.io.schemas import DRIVE_STATES
 if TYPE_CHECKING:
     from foilc_hil.io.mcap_writer import Direction, FrameFields
     from foilc_hil.io.records import TrialSamples
-    from foilc_hil.loop.bench import TrialRecord
+    from foilc_hil.loop.interfaces import TrialRecord
     from foilc_hil.loop.scheduler import CycleTiming
 
 __all__ = [

@@ -52,7 +52,8 @@ if TYPE_CHECKING:
     import can
 
     from foilc_hil.live.server import LiveServer
-    from foilc_hil.loop.bench import LogSink, TrialLoop, TrialRecord
+    from foilc_hil.loop.bench import TrialLoop
+    from foilc_hil.loop.interfaces import LogSink, TrialRecord
     from foilc_hil.loop.scheduler import CycleTiming
 
 __all__ = ["QUEUE_ITEMS", "ROW_SAVE", "STATE_PERIOD", "TICK", "LivePublisher", "LiveSink", "LiveStats", "live_run"]

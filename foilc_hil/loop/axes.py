@@ -33,7 +33,7 @@ from drivers.cia402 import State402
 from drivers.drive import StopReport
 from foilc_hil.errors import DriveFaultError
 from foilc_hil.laws.learning import TrialUpdate
-from foilc_hil.loop.bench import TrialRecord
+from foilc_hil.loop.interfaces import TrialRecord
 from foilc_hil.loop.log_sink import McapSink
 from foilc_hil.loop.safety import CommandLimiter
 from foilc_hil.metrics import TrialMetrics, trial_metrics

@@ -1,5 +1,5 @@
-"""The trial loop's log: :class:`McapSink`, the loop's :class:`~foilc_hil.loop.bench.LogSink` over an MCAP writer
-(the records of :mod:`foilc_hil.loop.bench` into the layout of ``docs/interface.md``), and :func:`logged_trials`,
+"""The trial loop's log: :class:`McapSink`, the loop's :class:`~foilc_hil.loop.interfaces.LogSink` over an MCAP writer
+(the records of :mod:`foilc_hil.loop.interfaces` into the layout of ``docs/interface.md``), and :func:`logged_trials`,
 what a run's report may list (the trials its log holds).
 """
 
@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from foilc_hil.io.log_process import ProcessLogWriter
     from foilc_hil.io.mcap_log import McapLogWriter
-    from foilc_hil.loop.bench import TrialRecord
+    from foilc_hil.loop.interfaces import TrialRecord
     from foilc_hil.loop.safety import StopRequest
     from foilc_hil.loop.scheduler import CycleTiming
     from foilc_hil.metrics import TrialMetrics
@@ -21,7 +21,7 @@ __all__ = ["McapSink", "logged_trials"]
 
 
 class McapSink:
-    """The loop's :class:`~foilc_hil.loop.bench.LogSink` over an MCAP writer (``run`` gives it a
+    """The loop's :class:`~foilc_hil.loop.interfaces.LogSink` over an MCAP writer (``run`` gives it a
     :class:`~foilc_hil.io.log_process.ProcessLogWriter`: the loop's process only packs tuples, a child writes).
 
     Parameters

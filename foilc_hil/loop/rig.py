@@ -47,7 +47,8 @@ from drivers.faults import LOOP_KINDS, FaultyBus, Injection, InjectionReport, re
 from drivers.realtime import RealtimeSession
 from foilc_hil.errors import DriveError, DriveFaultError, DriveNotStoppedError, FoilcHilError, InputError
 from foilc_hil.loop.axes import AxesSink, AxisGroup, AxisLaws, AxisLimiter, AxisOutcome
-from foilc_hil.loop.bench import BenchOutcome, LawLike, LimiterLike, TrialLoop
+from foilc_hil.loop.bench import TrialLoop
+from foilc_hil.loop.interfaces import BenchOutcome, LawLike, LimiterLike
 from foilc_hil.loop.log_sink import McapSink, logged_trials
 from foilc_hil.loop.safety import CommandLimiter, StopRequest
 from foilc_hil.loop.settings import CAN_INPUT_DELAY, LoopSettings, command_limiter, loop_settings

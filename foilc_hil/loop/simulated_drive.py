@@ -45,7 +45,7 @@ from drivers.cia402 import STATE_STATUSWORD, OperationMode, State402
 from drivers.drive import DeviceInfo, Drive, Feedback, StopPath, StopReport
 from foilc_hil.errors import ConfigError, FeedbackTimeoutError, InputError
 from foilc_hil.laws.learning import LearningLaw, StepArguments
-from foilc_hil.loop.bench import WholeTrial
+from foilc_hil.loop.interfaces import WholeTrial
 from foilc_hil.loop.trial_kernel import TrialStatus, run_trial
 from plant_emulator.physics import Plant
 from plant_emulator.physics.trial import CompiledPlant, TrialProgram

@@ -32,7 +32,7 @@ from foilc_hil.metrics import TrialMetrics
 if TYPE_CHECKING:
     from foilc_hil.config import Config
     from foilc_hil.design.record import Design
-    from foilc_hil.loop.bench import TrialRecord
+    from foilc_hil.loop.interfaces import TrialRecord
 
 __all__ = [
     "SimulationResult",
