@@ -1,7 +1,7 @@
 """Code-shape rules of the project, checked on the source: no function over 80 lines unless its docstring says why;
-no class over 40 methods; no module of the stand-alone packages (``drivers``, ``plant_emulator``) or of
-``foilc_hil.design`` over 900 lines (issue 27: the master was one class of 74 methods in a module of 1312 lines, the
-certificates one module of 1288)."""
+no class over 40 methods; no module of the stand-alone packages (``drivers``, ``plant_emulator``), of
+``foilc_hil.design`` or of ``foilc_hil.loop`` over 900 lines (issue 27: the master was one class of 74 methods in a
+module of 1312 lines, the certificates one module of 1288, the trial loop's module 1100)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ EXCUSE = "Longer than 80 lines because"
 MAX_METHODS = 40
 MAX_MODULE_LINES = 900
 #: the packages held to MAX_MODULE_LINES, as directories (foilc_hil's other large modules are other lines of work's)
-SIZED_PACKAGES = ("drivers", "plant_emulator", "foilc_hil/design")
+SIZED_PACKAGES = ("drivers", "plant_emulator", "foilc_hil/design", "foilc_hil/loop")
 
 
 def long_functions(source: str, limit: int = MAX_LINES) -> list[tuple[str, int]]:
