@@ -201,6 +201,16 @@ def test_evaluate_pair_round_trip_and_direct_evaluation() -> None:
     assert direct.checks.python_control.agrees_with_sweep is True
 
 
+def test_the_sweep_record_names_the_grid_the_sweep_ran_on() -> None:
+    """``checks.sweep.points_per_decade`` is the sweep's own grid: a given pair is swept at 1000 a decade and a
+    solved one at the default 2000 (the record said 2000 for both)."""
+    plant = PlantTf([10.0], [1.0, 3.0, 2.0], 0.02)
+    solved = tune_loop(plant, 5.0, 60.0, python_control=False)
+    direct = evaluate_pair(OpenLoop(plant, 1.0, solved.kp, solved.r), python_control=False)
+    assert solved.to_json()["checks"]["sweep"]["points_per_decade"] == 2000
+    assert direct.to_json()["checks"]["sweep"]["points_per_decade"] == 1000
+
+
 def test_evaluate_pair_without_crossover_reports_none() -> None:
     # |L| = |1 + kp (jw)^r| * 1.68 / |jw + 1.23| stays above 1 when kp is large and r is close to 1
     result = evaluate_pair(OpenLoop(PlantTf(PAPER_NUM, PAPER_DEN, 0.0), 1.0, 3.0, 1.05))

@@ -84,6 +84,7 @@ class SweepResult:
     crossings: tuple[Crossing, ...]
     gain_margin_db: float | None  # smallest over the phase crossovers in the window; None: no phase crossover
     phase_crossover: float | None
+    points_per_decade: int  # the grid the sweep ran on: the record says what was swept, not the default
 
     def nearest(self, w: float) -> Crossing | None:
         """The crossing closest to ``w`` on a log scale."""
@@ -348,7 +349,7 @@ def frequency_sweep(
         if gain_margin_db is None or gm < gain_margin_db:
             gain_margin_db = gm
             phase_crossover = float(np.exp(log_w[i] + frac * (log_w[i + 1] - log_w[i])))
-    return SweepResult(float(w[0]), float(w[-1]), tuple(crossings), gain_margin_db, phase_crossover)
+    return SweepResult(float(w[0]), float(w[-1]), tuple(crossings), gain_margin_db, phase_crossover, points_per_decade)
 
 
 # --- independent check 2: python-control on a rational model ---------------------------------------------------

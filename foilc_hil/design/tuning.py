@@ -62,7 +62,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from foilc_hil.design.open_loop import (
-    SWEEP_POINTS_PER_DECADE,
     ControlCheck,
     Crossing,
     OpenLoop,
@@ -209,7 +208,7 @@ def _sweep_json(sweep: SweepResult) -> dict[str, Any]:
     return {
         "w_min": sweep.w_min,
         "w_max": sweep.w_max,
-        "points_per_decade": SWEEP_POINTS_PER_DECADE,
+        "points_per_decade": sweep.points_per_decade,
         "crossings": [asdict(c) for c in sweep.crossings],
         "gain_margin_db": sweep.gain_margin_db,
         "phase_crossover": sweep.phase_crossover,
