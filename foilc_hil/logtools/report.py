@@ -40,6 +40,7 @@ from foilc_hil.progress import as_step
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
+    from foilc_hil.config import Config
     from foilc_hil.design.frequency_picture import ConvergencePicture
     from foilc_hil.io.mcap_log import LogContents
 
@@ -97,19 +98,14 @@ def log_context(contents: LogContents) -> LogContext:
     return LogContext(law, output_unit, input_unit, input_delay, disturbance)
 
 
-def _logged_config(contents: LogContents) -> Any:
-    """The log's config as a typed ``Config``, or ``None`` when it has none or it does not validate (labels only)."""
-    import yaml
+def _logged_config(contents: LogContents) -> Config | None:
+    """The log's config (:func:`~foilc_hil.logtools.replay.logged_config`), or ``None`` when it has none or it
+    does not validate (labels only)."""
+    from foilc_hil.logtools.replay import logged_config
 
-    from foilc_hil.config import Config
-    from foilc_hil.schema import load_yaml_text, validate
-
-    if contents.config_yaml is None:
-        return None
     try:
-        document = load_yaml_text(contents.config_yaml) or {}
-        return validate(Config, document, source=contents.path) if isinstance(document, dict) else None
-    except (FoilcHilError, ValueError, yaml.YAMLError):  # a label is not worth failing a report for
+        return logged_config(contents)
+    except (FoilcHilError, ValueError):  # a label is not worth failing a report for
         return None
 
 
