@@ -293,7 +293,7 @@ MEASURED_OUTSIDE = (
     "`simulate` of 10 FOILC trials 5 s, `run` of 5 trials of `demo.yaml` (6 s each, lockstep on the embedded "
     "emulator) 23 s, `replay --verify` of that log 4 s, `report` 6 s, `commission info` 3 s.",
     "- **`make bench-realtime`**: about 10 minutes (root, a private network namespace): the 1 kHz runs and peers "
-    "294 s, the four-axes runs (5 rounds of both topologies) 272 s, on 2026-11-28 at load 5-7.",
+    "about 290 s, the four-axes runs (5 rounds of both topologies) 194-272 s, on 2026-11-28 at load 3-7.",
     "",
 )
 #: Goals measured outside ``make bench`` (their figures: :data:`MEASURED_OUTSIDE`).
