@@ -65,12 +65,20 @@ class TxRecorder:
         assert target == 0
 
 
+#: the heartbeat loss time (x 0x1017 = 100 ms) of the tests not about the heartbeat: 2 s, so a heartbeat thread
+#: held past 0.3 s by a loaded host (seen at load 9.6 on 2 cores) is not taken for the fault under test
+QUIET_HEARTBEAT_FACTOR = 20.0
+
+
 @pytest.fixture
-def rig() -> Iterator[tuple[MiniServo, Cia402Drive, TxRecorder]]:
+def rig(request: pytest.FixtureRequest) -> Iterator[tuple[MiniServo, Cia402Drive, TxRecorder]]:
+    """A MiniServo and its master, enabled; ``@pytest.mark.parametrize("rig", [factor], indirect=True)`` sets the
+    heartbeat loss time (a factor of 0x1017), :data:`QUIET_HEARTBEAT_FACTOR` unless a test is about the heartbeat."""
     channel = f"test-faults-{uuid.uuid4()}"
     servo = MiniServo(channel)
     bus = can.Bus(interface="virtual", channel=channel)
-    drive = Cia402Drive.open(bus, drive_config(), sample_time=0.002)
+    factor = getattr(request, "param", QUIET_HEARTBEAT_FACTOR)
+    drive = Cia402Drive.open(bus, drive_config(heartbeat_timeout_factor=factor), sample_time=0.002)
     recorder = TxRecorder()
     drive.add_frame_listener(recorder)
     try:
@@ -123,6 +131,7 @@ def test_fault_statusword_without_emcy_raises_drive_fault(rig: tuple[MiniServo, 
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("rig", [3.0], indirect=True)  # loss after 3 x 100 ms: the heartbeat is under test
 def test_heartbeat_loss_is_detected_and_fault_reset_restores_communication(
     rig: tuple[MiniServo, Cia402Drive, TxRecorder],
 ) -> None:
@@ -146,6 +155,7 @@ def test_heartbeat_loss_is_detected_and_fault_reset_restores_communication(
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("rig", [3.0], indirect=True)  # loss after 3 x 100 ms: the heartbeat is under test
 def test_heartbeat_watchdog_reports_without_polling(rig: tuple[MiniServo, Cia402Drive, TxRecorder]) -> None:
     servo, drive, recorder = rig
     servo.stop_heartbeat()
