@@ -347,6 +347,18 @@ def _advance(n: int, lead: int, channels: int) -> np.ndarray:
     return np.kron(np.eye(n, k=lead), np.eye(channels))
 
 
+def _dense_loop(
+    A: np.ndarray, B: np.ndarray, C_measured: np.ndarray, p1: np.ndarray, p2: np.ndarray, n: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``Gz, Gy, P1, P2, R = (I - P1 Gz)^-1`` of the dense maps: the lifted plant and the 2D law's in-trial loop."""
+    m = B.shape[1]
+    Gz, Gy = _lifted_plant(A, B, C_measured, n)
+    P1 = np.kron(np.eye(n), p1)
+    P2 = np.kron(np.eye(n), p2)
+    R = np.linalg.solve(np.eye(n * m) - P1 @ Gz, np.eye(n * m))
+    return Gz, Gy, P1, P2, R
+
+
 def dense_error_map(
     A: np.ndarray,
     B: np.ndarray,
@@ -361,13 +373,8 @@ def dense_error_map(
     Its first ``lead`` samples form the identity (they never change); ``T_full[lead:, lead:]`` is the map of
     :func:`lifted_error_map`.
     """
-    n = F.shape[0]
-    m = B.shape[1]
-    p = C_measured.shape[0]
-    Gz, Gy = _lifted_plant(A, B, C_measured, n)
-    P1 = np.kron(np.eye(n), p1)
-    P2 = np.kron(np.eye(n), p2)
-    R = np.linalg.solve(np.eye(n * m) - P1 @ Gz, np.eye(n * m))
+    n, p = F.shape[0], C_measured.shape[0]
+    _, Gy, _, P2, R = _dense_loop(A, B, C_measured, p1, p2, n)
     return np.eye(n * p) - Gy @ R @ P2 @ _advance(n, lead, p) @ np.kron(F, np.eye(p))
 
 
@@ -382,13 +389,8 @@ def dense_input_map(
     lead: int = 0,
 ) -> np.ndarray:
     """``M = R (Q - P2 S F Gy - P1 Gz)`` on the input ``u[0..N-1]`` (dense; with a Q-filter)."""
-    n = F.shape[0]
-    m = B.shape[1]
-    p = C_measured.shape[0]
-    Gz, Gy = _lifted_plant(A, B, C_measured, n)
-    P1 = np.kron(np.eye(n), p1)
-    P2 = np.kron(np.eye(n), p2)
+    n, m, p = F.shape[0], B.shape[1], C_measured.shape[0]
+    Gz, Gy, P1, P2, R = _dense_loop(A, B, C_measured, p1, p2, n)
     Qm = np.kron(Q, np.eye(m))
-    R = np.linalg.solve(np.eye(n * m) - P1 @ Gz, np.eye(n * m))
     learning = P2 @ _advance(n, lead, p) @ np.kron(F, np.eye(p)) @ Gy
     return R @ (Qm - learning - P1 @ Gz)
