@@ -50,6 +50,34 @@ __all__ = [
     "resolve_bus",
 ]
 
+def _order_virtual_sends() -> None:
+    """Give python-can's ``virtual`` interface the one frame order of a CAN bus (idempotent; at import).
+
+    A CAN bus serialises frames (arbitration): every node sees them in one order. python-can's ``virtual`` copies
+    a frame into each bus object's queue one after the other under no lock, so two threads sending at once -- the
+    SYNC clock's thread and the emulator's answering TPDO -- reached two bus objects of one process in opposite
+    orders. The loop's cyclic receiver (one bus object) then saw SYNC ``n + 1`` before the TPDO and held the last
+    feedback, while the frame tap (another) logged the TPDO in SYNC ``n``'s window: the record and ``replay
+    --verify`` read two different wires (``/ilc/trial lost_feedback is 11, the wire shows 8`` under load). Each
+    send delivers to every queue under python-can's own lock of the channels (the one its open and shutdown hold
+    while they change a channel's list of queues, which the send walks), so every bus object sees one order.
+    """
+    from can.interfaces import virtual
+
+    send = virtual.VirtualBus.send
+    if getattr(send, "one_order", False):
+        return
+
+    def ordered_send(self: virtual.VirtualBus, msg: can.Message, timeout: float | None = None) -> None:
+        with virtual.channels_lock:
+            send(self, msg, timeout)
+
+    ordered_send.one_order = True  # type: ignore[attr-defined]
+    virtual.VirtualBus.send = ordered_send  # type: ignore[method-assign]
+
+
+_order_virtual_sends()
+
 SIMULATED_INTERFACES = frozenset({"virtual", "udp_multicast", "embedded", INPROCESS_INTERFACE})
 """Interfaces that cannot move real hardware (``replay`` refuses the others without ``--allow-real-bus``)."""
 

@@ -7,8 +7,13 @@ that SYNC, then the bench's RPDO. So, with the PDO mapping the run installed (``
 drive section of the logged config:
 
 - the velocity in cycle ``i``'s TPDO is the feedback the law was given at sample ``i`` (``initial_output`` for
-  ``i = 0``, the previous row's ``output`` after it): ``raw / drive.velocity_scale``, bit for bit; a cycle with no
-  TPDO is a lost feedback, for which the law was given the last good value again (``lost_feedback`` counts them);
+  ``i = 0``, the previous row's ``output`` after it): ``raw / drive.velocity_scale``, bit for bit, taken from the
+  first complete set of the node's TPDOs in the window (every TPDO of the mapping, of the mapping's length; a later
+  frame of one TPDO replaces the earlier before the set completes), as the master assembles its feedback; a cycle
+  without a complete set (none, or one whose TPDOs straddle the next SYNC) is a lost feedback, for which the law
+  was given the last good value again (``lost_feedback`` counts them), and so is one whose set the loop stopped
+  waiting for (SYNC from the loop only: it stops before the next deadline), recognised by the law's input being
+  the held value and not the set's;
 - the bench sends one RPDO per cycle, in order, each after its cycle's SYNC: the ``j``-th of the node's RPDOs from
   the trial's first SYNC on is cycle ``j``'s, never in a window before its own (SYNC from a clock: a late one lands
   in a later window, a missed deadline); its target (``j < N``) is the row's ``control`` as the bench sent it:
@@ -172,17 +177,18 @@ def check_trial_wire(
         window = windows[first - 1 + i]
         bad += sum(1 for f in window if not f.tx and f.cob_id in wire.tpdo_sizes
                    and len(f.data) != wire.tpdo_sizes[f.cob_id])
-        answers = [f for f in window if not f.tx and f.cob_id == wire.velocity.cob_id
-                   and len(f.data) == wire.velocity.size]
-        # a cycle without its TPDO is a lost feedback: the law was given the last good value again; so is one whose
-        # TPDO came after a realtime loop stopped waiting (the law was given the held value, not the late TPDO's)
-        y = wire.velocity.decode(answers[0].data) / wire.velocity_scale if answers else held
-        if answers and _bits(y) != _bits(inputs[i]) and _bits(held) == _bits(inputs[i]):
-            answers, y = [], held
-        lost += not answers
+        raw = _answer(window, wire)
+        # a cycle without its complete TPDO set is a lost feedback: the law was given the last good value again; so
+        # is one whose set completed after a loop that sends SYNC itself stopped waiting (the law was given the held
+        # value, not the late set's: the count below holds it to the record, so a changed TPDO is still found)
+        answered = raw is not None
+        y = raw / wire.velocity_scale if raw is not None else held
+        if answered and _bits(y) != _bits(inputs[i]) and _bits(held) == _bits(inputs[i]):
+            answered, y = False, held
+        lost += not answered
         held = y
-        if not (math.isnan(y) and not answers) and _bits(y) != _bits(inputs[i]):
-            what = "the TPDO's velocity" if answers else "the value held for a lost TPDO"
+        if not (math.isnan(y) and not answered) and _bits(y) != _bits(inputs[i]):
+            what = "the TPDO's velocity" if answered else "the value held for a lost TPDO"
             return WireMismatch(trial, i, f"{what} is not the feedback the law was given", inputs[i], y)
     mismatch = _check_commands(windows, record, controls, wire, latched)
     if mismatch is not None:
@@ -191,6 +197,25 @@ def check_trial_wire(
         if key in record and int(record[key]) != count:
             return WireMismatch(trial, n, f"/ilc/trial {key} is {record[key]}, the wire shows {count}",
                                 record[key], count)
+    return None
+
+
+def _answer(window: Sequence[_Frame], wire: WireMap) -> int | None:
+    """The raw velocity of the first complete TPDO set in ``window``, assembled as the master does; None: none.
+
+    The master's feedback is the node's whole TPDO set (every mapped TPDO,
+    :meth:`drivers.master.cyclic.CyclicPath.on_tpdo`): each frame of the right length replaces its TPDO's part,
+    the set is the feedback once every TPDO has a part, and the loop takes the first one. A velocity TPDO alone is
+    not an answer: the drive's TPDOs of one SYNC may straddle the next SYNC (the velocity before it, the rest
+    after), and the loop, which waits until that next SYNC, was given the held value.
+    """
+    parts: dict[int, bytes] = {}
+    for frame in window:
+        if frame.tx or len(frame.data) != wire.tpdo_sizes.get(frame.cob_id, -1):
+            continue  # the bench's own frames, other nodes', and bad frames (counted apart): no part of the set
+        parts[frame.cob_id] = frame.data
+        if len(parts) == len(wire.tpdo_sizes):
+            return wire.velocity.decode(parts[wire.velocity.cob_id])
     return None
 
 
