@@ -47,11 +47,11 @@ typecheck: $(STAMP)
 # independent of the others and of wall-clock speed. `pytest -m "not slow"` is the inner loop (README). One BLAS thread
 # per worker: the workers already fill the cores, and OpenBLAS threads that spin-wait for a core a loaded host does
 # not give them made a 3x3 expm hundreds of times slower
-# The shared caches first, once (tests/warm_caches.py): numba's compiled kernels, the packages' byte code and the
+# The shared caches first, once (tests/support/warm_caches.py): numba's compiled kernels, the packages' byte code and the
 # rewritten test modules; on a fresh clone each worker and each emulator process a test starts would otherwise
 # fill them again, at the same time (several seconds of CPU each)
 pytest: $(STAMP)
-	$(BIN)/python -m tests.warm_caches
+	$(BIN)/python -m tests.support.warm_caches
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/pytest -n $(WORKERS) --dist worksteal --durations=15
 
 # The API reference (docs/api.md) from the docstrings: the public package tops only (every other module is

@@ -1,8 +1,8 @@
 """The independent receiver: every frame on a ``udp_multicast`` bus with its kernel timestamp, in a process of its own.
 
 The instrument of the realtime benchmarks (:mod:`benchmarks.realtime`, :mod:`benchmarks.realtime_axes`) and of the
-cross-process latched-truth test (``tests/latched_crossprocess_script.py``). It imports python-can and nothing of
-this project, so what it records is what was on the wire, not what the bench's code believes.
+cross-process latched-truth test (``tests/support/latched_crossprocess_script.py``). It imports python-can and nothing
+of this project, so what it records is what was on the wire, not what the bench's code believes.
 
 ``python -m benchmarks.frame_recorder GROUP OUT`` (only inside a private network namespace: it joins ``GROUP``):
 prints ``listening`` once its socket is joined, records until SIGTERM, writes ``OUT`` and prints ``dropped N``.

@@ -6,7 +6,7 @@ laws (same noise, same phases), so the comparison is paired: ``d_i = FOILC_i - I
 off one run: the difference must lie outside what the seeds move, and be large enough to matter.
 
 Pure functions of the samples (no simulation here), so the rule itself is tested on synthetic samples
-(``tests/test_reproduction.py``).
+(``tests/benchmarks/test_reproduction.py``).
 """
 
 from __future__ import annotations

@@ -198,7 +198,7 @@ class _Channel:
         slot of ``can.Message`` is set here without ``Message.__init__``, whose argument checks cost more than the
         copy itself on the hot path, and inline (four frames a cycle, a call each saved);
 
-        ``tests/test_inprocess_bus.py`` fails if python-can adds a slot.
+        ``tests/drivers/test_inprocess_bus.py`` fails if python-can adds a slot.
         """
         frame = _new_message(can.Message)
         frame.timestamp = _time()

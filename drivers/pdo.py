@@ -119,7 +119,7 @@ def data_frame(can_id: int, data: bytes) -> can.Message:
     is_extended_id=False)`` makes it.
 
     Built by setting every slot of ``can.Message`` without ``Message.__init__``, whose argument checks cost more
-    than the rest of sending a PDO on the in-process transport; ``tests/test_pdo.py`` compares the two field by
+    than the rest of sending a PDO on the in-process transport; ``tests/drivers/test_pdo.py`` compares the two field by
     field, so a slot python-can adds fails there.
     """
     frame = _new_message(can.Message)

@@ -97,8 +97,8 @@ def udp_id_filter(ids: Iterable[int]) -> list[tuple[int, int, int, int]]:
     """The classic BPF program (``(code, jt, jf, k)`` rows) that passes python-can ``udp_multicast`` datagrams whose
     arbitration id is in ``ids`` and drops those of other ids; a datagram not in ``pack_message``'s layout passes.
 
-    Offsets are from the UDP header, which a socket filter on a UDP socket sees at offset 0 (``tests/test_receive_
-    filter.py`` shows it on a real socket in a private network namespace).
+    Offsets are from the UDP header, which a socket filter on a UDP socket sees at offset 0
+    (``tests/crossprocess/test_receive_filter.py`` shows it on a real socket in a private network namespace).
     """
     wanted = sorted(set(ids))
     if len(wanted) > 200:  # jumps are 8-bit: each compare must reach the accept at the end

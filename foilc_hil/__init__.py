@@ -10,7 +10,7 @@ imported on first use (PEP 562): ``import foilc_hil`` itself imports nothing els
 ...         print(trial.index, trial.sse)
 >>> log = fh.open_log("run.mcap")                                          # doctest: +SKIP
 
-Every other module and name is internal. Layering (imports point downwards only; ``tests/test_layering.py``
+Every other module and name is internal. Layering (imports point downwards only; ``tests/project/test_layering.py``
 enforces it):
 
 0. ``drivers`` -- the CAN side of a drive: CiA 301/402 protocol, object dictionary, PDO codecs, the master; the

@@ -58,7 +58,7 @@ covariance, and ``(I - Phi)^-1`` recolours it. The interval is ``theta +- 1.96 s
 white-noise errors for comparison). On paper_sim this gives ``a = -1.2518 +- 0.034`` (the truth 0.64 se away); in
 20 seeded campaigns with AR(1) noise (coefficient 0.9) the 95 % intervals hold the true ``a`` and ``b`` together in
 20 (the white-noise ones in 8), and the standard errors match the estimates' spread within a factor 2
-(``tests/test_commission_identify.py``).
+(``tests/integration/test_commission_identify.py``).
 
 Uncertainty (discrete model, ZOH at ``sample_time``)
 ----------------------------------------------------

@@ -380,7 +380,8 @@ class StandardForm:
 
     The coefficients are :func:`lmi_matrix` evaluated with numpy at ``x = 0`` and at each unit vector (the matrix is
     affine in the decision variables), so cvxpy gets one linear map instead of an expression tree of blocks, whose
-    compilation would be most of a solve's time (the solver itself is a small part). ``tests/test_lmi_numerics.py``
+    compilation would be most of a solve's time (the solver itself is a small part).
+    ``tests/design/test_lmi_numerics.py``
 
     checks ``M(x)`` against :func:`lmi_matrix` at random ``x``.
     """

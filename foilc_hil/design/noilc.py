@@ -21,7 +21,7 @@ backward from ``P_L = 0``: the terminal condition of the finite trial): ``M = F^
 
 and the update ``L e`` is one backward pass (the costate of ``G Fi``: ``q (G Fi)^T e``) and one forward pass
 (``Fi``: the Riccati feedback ``du_i = -K_i x_i + v_i``), ``O(N n^3)`` (:class:`LiftedUpdate`). It is the dense
-update to rounding: ``tests/test_baselines.py`` checks it against the normal equations.
+update to rounding: ``tests/design/test_baselines.py`` checks it against the normal equations.
 
 Certificates
 ------------

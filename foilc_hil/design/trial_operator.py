@@ -26,7 +26,8 @@ dilation by ``E`` moves the decided ``rho`` by at most ``||E||_2``. :data:`ROUND
 to every upper bound for that: it is not a proof (no bound of the recursion's backward error is derived here),
 but it is three orders above the differences between the test's flip point and a dense SVD measured on random
 plants (150 plants of 1 to 3 states, 1 or 2 channels, 0 to 2 delay samples, ``L`` up to 300: at most 1.4e-13
-relative for NOILC's trial maps, 1.3e-15 for the lifted plant; ``tests/test_trial_operator.py`` checks the bracket).
+relative for NOILC's trial maps, 1.3e-15 for the lifted plant; ``tests/design/test_trial_operator.py`` checks the
+bracket).
 
 Module order: imports no other design module (only :mod:`foilc_hil.design.lifted_kernel`, function-locally); after
 :mod:`foilc_hil.design.certificates`, before :mod:`foilc_hil.design.noilc`, which builds its maps from it.

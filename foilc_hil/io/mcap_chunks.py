@@ -7,7 +7,7 @@ writer produces the same kind of file (MCAP v0: header, schemas and channels, me
 followed by its message indexes, data end, a summary with schemas, channels, statistics, chunk and metadata indexes
 and summary offsets, footer with the summary CRC), using ``mcap.records`` for every record except the hot
 ``Message`` and ``MessageIndex`` records, which are packed here (layout: MCAP specification, "Message" op 0x05 and
-"Message Index" op 0x07). ``mcap``'s readers read it (``tests/test_mcap_log.py``).
+"Message Index" op 0x07). ``mcap``'s readers read it (``tests/io/test_mcap_log.py``).
 """
 
 from __future__ import annotations

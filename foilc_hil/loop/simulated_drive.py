@@ -29,7 +29,7 @@ can hand its trial over (:class:`~plant_emulator.physics.trial.CompiledPlant`). 
 step are the same compiled functions the per-cycle path calls, the plant's random inputs are drawn in advance
 from the same generators, and the drive ends where ``N`` cycles would have left it (plant, FIFO, cycle count): the
 trial's last cycle, and everything after it, runs as usual. Both paths give the same trajectories
-(``tests/test_whole_trial.py``).
+(``tests/loop/test_whole_trial.py``).
 """
 
 from __future__ import annotations

@@ -4,8 +4,8 @@ Integration is exact for a zero-order-held input (errata 1: no forward Euler): o
 matrix ``[[A, B, E], [0, 0, 0]]`` is exponentiated, which gives ``x+ = Phi x + Gu u + Gd d``. ``Da``, ``Db`` and
 ``d`` are held constant over a step (sampled at its midpoint), so with time variation the step is the exact
 solution of a piecewise-constant approximation; its error against a fine Runge-Kutta solution is second order
-in the step and measured in ``tests/test_physics_first_order.py``. With ``Da = Db = 0`` the matrices are cached
-per step length. A scalar state (the paper's plant) takes the closed form
+in the step and measured in ``tests/plant_emulator/test_physics_first_order.py``. With ``Da = Db = 0`` the matrices are
+cached per step length. A scalar state (the paper's plant) takes the closed form
 ``x+ = e^(a h) x + h expm1(a h)/(a h) (b u + d)`` in the compiled kernel
 :func:`~plant_emulator.physics.kernels.scalar_plant_step` instead of ``expm``; with one input and one output and a
 transport delay of whole steps it also hands whole trials to a compiled loop (:meth:`FirstOrderPlant.trial_program`,

@@ -2,11 +2,11 @@
 
 The physics holds ``Delta`` constant over one integration step (piecewise constant), so each step stays an exact
 zero-order-hold solution of a linear system. A ``sine`` is sampled at the step's midpoint (midpoint rule: the
-state error of this approximation is second order in the step, see ``tests/test_physics_first_order.py``); a
-``random_walk`` is a seeded Ornstein-Uhlenbeck process clipped to ``[-amplitude, amplitude]``, advanced once per
-step and held over it. The arithmetic is the compiled :func:`~plant_emulator.physics.kernels.variation_values`:
-one step per :meth:`VariationSignal.over_step`, or a whole trial's steps at once (:meth:`VariationSignal.values`,
-for the compiled trial loop), with the same numbers.
+state error of this approximation is second order in the step, see
+``tests/plant_emulator/test_physics_first_order.py``); a ``random_walk`` is a seeded Ornstein-Uhlenbeck process clipped
+to ``[-amplitude, amplitude]``, advanced once per step and held over it. The arithmetic is the compiled
+:func:`~plant_emulator.physics.kernels.variation_values`: one step per :meth:`VariationSignal.over_step`, or a whole
+trial's steps at once (:meth:`VariationSignal.values`, for the compiled trial loop), with the same numbers.
 """
 
 from __future__ import annotations

@@ -1,0 +1,3 @@
+"""Unit tests of ``foilc_hil.design`` and ``foilc_hil.laws``: models, certificates, LMIs, filters, the design
+pipeline.
+"""

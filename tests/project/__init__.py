@@ -1,0 +1,1 @@
+"""Tests of the repository as a whole: layering, the docs against the code, code shape, markers, the layout."""
