@@ -18,8 +18,7 @@ import pytest
 import yaml
 
 from foilc_hil.config import axis_configs, dump_config, load_config
-from tests.crossprocess.test_bench_crossprocess import NETNS_SETUP
-from tests.crossprocess.test_crossprocess_emulator import _namespaces_allowed
+from tests.support.netns import NETNS_SETUP, namespaces_allowed
 
 pytestmark = [pytest.mark.netns, pytest.mark.slow]
 
@@ -31,7 +30,7 @@ TRIALS = 2
 
 @pytest.mark.timeout(420)
 def test_four_axes_against_four_emulator_processes_in_a_private_netns(tmp_path: Path) -> None:
-    reason = _namespaces_allowed()
+    reason = namespaces_allowed()
     if reason is not None:
         pytest.skip(reason)
     # The shipped config with the heartbeats loosened for a loaded test machine (at load 8 node 4's heartbeat came

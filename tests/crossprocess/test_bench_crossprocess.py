@@ -13,7 +13,6 @@ from __future__ import annotations
 import json
 import math
 import shlex
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -21,6 +20,8 @@ from pathlib import Path
 import pytest
 import yaml
 from mcap.reader import make_reader
+
+from tests.support.netns import NETNS_SETUP, unshare_available
 
 pytestmark = [pytest.mark.netns, pytest.mark.slow]
 
@@ -31,19 +32,6 @@ SAMPLE_TIME = 0.001
 TIME_SCALE = 0.05  # eq. (52) in 0.3 s: 300 samples at 1 kHz
 SAMPLES = 300
 TRIALS = 2
-NETNS_SETUP = "ip link set lo up; ip link set lo multicast on; ip route add 224.0.0.0/4 dev lo"
-
-
-def _unshare_available() -> str | None:
-    """None when ``unshare --net`` works here, else why not."""
-    if shutil.which("unshare") is None or shutil.which("ip") is None:
-        return "unshare or ip is not installed"
-    probe = subprocess.run(
-        ["unshare", "--net", "--", "sh", "-c", NETNS_SETUP], capture_output=True, text=True, timeout=30
-    )
-    if probe.returncode != 0:
-        return f"unshare --net is not permitted here: {probe.stderr.strip() or probe.returncode}"
-    return None
 
 
 def _config(tmp_path: Path) -> Path:
@@ -63,7 +51,7 @@ def _config(tmp_path: Path) -> Path:
 
 
 def test_realtime_run_across_processes_over_udp_multicast(tmp_path: Path) -> None:
-    reason = _unshare_available()
+    reason = unshare_available()
     if reason is not None:
         pytest.skip(reason)
     config = _config(tmp_path)

@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import json
 import shlex
-import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+from tests.support.netns import namespaces_allowed
 
 pytestmark = [pytest.mark.netns, pytest.mark.slow]
 
@@ -23,19 +24,9 @@ NODE_ID = 4
 TARGET_RPM = 300.0
 
 
-def _namespaces_allowed() -> str | None:
-    """None if ``unshare --net`` works here, else the reason it does not."""
-    if shutil.which("unshare") is None or shutil.which("ip") is None:
-        return "unshare or ip is not installed"
-    probe = subprocess.run(["unshare", "--net", "--", "true"], capture_output=True, text=True, timeout=10)
-    if probe.returncode != 0:
-        return f"unshare --net is not permitted here: {probe.stderr.strip()}"
-    return None
-
-
 @pytest.mark.timeout(180)
 def test_master_drives_emulator_process_over_udp_multicast(tmp_path: Path) -> None:
-    reason = _namespaces_allowed()
+    reason = namespaces_allowed()
     if reason is not None:
         pytest.skip(reason)
     config = tmp_path / "bench.yaml"

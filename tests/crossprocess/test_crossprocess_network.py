@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.crossprocess.test_crossprocess_emulator import _namespaces_allowed
+from tests.support.netns import namespaces_allowed
 
 pytestmark = [pytest.mark.netns, pytest.mark.slow]
 
@@ -24,7 +24,7 @@ NODES = (1, 2, 3, 4)
 
 @pytest.mark.timeout(240)
 def test_four_emulated_nodes_in_one_process_across_processes(tmp_path: Path) -> None:
-    reason = _namespaces_allowed()
+    reason = namespaces_allowed()
     if reason is not None:
         pytest.skip(reason)
     config = tmp_path / "bench.yaml"

@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from tests.crossprocess.test_bench_crossprocess import NETNS_SETUP, _unshare_available
-from tests.integration.test_bench_e2e import NODE, bench_config
+from tests.support.bench import NODE, bench_config
+from tests.support.netns import NETNS_SETUP, unshare_available
 
 pytestmark = [pytest.mark.netns, pytest.mark.slow]
 ROOT = Path(__file__).resolve().parents[2]
@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 @pytest.mark.parametrize("action", ["stall", "signals"])
 def test_a_stop_across_processes_is_confirmed_and_one_line(tmp_path: Path, action: str) -> None:
-    reason = _unshare_available()
+    reason = unshare_available()
     if reason is not None:
         pytest.skip(reason)
     config = bench_config(tmp_path)

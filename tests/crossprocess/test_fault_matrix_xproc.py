@@ -33,9 +33,9 @@ import yaml
 
 from drivers.cia402 import State402
 from drivers.faults import InjectKind, parse_injection
-from tests.crossprocess.test_bench_crossprocess import NETNS_SETUP, _unshare_available
-from tests.integration.test_bench_faults import completed_trials_on_disk
 from tests.integration.test_fault_matrix import STOPPED_STATES, Outcome, Stop, bench_document, check_log
+from tests.support.bench import completed_trials_on_disk
+from tests.support.netns import NETNS_SETUP, unshare_available
 
 pytestmark = [pytest.mark.netns, pytest.mark.slow]
 
@@ -187,7 +187,7 @@ def orchestrate(workdir: Path) -> dict[str, Any]:
 @pytest.fixture(scope="module")
 def xproc_results(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[str, Any]]:
     """Every row, in turn, in one private netns, run once for the module."""
-    reason = _unshare_available()
+    reason = unshare_available()
     if reason is not None:
         pytest.skip(reason)
     workdir = tmp_path_factory.mktemp("xproc")

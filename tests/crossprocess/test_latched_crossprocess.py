@@ -29,7 +29,8 @@ import pytest
 import yaml
 
 from foilc_hil.io.mcap_log import read_log
-from tests.crossprocess.test_bench_crossprocess import NETNS_SETUP, SHIPPED, _unshare_available
+from tests.crossprocess.test_bench_crossprocess import SHIPPED
+from tests.support.netns import NETNS_SETUP, unshare_available
 
 pytestmark = [pytest.mark.netns, pytest.mark.slow]
 
@@ -62,7 +63,7 @@ def _config(tmp_path: Path) -> Path:
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    reason = _unshare_available()
+    reason = unshare_available()
     if reason is not None:
         pytest.skip(reason)
     out = tmp_path_factory.mktemp("latched-xproc")

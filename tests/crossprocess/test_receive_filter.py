@@ -19,7 +19,7 @@ import pytest
 from can.interfaces.udp_multicast.utils import pack_message
 
 from drivers.receive_filter import UDP_HEADER, FilteredNetwork, FilterKind, install_id_filter, udp_id_filter
-from tests.crossprocess.test_bench_crossprocess import NETNS_SETUP, _unshare_available
+from tests.support.netns import NETNS_SETUP, unshare_available
 
 ROOT = Path(__file__).resolve().parents[2]
 WANTED = (0x000, 0x080, 0x201, 0x601, 0x12345678)
@@ -110,7 +110,7 @@ print(",".join(map(str, got)), drops)
 @pytest.mark.netns
 @pytest.mark.slow
 def test_the_kernel_drops_foreign_datagrams_on_a_real_socket() -> None:
-    reason = _unshare_available()
+    reason = unshare_available()
     if reason is not None:
         pytest.skip(reason)
     command = shlex.join([sys.executable, "-c", _SOCKET_CHECK, "239.74.163.11", ",".join(map(str, WANTED)),

@@ -22,7 +22,7 @@ import pytest
 
 from drivers.errors import DriveError
 from drivers.sync_process import ProcessSync
-from tests.crossprocess.test_bench_crossprocess import NETNS_SETUP, _unshare_available
+from tests.support.netns import NETNS_SETUP, unshare_available
 
 pytestmark = pytest.mark.slow
 
@@ -128,7 +128,7 @@ print(" ".join(repr(s) for s in stamps), "|", clock.summary)
 @pytest.mark.netns
 @pytest.mark.slow
 def test_its_syncs_reach_the_bus_on_their_period_grid() -> None:
-    reason = _unshare_available()
+    reason = unshare_available()
     if reason is not None:
         pytest.skip(reason)
     period = 0.002

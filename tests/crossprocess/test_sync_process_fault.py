@@ -20,7 +20,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from tests.crossprocess.test_bench_crossprocess import NETNS_SETUP, SHIPPED, _unshare_available
+from tests.crossprocess.test_bench_crossprocess import SHIPPED
+from tests.support.netns import NETNS_SETUP, unshare_available
 
 pytestmark = [pytest.mark.netns, pytest.mark.slow]
 
@@ -65,7 +66,7 @@ print(json.dumps({"code": bench.returncode, "killed": killed, "document": stdout
 
 
 def test_a_killed_sync_producer_stops_the_run_with_the_drive_confirmed_disabled(tmp_path: Path) -> None:
-    reason = _unshare_available()
+    reason = unshare_available()
     if reason is not None:
         pytest.skip(reason)
     document = yaml.safe_load(SHIPPED.read_text(encoding="utf-8"))

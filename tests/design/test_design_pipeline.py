@@ -24,7 +24,7 @@ from foilc_hil.errors import ConfigError, ConvergenceCertificateError, InputErro
 from foilc_hil.laws.learning import Foilc, PType, make_law
 from foilc_hil.loop import rig, settings, simulation
 from foilc_hil.references import trial_samples
-from tests.integration.test_bench_e2e import bench_config
+from tests.support.bench import bench_config
 
 pytestmark = pytest.mark.filterwarnings("ignore:Solution may be inaccurate")
 

@@ -1,7 +1,7 @@
 """Every way the drive can fail reaches the bench as a typed error, and leaves the drive commanded to stop.
 
-The slave is the LocalNode-only :class:`~tests.drivers.test_master_localnode.MiniServo` with its fault hooks. "Commanded
-to stop" is read from the frames the master sent (its frame tap): the last RPDO1 carries controlword 0x02 (quick
+The slave is the LocalNode-only :class:`~tests.support.mini_servo.MiniServo` with its fault hooks. "Commanded to
+stop" is read from the frames the master sent (its frame tap): the last RPDO1 carries controlword 0x02 (quick
 stop) or 0x00 (disable voltage), target 0, and a SYNC follows it so a synchronous drive applies it.
 """
 
@@ -32,7 +32,7 @@ from foilc_hil.errors import (
     ProtocolError,
     StateTransitionError,
 )
-from tests.drivers.test_master_localnode import NODE_ID, MiniServo, drive_config
+from tests.support.mini_servo import NODE_ID, MiniServo, drive_config
 
 RPDO1 = cob_id(RPDO_BASES[0], NODE_ID)
 SAFE_CONTROLWORDS = {int(Command402.QUICK_STOP), int(Command402.DISABLE_VOLTAGE)}

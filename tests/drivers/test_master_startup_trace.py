@@ -17,8 +17,8 @@ import can
 from drivers.cia301 import FunctionCode, NmtState, cob_id
 from drivers.cia402 import OperationMode
 from drivers.cia402_master import Cia402Drive
-from tests.drivers.test_master_localnode import NODE_ID, MiniServo, drive_config
 from tests.support.can_trace import describe_frame
+from tests.support.mini_servo import NODE_ID, MiniServo, drive_config
 
 Line = tuple[str, str]  # (direction, meaning)
 

@@ -20,7 +20,7 @@ import pytest
 
 import foilc_hil as fh
 from drivers.cia402 import State402
-from tests.integration.test_bench_e2e import bench_config
+from tests.support.bench import bench_config
 
 ROOT = Path(__file__).resolve().parents[2]
 ARRAYS = ("reference", "output", "control", "error", "E")

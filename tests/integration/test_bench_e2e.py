@@ -15,66 +15,17 @@ from __future__ import annotations
 
 import base64
 import json
-from pathlib import Path
 from typing import Any
 
 import pytest
 import yaml
-from mcap.reader import make_reader
 
 from drivers.cia301 import SYNC_COB_ID, FunctionCode, cob_id
 from drivers.cia402 import Command402, State402, decode_state
 from foilc_hil.cli import main
+from tests.support.bench import NODE, SAMPLE_TIME, SAMPLES, bench_config, read_mcap
 
 pytestmark = pytest.mark.slow
-
-NODE = 1
-SAMPLE_TIME = 0.005
-SAMPLES = 200  # 1 s trials
-
-
-def bench_config(tmp_path: Path, **bench: Any) -> Path:
-    """A small first-order axis (paper eq. 48 scaled to rpm-like numbers) tracking a 200-sample step-and-ramp."""
-    document = {
-        "plant": {"model": "first_order", "a": -1.23, "b": 1.68, "c": 1.0},
-        "reference": {
-            "profile": "piecewise",
-            "segments": [
-                {"duration": 0.3, "start": 0.0, "end": 30.0},
-                {"duration": 0.4, "start": 30.0},
-                {"duration": 0.3, "start": 30.0, "end": 10.0},
-            ],
-        },
-        "sample_time": SAMPLE_TIME,
-        "trials": 4,
-        "tuning": {"kp": 0.2, "r": 0.5},
-        "drive": {
-            "node_id": NODE,
-            "mode": "csv",
-            "velocity_scale": 1000.0,
-            "velocity_limit": 500.0,
-            # generous heartbeat supervision: the test machine is shared and can stall a process for a while
-            "heartbeat_timeout_factor": 10.0,
-            "heartbeat_consumer_ms": 2000,
-        },
-        "bench": {"settle_time": 0.02, "settle_tolerance": 0.05, **bench},
-    }
-    path = tmp_path / "bench.yaml"
-    path.write_text(yaml.safe_dump(document), encoding="utf-8")
-    return path
-
-
-def read_mcap(path: Path) -> tuple[dict[str, list[dict[str, Any]]], dict[str, dict[str, str]]]:
-    """Messages by topic (decoded JSON) and metadata records, through the standard mcap reader."""
-    by_topic: dict[str, list[dict[str, Any]]] = {}
-    with path.open("rb") as stream:
-        reader = make_reader(stream)
-        for schema, channel, message in reader.iter_messages(log_time_order=False):
-            assert schema is not None and schema.encoding == "jsonschema"
-            assert channel.message_encoding == "json"
-            by_topic.setdefault(channel.topic, []).append(json.loads(message.data))
-        metadata = {record.name: dict(record.metadata) for record in reader.iter_metadata()}
-    return by_topic, metadata
 
 
 def frame_ledger(frames: list[dict[str, Any]]) -> dict[str, int]:

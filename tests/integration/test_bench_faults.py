@@ -20,15 +20,13 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import can
 import pytest
 import yaml
-from mcap.reader import make_reader
 
 from drivers.bus import open_bus
 from drivers.cia301 import FunctionCode, NmtCommand, cob_id
@@ -36,37 +34,23 @@ from drivers.cia402 import Command402, State402, decode_state
 from drivers.drive import DISABLED_STATES
 from foilc_hil.cli import main
 from foilc_hil.config import load_config
-from tests.integration.test_bench_e2e import NODE, SAMPLES, bench_config
+from tests.support.bench import (
+    NODE,
+    assert_completed_trials_intact,
+    bench_config,
+    completed_trials_on_disk,
+    read_log,
+    when_mid_trial,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 SAFE_CONTROLWORDS = {int(Command402.QUICK_STOP), int(Command402.DISABLE_VOLTAGE)}
-
-
-def read_log(path: Path) -> dict[str, list[dict[str, Any]]]:
-    """Every message by topic, through the standard mcap reader (it must open the file as it is)."""
-    by_topic: dict[str, list[dict[str, Any]]] = {}
-    with path.open("rb") as stream:
-        reader = make_reader(stream)
-        for _, channel, message in reader.iter_messages(log_time_order=False):
-            by_topic.setdefault(channel.topic, []).append(json.loads(message.data))
-    return by_topic
 
 
 def last_word(frames: list[dict[str, Any]], cob: int) -> int:
     words = [int.from_bytes(base64.b64decode(f["data"])[:2], "little") for f in frames if f["id"] == cob]
     assert words, f"no frames with COB-ID 0x{cob:X} in the log"
     return words[-1]
-
-
-def assert_completed_trials_intact(topics: dict[str, list[dict[str, Any]]], minimum: int) -> list[int]:
-    """At least ``minimum`` trials completed; each has its /ilc/trial record and all its samples."""
-    trials = [t["trial"] for t in topics.get("/ilc/trial", [])]
-    assert len(trials) >= minimum, f"only {trials} completed"
-    assert trials == list(range(1, len(trials) + 1))
-    samples = topics.get("/ilc/sample", [])
-    for k in trials:
-        assert sum(1 for s in samples if s["trial"] == k) == SAMPLES
-    return trials
 
 
 @pytest.fixture
@@ -79,48 +63,6 @@ def emulator_on_channel(tmp_path: Path) -> Iterator[tuple[Any, str, Path]]:
     emulator = EmbeddedEmulator.from_config(config)
     with emulator:
         yield emulator, emulator.channel, config_path
-
-
-@dataclass
-class MidTrial:
-    """Whether :func:`when_mid_trial`'s action ran."""
-
-    fired: bool = False
-
-
-def when_mid_trial(emulator: Any, completed: int, action: Callable[[], None]) -> MidTrial:
-    """Run ``action`` once, a quarter into the first trial that moves the axis after the first ``completed`` trials.
-
-    Counted on the emulated drive's own lockstep cycles (its ``trace`` hook, called at the end of each SYNC in the
-    bench's thread, on the synchronous in-process bus): a trial begins where the drive's target velocity turns
-    non-zero after the settle phase's exact zeros. Trial 1 commands the law's initial feedforward, exactly zero, so
-    trial ``k > 1`` begins at the ``(k - 1)``-th such turn; a quarter of a trial's cycles into trial
-    ``max(completed, 1) + 1`` the action runs, inside that cycle. A watcher thread polling the log raced the
-    lockstep loop, which no longer waits on another thread. The target is read from the drive's object dictionary
-    (its local data store, no bus traffic).
-    """
-    trigger = MidTrial()
-    starts = 0
-    moving = False
-    left: int | None = None
-
-    def on_cycle(_snapshot: Any) -> None:
-        nonlocal starts, moving, left
-        if trigger.fired:
-            return
-        target = emulator.drive.node.sdo[0x60FF].raw
-        starts += int(target != 0 and not moving)
-        moving = target != 0
-        if left is None and starts >= max(completed, 1):
-            left = SAMPLES // 4
-        if left is not None:
-            left -= 1
-            if left <= 0:
-                trigger.fired = True
-                action()
-
-    emulator.drive.trace = on_cycle
-    return trigger
 
 
 def run_cli(config_path: Path, channel: str, out: Path, trials: int, *extra: str) -> int:
@@ -237,19 +179,6 @@ def test_sigint_mid_trial_in_a_subprocess(tmp_path: Path) -> None:
     rpdo1 = cob_id(FunctionCode.RPDO1, NODE)
     assert last_word(topics["/can"], rpdo1) in SAFE_CONTROLWORDS
     assert decode_state(last_word(topics["/can"], cob_id(FunctionCode.TPDO1, NODE))) != State402.OPERATION_ENABLED
-
-
-def completed_trials_on_disk(path: Path) -> int:
-    """Completed trials in a log still being written (F's damage-tolerant reader reads up to the last chunk)."""
-    if not path.exists():
-        return 0
-    from foilc_hil.io.mcap_log import McapLogReader
-
-    try:
-        with McapLogReader(path) as reader:
-            return len(reader.read().completed_trials)
-    except Exception:  # a file in the middle of its first write
-        return 0
 
 
 @pytest.mark.slow

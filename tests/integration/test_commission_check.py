@@ -3,7 +3,7 @@
 Each verdict is held against what ``run`` then does on the same config: a drive the check passes (with warnings
 for the optional objects it lacks) runs its trials; one it fails is refused by ``run`` too, for the object the
 check named. The drives are the emulator on canopen's ``LocalNode`` with the EDS of
-``tests.integration.test_standard_drives`` (objects removed from what the drive has, from what the master's EDS says, or
+``tests.support.standard_drives`` (objects removed from what the drive has, from what the master's EDS says, or
 both). The check itself only reads: a tap on the drive's channel sees no SDO download, NMT command or PDO.
 """
 
@@ -20,8 +20,8 @@ from drivers.cia301 import NMT_COB_ID, FunctionCode, cob_id
 from drivers.cia402 import Obj, State402
 from drivers.od import DEFAULT_EDS
 from foilc_hil.config import load_config
-from tests.integration.test_standard_drives import NODE, cli, config_file, mutated_eds
 from tests.support.commission_bus import emulated_bus, run_json
+from tests.support.standard_drives import NODE, cli, config_file, mutated_eds
 
 _SDO_DOWNLOAD_REQUESTS = range(0x20, 0x30)  # client command specifier 1 (initiate download), CiA 301
 

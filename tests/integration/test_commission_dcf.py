@@ -22,8 +22,8 @@ from drivers.cia402_master import Cia402Drive
 from drivers.od import DEFAULT_EDS
 from drivers.pdo import MappingEntry
 from foilc_hil.config import load_config
-from tests.integration.test_standard_drives import NODE, config_file, mutated_eds
 from tests.support.commission_bus import emulated_bus, run_json
+from tests.support.standard_drives import NODE, config_file, mutated_eds
 
 BITRATE = 500_000
 #: (index, sub-index) of objects run's start-up writes on every drive that has them

@@ -26,7 +26,7 @@ from drivers.cia301 import FunctionCode, cob_id
 from drivers.cia402 import STATE_STATUSWORD, Command402, State402
 from foilc_hil.cli import main
 from foilc_hil.io.mcap_log import read_log
-from tests.integration.test_standard_drives import mutated_eds
+from tests.support.standard_drives import mutated_eds
 
 NODE = 4
 SCALE = 1000.0

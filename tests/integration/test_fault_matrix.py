@@ -38,8 +38,7 @@ from drivers.cia402 import State402
 from drivers.drive import DISABLED_STATES
 from drivers.faults import Injection, InjectKind, parse_injection
 from foilc_hil.cli import main
-from tests.integration.test_bench_e2e import read_mcap
-from tests.integration.test_bench_faults import read_log
+from tests.support.bench import read_log, read_mcap
 
 pytestmark = pytest.mark.slow
 

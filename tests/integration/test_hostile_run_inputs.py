@@ -20,7 +20,7 @@ import pytest
 import yaml
 
 from foilc_hil.cli import main
-from tests.integration.test_bench_e2e import NODE, bench_config
+from tests.support.bench import NODE, bench_config
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -25,8 +25,7 @@ from pathlib import Path
 import pytest
 
 from foilc_hil.io.mcap_log import McapLogReader
-from tests.integration.test_bench_e2e import NODE, bench_config
-from tests.integration.test_bench_faults import completed_trials_on_disk
+from tests.support.bench import NODE, bench_config, completed_trials_on_disk
 
 pytestmark = pytest.mark.slow
 

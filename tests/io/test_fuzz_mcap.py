@@ -17,7 +17,7 @@ from mcap.stream_reader import MAGIC_SIZE
 from foilc_hil.cli import main
 from foilc_hil.errors import LogFormatError
 from foilc_hil.io.mcap_log import read_log
-from tests.integration.test_bench_e2e import bench_config
+from tests.support.bench import bench_config
 from tests.support.fuzz_settings import fuzz_settings
 
 TRIALS = 2

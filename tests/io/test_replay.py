@@ -394,7 +394,7 @@ def test_verify_of_a_damaged_log_is_partial_and_exits_1(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """A checksum error mid-file: --verify checks what precedes it and says so; it never passes for the whole log."""
-    from tests.integration.test_bench_e2e import bench_config
+    from tests.support.bench import bench_config
 
     config = bench_config(tmp_path)
     log = tmp_path / "sim.mcap"

@@ -22,7 +22,7 @@ from mcap.writer import Writer
 from foilc_hil.cli import main
 from foilc_hil.config import load_config
 from foilc_hil.loop.rig import RunRequest, run_rig
-from tests.integration.test_bench_e2e import NODE, bench_config
+from tests.support.bench import NODE, bench_config
 
 pytestmark = pytest.mark.slow
 

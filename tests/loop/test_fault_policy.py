@@ -26,8 +26,7 @@ from foilc_hil.cli import main
 from foilc_hil.config import load_config
 from foilc_hil.errors import DriveNmtStateError
 from foilc_hil.loop.rig import RunRequest, run_rig
-from tests.integration.test_bench_e2e import NODE, bench_config
-from tests.integration.test_bench_faults import assert_completed_trials_intact, read_log, when_mid_trial
+from tests.support.bench import NODE, assert_completed_trials_intact, bench_config, read_log, when_mid_trial
 
 TPDO1 = cob_id(FunctionCode.TPDO1, NODE)
 

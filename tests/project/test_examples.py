@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 import foilc_hil as fh
-from tests.integration.test_bench_e2e import bench_config
+from tests.support.bench import bench_config
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "examples"
