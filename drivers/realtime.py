@@ -187,12 +187,40 @@ class RealtimeReport:
         }
 
 
+class _SwitchInterval:
+    """The GIL switch interval is one setting of the whole process, and sessions of several threads (an emulator's
+    motion threads, one per drive, beside the bench's loop) overlap and end in any order: the first session in saves
+    the interval, the last one out restores it. Restoring each session's own "before" would leave, after a
+    non-nested order, the interval of a session that had already ended, for the rest of the process."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._holders = 0
+        self._before = 0.0
+
+    def hold(self, interval: float) -> None:
+        with self._lock:
+            if self._holders == 0:
+                self._before = sys.getswitchinterval()
+            self._holders += 1
+            sys.setswitchinterval(interval)
+
+    def release(self) -> None:
+        with self._lock:
+            self._holders -= 1
+            if self._holders == 0:
+                sys.setswitchinterval(self._before)
+
+
+_SWITCH_INTERVAL = _SwitchInterval()
+
+
 @dataclass
 class _Undo:
     """What the session changed, to restore on exit."""
 
     gc_frozen: bool = False
-    switch_interval: float | None = None
+    switch_interval: bool = False  # the session holds the process's switch interval (:class:`_SwitchInterval`)
     fifo_tids: list[tuple[int, int, int]] = field(default_factory=list)  # (tid, old policy, old priority)
     cpus: set[int] | None = None
     memory_locked: bool = False
@@ -231,8 +259,8 @@ class RealtimeSession:
             gc.disable()
             undo.gc_frozen = True
         if config.switch_interval is not None:
-            undo.switch_interval = sys.getswitchinterval()
-            sys.setswitchinterval(config.switch_interval)
+            _SWITCH_INTERVAL.hold(config.switch_interval)
+            undo.switch_interval = True
         if config.cpus is not None:
             problems += self._set_affinity(config.cpus)
         if config.lock_memory:
@@ -271,8 +299,8 @@ class RealtimeSession:
             undo.cpu_latency.close()
         if undo.cpus is not None:
             os.sched_setaffinity(0, undo.cpus)
-        if undo.switch_interval is not None:
-            sys.setswitchinterval(undo.switch_interval)
+        if undo.switch_interval:
+            _SWITCH_INTERVAL.release()
         if undo.gc_frozen:
             gc.enable()
             gc.unfreeze()

@@ -38,6 +38,18 @@ def test_gc_and_switch_interval_are_set_for_the_session_and_restored() -> None:
     assert sys.getswitchinterval() == interval
 
 
+def test_sessions_of_several_threads_restore_the_switch_interval_whatever_order_they_end_in() -> None:
+    """An emulator's motion threads (one per drive) each hold a session, and they end in any order: the process's
+    switch interval is the one from before the first, after the last (it was the ended session's value)."""
+    interval = sys.getswitchinterval()
+    first = RealtimeSession(RealtimeConfig(switch_interval=0.0002)).__enter__()
+    second = RealtimeSession(RealtimeConfig(switch_interval=0.0002)).__enter__()
+    first.__exit__(None, None, None)
+    assert sys.getswitchinterval() == pytest.approx(0.0002)  # the second session still holds it
+    second.__exit__(None, None, None)
+    assert sys.getswitchinterval() == interval
+
+
 @pytest.mark.slow
 def test_the_timer_slack_is_one_nanosecond_in_the_session_and_restored() -> None:
     before = realtime._timer_slack()
