@@ -6,7 +6,7 @@ velocity TPDO lands in the cycle's window, the other in the next one. The master
 (:meth:`drivers.master.cyclic.CyclicPath.on_tpdo`), so the loop, which waits until that next SYNC, held the last
 good value and counted a lost feedback. ``replay --verify`` looked at the velocity TPDO alone, and where its value
 happened to equal the held one (trial 1 of a run from rest is all zeros) counted the cycle answered:
-``/ilc/trial lost_feedback is 11, the wire shows 8`` in ``tests/test_latched_truth.py`` under load.
+``/ilc/trial lost_feedback is 11, the wire shows 8`` in ``tests/loop/test_latched_truth.py`` under load.
 """
 
 from __future__ import annotations
