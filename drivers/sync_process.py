@@ -13,8 +13,12 @@ bench's SYNC therefore comes from a child process with an interpreter of its own
   priority above it (the loop's priority plus one), with its memory locked, timer slack 1 ns and the garbage
   collector frozen; it starts with normal scheduling (its interpreter's start-up must not hold a FIFO CPU) and
   raises itself once ready;
-- it dies with the bench: ``PR_SET_PDEATHSIG`` (SIGKILL) set first thing, then a check that its parent is still the
-  one that started it (a parent gone in between), so even a SIGKILL of the bench leaves no orphan sending SYNC.
+- it dies with the bench: it checks that its parent is still the one that started it at start-up and after every
+  wake-up, and exits when not (re-parented: the bench is gone), so even a SIGKILL of the bench leaves no orphan
+  sending SYNC (at most the one SYNC of the slot it woke up for); before ``go`` the end of its stdin ends it. Not
+  ``PR_SET_PDEATHSIG``: Linux sends that signal when the *thread* that started the child ends, not the process,
+  so a producer started from a thread that then finished (the network listening from a worker thread) was
+  SIGKILLed mid-run by itself -- ``killed by signal 9`` with the bench alive.
 
 Supervision (:class:`ProcessSync`, the bench's side): the network starts the child when it starts listening (its
 interpreter's start-up, about 0.3 s and seconds on a loaded host, must not fall between the loop's last SYNC and
@@ -56,7 +60,7 @@ READY_TIMEOUT = 30.0
 """Seconds the bench waits for the producer's ``ready`` (its interpreter's start-up and python-can's import: about
 0.3 s on a quiet host, several on a loaded one)."""
 STOP_TIMEOUT = 2.0  # s a SIGTERMed producer has to exit before it is killed
-_PR_SET_PDEATHSIG, _PR_SET_TIMERSLACK = 1, 29  # <linux/prctl.h>
+_PR_SET_TIMERSLACK = 29  # <linux/prctl.h>
 _MCL_CURRENT, _MCL_FUTURE = 1, 2  # <sys/mman.h>
 _TIMER_ABSTIME = 1  # <time.h>
 _EINTR = 4
@@ -192,9 +196,8 @@ def _libc() -> Any:
     return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
 
 
-def _die_with_parent(libc: Any, parent: int) -> None:
-    """SIGKILL when the parent dies; exit now if it is already gone (re-parented before the request held)."""
-    libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+def _require_parent(parent: int) -> None:
+    """Exit now if the parent that started us is gone (we were re-parented)."""
     if os.getppid() != parent:
         raise SystemExit(f"sync_process: parent {parent} is gone")
 
@@ -222,15 +225,15 @@ def _raise_priority(fifo: int | None) -> list[str]:
     return []
 
 
-def _serve(bus: Any, period_ns: int, t0: int, libc: Any, stopped: list[int]) -> tuple[int, int]:
-    """Send SYNC on absolute deadlines ``t0 + k period_ns`` (CLOCK_MONOTONIC ns) until SIGTERM; (SYNCs sent, slots
-    skipped)."""
+def _serve(bus: Any, period_ns: int, t0: int, libc: Any, stopped: list[int], parent: int) -> tuple[int, int]:
+    """Send SYNC on absolute deadlines ``t0 + k period_ns`` (CLOCK_MONOTONIC ns) until SIGTERM or until ``parent``
+    is no longer ours (the bench died); (SYNCs sent, slots skipped)."""
     import can
 
     from drivers.cia301 import SYNC_COB_ID
 
     message = can.Message(arbitration_id=SYNC_COB_ID, data=b"", is_extended_id=False)
-    send, clock = bus.send, time.clock_gettime_ns
+    send, clock, parent_now = bus.send, time.clock_gettime_ns, os.getppid
     deadline = _Timespec()
     sleep = libc.clock_nanosleep
     index = sent = skipped = 0
@@ -240,6 +243,8 @@ def _serve(bus: Any, period_ns: int, t0: int, libc: Any, stopped: list[int]) -> 
         while sleep(time.CLOCK_MONOTONIC, _TIMER_ABSTIME, ctypes.byref(deadline), None) == _EINTR:
             if stopped:
                 return sent, skipped
+        if parent_now() != parent:  # re-parented: the bench is gone, and nobody may be left sending SYNC
+            return sent, skipped
         late = clock(time.CLOCK_MONOTONIC) - due
         if late >= period_ns:  # a stall: one late SYNC for the latest slot passed, the others skipped
             passed = late // period_ns
@@ -261,7 +266,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--port", type=int)
     args = parser.parse_args(argv)
     libc = _libc()
-    _die_with_parent(libc, args.parent)
+    _require_parent(args.parent)
     stopped: list[int] = []
     signal.signal(signal.SIGTERM, lambda *_: stopped.append(1))
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C reaches the whole group: the bench stops us itself
@@ -282,7 +287,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         period_ns = round(period * 1e9)
         t0 = time.clock_gettime_ns(time.CLOCK_MONOTONIC) + period_ns
         print("started", f"t0={t0}", f"fifo={fifo}", *(f"not applied: {p}" for p in problems), flush=True)
-        sent, skipped = _serve(bus, period_ns, t0, libc, stopped)
+        sent, skipped = _serve(bus, period_ns, t0, libc, stopped, args.parent)
         print(f"sent {sent} skipped {skipped}", flush=True)
         # gone at once: the bench waits for this exit before its drives' stop sends SYNC again, and an interpreter's
         # teardown (the bus shut down, modules freed) took longer under load than the drives' SYNC-loss time (100

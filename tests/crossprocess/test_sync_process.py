@@ -1,11 +1,11 @@
 """The SYNC producer process (:mod:`drivers.sync_process`): supervised like any child of the bench.
 
-Its life cycle on python-can's ``virtual`` interface (in the child's own process it reaches nobody: nothing leaves
-it): ready, stopped with SIGTERM and gone on return with its count; a child that dies is an error the bench raises at
-once with its exit status; a SIGKILLed parent leaves no orphan (``PR_SET_PDEATHSIG``). Its SYNCs on a real
-``udp_multicast`` bus, in a private network namespace this test creates: they come on their period's grid (counted
-in slots, no time bound asserted), and a run stopped by the child's death ends with the drive confirmed stopped
-(``tests/crossprocess/test_latched_crossprocess.py`` runs the whole bench on it).
+Its life cycle on python-can's ``virtual`` interface (in the child's own process it reaches nobody: nothing leaves it):
+ready, stopped with SIGTERM and gone on return with its count; a child that dies is an error the bench raises at once
+with its exit status; a SIGKILLed parent leaves no orphan, and a producer started from a thread outlives that thread.
+Its SYNCs on a real ``udp_multicast`` bus, in a private network namespace this test creates: they come on their period's
+grid (counted in slots, no time bound asserted), and a run stopped by the child's death ends with the drive confirmed
+stopped (``tests/crossprocess/test_latched_crossprocess.py`` runs the whole bench on it).
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ import shlex
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -78,6 +79,22 @@ def test_a_producer_never_started_exits_when_stopped() -> None:
 def test_a_producer_that_cannot_open_its_bus_fails_the_start() -> None:
     with pytest.raises(DriveError, match="did not start"):
         ProcessSync("no-such-interface", "x")
+
+
+def test_a_producer_started_from_a_thread_outlives_that_thread() -> None:
+    """The network may listen (and start its producer) on a worker thread that then ends; the producer is the
+    bench's, not that thread's (``PR_SET_PDEATHSIG`` killed it when the thread ended)."""
+    clocks: list[ProcessSync] = []
+    spawner = threading.Thread(target=lambda: clocks.append(ProcessSync("virtual", "sync-process-test")))
+    spawner.start()
+    spawner.join()
+    (clock,) = clocks
+    try:
+        clock.start(0.002)  # raised DriveError: the producer was gone
+        assert clock.error is None
+    finally:
+        clock.stop()
+    assert clock.summary.startswith("sent ")
 
 
 _PARENT = """
