@@ -148,12 +148,23 @@ def _runner() -> tuple[Any, Any]:
     return rig.run_rig, rig.RunRequest
 
 
+def _build_design() -> Any:
+    """``build_design`` in the tree being profiled: ``loop.settings``'s, or the baseline's in ``loop.bench``."""
+    try:
+        from foilc_hil.loop import settings
+    except ImportError:  # the baseline commit, before loop/settings.py
+        from foilc_hil.loop import bench
+
+        return bench.build_design  # type: ignore[attr-defined]
+    return settings.build_design
+
+
 def _run(trials: int = 3) -> tuple[int, float, float]:
     """One lockstep run of the PMSM axis at 1 ms: cycles, then seconds in ``TrialLoop.run`` (wall clock, and CPU
     time of the control thread: what a loaded machine leaves least distorted)."""
     from drivers.config import BusConfig
     from foilc_hil.config import load_config
-    from foilc_hil.loop import bench, settings
+    from foilc_hil.loop import bench
     from foilc_hil.references import trial_samples
     from plant_emulator.device import TimingMode
 
@@ -167,7 +178,7 @@ def _run(trials: int = 3) -> tuple[int, float, float]:
         "drive.heartbeat_consumer_ms": 2000,
     })
     if not _DESIGN:  # made once per process, not timed: every run has the same config
-        _DESIGN.append(settings.build_design(config, "foilc", trial_samples(config.reference, config.sample_time)))
+        _DESIGN.append(_build_design()(config, "foilc", trial_samples(config.reference, config.sample_time)))
     design = _DESIGN[0]
     spent: list[tuple[float, float]] = []
     original = bench.TrialLoop.run
