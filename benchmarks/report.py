@@ -271,22 +271,25 @@ MEASURED_OUTSIDE = (
     "Measured by hand on the 2-core test machine, not by `make bench`; wall clock unless said otherwise.",
     "",
     "- **`make demo`** on a fresh clone, the `.venv` bootstrap included: 31.3 s (the demo itself 27.1 s, its design "
-    "4.1 s) with the cores to itself; 84.8 s at a load of 6-10 from other work. The trial is eq. (52) at 1 ms between "
+    "4.1 s) with the cores to itself; 29.0 s on 2026-11-28 05:19 at load about 2; 84.8 s at a load of 6-10 from other "
+    "work. The trial is eq. (52) at 1 ms between "
     "two 0.25 s ramps, 6500 samples, 30 trials per law (about 460k CAN cycles); the two laws run at once, each in its "
     "own worker process; the rest is the two reports and `comparison.png`.",
-    "- **`make test`** on a fresh clone, the `.venv` bootstrap included: 2 min 19 s (pytest: 2,320 tests in 117 s, "
-    "one skipped with its reason: `vcan0` cannot exist here) with the cores to itself; 4 min 3 s and 10 min 6 s at "
-    "loads of about 6 and 10 from other work beside it. ruff, mypy, pytest and the API reference at once, pytest on "
-    "four pytest-xdist workers. CPU-bound: about 240 CPU-s on two cores.",
+    "- **`make test`** on a fresh clone, the `.venv` bootstrap included: 2 min 59 s on 2026-11-28 05:16 (pytest: "
+    "2,456 tests in 129 s, two skipped with their reason: no `vcan0` here) at load about 2-4, on a host that also ran "
+    "`make bench`'s peers 27 % slower than the run before; 2 min 19 s (2,320 tests in 117 s) with the cores to itself "
+    "in an earlier session; 4 min 3 s and 10 min 6 s at loads of about 6 and 10 from other work beside it. ruff, "
+    "mypy, pytest and the API reference at once, pytest on four pytest-xdist workers. CPU-bound: about 300 CPU-s on "
+    "two cores.",
     "- **pytest workers** (the Makefile's two per core): a quarter of the suite's test time is waiting (timeouts that "
     "are the point of a test, emulator and CLI processes, a drive's heartbeat); on 2 cores 316 s of test time held "
     "241 CPU-s, and 4 workers took 141-144 s against 156 s for 3, 160-170 s for 2 and 168 s for 6 (an earlier, "
     "smaller suite: 107 s on two workers against about 190 s in one process). With `PYTHONDONTWRITEBYTECODE` set, "
     "every worker re-rewrote every test module (about 3 s of CPU each), which is why the Makefile unexports it.",
-    "- **The inner loop**, `OPENBLAS_NUM_THREADS=1 pytest -m \"not slow\" -n 2` (README, \"Development\"): about 1,700 "
-    "of the suite's 2,300 tests (the 620 `slow` ones left out), 92 to 156 s wall in four runs at a load average of 4 "
-    "to 14 (other sessions' tests on the same 2 cores), 57 to 73 CPU-s, of which the two workers' collection (every "
-    "test module imported in each) is about 17 (not measured with the cores to itself).",
+    "- **The inner loop**, `OPENBLAS_NUM_THREADS=1 pytest -m \"not slow\" -n 2` (README, \"Development\"): 1,758 "
+    "of the suite's 2,458 tests (the `slow` ones left out): 31 s wall and 40 CPU-s on a fresh clone at load about 2 "
+    "(2026-11-28 05:20); 74 to 87 s in three runs at a load average of 3.5 to 11 (other sessions' work on the same 2 "
+    "cores). The two workers' collection (every test module imported in each) is about 16 CPU-s of it.",
     "- **The bootstrap**: uv installs the `.venv` in about 5 s with its cache warm and 15 s cold, against about a "
     "minute for pip, most of it byte-compiling every module of every package.",
     "- **Commands** (under load, load average 6; Python start-up included): `synthesize` of `paper_sim.yaml` 4 s, "
