@@ -39,6 +39,7 @@ import gc
 import os
 import sys
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
 from types import TracebackType
@@ -187,32 +188,47 @@ class RealtimeReport:
         }
 
 
-class _SwitchInterval:
-    """The GIL switch interval is one setting of the whole process, and sessions of several threads (an emulator's
-    motion threads, one per drive, beside the bench's loop) overlap and end in any order: the first session in saves
-    the interval, the last one out restores it. Restoring each session's own "before" would leave, after a
-    non-nested order, the interval of a session that had already ended, for the rest of the process."""
+class _ProcessSetting:
+    """A setting of the whole process (the GIL switch interval, the garbage collector) that sessions of several
+    threads share (an emulator's motion threads, one per drive, beside the bench's loop). They overlap and end in
+    any order, so the first session in saves the setting, each applies its own, and the last one out restores what
+    was there before. Restoring each session's own "before" left, after a non-nested order, the setting of a session
+    that had already ended, for the rest of the process."""
 
-    def __init__(self) -> None:
+    def __init__(self, save: Callable[[], Any], restore: Callable[[Any], None]) -> None:
+        self._save, self._restore = save, restore
         self._lock = threading.Lock()
         self._holders = 0
-        self._before = 0.0
+        self._saved: Any = None
 
-    def hold(self, interval: float) -> None:
+    def hold(self, apply: Callable[[], None]) -> None:
         with self._lock:
             if self._holders == 0:
-                self._before = sys.getswitchinterval()
+                self._saved = self._save()
             self._holders += 1
-            sys.setswitchinterval(interval)
+            apply()
 
     def release(self) -> None:
         with self._lock:
             self._holders -= 1
             if self._holders == 0:
-                sys.setswitchinterval(self._before)
+                self._restore(self._saved)
 
 
-_SWITCH_INTERVAL = _SwitchInterval()
+def _freeze_gc() -> None:
+    gc.collect()  # what is garbage now is not frozen for the session
+    gc.freeze()
+    gc.disable()
+
+
+def _restore_gc(enabled: bool) -> None:
+    gc.unfreeze()
+    if enabled:
+        gc.enable()
+
+
+_SWITCH_INTERVAL = _ProcessSetting(sys.getswitchinterval, sys.setswitchinterval)
+_GC = _ProcessSetting(gc.isenabled, _restore_gc)
 
 
 @dataclass
@@ -220,7 +236,7 @@ class _Undo:
     """What the session changed, to restore on exit."""
 
     gc_frozen: bool = False
-    switch_interval: bool = False  # the session holds the process's switch interval (:class:`_SwitchInterval`)
+    switch_interval: bool = False  # the session holds the process's switch interval (:class:`_ProcessSetting`)
     fifo_tids: list[tuple[int, int, int]] = field(default_factory=list)  # (tid, old policy, old priority)
     cpus: set[int] | None = None
     memory_locked: bool = False
@@ -254,12 +270,10 @@ class RealtimeSession:
             fifo_names, fifo_problems = self._set_fifo(config.sched_fifo_priority)
             problems += fifo_problems
         if config.gc is GcPolicy.FREEZE:
-            gc.collect()  # what is garbage now is not frozen for the session
-            gc.freeze()
-            gc.disable()
+            _GC.hold(_freeze_gc)
             undo.gc_frozen = True
-        if config.switch_interval is not None:
-            _SWITCH_INTERVAL.hold(config.switch_interval)
+        if (interval := config.switch_interval) is not None:
+            _SWITCH_INTERVAL.hold(lambda: sys.setswitchinterval(interval))
             undo.switch_interval = True
         if config.cpus is not None:
             problems += self._set_affinity(config.cpus)
@@ -302,8 +316,7 @@ class RealtimeSession:
         if undo.switch_interval:
             _SWITCH_INTERVAL.release()
         if undo.gc_frozen:
-            gc.enable()
-            gc.unfreeze()
+            _GC.release()
         self._undo = _Undo()
 
     def _set_affinity(self, cpus: list[int]) -> list[str]:

@@ -50,6 +50,18 @@ def test_sessions_of_several_threads_restore_the_switch_interval_whatever_order_
     assert sys.getswitchinterval() == interval
 
 
+def test_sessions_of_several_threads_keep_the_collector_frozen_until_the_last_one_ends() -> None:
+    """The collector is the process's too: the first of two overlapping sessions to end left it enabled (and
+    unfrozen) under the other, whose cycles it was frozen for."""
+    assert gc.isenabled()
+    first = RealtimeSession(RealtimeConfig(gc=GcPolicy.FREEZE, switch_interval=None)).__enter__()
+    second = RealtimeSession(RealtimeConfig(gc=GcPolicy.FREEZE, switch_interval=None)).__enter__()
+    first.__exit__(None, None, None)
+    assert not gc.isenabled() and gc.get_freeze_count() > 0  # the second session still holds it
+    second.__exit__(None, None, None)
+    assert gc.isenabled() and gc.get_freeze_count() == 0
+
+
 @pytest.mark.slow
 def test_the_timer_slack_is_one_nanosecond_in_the_session_and_restored() -> None:
     before = realtime._timer_slack()
