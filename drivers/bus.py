@@ -35,6 +35,7 @@ from drivers.config import BusConfig
 from drivers.errors import DriveError, InputError
 from drivers.inprocess import INTERFACE as INPROCESS_INTERFACE
 from drivers.inprocess import InProcessBus
+from drivers.send_order import order_multicast_sends, order_virtual_sends
 
 __all__ = [
     "SIMULATED_INTERFACES",
@@ -50,33 +51,7 @@ __all__ = [
     "resolve_bus",
 ]
 
-def _order_virtual_sends() -> None:
-    """Give python-can's ``virtual`` interface the one frame order of a CAN bus (idempotent; at import).
-
-    A CAN bus serialises frames (arbitration): every node sees them in one order. python-can's ``virtual`` copies
-    a frame into each bus object's queue one after the other under no lock, so two threads sending at once -- the
-    SYNC clock's thread and the emulator's answering TPDO -- reached two bus objects of one process in opposite
-    orders. The loop's cyclic receiver (one bus object) then saw SYNC ``n + 1`` before the TPDO and held the last
-    feedback, while the frame tap (another) logged the TPDO in SYNC ``n``'s window: the record and ``replay
-    --verify`` read two different wires (``/ilc/trial lost_feedback is 11, the wire shows 8`` under load). Each
-    send delivers to every queue under python-can's own lock of the channels (the one its open and shutdown hold
-    while they change a channel's list of queues, which the send walks), so every bus object sees one order.
-    """
-    from can.interfaces import virtual
-
-    send = virtual.VirtualBus.send
-    if getattr(send, "one_order", False):
-        return
-
-    def ordered_send(self: virtual.VirtualBus, msg: can.Message, timeout: float | None = None) -> None:
-        with virtual.channels_lock:
-            send(self, msg, timeout)
-
-    ordered_send.one_order = True  # type: ignore[attr-defined]
-    virtual.VirtualBus.send = ordered_send  # type: ignore[method-assign]
-
-
-_order_virtual_sends()
+order_virtual_sends()  # one frame order, as on a wire: see drivers.send_order
 
 SIMULATED_INTERFACES = frozenset({"virtual", "udp_multicast", "embedded", INPROCESS_INTERFACE})
 """Interfaces that cannot move real hardware (``replay`` refuses the others without ``--allow-real-bus``)."""
@@ -251,6 +226,7 @@ def open_bus(cfg: BusConfig) -> can.BusABC:
         bus = can.Bus(**kwargs)
         if cfg.interface == "udp_multicast":
             _enlarge_receive_buffer(bus)
+            order_multicast_sends(bus)  # every receiver sees one order, as on a wire (drivers.send_order)
         return bus
     except can.CanInterfaceNotImplementedError as exc:
         raise InputError(f"--bus: interface {cfg.interface!r} is not available in python-can: {exc}") from exc
@@ -302,6 +278,7 @@ class FrameTap(can.Listener):
         self._listeners: tuple[FrameListener, ...] = ()
         self._lock = threading.Lock()
         self._bus: can.BusABC | None = None
+        self._restore: Callable[..., None] | None = None
         self.listener_errors = 0
 
     def add_listener(self, listener: FrameListener) -> None:
@@ -319,6 +296,7 @@ class FrameTap(can.Listener):
         if self._bus is not None:
             raise DriveError("frame tap is already attached to a bus")
         original_send = bus.send
+        self._restore = vars(bus).get("send")  # a wrapper of open_bus's own (drivers.send_order), kept on detach
 
         def tapped_send(msg: can.Message, timeout: float | None = None) -> None:
             original_send(msg, timeout)
@@ -336,7 +314,9 @@ class FrameTap(can.Listener):
     def detach(self) -> None:
         """Restore the bus's own ``send``."""
         if self._bus is not None:
-            if "send" in vars(self._bus):
+            if self._restore is not None:
+                self._bus.send = self._restore  # type: ignore[method-assign]
+            elif "send" in vars(self._bus):
                 del self._bus.send
             self._bus = None
 

@@ -15,7 +15,9 @@ bench's SYNC therefore comes from a child process with an interpreter of its own
   raises itself once ready;
 - it dies with the bench: it checks that its parent is still the one that started it at start-up and after every
   wake-up, and exits when not (re-parented: the bench is gone), so even a SIGKILL of the bench leaves no orphan
-  sending SYNC (at most the one SYNC of the slot it woke up for); before ``go`` the end of its stdin ends it. Not
+  sending SYNC (at most the one SYNC of the slot it woke up for); before ``go`` the end of its stdin ends it;
+- it sends under the channel's frame order (:mod:`drivers.send_order`), as every bus :func:`drivers.bus.open_bus`
+  opens on it does: a SYNC and the bench's RPDO sent within microseconds reach every receiver in one order. Not
   ``PR_SET_PDEATHSIG``: Linux sends that signal when the *thread* that started the child ends, not the process,
   so a producer started from a thread that then finished (the network listening from a worker thread) was
   SIGKILLed mid-run by itself -- ``killed by signal 9`` with the bench alive.
@@ -95,7 +97,7 @@ class ProcessSync:
         self.period = math.nan  # until start()
         self._t0 = math.nan  # the producer's first deadline, perf_counter seconds (after start())
         self.settings = ""  # the producer's line on what it applied, after start()
-        self.summary = ""  # the producer's closing line (SYNCs sent, slots skipped), after stop()
+        self.summary = ""  # the producer's closing line (SYNCs sent, slots skipped, sends unordered), after stop()
         self._error: str | None = None
         self._expect("ready")
 
@@ -275,7 +277,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     options = {"port": args.port} if args.port is not None else {}
     with can.Bus(interface=args.interface, channel=args.channel, **options) as bus:
         from drivers.receive_filter import install_id_filter
+        from drivers.send_order import order_multicast_sends
 
+        order = order_multicast_sends(bus)  # the bench's RPDOs and this SYNC: one order for every receiver
         install_id_filter(bus, ())  # it sends only: the bus's frames are dropped before they queue on its socket
         prepared = _prepare(libc)
         print("ready", flush=True)
@@ -288,7 +292,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         t0 = time.clock_gettime_ns(time.CLOCK_MONOTONIC) + period_ns
         print("started", f"t0={t0}", f"fifo={fifo}", *(f"not applied: {p}" for p in problems), flush=True)
         sent, skipped = _serve(bus, period_ns, t0, libc, stopped, args.parent)
-        print(f"sent {sent} skipped {skipped}", flush=True)
+        unordered = order.unordered if order is not None else sent
+        print(f"sent {sent} skipped {skipped} unordered {unordered}", flush=True)
         # gone at once: the bench waits for this exit before its drives' stop sends SYNC again, and an interpreter's
         # teardown (the bus shut down, modules freed) took longer under load than the drives' SYNC-loss time (100
         # periods: 0.2 s at 2 ms); the kernel closes the socket
