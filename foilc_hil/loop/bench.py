@@ -15,7 +15,9 @@ CiA 402 drive on CAN (or the embedded emulator), or, for ``foilc-hil simulate``,
 
 Between trials the axis is brought back to rest over the same cyclic path (zero command, which in CSV/PV is a
 braking velocity set-point and in CST lets a stable axis coast down), until ``|y| <= bench.settle_tolerance`` for
-``bench.settle_time``; a settle that does not finish within
+``bench.settle_time`` and the phase's last command was latched at its own SYNC (a late one would land in the trial's
+first SYNC window, where the record and ``replay --verify`` count the trial's own commands); a settle that does not
+finish within
 :data:`~foilc_hil.loop.settings.SETTLE_TIMEOUT_FACTOR` x ``settle_time`` (at least
 :data:`~foilc_hil.loop.settings.MIN_SETTLE_TIMEOUT` seconds of cycles) raises :class:`~foilc_hil.errors.DriveError`.
 
@@ -316,6 +318,7 @@ class TrialLoop:
         self._deadline = self._lateness = math.nan
         self._skipped = 0
         self._late = self._missing = False
+        self._missed = False  # the last cycle's command missed the SYNC after its own (it ran one cycle late)
         self._sync_number = 0  # the drive's count of the last SYNC it sent (its frame in the log)
         self._next_trial = 1  # the number the next trial gets (iter_trials continues it)
 
@@ -449,7 +452,9 @@ class TrialLoop:
                 self.drive.set_target(0.0)
                 self._finish_cycle()
                 at_rest = at_rest + 1 if self._signal.peak(y) <= tolerance else 0
-                if at_rest >= needed and (pending is None or pending.done):
+                # the last settle command must be latched before the trial's first SYNC: one that missed it lands in
+                # the trial's first window, where the record and replay --verify count the trial's own N + 1 RPDOs
+                if at_rest >= needed and (pending is None or pending.done) and not self._missed:
                     self.outcome.settle_cycles += self._cycle - first_cycle
                     return
         finally:
@@ -671,6 +676,7 @@ class TrialLoop:
             missed = cast(ClockedDriveLike, self._clock_drive).rpdo_sync_count > self._sync_number
         else:  # it went out after the next slot's SYNC should have latched it (NaN deadline: never)
             missed = sent > self._deadline + self.settings.sample_time
+        self._missed = missed
         self.timing.record(
             self._sync_time,
             self._deadline,

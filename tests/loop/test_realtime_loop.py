@@ -177,3 +177,25 @@ def test_lockstep_has_no_deadlines_to_miss() -> None:
     assert timing.missed_deadlines == 0 and timing.skipped_deadlines == 0
     assert timing.jitter_p99_us is None and timing.realtime is None
     assert all(math.isclose(t, settings.feedback_timeout) for t in drive.timeouts)
+
+
+def _settle_then_trial(stalls: dict[int, float]) -> list[CycleTiming]:
+    """Trial 1 after a settle phase of three at-rest cycles (nothing pending before the first trial: its length
+    depends on the rule alone); the records of the settle phase before it and of the trial."""
+    clock = FakeClock()
+    drive = ScriptedDrive(clock, lost=set(), stalls=stalls)
+    sink = Sink()
+    settings = LoopSettings(sample_time=PERIOD, mode=TimingMode.REALTIME, settle_time=3 * PERIOD,
+                            max_lost_feedback=2)
+    TrialLoop(drive, ZeroLaw(), np.zeros(10), None, settings, log=sink, clock=clock, sleep=clock.sleep).run(1)
+    return [r for r in sink.records if r.trial == 1 and r.phase in ("settle", "trial")]
+
+
+def test_a_trial_never_starts_on_the_sync_its_last_settle_command_missed() -> None:
+    # a settle command that missed its SYNC lands in the next SYNC's window: were that the trial's first, the
+    # record and replay --verify would count it as the trial's first RPDO. The phase runs one cycle more.
+    on_time = _settle_then_trial({})
+    assert [r.phase for r in on_time] == ["settle"] * 3 + ["trial"] * 11
+    late = _settle_then_trial({3: 1.5 * PERIOD})  # SYNC 3: the third settle cycle's command misses
+    assert [r.phase for r in late] == ["settle"] * 4 + ["trial"] * 11
+    assert [r.missed for r in late[:4]] == [False, False, True, False]
