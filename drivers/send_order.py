@@ -16,7 +16,8 @@ on the channel takes one lock, shared across processes, around each ``sendto`` (
 the group and port; the kernel releases it when its holder dies). A send then reaches every socket before the next
 one starts. Waiting is bounded (:data:`WAIT_BOUND`): a holder stopped with the lock held (SIGSTOP between its
 ``sendto`` and its unlock: its frame is out already) must not stop SYNC, so past the bound the frame goes out
-unordered and is counted (:attr:`ChannelOrder.unordered`). The one case it cannot cover: a loaded kernel that
+unordered and is counted (:attr:`ChannelOrder.unordered`); the wait spins, and after one that ran out the next
+sends do not wait until the lock is seen free again. The one case it cannot cover: a loaded kernel that
 defers the loopback's delivery to ``ksoftirqd``, after ``sendto`` returned.
 """
 
@@ -38,7 +39,6 @@ __all__ = ["WAIT_BOUND", "ChannelOrder", "order_multicast_sends", "order_virtual
 WAIT_BOUND = 250e-6
 """Seconds a send waits for the channel's lock before it goes out unordered: many ``sendto`` calls long (each
 holder holds it for one), and a quarter of a 1 ms period at most added to a SYNC's lateness."""
-_RETRY = 10e-6  # s between tries while another process holds the lock
 
 
 def order_virtual_sends() -> None:
@@ -84,6 +84,7 @@ class ChannelOrder:
         self._threads = threading.Lock()  # flock does not exclude two threads sharing this descriptor
         self.unordered = 0
         """Sends that went out without the lock (it was held past :data:`WAIT_BOUND`)."""
+        self._stuck = False  # the last wait ran out: its holder is taken for stopped (see _acquire)
         self._closer = weakref.finalize(self, os.close, self._fd)
 
     def close(self) -> None:
@@ -103,16 +104,27 @@ class ChannelOrder:
                     self.unordered += 1
 
     def _acquire(self) -> bool:
-        try_lock, fd = fcntl.flock, self._fd
+        """Take the lock: spin (no sleep: a wake-up on a loaded host can be late by milliseconds, which a SYNC
+        cannot afford) up to :data:`WAIT_BOUND`; False past it. A holder that kept it past the bound once is taken
+        for stopped: until the lock is seen free again each send tries once and goes (a SIGSTOPped bench held it
+        for 30 ms: a wait at every SYNC meanwhile is no order gained)."""
+        try_lock, fd, flags = fcntl.flock, self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB
+        try:
+            try_lock(fd, flags)
+            self._stuck = False
+            return True
+        except BlockingIOError:
+            if self._stuck:
+                return False
         deadline = time.perf_counter() + WAIT_BOUND
-        while True:
+        while time.perf_counter() < deadline:
             try:
-                try_lock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                try_lock(fd, flags)
                 return True
             except BlockingIOError:
-                if time.perf_counter() >= deadline:
-                    return False
-                time.sleep(_RETRY)
+                continue
+        self._stuck = True
+        return False
 
 
 def order_multicast_sends(bus: can.BusABC) -> ChannelOrder | None:

@@ -60,6 +60,39 @@ def test_a_lock_held_past_the_bound_lets_the_frame_out_unordered_and_counted(ord
     assert 0 < WAIT_BOUND < 1e-3  # a quarter of a 1 kHz period at most on a SYNC
 
 
+def test_after_a_wait_ran_out_the_next_sends_try_once_until_the_lock_is_free(
+        order: ChannelOrder, monkeypatch: pytest.MonkeyPatch) -> None:
+    tries: list[int] = []
+    real = fcntl.flock
+
+    def counted(fd: int, operation: int) -> None:
+        if operation & fcntl.LOCK_EX:
+            tries.append(fd)
+        real(fd, operation)
+
+    monkeypatch.setattr(fcntl, "flock", counted)
+    holder = os.open(order.path, os.O_RDONLY)  # a holder stopped with the lock held
+    real(holder, fcntl.LOCK_EX)
+    try:
+        order.send(lambda msg, timeout: None, can.Message(), None)
+        first = len(tries)
+        order.send(lambda msg, timeout: None, can.Message(), None)
+        second = len(tries) - first
+    finally:
+        os.close(holder)
+    assert first > 1 and second == 1 and order.unordered == 2  # the first waited (spun), the second did not
+    order.send(lambda msg, timeout: None, can.Message(), None)
+    assert order.unordered == 2  # seen free again: ordered
+    holder = os.open(order.path, os.O_RDONLY)
+    real(holder, fcntl.LOCK_EX)
+    try:
+        before = len(tries)
+        order.send(lambda msg, timeout: None, can.Message(), None)
+    finally:
+        os.close(holder)
+    assert len(tries) - before > 1  # and a new hold is waited for again
+
+
 def test_an_exception_in_the_send_releases_the_lock(order: ChannelOrder) -> None:
     def failing(msg: can.Message, timeout: float | None) -> None:
         raise can.CanOperationError("failed to send via socket")
