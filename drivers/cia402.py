@@ -35,9 +35,11 @@ class Obj(IntEnum):
     MODES_OF_OPERATION = 0x6060
     MODES_OF_OPERATION_DISPLAY = 0x6061
     POSITION_ACTUAL_VALUE = 0x6064
+    VELOCITY_DEMAND_VALUE = 0x606B  # the velocity the drive latched and follows this cycle (0x60FF's units)
     VELOCITY_ACTUAL_VALUE = 0x606C
     TARGET_TORQUE = 0x6071
     MAX_TORQUE = 0x6072
+    TORQUE_DEMAND = 0x6074  # the torque the drive latched and applies this cycle (0x6071's units)
     TORQUE_ACTUAL_VALUE = 0x6077
     MAX_MOTOR_SPEED = 0x6080
     PROFILE_ACCELERATION = 0x6083

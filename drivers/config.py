@@ -61,6 +61,10 @@ class DriveConfig(Section):
     state_timeout: float = Field(default=2.0, gt=0)  # seconds per 402 transition
     quick_stop_option: int = Field(default=2, ge=0, le=8)  # 0x605A
     abort_connection_option: int = Field(default=3, ge=0, le=3)  # 0x6007
+    # map the mode's demand object (0x606B in CSV/PV, 0x6074 in CST) into a TPDO and count every sample whose echo
+    # is not the command the bench knows the drive latched; off by default: it can cost a TPDO per cycle (bus load).
+    # strict: a YAML 1, 3 or "yes" is a typo here, not a yes
+    demand_echo: bool = Field(default=False, strict=True)
 
     @property
     def operation_mode(self) -> OperationMode:

@@ -11,6 +11,7 @@ carrying the set-point goes out first, the SYNC makes the drive apply it and ans
 from __future__ import annotations
 
 import enum
+import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -120,6 +121,10 @@ class Feedback:
         0x6064, raw increments.
     timestamp
         ``time.monotonic()`` when the last TPDO of the set was received.
+    demand
+        The demand echo (``drive.demand_echo``): 0x606B (CSV, PV) divided by ``DriveConfig.velocity_scale``, or
+        0x6074 (CST) divided by ``DriveConfig.torque_scale`` -- the target the drive latched at the SYNC this set
+        answers, in the units of :meth:`Drive.set_target`'s return; NaN: not mapped.
     """
 
     cycle: int
@@ -129,6 +134,7 @@ class Feedback:
     torque: float
     position: int
     timestamp: float
+    demand: float = math.nan
 
 
 @dataclass(frozen=True)

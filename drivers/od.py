@@ -67,9 +67,11 @@ STANDARD_TYPES: dict[int, tuple[int, bool]] = {
     Obj.MODES_OF_OPERATION: (8, True),
     Obj.MODES_OF_OPERATION_DISPLAY: (8, True),
     Obj.POSITION_ACTUAL_VALUE: (32, True),
+    Obj.VELOCITY_DEMAND_VALUE: (32, True),
     Obj.VELOCITY_ACTUAL_VALUE: (32, True),
     Obj.TARGET_TORQUE: (16, True),
     Obj.MAX_TORQUE: (16, False),
+    Obj.TORQUE_DEMAND: (16, True),
     Obj.TORQUE_ACTUAL_VALUE: (16, True),
     Obj.TARGET_VELOCITY: (32, True),
 }

@@ -29,7 +29,8 @@ default, reset communication only 0x1000..0x1FFF; both send the boot-up message 
 Cycle order at SYNC *n* (lockstep; the one-cycle transport delay of a SYNC-driven loop, errata 6):
 
 1. advance the physics by one cycle period with the command that was active during cycle *n-1*;
-2. latch the synchronous RPDO values received since SYNC *n-1*: they become the active command;
+2. latch the synchronous RPDO values received since SYNC *n-1*: they become the active command, echoed in the
+   demand objects 0x606B / 0x6074 where the EDS has them (:meth:`~plant_emulator.motion.AxisPhysics.publish_demand`);
 3. sample the feedback and send the synchronous TPDOs.
 
 So a target sent before SYNC *n* first moves the axis during cycle *n*, and its effect is first reported in the
@@ -475,6 +476,7 @@ class VirtualDrive:
                 physics.tick(physics.cycle_period, publish=not operational)
             if operational:
                 self.pdos.latch()  # (2) the RPDOs received since the last SYNC become the command
+                self.physics.publish_demand()  # its echo (0x606B / 0x6074), for the TPDOs below
                 self.application.publish_status()
                 self.pdos.send_synchronous()  # (3) sample and send
             if lockstep and self.trace is not None:

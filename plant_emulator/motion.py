@@ -2,9 +2,10 @@
 
 Each cycle the power stage turns the 402 state and the mode's target into one plant input (velocity or torque),
 advances the plant from :mod:`plant_emulator.physics` by one cycle period, and writes the feedback (0x606C,
-0x6077, 0x6064) back to the store. Torque limiting held too long and the plant's over-speed flag are faults; the
-quick stop ramp ends when the axis is at rest. While the power stage is off the drive keeps the axis's holding
-brake closed (``plant.pmsm.brake_torque``; a plant without one coasts, under its load if it has one).
+0x6077, 0x6064) back to the store; at each SYNC, after the latch, :meth:`AxisPhysics.publish_demand` writes the
+demand echo (0x606B / 0x6074, where the EDS has them). Torque limiting held too long and the plant's over-speed
+flag are faults; the quick stop ramp ends when the axis is at rest. While the power stage is off the drive keeps the
+axis's holding brake closed (``plant.pmsm.brake_torque``; a plant without one coasts, under its load if it has one).
 
 In lockstep mode the device calls :meth:`AxisPhysics.tick` at each SYNC; in realtime mode
 :meth:`AxisPhysics.run_realtime` calls it on the wall clock, one cycle period per tick, SYNC or not: absolute
@@ -99,6 +100,7 @@ class AxisPhysics:
         self._brake_closed = False  # a plant starts with its brake open (set_brake is called on a change only)
         # the object dictionary never changes while the drive runs: whether it has 0x1006 is asked once
         self._has_cycle_period = node.has(Obj.COMMUNICATION_CYCLE_PERIOD)
+        self._has_demand = node.has(Obj.VELOCITY_DEMAND_VALUE) or node.has(Obj.TORQUE_DEMAND)
         self._trial = 1  # the trial whose initial condition the plant restarts from after a divergence
 
     @property
@@ -152,6 +154,30 @@ class AxisPhysics:
         produce(Obj.POSITION_ACTUAL_VALUE, axis.position)
         if publish:
             self.application.publish_status()
+
+    def publish_demand(self) -> None:
+        """The demand echo, where the EDS has it: 0x606B (CSV, PV) or 0x6074 (CST) = the target latched at this
+        SYNC, which the power stage follows from now on (the SYNC consumer calls it after the latch, before the TPDOs
+        sample the store), as a real drive reports the demand it applies.
+
+        Why at the SYNC and not in :meth:`tick`: in realtime the physics ticks on its own clock, and the TPDO set
+        answering SYNC ``k`` must carry the demand latched at SYNC ``k`` (the bench compares it with what it knows it
+        sent). The emulator applies no limit of its own to the target (its plant saturates), so the latched target
+        is the demand; off OPERATION ENABLED it is the quick stop ramp's velocity, else 0.
+        """
+        if not self._has_demand:
+            return
+        node = self.node
+        motion = self.application.machine.motion()
+        following = motion is MotionKind.FOLLOW_TARGET
+        if int(node.read(Obj.MODES_OF_OPERATION_DISPLAY)) == OperationMode.CYCLIC_SYNC_TORQUE:
+            node.produce(Obj.TORQUE_DEMAND, node.read(Obj.TARGET_TORQUE) if following else 0)
+            return
+        if following:
+            demand = node.read(Obj.TARGET_VELOCITY)
+        else:
+            demand = self.axis.ramp_velocity if motion is MotionKind.QUICK_STOP_RAMP else 0
+        node.produce(Obj.VELOCITY_DEMAND_VALUE, demand)
 
     def _plant_input(self, motion: MotionKind, dt: float) -> tuple[str, float]:
         """The plant's input kind ("velocity" / "torque") and value for this cycle, in plant units."""

@@ -42,7 +42,7 @@ from drivers.errors import (
 from drivers.heartbeat import HeartbeatMonitor
 from drivers.master.inbox import Inbox
 from drivers.master.link import MasterLink
-from drivers.master.plan import REQUIRED_FEEDBACK
+from drivers.master.plan import REQUIRED_FEEDBACK, demand_object
 from drivers.pdo import PdoCodec, PdoLayout, data_frame
 
 __all__ = ["FEEDBACK_POLL", "RECEIVE_POLL", "CyclicPath"]
@@ -110,6 +110,7 @@ class CyclicPath:
         self.rpdo_codec: PdoCodec | None = None
         self.tpdo_codecs: dict[int, PdoCodec] = {}
         self._feedback_at: dict[int, tuple[int, int]] = {}  # object index -> (TPDO COB-ID, slot)
+        self._demand_at: tuple[int, int] | None = None  # where the mode's demand echo sits; None: not mapped
         self._target_limits = (0, 0)
         self.controlword = int(Command402.DISABLE_VOLTAGE)
         self.target_raw = 0
@@ -139,6 +140,7 @@ class CyclicPath:
         with self._cv:
             self.tpdo_codecs = tpdo_codecs
             self._feedback_at = feedback_at
+            self._demand_at = feedback_at.get(demand_object(mode))
             self._parts.clear()
             self.feedback = None
         self.rpdo, self.rpdo_codec = rpdo, codec
@@ -365,6 +367,11 @@ class CyclicPath:
             cob, slot = where[Obj.POSITION_ACTUAL_VALUE]
             position = parts[cob][slot]
         cfg = self._link.cfg
+        demand = math.nan  # NaN: no echo mapped
+        if self._demand_at is not None:  # in the target's scale, as set_target and latched divide
+            cob, slot = self._demand_at
+            demand = parts[cob][slot] / (cfg.torque_scale if self.mode is OperationMode.CYCLIC_SYNC_TORQUE
+                                         else cfg.velocity_scale)
         return Feedback(
             cycle=self.cycle,
             statusword=statusword,
@@ -373,6 +380,7 @@ class CyclicPath:
             torque=torque / cfg.torque_scale,
             position=position,
             timestamp=received,
+            demand=demand,
         )
 
     # --- SYNC from a clock: what the drive latched ---------------------------------------------------------------
@@ -395,6 +403,11 @@ class CyclicPath:
             self._echoed_raw = codec.decode(data)[1]
         except ProtocolError:  # not ours to judge (the tap logged it): the drive keeps what it had
             return
+
+    @property
+    def echoes_demand(self) -> bool:
+        """The installed TPDOs map the mode's demand echo (``drive.demand_echo``): :attr:`Feedback.demand` is it."""
+        return self._demand_at is not None
 
     @property
     def latched(self) -> float:

@@ -25,6 +25,7 @@ __all__ = [
     "REQUIRED_FEEDBACK",
     "PdoPlan",
     "Setting",
+    "demand_object",
     "interpolation_time_period",
     "pdo_plan",
     "settings_rows",
@@ -35,6 +36,7 @@ REQUIRED_FEEDBACK = (Obj.STATUSWORD, Obj.VELOCITY_ACTUAL_VALUE)
 OPTIONAL_FEEDBACK = (Obj.TORQUE_ACTUAL_VALUE, Obj.POSITION_ACTUAL_VALUE)
 """Feedback mapped when the drive has it (:class:`~drivers.drive.Feedback` has NaN torque / 0 position without)."""
 PDO_PAYLOAD_BITS = 64  # a classic CAN PDO carries at most 8 bytes
+DEMAND_ECHO_KEY = "drive.demand_echo"  # the config key that asks for the demand echo (named by its refusals)
 
 Setting = tuple[int, int, SdoFormat, int, bool]
 """One object ``configure`` writes after the PDOs: index, sub-index, format, value, optional."""
@@ -97,7 +99,28 @@ def _pack_feedback(groups: list[list[MappedVariable]], slots: int) -> tuple[list
     return [b for b in bins if b], dropped
 
 
-def pdo_plan(mode: OperationMode, node_id: int, od: ObjectDictionary | None) -> PdoPlan:
+def demand_object(mode: OperationMode) -> Obj:
+    """The object that echoes ``mode``'s latched target: 0x6074 torque demand in CST, else 0x606B velocity demand
+    value (in the target's units: 0x6071's, 0x60FF's)."""
+    return Obj.TORQUE_DEMAND if mode is OperationMode.CYCLIC_SYNC_TORQUE else Obj.VELOCITY_DEMAND_VALUE
+
+
+def _place_demand(contents: list[list[MappedVariable]], spare: int, demand: MappedVariable,
+                  node_id: int) -> list[list[MappedVariable]]:
+    """``contents`` with the demand echo in the first TPDO with room for it, else in a TPDO of its own (``spare``:
+    TPDOs the EDS has beyond ``contents``); a :class:`ConfigError` of ``drive.demand_echo`` when neither is."""
+    for variables in contents:
+        if sum(v.bits for v in variables) + demand.bits <= PDO_PAYLOAD_BITS:
+            variables.append(demand)
+            return contents
+    if spare < 1:
+        raise ConfigError(f"node {node_id}: the echo of 0x{demand.index:04X} needs room in a TPDO, and the drive's "
+                          f"{len(contents)} TPDO(s) have none left", key=DEMAND_ECHO_KEY)
+    return [*contents, [demand]]
+
+
+def pdo_plan(mode: OperationMode, node_id: int, od: ObjectDictionary | None, *,
+             demand_echo: bool = False) -> PdoPlan:
     """The RPDOs and TPDOs the master configures for ``mode`` on a drive described by ``od`` (standard objects).
 
     RPDO1 = controlword + target (0x60FF for CSV/PV, 0x6071 for CST); TPDO1 = statusword + velocity actual;
@@ -105,6 +128,12 @@ def pdo_plan(mode: OperationMode, node_id: int, od: ObjectDictionary | None) -> 
     and PDOs the EDS has are used: a drive without 0x6077 or 0x6064 gets them left out (a note says so), one
     without TPDO2 gets what fits into TPDO1. What the mode truly needs -- controlword, target, statusword, velocity
     actual, an RPDO and a TPDO -- is refused with a :class:`~drivers.errors.DriveError` naming the object.
+
+    ``demand_echo`` (``drive.demand_echo``) also maps the mode's :func:`demand_object` into the first TPDO with
+    room for it, else into a TPDO of its own (CSV/PV on the shipped EDS: 0x606B in TPDO3; CST: 0x6074 in TPDO1); a
+    drive whose EDS lacks the object, or has no TPDO left for it, is refused with a
+    :class:`~drivers.errors.ConfigError` whose key is ``drive.demand_echo`` (exit 2) naming the object. Without it
+    the plan is the one above, unchanged.
     """
     target = Obj.TARGET_TORQUE if mode is OperationMode.CYCLIC_SYNC_TORQUE else Obj.TARGET_VELOCITY
     needed = (Obj.CONTROLWORD, target, *REQUIRED_FEEDBACK)
@@ -119,6 +148,10 @@ def pdo_plan(mode: OperationMode, node_id: int, od: ObjectDictionary | None) -> 
         if not numbers:
             raise DriveError(f"node {node_id}: the drive's EDS has no {kind} (0x{int(base):04X}.. with its mapping), "
                              f"which {mode.name} needs")
+    demand = demand_object(mode)
+    if demand_echo and od is not None and demand not in od:
+        raise ConfigError(f"node {node_id}: the drive's EDS lacks 0x{int(demand):04X} ({demand.name.lower()}), the "
+                          f"demand {mode.name} would echo", key=DEMAND_ECHO_KEY)
     notes = [f"0x{int(index):04X} ({index.name.lower()}) not mapped: the drive's EDS lacks it"
              for index in OPTIONAL_FEEDBACK if od is not None and index not in od]
     present = [index for index in OPTIONAL_FEEDBACK if od is None or index in od]
@@ -128,6 +161,8 @@ def pdo_plan(mode: OperationMode, node_id: int, od: ObjectDictionary | None) -> 
     contents, dropped = _pack_feedback(groups, len(tpdo_numbers))
     room = f"the drive's {len(tpdo_numbers)} TPDO(s) have no room left"
     notes += [f"0x{index:04X} not mapped: {room}" for index in dropped]
+    if demand_echo:
+        contents = _place_demand(contents, len(tpdo_numbers) - len(contents), mapped_variable(od, demand), node_id)
     rpdo = rpdo_numbers[0]
     rpdos = (PdoLayout(PdoDirection.RPDO, rpdo, cob_id(RPDO_BASES[rpdo - 1], node_id),
                        (mapped_variable(od, Obj.CONTROLWORD), mapped_variable(od, target))),)

@@ -103,7 +103,7 @@ class StartUp:
             names = ", ".join(m.name for m in supported)
             raise ConfigError(f"node {link.node_id} does not support {mode.name} (0x6502 offers {names})",
                               key="drive.mode")
-        plan = pdo_plan(mode, link.node_id, link.od)
+        plan = pdo_plan(mode, link.node_id, link.od, demand_echo=link.cfg.demand_echo)
         skipped = [f"0x{index:04X}:{sub:02X} not configured: the drive's EDS lacks it"
                    for index, sub, _, _, optional in self.settings(mode)
                    if optional and index not in link.od]

@@ -103,7 +103,8 @@ def check_bus_load(config: Config, bus: BusConfig) -> BusLoad:
     axes = axis_configs(config)
     for k, axis in enumerate(axes):  # every axis's PDOs and heartbeat; the master's heartbeat once (the first's)
         drive = axis.drive
-        plan = pdo_plan(drive.operation_mode, drive.node_id, load_od(drive.eds, drive.node_id))
+        plan = pdo_plan(drive.operation_mode, drive.node_id, load_od(drive.eds, drive.node_id),
+                        demand_echo=drive.demand_echo)  # one TPDO more per cycle when it has no room
         master = drive.heartbeat_consumer_ms / 1000 / MASTER_HEARTBEATS_PER_CONSUMER_TIME if k == 0 else 0
         frames += drive_schedule(plan, period=config.sample_time, drive_heartbeat=drive.heartbeat_producer_ms / 1000,
                                  master_heartbeat=master, name=f"node {drive.node_id} " if len(axes) > 1 else "")

@@ -173,6 +173,12 @@ ILC_TRIAL_SCHEMA: Final[dict[str, Any]] = {
             "description": "SYNCs of the trial without a complete TPDO set in time (the law held the last good one)",
         },
         "bad_frames": {"type": "integer", "minimum": 0, "description": "frames of the trial that did not decode"},
+        "demand_mismatches": {
+            "type": "integer",
+            "minimum": 0,
+            "description": "samples whose demand echo (0x606B / 0x6074, drive.demand_echo) is not latched; absent "
+                           "without an echo",
+        },
         "axis": {"type": "integer", "minimum": 1, "maximum": 127, "description": "the axis's node id (axes: runs)"},
     },
     "required": ["trial", "sse", "rmse", "max_abs_error"],

@@ -65,6 +65,9 @@ def trial_document(record: TrialRecord, limits: Sequence[float] | None) -> bytes
         ends["axis"] = record.axis
     if record.first_sync is not None:
         ends["first_sync"] = record.first_sync
+    mismatches = record.demand_mismatches
+    if mismatches is not None:
+        ends["demand_mismatches"] = mismatches
     own = limits if record.command_limits is None else record.command_limits
     document = record.metrics.to_json()
     if own is None:

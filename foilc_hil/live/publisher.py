@@ -207,7 +207,8 @@ class LivePublisher:
         limits = (float(limiter.lower), float(limiter.upper)) if isinstance(limiter, CommandLimiter) else None
         live: LogSink = LiveSink(self, limits)
         if isinstance(loop.law, AxisLaws):  # one record per axis, as the log gets them
-            live = AxesSink(cast(Any, live), loop.law, cast(AxisLimiter, limiter), [d.node_id for d in drives])
+            live = AxesSink(cast(Any, live), loop.law, cast(AxisLimiter, limiter), [d.node_id for d in drives],
+                            echoes=[bool(getattr(d, "echoes_demand", False)) for d in drives])
         loop.log = _Both(loop.log, live)
         self._row_time = self._clock()  # the row budget fills from the run's start
         if drives and hasattr(drives[0], "add_frame_listener"):

@@ -146,7 +146,8 @@ def _logged_mapping(log: str | Path, metadata: dict[str, Any], config_name: str,
         raise LogFormatError(f"{log}: metadata {config_name} does not load: {exc}") from None
     record = metadata.get(mapping_name)
     if record is None:
-        return pdo_plan(drive.operation_mode, drive.node_id, load_od(drive.eds, drive.node_id)), drive
+        od = load_od(drive.eds, drive.node_id)
+        return pdo_plan(drive.operation_mode, drive.node_id, od, demand_echo=drive.demand_echo), drive
     try:
         rpdos, tpdos = decode_pdo_mapping(record)
     except (ValueError, KeyError, TypeError) as exc:

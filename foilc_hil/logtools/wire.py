@@ -22,7 +22,12 @@ drive section of the logged config:
 - ``latched`` (where the log has it): row ``i``'s is the target of the last RPDO before SYNC ``i + 1`` of the trial
   (the end of cycle ``i``'s window), in plant units (``raw / scale``, as the bench divides), bit for bit: the
   command the drive latched at that SYNC;
-- a frame of the node's TPDOs whose length is not the mapping's is a bad frame (``bad_frames`` counts them).
+- a frame of the node's TPDOs whose length is not the mapping's is a bad frame (``bad_frames`` counts them);
+- where the mapping carries the drive's demand echo (``drive.demand_echo``: 0x606B in CSV/PV, 0x6074 in CST, in the
+  TPDO set like any other TPDO of the node), the echo in the set answering SYNC ``i + 1`` is held against row
+  ``i``'s ``latched`` (without that column: the last RPDO before that SYNC), ``raw / scale`` bit for bit, and the
+  samples where they differ are counted, a cycle without its set (a lost feedback) not; ``/ilc/trial``
+  ``demand_mismatches`` must be that count (and present: the loop writes it whenever the echo is mapped).
 
 Logs without ``first_sync`` (offline runs, logs written before it) have no wire to check; the caller says so.
 """
@@ -38,6 +43,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from drivers.cia301 import SYNC_COB_ID
+from drivers.cia402 import Obj
 from drivers.pdo import PdoLayout
 from foilc_hil.errors import LogFormatError
 
@@ -72,6 +78,7 @@ class WireMap:
     target_scale: float
     target_limit: float
     velocity_scale: float
+    demand: PdoField | None = None  # the mode's demand echo in the TPDO set (drive.demand_echo); None: not mapped
 
 
 @dataclass(frozen=True)
@@ -107,6 +114,7 @@ def wire_map(mapping: Mapping[str, str], drive: Any) -> WireMap:
     torque = getattr(drive.mode, "value", drive.mode) == "cst"
     target = _field(rpdos, _TARGET_TORQUE if torque else _TARGET_VELOCITY)
     velocity = _field(tpdos, _VELOCITY_ACTUAL)
+    demand = _field(tpdos, Obj.TORQUE_DEMAND if torque else Obj.VELOCITY_DEMAND_VALUE)
     if target is None or velocity is None:
         raise LogFormatError("metadata foilc_hil.pdo_mapping maps no target or no velocity actual value")
     return WireMap(
@@ -116,6 +124,7 @@ def wire_map(mapping: Mapping[str, str], drive: Any) -> WireMap:
         target_scale=float(drive.torque_scale if torque else drive.velocity_scale),
         target_limit=float(drive.torque_limit if torque else drive.velocity_limit),
         velocity_scale=float(drive.velocity_scale),
+        demand=demand,
     )
 
 
@@ -173,11 +182,13 @@ def check_trial_wire(
                             first, len(windows))
     lost = bad = 0
     held = math.nan
+    echoes: list[int | None] = []  # cycle i's demand echo (raw), None: no set (or no echo mapped)
     for i in range(n + 1):
         window = windows[first - 1 + i]
         bad += sum(1 for f in window if not f.tx and f.cob_id in wire.tpdo_sizes
                    and len(f.data) != wire.tpdo_sizes[f.cob_id])
-        raw = _answer(window, wire)
+        parts = _answer(window, wire)
+        raw = wire.velocity.decode(parts[wire.velocity.cob_id]) if parts is not None else None
         # a cycle without its complete TPDO set is a lost feedback: the law was given the last good value again; so
         # is one whose set completed after a loop that sends SYNC itself stopped waiting (the law was given the held
         # value, not the late set's: the count below holds it to the record, so a changed TPDO is still found)
@@ -187,6 +198,8 @@ def check_trial_wire(
             answered, y = False, held
         lost += not answered
         held = y
+        echoes.append(wire.demand.decode(parts[wire.demand.cob_id])
+                      if answered and parts is not None and wire.demand is not None else None)
         if not (math.isnan(y) and not answered) and _bits(y) != _bits(inputs[i]):
             what = "the TPDO's velocity" if answered else "the value held for a lost TPDO"
             return WireMismatch(trial, i, f"{what} is not the feedback the law was given", inputs[i], y)
@@ -197,11 +210,46 @@ def check_trial_wire(
         if key in record and int(record[key]) != count:
             return WireMismatch(trial, n, f"/ilc/trial {key} is {record[key]}, the wire shows {count}",
                                 record[key], count)
+    return _check_demand(windows, record, echoes, wire, latched)
+
+
+def _check_demand(windows: Sequence[Sequence[_Frame]], record: Mapping[str, Any], echoes: Sequence[int | None],
+                  wire: WireMap, latched: Sequence[float] | None) -> WireMismatch | None:
+    """``/ilc/trial`` ``demand_mismatches`` against the count on the wire: row ``i``'s echo (in the set answering
+    SYNC ``i + 1``, ``echoes[i + 1]``) against its ``latched``, else the last RPDO before that SYNC."""
+    trial, n = int(record["trial"]), len(echoes) - 1
+    if wire.demand is None:
+        if "demand_mismatches" in record:
+            return WireMismatch(trial, n, "/ilc/trial has demand_mismatches, the PDO mapping no demand echo",
+                                record["demand_mismatches"], None)
+        return None
+    start = int(record["first_sync"]) - 1
+    last: int | None = None
+    for w in range(start):  # the RPDO the drive held when the trial began
+        last = _last_rpdo(windows[w], wire, last)
+    count = 0
+    for i in range(n):
+        last = _last_rpdo(windows[start + i], wire, last)
+        echo = echoes[i + 1]
+        if echo is None:
+            continue  # no set answered the SYNC: no echo to compare (the loop counts none either)
+        if latched is not None:
+            expected = _bits(float(latched[i]))
+        elif last is not None:
+            expected = _bits(last / wire.target_scale)
+        else:
+            continue  # no RPDO before the trial in the log: nothing to hold it against
+        count += _bits(echo / wire.target_scale) != expected
+    if "demand_mismatches" not in record or int(record["demand_mismatches"]) != count:
+        logged = record.get("demand_mismatches")
+        return WireMismatch(trial, n, f"/ilc/trial demand_mismatches is {logged}, the wire shows {count}", logged,
+                            count)
     return None
 
 
-def _answer(window: Sequence[_Frame], wire: WireMap) -> int | None:
-    """The raw velocity of the first complete TPDO set in ``window``, assembled as the master does; None: none.
+def _answer(window: Sequence[_Frame], wire: WireMap) -> dict[int, bytes] | None:
+    """The first complete TPDO set in ``window`` (each TPDO's frame by COB-ID), assembled as the master does;
+    None: none.
 
     The master's feedback is the node's whole TPDO set (every mapped TPDO,
     :meth:`drivers.master.cyclic.CyclicPath.on_tpdo`): each frame of the right length replaces its TPDO's part,
@@ -215,7 +263,7 @@ def _answer(window: Sequence[_Frame], wire: WireMap) -> int | None:
             continue  # the bench's own frames, other nodes', and bad frames (counted apart): no part of the set
         parts[frame.cob_id] = frame.data
         if len(parts) == len(wire.tpdo_sizes):
-            return wire.velocity.decode(parts[wire.velocity.cob_id])
+            return parts
     return None
 
 

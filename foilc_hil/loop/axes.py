@@ -43,12 +43,14 @@ __all__ = ["AxesFeedback", "AxesSink", "AxisGroup", "AxisLaws", "AxisLimiter", "
 
 @dataclass(frozen=True, slots=True)
 class AxesFeedback:
-    """Every axis's answer to one SYNC: ``velocity`` is ``(m,)`` in axis order; ``state`` OPERATION_ENABLED (an
-    axis in any other state is raised by :meth:`AxisGroup.wait_feedback`)."""
+    """Every axis's answer to one SYNC: ``velocity`` and ``demand`` (each axis's demand echo, NaN where it has none)
+    are ``(m,)`` in axis order; ``state`` OPERATION_ENABLED (an axis in any other state is raised by
+    :meth:`AxisGroup.wait_feedback`)."""
 
     cycle: int
     state: State402
     velocity: np.ndarray
+    demand: np.ndarray
 
 
 class AxisGroup:
@@ -69,6 +71,7 @@ class AxisGroup:
         self.drives = tuple(drives)
         self._clock = clock
         self._velocity = np.zeros(len(self.drives))
+        self._demand = np.full(len(self.drives), np.nan)
         self._applied = np.zeros(len(self.drives))
 
     def sync(self) -> int:
@@ -86,7 +89,7 @@ class AxisGroup:
         :class:`~foilc_hil.errors.FeedbackTimeoutError`), and :class:`~foilc_hil.errors.DriveFaultError` naming
         the node for an axis that left OPERATION ENABLED.
         """
-        velocity = self._velocity
+        velocity, demand = self._velocity, self._demand
         cycle = 0
         clock = self._clock
         deadline = clock() + timeout
@@ -97,8 +100,9 @@ class AxisGroup:
                 raise DriveFaultError(f"node {drive.node_id} left OPERATION ENABLED (now {feedback.state.name}) at "
                                       f"SYNC {feedback.cycle}")
             velocity[k] = feedback.velocity
+            demand[k] = feedback.demand
             cycle = feedback.cycle
-        return AxesFeedback(cycle, State402.OPERATION_ENABLED, velocity.copy())
+        return AxesFeedback(cycle, State402.OPERATION_ENABLED, velocity.copy(), demand.copy())
 
     def set_target(self, value: Any) -> np.ndarray:
         """Send every axis's RPDO (``value``: ``(m,)``, or one number for all); returns what each drive sent."""
@@ -131,6 +135,11 @@ class AxisGroup:
     def latched(self) -> np.ndarray:
         """What each axis's drive latched at the last SYNC read from the bus, ``(m,)``."""
         return np.array([drive.latched for drive in self.drives])
+
+    @property
+    def echoes_demand(self) -> bool:
+        """Some axis's TPDOs carry its demand echo (``drive.demand_echo``; the others' are NaN, never counted)."""
+        return any(getattr(drive, "echoes_demand", False) for drive in self.drives)
 
     @property
     def syncs_seen(self) -> int:
@@ -227,10 +236,15 @@ class AxisLimiter:
 
 
 class AxesSink:
-    """The loop's ``LogSink`` for several axes: each finished trial as one record per axis, ``axis`` = node id."""
+    """The loop's ``LogSink`` for several axes: each finished trial as one record per axis, ``axis`` = node id;
+    ``echoes``: which axes' drives echo their demand (``AxisGroup.drives[k].echoes_demand``)."""
 
-    def __init__(self, sink: McapSink, laws: AxisLaws, limiter: AxisLimiter, node_ids: Sequence[int]) -> None:
+    def __init__(self, sink: McapSink, laws: AxisLaws, limiter: AxisLimiter, node_ids: Sequence[int], *,
+                 echoes: Sequence[bool] = ()) -> None:
         self._sink = sink
+        # which axes echo their demand (drive.demand_echo): the others' records get no demand_mismatches (default:
+        # every axis, as far as the loop's record has a demand column at all)
+        self._echoes = tuple(echoes) or (True,) * len(node_ids)
         self._laws = laws
         self._limiter = limiter
         self._node_ids = tuple(node_ids)
@@ -247,6 +261,7 @@ class AxesSink:
                 E=record.E[:, k], metrics=update.metrics, clamped=clamped, axis=node,
                 command_limits=(limiter.lower, limiter.upper),
                 latched=None if record.latched is None else record.latched[:, k],
+                demand=None if record.demand is None or not self._echoes[k] else record.demand[:, k],
             ))
 
     def timing(self, records: Iterator[Any]) -> None:

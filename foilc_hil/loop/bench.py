@@ -61,7 +61,10 @@ applies from ``t`` when its RPDO comes before the SYNC at ``t`` (computed at ``i
 row's output; for row 0 the trial's ``initial_output`` in ``/ilc/trial``). ``latched`` is what the drive did latch
 at that SYNC, known from the bus (SYNC from a clock: the loop reads its own RPDO and the SYNCs back in the bus's
 order; else the loop sends the SYNC after the RPDO, so it is the command sent), and the law learns from it
-(``law.end_trial(..., latched)``: ``u_{k-1}`` is what ran). ``control`` is the law's command before the bench's
+(``law.end_trial(..., latched)``: ``u_{k-1}`` is what ran). Where the drive echoes its demand (``drive.demand_echo``:
+0x606B / 0x6074 in its TPDO set), the echo in the feedback of SYNC ``i + 1`` is held against row ``i``'s
+``latched`` and every sample where they differ is counted (``/ilc/trial`` ``demand_mismatches``; a lost feedback
+has no echo and is not counted). ``control`` is the law's command before the bench's
 limiter (what the law computed, so ``replay --verify`` can reproduce it bit for bit; the clamped, quantised value
 actually sent is kept in :attr:`TrialRecord.applied`, and ``/ilc/trial`` counts the clamped commands in
 ``clamped``). The law is built with the limiter's limits (``make_law(..., limits=...)``) and clamps internally, so
@@ -145,6 +148,7 @@ class _RawTrial:
     faults: FaultCounts
     first_sync: int | None
     latched: np.ndarray
+    demand: np.ndarray | None  # (N,): the demand echoed at SYNC i + 1 (NaN: its set lost); None: no echo mapped
 
 
 #: seconds between the loop's looks at its stop request while it waits for a between-trial update (a stalled log
@@ -303,6 +307,7 @@ class TrialLoop:
         self._clocked = False
         self._clock_drive: ClockedDriveLike | None = None
         self._latched: Any = 0.0
+        self._demand: Any = math.nan  # the demand the last cycle's feedback echoed (NaN: none, or lost)
         self._sync_timeout = settings.watchdog_cycles * settings.lockstep_feedback_timeout
         self.outcome = BenchOutcome()
         # finished realtime blocks (rows, first cycle, phase, trial) whose /timing records are not yet logged: a
@@ -474,6 +479,8 @@ class TrialLoop:
         applied = np.empty((n, *width))
         latched = np.empty((n, *width))  # what the drive latched at SYNC i + 1 (clocked: from the bus)
         sync_times = np.empty(n + 1)
+        # the demand echo of cycle i's feedback (drive.demand_echo): the target latched at the trial's SYNC i
+        echo = np.full((n + 1, *width), math.nan) if getattr(self.drive, "echoes_demand", False) else None
         stalls = self._stalls.cycles(trial) if self._stalls is not None else {}
         clocked = self._clocked
         self._feedforward_used = np.array(self.law.feedforward, dtype=float, copy=True)
@@ -496,6 +503,8 @@ class TrialLoop:
                 y = self._cycle_feedback()
                 if clocked and i:
                     latched[i - 1] = self._latched
+                if echo is not None:
+                    echo[i] = self._demand
                 sync_times[i] = self._sync_time
                 seen[i] = y
                 output_buffer[into] = y
@@ -509,6 +518,8 @@ class TrialLoop:
                 if i % every == 0:
                     self.progress.advance(i)
             y = self._cycle_feedback()  # y(N Ts): closes the trial's output array
+            if echo is not None:
+                echo[n] = self._demand
             sync_times[n] = self._sync_time
             seen[n] = y
             drive.set_target(0.0)
@@ -525,7 +536,7 @@ class TrialLoop:
         first_sync = self._sync_number - n if whole == 0 else None
         return _RawTrial(
             trial, seen, control, applied, sync_times, self._clamped_count() - clamped_before, self._feedforward_used,
-            faults, first_sync, latched,
+            faults, first_sync, latched, None if echo is None else echo[1:],
         )
 
     def _run_whole_trial(
@@ -580,8 +591,12 @@ class TrialLoop:
             faults=raw.faults,
             first_sync=raw.first_sync,
             latched=raw.latched,
+            demand=raw.demand,
         )
         self.outcome.trials.append(metrics)
+        mismatches = record.demand_mismatches
+        if mismatches is not None:  # the run's total, next to its fault counts
+            self.outcome.demand_mismatches = (self.outcome.demand_mismatches or 0) + mismatches
         self.outcome.trial_faults.append(raw.faults)
         self.progress.end_trial(raw.trial, metrics.sse, metrics.rmse, metrics.max_abs_error)
         if self.log is not None:
@@ -619,6 +634,7 @@ class TrialLoop:
         except FeedbackTimeoutError as exc:
             return self._lost_feedback(exc)
         self.watchdog.answered()
+        self._demand = feedback.demand
         received = self._clock()
         self._received = received
         self._missing = False
@@ -658,6 +674,7 @@ class TrialLoop:
     def _lost_feedback(self, cause: FeedbackTimeoutError) -> float:
         """This SYNC's wait expired: count it, and hold the last good feedback -- or trip the watchdog."""
         error = self.watchdog.lost(self._cycle, cause)
+        self._demand = math.nan  # no echo to compare: the sample is not counted
         self._missing = True
         self._late = False
         self._latency = math.nan

@@ -47,6 +47,9 @@ class FeedbackLike(Protocol):
     @property
     def velocity(self) -> Any: ...
 
+    @property
+    def demand(self) -> Any: ...  # the demand echo (NaN: none), ``(m,)`` for several axes
+
 
 class LimiterLike(Protocol):
     """The command limiter the loop clamps with (:class:`~foilc_hil.loop.safety.CommandLimiter`, or one per axis)."""
@@ -188,6 +191,20 @@ class TrialRecord:
     first_sync: int | None = None  # the drive's count of the trial's first SYNC (its frame in /can); None: no bus
     #: (N,): what the drive latched at SYNC i + 1 (``/ilc/sample.latched``); None: not known (not logged)
     latched: np.ndarray | None = None
+    #: (N,): the demand the drive echoed in the TPDO set answering SYNC i + 1 (``drive.demand_echo``), in the units of
+    #: ``latched``; NaN where that set was lost; None: no echo mapped
+    demand: np.ndarray | None = None
+
+    @property
+    def demand_mismatches(self) -> int | None:
+        """Samples whose echoed demand is not ``latched`` (``/ilc/trial.demand_mismatches``); None: no echo mapped.
+
+        A sample whose TPDO set was lost (NaN) has no echo to compare: it is not counted.
+        """
+        if self.demand is None or self.latched is None:
+            return None
+        echoed = np.asarray(self.demand, dtype=float)
+        return int(np.count_nonzero(~np.isnan(echoed) & (echoed != np.asarray(self.latched, dtype=float))))
 
     def samples(self) -> TrialSamples:
         """The ``/ilc/sample`` messages of this trial as columns, layout :data:`~foilc_hil.io.schemas.SAMPLE_LAYOUT`
@@ -210,3 +227,6 @@ class BenchOutcome:
     settle_cycles: int = 0
     faults: FaultCounts = field(default_factory=FaultCounts)  # over the whole run, settle phases included
     trial_faults: list[FaultCounts] = field(default_factory=list)  # per completed trial
+    #: samples of the run's trials whose echoed demand was not the latched command (``drive.demand_echo``); None:
+    #: no echo mapped
+    demand_mismatches: int | None = None

@@ -80,6 +80,9 @@ class McapSink:
             ends["axis"] = record.axis
         if record.first_sync is not None:  # replay --verify finds the trial's frames in /can from it
             ends["first_sync"] = record.first_sync
+        mismatches = record.demand_mismatches  # drive.demand_echo: replay --verify recounts it from /can
+        if mismatches is not None:
+            ends["demand_mismatches"] = mismatches
         limits = self.command_limits if record.command_limits is None else [float(x) for x in record.command_limits]
         if limits is None:
             self.writer.log_trial(record.metrics, **ends)

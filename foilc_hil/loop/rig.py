@@ -171,6 +171,10 @@ class RunReport:
                 "injected": [report.to_json() for report in self.injected],
             },
         }
+        if self.outcome.demand_mismatches is not None:  # drive.demand_echo: the run's total (absent without it)
+            faults = document["faults"]
+            assert isinstance(faults, dict)
+            faults["demand_mismatches"] = self.outcome.demand_mismatches
         if self.axes:
             document["axes"] = [axis.to_json() for axis in self.axes]
         return document
@@ -494,7 +498,9 @@ def _trial_loop(plan: RunPlan, drives: Sequence[Cia402Drive] | Sequence[Simulate
     if not plan.several:
         return TrialLoop(drives[0], law, plan.reference, limiter, plan.settings, log=sink, progress=progress,
                          stop=stop, before_trial=hook, stalls=plan.stalls)
-    log = AxesSink(sink, cast(AxisLaws, law), cast(AxisLimiter, limiter), plan.node_ids) if sink is not None else None
+    echoes = [bool(getattr(drive, "echoes_demand", False)) for drive in drives]
+    log = (AxesSink(sink, cast(AxisLaws, law), cast(AxisLimiter, limiter), plan.node_ids, echoes=echoes)
+           if sink is not None else None)
     return TrialLoop(AxisGroup(drives), law, plan.reference, limiter, plan.settings, log=log, progress=progress,
                      stop=stop, before_trial=hook, stalls=plan.stalls)
 
@@ -637,7 +643,8 @@ def _log_mappings(sink: McapSink, drives: Sequence[Cia402Drive], plan: RunPlan) 
 
     for k, (drive, axis) in enumerate(zip(drives, plan.axes, strict=True)):
         # the layouts of configure's preflight: the same function of the mode, the node and the drive's EDS
-        mapping = pdo_plan(axis.config.drive.operation_mode, drive.node_id, drive.od)
+        mapping = pdo_plan(axis.config.drive.operation_mode, drive.node_id, drive.od,
+                           demand_echo=axis.config.drive.demand_echo)
         record = encode_pdo_mapping(mapping.rpdos, mapping.tpdos)
         if plan.several:
             sink.writer.add_metadata(f"{METADATA_AXIS_PREFIX}.{drive.node_id}.pdo_mapping", record)
