@@ -433,12 +433,6 @@ class Cia402Drive(Drive):
         return self.cyclic.latched
 
     @property
-    def echoes_demand(self) -> bool:
-        """Its TPDOs carry the demand echo (``drive.demand_echo``): each :attr:`Feedback.demand` is the target the
-        drive latched at the SYNC the feedback answers."""
-        return self.cyclic.echoes_demand
-
-    @property
     def rpdo_sync_count(self) -> int:
         """The network's count of SYNCs sent when the last RPDO went out."""
         return self.cyclic.rpdo_sync_count

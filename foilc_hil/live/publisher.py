@@ -208,7 +208,8 @@ class LivePublisher:
         live: LogSink = LiveSink(self, limits)
         if isinstance(loop.law, AxisLaws):  # one record per axis, as the log gets them
             live = AxesSink(cast(Any, live), loop.law, cast(AxisLimiter, limiter), [d.node_id for d in drives],
-                            echoes=[bool(getattr(d, "echoes_demand", False)) for d in drives])
+                            echoes=[bool(getattr(getattr(d, "cyclic", None), "echoes_demand", False))
+                                     for d in drives])
         loop.log = _Both(loop.log, live)
         self._row_time = self._clock()  # the row budget fills from the run's start
         if drives and hasattr(drives[0], "add_frame_listener"):

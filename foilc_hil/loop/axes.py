@@ -139,7 +139,7 @@ class AxisGroup:
     @property
     def echoes_demand(self) -> bool:
         """Some axis's TPDOs carry its demand echo (``drive.demand_echo``; the others' are NaN, never counted)."""
-        return any(getattr(drive, "echoes_demand", False) for drive in self.drives)
+        return any(bool(getattr(getattr(drive, "cyclic", None), "echoes_demand", False)) for drive in self.drives)
 
     @property
     def syncs_seen(self) -> int:

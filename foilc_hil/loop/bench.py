@@ -480,7 +480,7 @@ class TrialLoop:
         latched = np.empty((n, *width))  # what the drive latched at SYNC i + 1 (clocked: from the bus)
         sync_times = np.empty(n + 1)
         # the demand echo of cycle i's feedback (drive.demand_echo): the target latched at the trial's SYNC i
-        echo = np.full((n + 1, *width), math.nan) if getattr(self.drive, "echoes_demand", False) else None
+        echo = np.full((n + 1, *width), math.nan) if echoes_demand(self.drive) else None
         stalls = self._stalls.cycles(trial) if self._stalls is not None else {}
         clocked = self._clocked
         self._feedforward_used = np.array(self.law.feedforward, dtype=float, copy=True)
@@ -726,6 +726,13 @@ class TrialLoop:
         # best effort on the way out: the caller's finally follows with safe_stop (disable)
         with contextlib.suppress(Exception):
             self.drive.quick_stop()
+
+
+def echoes_demand(drive: Any) -> bool:
+    """The drive's TPDO set carries its demand echo (``drive.demand_echo``): a CiA 402 drive's cyclic path says so,
+    an axis group for its axes; any other drive (the simulated one) has none."""
+    cyclic = getattr(drive, "cyclic", None)
+    return bool(getattr(cyclic if cyclic is not None else drive, "echoes_demand", False))
 
 
 def _first(values: np.ndarray) -> float:

@@ -498,7 +498,7 @@ def _trial_loop(plan: RunPlan, drives: Sequence[Cia402Drive] | Sequence[Simulate
     if not plan.several:
         return TrialLoop(drives[0], law, plan.reference, limiter, plan.settings, log=sink, progress=progress,
                          stop=stop, before_trial=hook, stalls=plan.stalls)
-    echoes = [bool(getattr(drive, "echoes_demand", False)) for drive in drives]
+    echoes = [bool(getattr(getattr(drive, "cyclic", None), "echoes_demand", False)) for drive in drives]
     log = (AxesSink(sink, cast(AxisLaws, law), cast(AxisLimiter, limiter), plan.node_ids, echoes=echoes)
            if sink is not None else None)
     return TrialLoop(AxisGroup(drives), law, plan.reference, limiter, plan.settings, log=log, progress=progress,
