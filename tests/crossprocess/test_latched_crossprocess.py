@@ -130,6 +130,8 @@ def test_every_sample_latched_and_every_missed_deadline_agree_with_the_wire(run:
             on_wire = wire.latched[first + i]
             assert on_wire is not None and row["latched"] == on_wire / SCALE, (trial, i, row["latched"], on_wire)
             differing += row["latched"] != round(row["control"] * SCALE) / SCALE
+        # the drive's own word: its demand echo (0x606B, mapped by the shipped config) agrees with every latched
+        assert record.get("demand_mismatches") == 0, (trial, record.get("demand_mismatches"))
         flags = [bool(r["missed"]) for r in _trial_blocks(contents.timing, trial)]
         assert flags == wire.trial_missed(first, len(rows)), trial
         missed_total += sum(flags)
