@@ -144,6 +144,7 @@ class ProcessLogWriter(_ClosingListener):
         self._send_lock = threading.RLock()
         self._error: str | None = None
         self._broken = False  # an error was raised: said once, later items are dropped
+        self._data_ending = False  # the data pipe is to be ended (at once, or by the send lock's holder: _close_data)
         self._closed = False
         self._replies = bytearray()
         self.backpressure_waits = 0
@@ -350,14 +351,14 @@ class ProcessLogWriter(_ClosingListener):
                 self.backpressure_waits += 1
             popleft = self._items.popleft
             batch = [popleft() for _ in range(len(self._items))]
-            if batch and self._data >= 0:
+            if batch and self._data >= 0 and not self._data_ending:
                 self._write(_dumps(batch))
             elif self._unsent:
                 self._drain()
         except (TypeError, ValueError) as exc:  # a value neither marshal nor JSON can hold
             self._error = self._error or f"{self.path}: cannot log {exc}"
         finally:
-            lock.release()
+            self._release_send_lock()
 
     def _write(self, payload: bytes) -> None:
         """Queue one framed payload behind what is unsent, and give the pipe what it takes (never waits)."""
@@ -368,7 +369,7 @@ class ProcessLogWriter(_ClosingListener):
         self._drain()
         if len(self._unsent) > MAX_UNSENT_BYTES and self._data >= 0:
             self.backpressure_waits += 1
-            if not self._await(lambda: len(self._unsent) <= MAX_UNSENT_BYTES // 2 or self._data < 0, None):
+            if not self._await(lambda: len(self._unsent) <= MAX_UNSENT_BYTES // 2 or self._data_ending, None):
                 self._stall(f"{len(self._unsent)} bytes waited {self.stall_timeout:g} s for it")
 
     def _drain(self) -> bool:
@@ -378,7 +379,7 @@ class ProcessLogWriter(_ClosingListener):
         unsent = self._unsent
         before = len(unsent)
         try:
-            while unsent:
+            while unsent and not self._data_ending:
                 del unsent[: os.write(self._data, unsent)]
         except BlockingIOError:  # the pipe is full: keep the rest for the next batch
             now = time.monotonic()
@@ -411,9 +412,25 @@ class ProcessLogWriter(_ClosingListener):
             self.on_failure(LogWriteError(self._error))
 
     def _close_data(self) -> None:
-        if self._data >= 0:
-            os.close(self._data)
-            self._data = -1
+        """End the data pipe: now, or, while another thread holds the send lock (it may be inside ``os.write`` on
+        the descriptor, or waiting for the child to take a full pipe), by that thread as it lets the lock go.
+
+        Why: closed under a writing thread, its write failed with EBADF, and that was reported as the run's error
+        ("the log writer process stopped (Bad file descriptor)") instead of the child's own (``No space left on
+        device``): 1 of 3 runs of the full-disk test under load. Had the number been reused meanwhile, the write
+        would have gone into another file."""
+        self._data_ending = True
+        if self._send_lock.acquire(blocking=False):
+            self._release_send_lock()
+
+    def _release_send_lock(self) -> None:
+        """Let the send lock go, ending the data pipe first if that was asked for meanwhile (the lock is held)."""
+        try:
+            if self._data_ending and self._data >= 0:
+                os.close(self._data)
+                self._data = -1
+        finally:
+            self._send_lock.release()
 
     def _finish_child(self) -> None:
         """Give the pipe what is unsent, end it (the child writes the rest and the footer), wait for the child while
@@ -459,7 +476,7 @@ class ProcessLogWriter(_ClosingListener):
                     return False
                 progress, cpu = now, seen  # busy (a long chunk, say): not stalled
                 continue
-            writing = [self._data] if self._unsent and self._data >= 0 else []
+            writing = [self._data] if self._unsent and self._data >= 0 and not self._data_ending else []
             try:
                 ready, writable, _ = select.select([self._reply], writing, [], None if not waits else min(waits))
             except (OSError, ValueError):  # another thread ended the data pipe meanwhile (a failure)
@@ -475,9 +492,9 @@ class ProcessLogWriter(_ClosingListener):
         if not self._send_lock.acquire(blocking=False):
             return False
         try:
-            return self._data >= 0 and self._drain()
+            return self._data >= 0 and not self._data_ending and self._drain()
         finally:
-            self._send_lock.release()
+            self._release_send_lock()
 
     def _read_replies(self) -> bool:
         """Read the reply pipe once (it is readable) and apply what is whole; ``False`` at its end."""

@@ -23,6 +23,8 @@ from foilc_hil.io.log_process import ProcessLogWriter
 from foilc_hil.io.mcap_log import LogWriteError, McapLogWriter, read_log
 from foilc_hil.io.records import SampleRecord, TimingRecord, TrialSamples
 
+PATIENCE = 60.0  # s: a bound for waits on other threads (a loaded machine is slow, never wrong)
+
 DESIGN = {"gain": np.array([[0.5, -1.25]]), "rho": np.float64(0.75), "name": "foilc"}
 
 
@@ -353,3 +355,39 @@ def test_a_stopped_child_never_blocks_the_producer_and_is_reported(tmp_path: Pat
         os.kill(writer.pid, signal.SIGCONT)
     writer._process.wait(timeout=60)
     assert read_log(out).trials[0]["trial"] == 1 and not read_log(out).truncated  # finished after it resumed
+
+
+def test_the_data_pipe_is_never_closed_under_a_thread_that_writes_it(tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """A failure found by one thread (the loop's, reading the child's error) ends the pipe while another thread
+    sends (the update thread, in a full pipe's wait): the descriptor stays open until the sender lets the send lock
+    go, and the sender writes nothing more. Before, it was closed at once: the sender's write failed with EBADF, and
+    that became the run's error instead of the child's."""
+    writer = ProcessLogWriter(tmp_path / "p.mcap", config_yaml=None, fsync=False)
+    data = writer._data
+    in_write, release = threading.Event(), threading.Event()
+    real_write = writer._write
+    seen: list[int] = []
+
+    def waiting_write(payload: bytes) -> None:  # a sender inside the pipe's backpressure wait, lock held
+        in_write.set()
+        release.wait()
+        seen.append(writer._data)
+        real_write(payload)
+
+    monkeypatch.setattr(writer, "_write", waiting_write)
+    writer.log_sample(1, 0.0, 1.0, 0.5, 0.25, 0.5, sample=0)
+    sender = threading.Thread(target=writer._send, kwargs={"block": True}, daemon=True)
+    sender.start()
+    try:
+        assert in_write.wait(PATIENCE)
+        writer._close_data()  # the other thread's failure path
+        os.fstat(data)  # still open: the sender holds it
+    finally:
+        release.set()
+        sender.join(PATIENCE)
+    assert seen == [data] and writer._data == -1  # the sender ended it on its way out
+    with pytest.raises(OSError):
+        os.fstat(data)
+    writer.close()  # the child read the end of the pipe and finished the file
+    assert read_log(tmp_path / "p.mcap").samples == []  # what was unsent when the pipe ended is dropped, whole
