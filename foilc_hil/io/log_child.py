@@ -24,7 +24,7 @@ from typing import IO, Any, Final
 import numpy as np
 
 from foilc_hil.io.mcap_writer import McapFileWriter
-from foilc_hil.io.records import SampleRecord, TimingRecord, TrialSamples
+from foilc_hil.io.records import SampleRecord, TimingBlock, TimingRecord, TrialSamples
 
 __all__ = [
     "PAYLOAD_LENGTH", "PIPE_BYTES", "READ_BYTES", "READ_PAUSE", "ReplyKind", "WireOp", "framed", "serve", "unframed",
@@ -44,6 +44,7 @@ class WireOp(enum.IntEnum):
     METADATA = 6
     SYNC = 7
     TRIAL_SAMPLES = 8
+    TIMING_BLOCK = 9
 
 
 @enum.unique
@@ -161,6 +162,8 @@ def _apply(writer: McapFileWriter, item: tuple[Any, ...]) -> None:
         writer.write_trial_samples(samples, item[1])
     elif op == WireOp.TIMING:
         writer.write_timing(TimingRecord(*item[2]), item[1])
+    elif op == WireOp.TIMING_BLOCK:
+        writer.write_timing_block(TimingBlock.from_columns(item[2], item[3], item[4:]), item[1])
     elif op == WireOp.TRIAL:
         writer.log_trial_at(item[1], item[2], {})
     elif op == WireOp.METADATA:

@@ -29,7 +29,7 @@ import orjson
 
 from foilc_hil.errors import FoilcHilError, LogFormatError
 from foilc_hil.io.mcap_chunks import ChunkedMcapWriter
-from foilc_hil.io.records import SampleRecord, TimingRecord, TrialSamples
+from foilc_hil.io.records import SampleRecord, TimingBlock, TimingRecord, TrialSamples
 from foilc_hil.io.schemas import (
     MESSAGE_ENCODING,
     METADATA_CLOSING,
@@ -194,6 +194,11 @@ class _LogLifecycle(ABC):
         self.write_timing(
             TimingRecord(cycle, trial, sample, lateness_us, period_us, feedback_latency_us, missed, lost_feedback)
         )
+
+    def write_timing_block(self, block: TimingBlock) -> None:
+        """Log a block of ``/timing`` messages, one per row of ``block``, in cycle order."""
+        for record in block.records():
+            self.write_timing(record)
 
     def started(self) -> None:  # noqa: B027 -- not abstract: a writer in this process has nothing to wait for
         """Return when the writer keeps pace with the loop: at once for a writer in this process (a writer process
@@ -387,6 +392,20 @@ class McapFileWriter(_LogLifecycle):
     def write_timing(self, record: TimingRecord, log_time_ns: int | None = None) -> None:
         """Log one real-time cycle on ``/timing`` (see :data:`foilc_hil.io.schemas.TIMING_SCHEMA`)."""
         self._add(TOPIC_TIMING, record.to_json(), time.time_ns() if log_time_ns is None else log_time_ns)
+
+    def write_timing_block(self, block: TimingBlock, log_time_ns: int | None = None) -> None:
+        """Log a block of ``/timing`` messages, all at one log time (``log_time_ns``, else now): the documents
+        :meth:`write_timing` writes for its rows, appended as one batch."""
+        documents = [_encode(record.to_json()) for record in block.records()]
+        if not documents:
+            return
+        times = [time.time_ns() if log_time_ns is None else log_time_ns] * len(documents)
+        with self._lock:
+            self._write_frames()  # the frames logged before the block go first
+            try:
+                self._writer.add_messages(self._channels[TOPIC_TIMING], times, documents, times)
+            except OSError as exc:
+                raise LogWriteError(f"{self.path}: {exc.strerror or exc}") from None
 
     def log_design(self, design: Mapping[str, Any]) -> None:
         """Write the ``foilc_hil.design`` metadata record (if it was not known at construction)."""

@@ -10,21 +10,20 @@ live view's own. Pure functions: the publisher thread (:mod:`foilc_hil.live.publ
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import orjson
 
 from foilc_hil.io.mcap_writer import frame_json, trial_samples_documents
-from foilc_hil.io.records import TimingRecord
 from foilc_hil.io.schemas import DRIVE_STATES
 
 if TYPE_CHECKING:
     from foilc_hil.io.mcap_writer import Direction, FrameFields
     from foilc_hil.io.records import TrialSamples
     from foilc_hil.loop.interfaces import TrialRecord
-    from foilc_hil.loop.scheduler import CycleTiming
+    from foilc_hil.loop.scheduler import CycleBlock
 
 __all__ = [
     "DriveState",
@@ -78,18 +77,12 @@ def trial_document(record: TrialRecord, limits: Sequence[float] | None) -> bytes
     return _dumps(document)
 
 
-def timing_documents(records: Iterable[CycleTiming], previous: float | None) -> tuple[list[bytes], float | None]:
+def timing_documents(block: CycleBlock, previous: float | None) -> tuple[list[bytes], float | None]:
     """The ``/timing`` documents of a block of cycles and the block's last SYNC time (``previous``: the one before
-    the block, for the first cycle's period), as ``foilc_hil.loop.log_sink.McapSink.timing`` logs them."""
-    documents = []
-    for record in records:
-        period_us = (record.sync_time - previous) * 1e6 if previous is not None else 0.0
-        previous = record.sync_time
-        lateness = record.lateness_us if record.lateness_us is not None else 0.0
-        row = TimingRecord(record.cycle, record.trial, record.sample, lateness, period_us,
-                           record.feedback_latency_us, record.missed, record.missing_feedback)
-        documents.append(_dumps(row.to_json()))
-    return documents, previous
+    the block, for the first cycle's period): :meth:`~foilc_hil.loop.scheduler.CycleBlock.messages`, as
+    ``foilc_hil.loop.log_sink.McapSink.timing`` logs them."""
+    messages, previous = block.messages(previous)
+    return [_dumps(record.to_json()) for record in messages.records()], previous
 
 
 def frame_document(fields: FrameFields, direction: Direction, log_time_ns: int) -> bytes:

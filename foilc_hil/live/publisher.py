@@ -54,7 +54,7 @@ if TYPE_CHECKING:
     from foilc_hil.live.server import LiveServer
     from foilc_hil.loop.bench import TrialLoop
     from foilc_hil.loop.interfaces import LogSink, TrialRecord
-    from foilc_hil.loop.scheduler import CycleTiming
+    from foilc_hil.loop.scheduler import CycleBlock
 
 __all__ = ["QUEUE_ITEMS", "ROW_SAVE", "STATE_PERIOD", "TICK", "LivePublisher", "LiveSink", "LiveStats", "live_run"]
 
@@ -113,7 +113,7 @@ class _Trial(NamedTuple):
 
 
 class _Timing(NamedTuple):
-    records: tuple[CycleTiming, ...]
+    block: CycleBlock
 
 
 class LiveSink:
@@ -135,8 +135,8 @@ class LiveSink:
     def trial_finished(self, record: TrialRecord) -> None:
         self._publisher.offer(_Trial(record, self._limits, _time_ns()))
 
-    def timing(self, records: Iterator[CycleTiming]) -> None:
-        self._publisher.offer(_Timing(tuple(records)))
+    def timing(self, block: CycleBlock) -> None:
+        self._publisher.offer(_Timing(block))
 
 
 class _Both:
@@ -151,11 +151,10 @@ class _Both:
             self._log.trial_finished(record)
         self._live.trial_finished(record)
 
-    def timing(self, records: Iterator[CycleTiming]) -> None:
-        rows = tuple(records)  # an iterator: each sink reads its own
+    def timing(self, block: CycleBlock) -> None:
         if self._log is not None:
-            self._log.timing(iter(rows))
-        self._live.timing(iter(rows))
+            self._log.timing(block)
+        self._live.timing(block)
 
 
 class LivePublisher:
@@ -286,9 +285,10 @@ class LivePublisher:
         server = self._server
         if isinstance(item, _Timing):
             if not server.wanted(TOPIC_TIMING):  # no JSON; only the block's last SYNC, for the next block's period
-                self._previous_sync = item.records[-1].sync_time if item.records else self._previous_sync
+                if len(item.block):
+                    self._previous_sync = float(item.block.sync_time[-1])
                 return
-            documents, self._previous_sync = timing_documents(item.records, self._previous_sync)
+            documents, self._previous_sync = timing_documents(item.block, self._previous_sync)
             for document in documents:
                 server.log(TOPIC_TIMING, document, _time_ns())
             self.stats.timing += len(documents)

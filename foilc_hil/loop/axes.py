@@ -23,7 +23,7 @@ it is one axis's design, and each axis is designed on its own model.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any, cast
 
@@ -36,6 +36,7 @@ from foilc_hil.laws.learning import TrialUpdate
 from foilc_hil.loop.interfaces import TrialRecord
 from foilc_hil.loop.log_sink import McapSink
 from foilc_hil.loop.safety import CommandLimiter
+from foilc_hil.loop.scheduler import CycleBlock
 from foilc_hil.metrics import TrialMetrics, trial_metrics
 
 __all__ = ["AxesFeedback", "AxesSink", "AxisGroup", "AxisLaws", "AxisLimiter", "AxisOutcome"]
@@ -264,8 +265,8 @@ class AxesSink:
                 demand=None if record.demand is None or not self._echoes[k] else record.demand[:, k],
             ))
 
-    def timing(self, records: Iterator[Any]) -> None:
-        self._sink.timing(records)
+    def timing(self, block: CycleBlock) -> None:
+        self._sink.timing(block)
 
 
 # --- a whole run over several axes ------------------------------------------------------------------------------

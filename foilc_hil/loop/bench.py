@@ -114,7 +114,7 @@ from foilc_hil.loop.safety import (
     StopRequest,
     require_finite,
 )
-from foilc_hil.loop.scheduler import DeadlineScheduler, TimingRecorder
+from foilc_hil.loop.scheduler import CycleBlock, DeadlineScheduler, TimingRecorder
 from foilc_hil.loop.settings import LoopSettings
 from foilc_hil.metrics import NoiseFloorTracker
 from foilc_hil.progress import UPDATES_PER_TRIAL, NullProgress, ProgressView
@@ -717,7 +717,7 @@ class TrialLoop:
         """Log the ``/timing`` records of the finished blocks, in cycle order (the update thread, or the end)."""
         while self.log is not None and self._timing_backlog:
             block, first_cycle, phase, trial = self._timing_backlog.popleft()
-            self.log.timing(TimingRecorder.records(block, first_cycle=first_cycle, phase=phase, trial=trial))
+            self.log.timing(CycleBlock(block, first_cycle, phase, trial))
 
     def _clamped_count(self) -> int:
         return self.limiter.clamped_count if self.limiter is not None else 0

@@ -7,7 +7,7 @@ whole trial, :class:`WholeTrial`), and its records (:class:`TrialRecord`, :class
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -16,7 +16,7 @@ import numpy as np
 from drivers.cia402 import State402
 from foilc_hil.io.records import TrialSamples
 from foilc_hil.laws.learning import TrialUpdate
-from foilc_hil.loop.scheduler import CycleTiming, TimingSummary
+from foilc_hil.loop.scheduler import CycleBlock, TimingSummary
 from foilc_hil.metrics import TrialMetrics
 
 __all__ = [
@@ -144,7 +144,7 @@ class LogSink(Protocol):
 
     def trial_finished(self, record: TrialRecord) -> None: ...
 
-    def timing(self, records: Iterator[CycleTiming]) -> None: ...
+    def timing(self, block: CycleBlock) -> None: ...
 
 
 # --- results ------------------------------------------------------------------------------------------------------

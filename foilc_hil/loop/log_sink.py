@@ -6,7 +6,7 @@ what a run's report may list (the trials its log holds).
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
@@ -14,7 +14,7 @@ if TYPE_CHECKING:
     from foilc_hil.io.mcap_log import McapLogWriter
     from foilc_hil.loop.interfaces import TrialRecord
     from foilc_hil.loop.safety import StopRequest
-    from foilc_hil.loop.scheduler import CycleTiming
+    from foilc_hil.loop.scheduler import CycleBlock
     from foilc_hil.metrics import TrialMetrics
 
 __all__ = ["McapSink", "logged_trials"]
@@ -96,23 +96,11 @@ class McapSink:
             )
         self.writer.end_trial()
 
-    def timing(self, records: Iterator[CycleTiming]) -> None:
-        previous = self._previous_sync
-        for record in records:
-            sync_time = record.sync_time
-            period_us = (sync_time - previous) * 1e6 if previous is not None else 0.0
-            previous = sync_time
-            self.writer.log_timing(
-                record.cycle,
-                record.trial,
-                record.sample,
-                record.lateness_us if record.lateness_us is not None else 0.0,
-                period_us,
-                record.feedback_latency_us,
-                record.missed,
-                lost_feedback=record.missing_feedback,
-            )
-        self._previous_sync = previous
+    def timing(self, block: CycleBlock) -> None:
+        """The block's ``/timing`` messages, handed to the writer as columns
+        (:class:`~foilc_hil.io.records.TimingBlock`): a writer process builds the records, not the loop's process."""
+        messages, self._previous_sync = block.messages(self._previous_sync)
+        self.writer.write_timing_block(messages)
 
 
 def logged_trials(trials: list[TrialMetrics], sinks: Sequence[McapSink]) -> list[TrialMetrics]:

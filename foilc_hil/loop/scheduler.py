@@ -47,9 +47,11 @@ from typing import Any
 import numpy as np
 
 from drivers.realtime import RealtimeConfig, RealtimeReport
+from foilc_hil.io.records import TimingBlock
 from plant_emulator.device import TimingMode
 
 __all__ = [
+    "CycleBlock",
     "CycleTiming",
     "DeadlineScheduler",
     "TimingRecorder",
@@ -191,7 +193,7 @@ class TimingSummary:
 
 @dataclass(frozen=True, slots=True)
 class CycleTiming:
-    """One cycle of a block, as :meth:`TimingRecorder.records` hands it to the log (``None``: not measured).
+    """One cycle of a block, as :meth:`CycleBlock.records` gives it (``None``: not measured).
 
     ``sync_time`` and ``deadline`` are ``perf_counter`` seconds; the durations are microseconds. ``sample`` is the
     cycle's index within its block (the trial's sample for ``phase == "trial"``).
@@ -210,6 +212,93 @@ class CycleTiming:
     late_feedback: bool
     missing_feedback: bool
     missed: bool
+
+
+@dataclass(frozen=True)
+class CycleBlock:
+    """A finished block of cycles (:meth:`TimingRecorder.finish_block`'s rows, columns
+    :attr:`TimingRecorder.FIELDS`) as the loop hands it to its log: the cycle of row ``k`` is ``first_cycle + k``.
+
+    The log takes its columns whole (:attr:`sync_time`, ...); :meth:`records` is the one definition of a cycle's
+    record, for a reader that wants them one by one.
+    """
+
+    rows: np.ndarray
+    first_cycle: int
+    phase: str
+    trial: int
+
+    def __len__(self) -> int:
+        return int(self.rows.shape[0])
+
+    @property
+    def sync_time(self) -> np.ndarray:
+        """``perf_counter`` seconds of each cycle's SYNC."""
+        return self.rows[:, 0]
+
+    @property
+    def lateness_us(self) -> np.ndarray:
+        """Each SYNC's lateness after its deadline, microseconds (NaN: not measured)."""
+        return self.rows[:, 2] * 1e6
+
+    @property
+    def feedback_latency_us(self) -> np.ndarray:
+        """SYNC to feedback, microseconds (NaN: none came)."""
+        return self.rows[:, 3] * 1e6
+
+    @property
+    def missing_feedback(self) -> np.ndarray:
+        """Cycles without their feedback (bool)."""
+        return self.rows[:, 7] != 0.0
+
+    @property
+    def missed(self) -> np.ndarray:
+        """Cycles whose command missed its deadline (bool)."""
+        return self.rows[:, 8] != 0.0
+
+    def messages(self, previous: float | None) -> tuple[TimingBlock, float | None]:
+        """The block's ``/timing`` messages, as columns, and its last SYNC's time (the next block's ``previous``).
+
+        ``previous``: the SYNC time before the block, from which its first ``period_us`` is measured (``None``: the
+        run's first block, whose first period is 0). A lateness not measured is 0; a feedback latency not measured
+        stays NaN (``null``).
+        """
+        sync = self.sync_time
+        if not len(sync):
+            empty = np.empty(0)
+            return TimingBlock(self.first_cycle, self.trial, empty, empty, empty, empty.astype(bool),
+                               empty.astype(bool)), previous
+        before = np.empty_like(sync)
+        before[1:] = sync[:-1]
+        before[0] = sync[0] if previous is None else previous
+        period_us = (sync - before) * 1e6
+        if previous is None:
+            period_us[0] = 0.0
+        lateness = self.lateness_us
+        lateness[np.isnan(lateness)] = 0.0  # a fresh array (the property computes it)
+        block = TimingBlock(self.first_cycle, self.trial, lateness, period_us, self.feedback_latency_us,
+                            self.missed, self.missing_feedback)
+        return block, float(sync[-1])
+
+    def records(self) -> Iterator[CycleTiming]:
+        """The block's cycles, one record each."""
+        first_cycle, phase, trial = self.first_cycle, self.phase, self.trial
+        for offset, row in enumerate(self.rows):
+            yield CycleTiming(
+                cycle=first_cycle + offset,
+                trial=trial,
+                phase=phase,
+                sample=offset,
+                sync_time=float(row[0]),
+                deadline=None if math.isnan(row[1]) else float(row[1]),
+                lateness_us=None if math.isnan(row[2]) else float(row[2] * 1e6),
+                feedback_latency_us=None if math.isnan(row[3]) else float(row[3] * 1e6),
+                compute_us=None if math.isnan(row[4]) else float(row[4] * 1e6),
+                skipped_deadlines=int(row[5]),
+                late_feedback=bool(row[6]),
+                missing_feedback=bool(row[7]),
+                missed=bool(row[8]),
+            )
 
 
 class StreamingDistribution:
@@ -282,7 +371,7 @@ class TimingRecorder:
     """Per-cycle timing measurements in preallocated arrays, one block per phase (a trial or a settling phase).
 
     The hot path calls :meth:`record` (writes into arrays, no allocation); :meth:`finish_block` closes the
-    block and :meth:`records` turns it into ``/timing`` messages off the hot path.
+    block (:class:`CycleBlock`), which the log turns into ``/timing`` messages off the hot path.
 
     Per cycle: the SYNC send time ``sync_time`` (perf_counter seconds), the deadline (NaN in lockstep), the
     release lateness, the feedback latency (SYNC to TPDO handed to the loop), the cycle's compute time (feedback
@@ -384,26 +473,6 @@ class TimingRecorder:
         self._current = np.empty((0, len(self.FIELDS)))
         self._count = 0
         return block
-
-    @staticmethod
-    def records(block: np.ndarray, *, first_cycle: int, phase: str, trial: int) -> Iterator[CycleTiming]:
-        """The cycles of a finished block, one record each (the source of the ``/timing`` messages)."""
-        for offset, row in enumerate(block):
-            yield CycleTiming(
-                cycle=first_cycle + offset,
-                trial=trial,
-                phase=phase,
-                sample=offset,
-                sync_time=float(row[0]),
-                deadline=None if math.isnan(row[1]) else float(row[1]),
-                lateness_us=None if math.isnan(row[2]) else float(row[2] * 1e6),
-                feedback_latency_us=None if math.isnan(row[3]) else float(row[3] * 1e6),
-                compute_us=None if math.isnan(row[4]) else float(row[4] * 1e6),
-                skipped_deadlines=int(row[5]),
-                late_feedback=bool(row[6]),
-                missing_feedback=bool(row[7]),
-                missed=bool(row[8]),
-            )
 
     def summary(self) -> TimingSummary:
         """Statistics over every finished block (see :class:`StreamingDistribution` for their precision)."""

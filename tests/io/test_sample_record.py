@@ -72,3 +72,26 @@ def test_timing_records_round_trip_typed_and_positional(tmp_path: Path, process:
     ]
     with pytest.raises(AttributeError):
         typed.cycle = 9  # type: ignore[misc]
+
+
+@pytest.mark.parametrize("process", [False, True], ids=["in-process", "writer-process"])
+def test_a_timing_block_is_logged_as_its_records(tmp_path: Path, process: bool) -> None:
+    from foilc_hil.io.records import TimingBlock
+
+    block = TimingBlock(70, 2, np.array([12.5, 0.0, 1 / 3]), np.array([1000.0, 999.5, 0.1 + 0.2]),
+                        np.array([np.nan, 250.0, 1e-300]), np.array([True, False, False]),
+                        np.array([True, False, True]))
+    out = tmp_path / "timing.mcap"
+    writer = (ProcessLogWriter(out, config_yaml=None, fsync=False) if process
+              else McapLogWriter(out, config_yaml=None, fsync=False))
+    with writer:
+        writer.write_timing_block(block)
+    assert read_log(out).timing == [
+        {"cycle": 70, "trial": 2, "sample": 0, "lateness_us": 12.5, "period_us": 1000.0, "feedback_latency_us": None,
+         "missed": True, "lost_feedback": True},
+        {"cycle": 71, "trial": 2, "sample": 1, "lateness_us": 0.0, "period_us": 999.5, "feedback_latency_us": 250.0,
+         "missed": False, "lost_feedback": False},
+        {"cycle": 72, "trial": 2, "sample": 2, "lateness_us": 1 / 3, "period_us": 0.30000000000000004,
+         "feedback_latency_us": 1e-300, "missed": False, "lost_feedback": True},
+    ]
+    assert TimingBlock.from_columns(70, 2, block.columns()).missed.tolist() == [True, False, False]

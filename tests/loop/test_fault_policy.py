@@ -310,25 +310,24 @@ def test_losses_in_a_row_beyond_the_limit_abort_after_quick_stop() -> None:
 
 
 def test_timing_records_carry_the_lost_feedback_flag() -> None:
+    from foilc_hil.io.records import TimingBlock
     from foilc_hil.loop.log_sink import McapSink
-    from foilc_hil.loop.scheduler import CycleTiming
+    from foilc_hil.loop.scheduler import CycleBlock
 
     class Writer:
         def __init__(self) -> None:
             self.flags: list[bool] = []
 
-        def log_timing(self, *args: Any, lost_feedback: bool = False) -> None:
-            self.flags.append(lost_feedback)
+        def write_timing_block(self, block: TimingBlock) -> None:
+            self.flags.extend(record.lost_feedback for record in block.records())
 
         def add_metadata(self, name: str, data: Any) -> None:  # the sink names its /ilc/sample layout
             pass
 
     writer = Writer()
-    records = [
-        CycleTiming(
-            cycle, 1, "trial", cycle, 0.01 * cycle, None, 0.0, None if lost else 50.0, 1.0, 0, False, lost, False
-        )
-        for cycle, lost in enumerate([False, True, False])
-    ]
-    McapSink(writer, None).timing(iter(records))  # type: ignore[arg-type]
+    # columns of TimingRecorder.FIELDS: sync time, deadline, lateness, feedback latency, compute, skipped, late,
+    # missing, missed
+    rows = np.array([[0.01 * cycle, np.nan, 0.0, np.nan if lost else 50e-6, 1e-6, 0, 0, float(lost), 0]
+                     for cycle, lost in enumerate([False, True, False])])
+    McapSink(writer, None).timing(CycleBlock(rows, 0, "trial", 1))  # type: ignore[arg-type]
     assert writer.flags == [False, True, False]

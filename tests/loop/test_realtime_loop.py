@@ -104,8 +104,8 @@ class Sink:
     def trial_finished(self, record: Any) -> None:
         pass
 
-    def timing(self, records: Any) -> None:
-        self.records.extend(records)
+    def timing(self, block: Any) -> None:
+        self.records.extend(block.records())
 
 
 def _timing(outcome: BenchOutcome) -> TimingSummary:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from foilc_hil.loop.scheduler import DeadlineScheduler, StreamingDistribution, TimingRecorder
+from foilc_hil.loop.scheduler import CycleBlock, DeadlineScheduler, StreamingDistribution, TimingRecorder
 from plant_emulator.device import TimingMode
 
 
@@ -96,7 +96,7 @@ def test_recorder_summary_matches_numpy() -> None:
     assert summary.jitter_max_us == pytest.approx(lateness.max() * 1e6)
     intervals = np.diff(np.arange(300) * 0.001 + lateness)
     assert summary.cycle_time_p50_us == pytest.approx(np.median(intervals) * 1e6)
-    records = list(recorder.records(block, first_cycle=100, phase="trial", trial=1))
+    records = list(CycleBlock(block, 100, "trial", 1).records())
     assert records[7].missing_feedback is True
     assert records[7].cycle == 107
     assert [r.cycle - 100 for r in records if r.missed] == [2, 77, 152, 227]
@@ -166,3 +166,40 @@ def test_timing_memory_stays_bounded_over_a_long_run() -> None:
     run_blocks(40)
     assert retained() == after_warm_up
     assert recorder.summary().cycles == 80_000
+
+
+def _messages_one_by_one(block: CycleBlock, previous: float | None) -> list[dict[str, object]]:
+    """The /timing documents as the sink built them record by record before the columns (the definition: the period
+    from the previous SYNC, 0 for the run's first; a lateness not measured is 0; a latency not measured is null)."""
+    from foilc_hil.io.records import TimingRecord
+
+    documents = []
+    for record in block.records():
+        period_us = (record.sync_time - previous) * 1e6 if previous is not None else 0.0
+        previous = record.sync_time
+        lateness = record.lateness_us if record.lateness_us is not None else 0.0
+        documents.append(TimingRecord(record.cycle, record.trial, record.sample, lateness, period_us,
+                                      record.feedback_latency_us, record.missed, record.missing_feedback).to_json())
+    return documents
+
+
+@pytest.mark.parametrize("previous", [None, 12.3456789], ids=["first-block", "after-a-block"])
+def test_a_blocks_messages_as_columns_are_its_records_bit_for_bit(previous: float | None) -> None:
+    rng = np.random.default_rng(5)
+    n = 257
+    rows = np.column_stack([
+        12.5 + np.cumsum(rng.uniform(0.0009, 0.0011, n)),  # sync time
+        np.full(n, np.nan), rng.uniform(0, 3e-4, n), rng.uniform(5e-5, 9e-4, n), rng.uniform(1e-5, 3e-4, n),
+        rng.integers(0, 2, n), rng.integers(0, 2, n), rng.integers(0, 2, n), rng.integers(0, 2, n),
+    ]).astype(float)
+    rows[::7, 2] = np.nan  # lateness not measured
+    rows[rows[:, 7] == 1.0, 3] = np.nan  # no feedback: no latency
+    block = CycleBlock(rows, 4000, "settle", 3)
+    messages, last = block.messages(previous)
+    got = [record.to_json() for record in messages.records()]
+    assert got == _messages_one_by_one(block, previous)
+    assert [repr(d["period_us"]) for d in got] == [repr(d["period_us"]) for d in _messages_one_by_one(block, previous)]
+    assert last == rows[-1, 0]
+    assert any(d["feedback_latency_us"] is None for d in got) and any(d["lateness_us"] == 0.0 for d in got)
+    empty, same = CycleBlock(rows[:0], 0, "trial", 1).messages(previous)
+    assert list(empty.records()) == [] and same == previous

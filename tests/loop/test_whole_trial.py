@@ -9,7 +9,6 @@ the same trajectories for every law and both plants, with everything random or t
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +24,7 @@ from foilc_hil.errors import LearningDivergedError
 from foilc_hil.laws.learning import make_law
 from foilc_hil.loop.bench import TrialLoop
 from foilc_hil.loop.interfaces import TrialRecord, WholeTrial
-from foilc_hil.loop.scheduler import CycleTiming
+from foilc_hil.loop.scheduler import CycleBlock
 from foilc_hil.loop.settings import loop_settings
 from foilc_hil.loop.simulated_drive import SimulatedDrive
 from foilc_hil.references import reference_profile
@@ -91,7 +90,7 @@ class _Records:
     def trial_finished(self, record: TrialRecord) -> None:
         self.records.append(record)
 
-    def timing(self, records: Iterator[CycleTiming]) -> None:
+    def timing(self, block: CycleBlock) -> None:
         """Lockstep logs no timing."""
 
 
