@@ -207,7 +207,9 @@ def _serve(args: argparse.Namespace) -> int:
         started = "never started" if report.started_at_sync is None else f"started at SYNC {report.started_at_sync}"
         print(f"{PROG}: injected {report.injection.describe()}: {started}, {report.frames} frame(s)", file=sys.stderr)
     for drive in drives:
-        print(f"{PROG}: stopped after {drive.sync_count} SYNC; drive {drive.state.name}, NMT {drive.nmt_state.name}"
+        late = f" ({drive.stale_syncs} handled a period late, unanswered)" if drive.stale_syncs else ""
+        state = f"drive {drive.state.name}, NMT {drive.nmt_state.name}"
+        print(f"{PROG}: stopped after {drive.sync_count} SYNC{late}; {state}"
               + (f" (node {drive.node_id})" if len(drives) > 1 else ""), file=sys.stderr, flush=True)
     return int(ExitCode.OK)
 

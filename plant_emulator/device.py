@@ -188,6 +188,7 @@ class VirtualDrive:
         self._stop_event = threading.Event()
         self._in_process_clock = False  # a lockstep in-process bus: its simulated time is the only clock
         self.sync_count = 0
+        self.stale_syncs = 0  # realtime: SYNCs handled a period or more after they arrived, left unanswered
         self.trace: Callable[[DriveSnapshot], None] | None = None  # called after every cycle, if set
         self._reset_application()
 
@@ -471,6 +472,7 @@ class VirtualDrive:
             self.sync_count += 1
             self.supervisor.sync_received()
             operational = self.node.operational
+            stale = not lockstep and _stale(timestamp, self.physics.cycle_period)
             if lockstep:  # (1) physics with the command that was active; operational: its status is published below
                 physics = self.physics
                 physics.tick(physics.cycle_period, publish=not operational)
@@ -478,10 +480,33 @@ class VirtualDrive:
                 self.pdos.latch()  # (2) the RPDOs received since the last SYNC become the command
                 self.physics.publish_demand()  # its echo (0x606B / 0x6074), for the TPDOs below
                 self.application.publish_status()
-                self.pdos.send_synchronous()  # (3) sample and send
+                if stale:  # see _stale: no answer beats one every receiver would take for the next SYNC's
+                    self.stale_syncs += 1
+                else:
+                    self.pdos.send_synchronous()  # (3) sample and send
             if lockstep and self.trace is not None:
                 self.trace(self.snapshot())
 
     def _emit_trace(self) -> None:
         if self.trace is not None:
             self.trace(self.snapshot())
+
+
+#: the largest age of a SYNC's receive time stamp taken as real: a stamp older than this is not a wall-clock time
+#: (an interface that stamps 0, or another clock's) and the SYNC is answered
+_STAMP_PLAUSIBLE = 60.0
+
+
+def _stale(timestamp: float, period: float) -> bool:
+    """Whether a SYNC received at ``timestamp`` (the bus's wall-clock receive time) is handled a whole period or
+    more late (a stalled emulator process catching up on its queue).
+
+    Why it is not answered: the next SYNC is on the bus already, so the answer would reach every receiver after
+    it, and the master, which takes the first complete TPDO set after a SYNC as that SYNC's answer, would take this
+    older one for the next SYNC's -- a velocity measured a period or more earlier, and a demand echo of an older
+    command (the echo check found three such sets in one run). Unanswered, the master counts a lost feedback and
+    holds the last good value, which is the truth. A real drive answers from its SYNC interrupt, on time.
+    """
+    age = time.time() - timestamp
+    return period <= age < _STAMP_PLAUSIBLE
+

@@ -29,6 +29,7 @@ import pytest
 import yaml
 
 from foilc_hil.io.mcap_log import read_log
+from foilc_hil.logtools.replay import verify_log
 from tests.crossprocess.test_bench_crossprocess import SHIPPED
 from tests.support.netns import NETNS_SETUP, unshare_available
 
@@ -130,13 +131,18 @@ def test_every_sample_latched_and_every_missed_deadline_agree_with_the_wire(run:
             on_wire = wire.latched[first + i]
             assert on_wire is not None and row["latched"] == on_wire / SCALE, (trial, i, row["latched"], on_wire)
             differing += row["latched"] != round(row["control"] * SCALE) / SCALE
-        # the drive's own word: its demand echo (0x606B, mapped by the shipped config) agrees with every latched
-        assert record.get("demand_mismatches") == 0, (trial, record.get("demand_mismatches"))
+        # the drive's own word, its demand echo (0x606B, mapped by the shipped config), is counted against every
+        # latched; replay --verify (below) holds the count to the wire. Not asserted 0: a TPDO set the emulator sent
+        # late, after the next SYNC, is taken for that SYNC's and its echo of the older command counted (about 1 in
+        # 18,000 trial samples, docs/reliability.md)
+        assert isinstance(record.get("demand_mismatches"), int), (trial, record)
         flags = [bool(r["missed"]) for r in _trial_blocks(contents.timing, trial)]
         assert flags == wire.trial_missed(first, len(rows)), trial
         missed_total += sum(flags)
     print(f"missed deadlines in trials: {missed_total}; samples whose latched is not their command: {differing}")
     assert missed_total >= 1
+    verified = verify_log(contents)  # the law, latched and the demand echo's count, against the logged frames
+    assert verified.verified, verified.first_divergence
 
 
 def test_the_sync_keeps_its_period_while_the_loop_thread_stalls(run: Path) -> None:
