@@ -10,56 +10,24 @@ previous command is caught (mismatches counted, and the wire agrees), and a log 
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
-import can
 import pytest
 
 from drivers.cia402 import Obj
-from drivers.config import BusConfig
-from foilc_hil.config import load_config
 from foilc_hil.io.mcap_log import LogContents, read_log
 from foilc_hil.logtools.replay import verify_log
-from foilc_hil.loop.rig import RunReport, RunRequest, run_rig
-from plant_emulator.device import TimingMode
-from plant_emulator.embedded import EmbeddedEmulator
+from foilc_hil.loop.rig import RunReport
 from plant_emulator.motion import AxisPhysics
+from tests.support.stalled_run import SCALE, stalled_config, stalled_run
 
 pytestmark = pytest.mark.slow
 
-TS = 0.005
-SCALE = 1000.0
-STALLED = 10  # the sample of trial 2 whose cycle stalls
-
-
-def _config() -> Any:
-    return load_config(None, {
-        "sample_time": TS, "trials": 2,
-        "reference.profile": "piecewise", "reference.segments": [{"duration": 0.2, "start": 0.0, "end": 30.0}],
-        "bench.settle_time": 5 * TS, "bench.mode": "realtime", "bench.settle_tolerance": 0.5,
-        "bench.realtime.gc": "on", "bench.realtime.switch_interval": None,
-        "bench.faults.lost_feedback": 1000, "emulator.sync_loss_cycles": 1000.0,
-        "emulator.timing": "realtime",
-        "drive.velocity_scale": SCALE, "drive.heartbeat_timeout_factor": 10.0, "drive.heartbeat_consumer_ms": 2000,
-        "drive.demand_echo": True,
-        "plant.model": "first_order", "plant.a": -1.23, "plant.b": 1.68, "drive.velocity_limit": 1.0e4,
-        "law.kind": "p-type",
-        "inject": [{"kind": "stall", "trial": 2, "cycle": STALLED, "duration": 4 * TS}],
-    })
-
 
 def _run(out: Path) -> RunReport:
-    config = _config()
-    emulator = EmbeddedEmulator.from_config(config)
-    with contextlib.ExitStack() as stack:
-        emulator.drive.start(can.Bus(interface="virtual", channel=emulator.channel))
-        stack.callback(emulator.drive.stop)
-        bus = BusConfig(interface="virtual", channel=emulator.channel, receive_own_messages=True)
-        return run_rig(RunRequest(config=config, out=out, mode=TimingMode.REALTIME, bus=bus))
+    return stalled_run(stalled_config(**{"drive.demand_echo": True}), out)
 
 
 @pytest.fixture(scope="module")

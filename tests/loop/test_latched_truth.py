@@ -10,61 +10,26 @@ the next trial's commands). The cross-process version, with an independent recei
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import math
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
-import can
 import pytest
 
-from drivers.config import BusConfig
-from foilc_hil.config import load_config
 from foilc_hil.io.mcap_log import LogContents, read_log
 from foilc_hil.io.schemas import METADATA_PDO_MAPPING
 from foilc_hil.logtools.replay import verify_log
-from foilc_hil.loop.rig import RunReport, RunRequest, run_rig
-from plant_emulator.device import TimingMode
-from plant_emulator.embedded import EmbeddedEmulator
+from foilc_hil.loop.rig import RunReport
+from tests.support.stalled_run import SCALE, STALLED, stalled_config, stalled_run
 
 pytestmark = pytest.mark.slow
-
-TS = 0.005
-SCALE = 1000.0
-STALLED = 10  # the sample of trial 2 whose cycle stalls
-
-
-def _config() -> Any:
-    return load_config(None, {
-        "sample_time": TS, "trials": 2,
-        "reference.profile": "piecewise", "reference.segments": [{"duration": 0.2, "start": 0.0, "end": 30.0}],
-        "bench.settle_time": 5 * TS, "bench.mode": "realtime", "bench.settle_tolerance": 0.5,
-        # the test's own process: no frozen collector, Python's switch interval (the clock is under test, not them)
-        "bench.realtime.gc": "on", "bench.realtime.switch_interval": None,
-        "bench.faults.lost_feedback": 1000, "emulator.sync_loss_cycles": 1000.0,
-        "emulator.timing": "realtime",
-        "drive.velocity_scale": SCALE, "drive.heartbeat_timeout_factor": 10.0, "drive.heartbeat_consumer_ms": 2000,
-        "plant.model": "first_order", "plant.a": -1.23, "plant.b": 1.68, "drive.velocity_limit": 1.0e4,
-        "law.kind": "p-type",
-        "inject": [{"kind": "stall", "trial": 2, "cycle": STALLED, "duration": 4 * TS}],
-    })
 
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[RunReport, Path]]:
-    config = _config()
     out = tmp_path_factory.mktemp("latched") / "run.mcap"
-    emulator = EmbeddedEmulator.from_config(config)
-    with contextlib.ExitStack() as stack:
-        emulator.drive.start(can.Bus(interface="virtual", channel=emulator.channel))
-        stack.callback(emulator.drive.stop)
-        # the bench's bus object gets its own frames back, as udp_multicast gives them: the log then holds one
-        # stream in the bus's order (logtools.wire.sync_windows), which python-can's virtual otherwise lacks
-        bus = BusConfig(interface="virtual", channel=emulator.channel, receive_own_messages=True)
-        report = run_rig(RunRequest(config=config, out=out, mode=TimingMode.REALTIME, bus=bus))
-    yield report, out
+    yield stalled_run(stalled_config(), out), out
 
 
 def _as_sent(value: float) -> float:
