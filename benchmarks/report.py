@@ -271,13 +271,14 @@ MEASURED_OUTSIDE = (
     "Measured by hand on the 2-core test machine, not by `make bench`; wall clock unless said otherwise.",
     "",
     "- **`make demo`** on a fresh clone, the `.venv` bootstrap included: 31.3 s (the demo itself 27.1 s, its design "
-    "4.1 s) with the cores to itself; 29.0 s on 2026-11-28 05:19 at load about 2; 84.8 s at a load of 6-10 from other "
+    "4.1 s) with the cores to itself; 24.0 s on 2026-11-28 07:13 at load about 1 (29.0 s at 05:19, load about 2); "
+    "84.8 s at a load of 6-10 from other "
     "work. The trial is eq. (52) at 1 ms between "
     "two 0.25 s ramps, 6500 samples, 30 trials per law (about 460k CAN cycles); the two laws run at once, each in its "
     "own worker process; the rest is the two reports and `comparison.png`.",
-    "- **`make test`** on a fresh clone, the `.venv` bootstrap included: 2 min 59 s on 2026-11-28 05:16 (pytest: "
-    "2,456 tests in 129 s, two skipped with their reason: no `vcan0` here) at load about 2-4, on a host that also ran "
-    "`make bench`'s peers 27 % slower than the run before; 2 min 19 s (2,320 tests in 117 s) with the cores to itself "
+    "- **`make test`** on a fresh clone, the `.venv` bootstrap included: 2 min 58 s on 2026-11-28 07:09 at load "
+    "0.5-2 (pytest: 2,498 tests in 132 s, two skipped with their reason: no `vcan0` here); 2 min 59 s at 05:16 "
+    "(2,456 tests in 129 s) at load about 2-4; 2 min 19 s (2,320 tests in 117 s) with the cores to itself "
     "in an earlier session; 4 min 3 s and 10 min 6 s at loads of about 6 and 10 from other work beside it. ruff, "
     "mypy, pytest and the API reference at once, pytest on four pytest-xdist workers. CPU-bound: about 300 CPU-s on "
     "two cores.",
