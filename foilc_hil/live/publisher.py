@@ -200,6 +200,7 @@ class LivePublisher:
         """Feed the view from ``loop`` (its log sink gets the live one beside it), the frame tap of ``drives`` (one
         network: the first drive's tap shows every frame) and their feedback."""
         from foilc_hil.loop.axes import AxesSink, AxisLaws, AxisLimiter
+        from foilc_hil.loop.interfaces import echoes_demand
         from foilc_hil.loop.safety import CommandLimiter
 
         limiter = loop.limiter
@@ -207,8 +208,7 @@ class LivePublisher:
         live: LogSink = LiveSink(self, limits)
         if isinstance(loop.law, AxisLaws):  # one record per axis, as the log gets them
             live = AxesSink(cast(Any, live), loop.law, cast(AxisLimiter, limiter), [d.node_id for d in drives],
-                            echoes=[bool(getattr(getattr(d, "cyclic", None), "echoes_demand", False))
-                                     for d in drives])
+                            echoes=[echoes_demand(d) for d in drives])
         loop.log = _Both(loop.log, live)
         self._row_time = self._clock()  # the row budget fills from the run's start
         if drives and hasattr(drives[0], "add_frame_listener"):

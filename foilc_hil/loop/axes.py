@@ -33,7 +33,7 @@ from drivers.cia402 import State402
 from drivers.drive import StopReport
 from foilc_hil.errors import DriveFaultError
 from foilc_hil.laws.learning import TrialUpdate
-from foilc_hil.loop.interfaces import TrialRecord
+from foilc_hil.loop.interfaces import TrialRecord, echoes_demand
 from foilc_hil.loop.log_sink import McapSink
 from foilc_hil.loop.safety import CommandLimiter
 from foilc_hil.loop.scheduler import CycleBlock
@@ -140,7 +140,7 @@ class AxisGroup:
     @property
     def echoes_demand(self) -> bool:
         """Some axis's TPDOs carry its demand echo (``drive.demand_echo``; the others' are NaN, never counted)."""
-        return any(bool(getattr(getattr(drive, "cyclic", None), "echoes_demand", False)) for drive in self.drives)
+        return any(echoes_demand(drive) for drive in self.drives)
 
     @property
     def syncs_seen(self) -> int:

@@ -106,6 +106,7 @@ from foilc_hil.loop.interfaces import (
     LogSink,
     TrialRecord,
     WholeTrialRunner,
+    echoes_demand,
 )
 from foilc_hil.loop.safety import (
     DivergenceGuard,
@@ -726,13 +727,6 @@ class TrialLoop:
         # best effort on the way out: the caller's finally follows with safe_stop (disable)
         with contextlib.suppress(Exception):
             self.drive.quick_stop()
-
-
-def echoes_demand(drive: Any) -> bool:
-    """The drive's TPDO set carries its demand echo (``drive.demand_echo``): a CiA 402 drive's cyclic path says so,
-    an axis group for its axes; any other drive (the simulated one) has none."""
-    cyclic = getattr(drive, "cyclic", None)
-    return bool(getattr(cyclic if cyclic is not None else drive, "echoes_demand", False))
 
 
 def _first(values: np.ndarray) -> float:

@@ -31,10 +31,20 @@ __all__ = [
     "TrialRecord",
     "WholeTrial",
     "WholeTrialRunner",
+    "echoes_demand",
 ]
 
 
 # --- what the loop talks to (drivers.drive.Drive, foilc_hil.laws.learning, foilc_hil.io.mcap_log) ---------------
+
+
+def echoes_demand(drive: object) -> bool:
+    """The drive's TPDO set carries its demand echo (``drive.demand_echo``): a CiA 402 drive's cyclic path says so,
+    an axis group for its axes; any other drive (the simulated one) has none. The one place the loop, the axis group,
+    the rig and the live view ask it."""
+    cyclic = getattr(drive, "cyclic", None)
+    return bool(getattr(cyclic if cyclic is not None else drive, "echoes_demand", False))
+
 
 
 class FeedbackLike(Protocol):

@@ -48,7 +48,7 @@ from drivers.realtime import RealtimeSession
 from foilc_hil.errors import DriveError, DriveFaultError, DriveNotStoppedError, FoilcHilError, InputError
 from foilc_hil.loop.axes import AxesSink, AxisGroup, AxisLaws, AxisLimiter, AxisOutcome
 from foilc_hil.loop.bench import TrialLoop
-from foilc_hil.loop.interfaces import BenchOutcome, LawLike, LimiterLike
+from foilc_hil.loop.interfaces import BenchOutcome, LawLike, LimiterLike, echoes_demand
 from foilc_hil.loop.log_sink import McapSink, logged_trials
 from foilc_hil.loop.safety import CommandLimiter, StopRequest
 from foilc_hil.loop.settings import CAN_INPUT_DELAY, LoopSettings, command_limiter, loop_settings
@@ -498,7 +498,7 @@ def _trial_loop(plan: RunPlan, drives: Sequence[Cia402Drive] | Sequence[Simulate
     if not plan.several:
         return TrialLoop(drives[0], law, plan.reference, limiter, plan.settings, log=sink, progress=progress,
                          stop=stop, before_trial=hook, stalls=plan.stalls)
-    echoes = [bool(getattr(getattr(drive, "cyclic", None), "echoes_demand", False)) for drive in drives]
+    echoes = [echoes_demand(drive) for drive in drives]
     log = (AxesSink(sink, cast(AxisLaws, law), cast(AxisLimiter, limiter), plan.node_ids, echoes=echoes)
            if sink is not None else None)
     return TrialLoop(AxisGroup(drives), law, plan.reference, limiter, plan.settings, log=log, progress=progress,
