@@ -223,13 +223,9 @@ def _check_demand(windows: Sequence[Sequence[_Frame]], record: Mapping[str, Any]
             return WireMismatch(trial, n, "/ilc/trial has demand_mismatches, the PDO mapping no demand echo",
                                 record["demand_mismatches"], None)
         return None
-    start = int(record["first_sync"]) - 1
-    last: int | None = None
-    for w in range(start):  # the RPDO the drive held when the trial began
-        last = _last_rpdo(windows[w], wire, last)
     count = 0
-    for i in range(n):
-        last = _last_rpdo(windows[start + i], wire, last)
+    on_wire = _latched_on_wire(windows, int(record["first_sync"]) - 1, n, wire)
+    for i, last in enumerate(on_wire):
         echo = echoes[i + 1]
         if echo is None:
             continue  # no set answered the SYNC: no echo to compare (the loop counts none either)
@@ -306,14 +302,21 @@ def _last_rpdo(window: Sequence[_Frame], wire: WireMap, last: int | None) -> int
     return last
 
 
-def _check_latched(windows: Sequence[Sequence[_Frame]], trial: int, start: int, latched: Sequence[float],
-                   wire: WireMap) -> WireMismatch | None:
-    """Row ``i``'s ``latched`` against the last RPDO in the windows up to ``start + i`` (before SYNC ``i + 1``)."""
+def _latched_on_wire(windows: Sequence[Sequence[_Frame]], start: int, n: int, wire: WireMap) -> Iterator[int | None]:
+    """For rows ``0 .. n - 1``: the target of the last RPDO before SYNC ``i + 1`` of the trial whose first SYNC opens
+    window ``start`` (what the drive latched there), raw; None while the log holds no RPDO before it."""
     last: int | None = None
     for w in range(start):  # the RPDO the drive held when the trial began
         last = _last_rpdo(windows[w], wire, last)
-    for i, logged in enumerate(latched):
+    for i in range(n):
         last = _last_rpdo(windows[start + i], wire, last)
+        yield last
+
+
+def _check_latched(windows: Sequence[Sequence[_Frame]], trial: int, start: int, latched: Sequence[float],
+                   wire: WireMap) -> WireMismatch | None:
+    """Row ``i``'s ``latched`` against the last RPDO in the windows up to ``start + i`` (before SYNC ``i + 1``)."""
+    for i, (logged, last) in enumerate(zip(latched, _latched_on_wire(windows, start, len(latched), wire), strict=True)):
         if last is None:
             continue  # no RPDO before the trial in the log: nothing to hold it against
         on_wire = last / wire.target_scale
