@@ -49,6 +49,7 @@ from drivers.errors import ConfigError, DriveError
 from drivers.heartbeat import HeartbeatProducer
 from drivers.inprocess import connect_network, subscribe_cyclic, timebase_of
 from drivers.scan import ScanResult, scan_bus
+from drivers.send_order import multicast_channel
 from drivers.sync_clock import BroadcastSync, SyncClock, SyncProducer
 from drivers.sync_process import ProcessSync
 
@@ -329,10 +330,11 @@ class DriveNetwork:
     def _spawn_process_sync(self) -> ProcessSync | None:
         """A SYNC producer process on this network's ``udp_multicast`` channel, ready and not started; None on any
         other interface."""
-        multicast = getattr(self.bus, "_multicast", None)  # python-can keeps udp_multicast's group and port there
-        if type(self.bus).__name__ != "UdpMulticastBus" or multicast is None:
+        channel = multicast_channel(self.bus)
+        if channel is None:
             return None
-        return ProcessSync("udp_multicast", multicast.group, port=multicast.port)
+        group, port = channel
+        return ProcessSync("udp_multicast", group, port=port)
 
     def stop_clock(self) -> None:
         """Stop the clock (idempotent): no SYNC goes out after this returns, and :meth:`sync` sends them again."""

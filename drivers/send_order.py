@@ -34,7 +34,7 @@ from typing import Any
 
 import can
 
-__all__ = ["WAIT_BOUND", "ChannelOrder", "order_multicast_sends", "order_virtual_sends"]
+__all__ = ["WAIT_BOUND", "ChannelOrder", "multicast_channel", "order_multicast_sends", "order_virtual_sends"]
 
 WAIT_BOUND = 50e-6
 """Seconds a send waits for the channel's lock before it goes out unordered. The order is at stake only while two
@@ -132,15 +132,23 @@ class ChannelOrder:
         return False
 
 
+def multicast_channel(bus: can.BusABC) -> tuple[str, int] | None:
+    """The group and UDP port of a python-can ``udp_multicast`` bus object; None for any other bus."""
+    multicast = getattr(bus, "_multicast", None)  # python-can keeps udp_multicast's group and port there
+    if type(bus).__name__ != "UdpMulticastBus" or multicast is None:
+        return None
+    return str(multicast.group), int(multicast.port)
+
+
 def order_multicast_sends(bus: can.BusABC) -> ChannelOrder | None:
     """Make every send of a python-can ``udp_multicast`` bus object take its channel's :class:`ChannelOrder`; the
     order, or None when the bus is not one (or the lock file cannot be opened: it then sends as python-can does).
     The order's descriptor is closed with the bus object."""
-    multicast = getattr(bus, "_multicast", None)  # python-can keeps udp_multicast's group and port there
-    if type(bus).__name__ != "UdpMulticastBus" or multicast is None:
+    channel = multicast_channel(bus)
+    if channel is None:
         return None
     try:
-        order = ChannelOrder(str(multicast.group), int(multicast.port))
+        order = ChannelOrder(*channel)
     except OSError:
         return None
     send = bus.send
