@@ -363,13 +363,7 @@ class McapFileWriter(_LogLifecycle):
             for record in samples.records():
                 self.write_sample(record, log_time)
             return
-        times = [log_time] * len(documents)
-        with self._lock:
-            self._write_frames()  # the frames logged before the trial's samples go first
-            try:
-                self._writer.add_messages(self._channels[TOPIC_SAMPLE], times, documents, times)
-            except OSError as exc:
-                raise LogWriteError(f"{self.path}: {exc.strerror or exc}") from None
+        self._append_batch(TOPIC_SAMPLE, documents, log_time)
 
     def log_trial(self, metrics: Any, /, **extra: Any) -> None:
         """Log one trial's metrics on ``/ilc/trial``.
@@ -397,15 +391,7 @@ class McapFileWriter(_LogLifecycle):
         """Log a block of ``/timing`` messages, all at one log time (``log_time_ns``, else now): the documents
         :meth:`write_timing` writes for its rows, appended as one batch."""
         documents = [_encode(record.to_json()) for record in block.records()]
-        if not documents:
-            return
-        times = [time.time_ns() if log_time_ns is None else log_time_ns] * len(documents)
-        with self._lock:
-            self._write_frames()  # the frames logged before the block go first
-            try:
-                self._writer.add_messages(self._channels[TOPIC_TIMING], times, documents, times)
-            except OSError as exc:
-                raise LogWriteError(f"{self.path}: {exc.strerror or exc}") from None
+        self._append_batch(TOPIC_TIMING, documents, time.time_ns() if log_time_ns is None else log_time_ns)
 
     def log_design(self, design: Mapping[str, Any]) -> None:
         """Write the ``foilc_hil.design`` metadata record (if it was not known at construction)."""
@@ -472,6 +458,16 @@ class McapFileWriter(_LogLifecycle):
 
     def _add(self, topic: str, document: dict[str, Any], log_time_ns: int) -> None:
         self._append(self._channels[topic], _encode(document), log_time_ns, log_time_ns)
+
+    def _append_batch(self, topic: str, documents: Sequence[bytes], log_time_ns: int) -> None:
+        """Append ``documents`` to ``topic`` as one batch, all at ``log_time_ns``, after the frames logged before."""
+        times = [log_time_ns] * len(documents)
+        with self._lock:
+            self._write_frames()  # the frames logged before the batch go first
+            try:
+                self._writer.add_messages(self._channels[topic], times, documents, times)
+            except OSError as exc:
+                raise LogWriteError(f"{self.path}: {exc.strerror or exc}") from None
 
     def _append(self, channel: int, data: bytes, log_time_ns: int, publish_time_ns: int) -> None:
         with self._lock:
