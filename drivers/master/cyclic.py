@@ -332,6 +332,12 @@ class CyclicPath:
             return
         with self._lock:
             self.tpdo_frames += 1
+            answered = self.feedback
+            if answered is not None and answered.cycle == self.cycle:
+                # the cycle's first complete set is its answer, as replay --verify takes it: a later frame in the
+                # same SYNC window (the rest of a set that straddled the SYNC, then the cycle's own) must not
+                # replace it, or what the loop reads would depend on when its thread looked
+                return
             self._parts[can_id] = values
             if len(self._parts) < len(self.tpdo_codecs):
                 return

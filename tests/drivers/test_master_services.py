@@ -787,3 +787,30 @@ def test_a_closed_drive_leaves_its_network_s_cycle() -> None:
         assert (first.cycle, second.cycle) == (1, 2)
         second.close()
         network.close()
+
+
+def test_the_first_complete_tpdo_set_of_a_cycle_is_its_answer() -> None:
+    """A set that straddled the SYNC (its TPDO2 and demand echo after it) completes with the cycle's own TPDO1; the
+    cycle's own set, whole a moment later, must not replace that first answer: ``replay --verify`` takes the first
+    complete set, so the loop, reading whenever its thread looks, must find the same."""
+    rig = Rig()
+    plan = pdo_plan(OperationMode.CYCLIC_SYNC_VELOCITY, NODE, OD, demand_echo=True)
+    cyclic = rig.cyclic
+    cyclic.install(OperationMode.CYCLIC_SYNC_VELOCITY, plan.rpdos, plan.tpdos)
+    rig.link.connected = rig.link.operational = True
+    tpdo1, tpdo2, tpdo3 = (0x180 + NODE, 0x280 + NODE, 0x380 + NODE)
+    assert [layout.cob_id for layout in plan.tpdos] == [tpdo1, tpdo2, tpdo3]
+    cyclic.sync()
+    cyclic.on_tpdo(tpdo2, bytearray(6), 0.0)  # the previous SYNC's set, late
+    cyclic.on_tpdo(tpdo3, bytearray(struct.pack("<i", 111)), 0.0)
+    cyclic.on_tpdo(tpdo1, bytearray(struct.pack("<Hi", 0x1237, 500)), 0.0)  # this cycle's: the set completes
+    cyclic.on_tpdo(tpdo2, bytearray(6), 0.0)
+    cyclic.on_tpdo(tpdo3, bytearray(struct.pack("<i", 222)), 0.0)
+    feedback = cyclic.wait_feedback(0.1)
+    assert feedback.demand == 111 / CFG.velocity_scale and feedback.velocity == 500 / CFG.velocity_scale
+    assert cyclic.tpdo_frames == 5  # every frame counted, answered or not
+    cyclic.sync()  # the next cycle takes its own set again
+    cyclic.on_tpdo(tpdo1, bytearray(struct.pack("<Hi", 0x1237, 600)), 0.0)
+    cyclic.on_tpdo(tpdo2, bytearray(6), 0.0)
+    cyclic.on_tpdo(tpdo3, bytearray(struct.pack("<i", 333)), 0.0)
+    assert cyclic.wait_feedback(0.1).demand == 333 / CFG.velocity_scale
