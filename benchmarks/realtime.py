@@ -21,7 +21,10 @@ SYNC interval deviation ``|dt - 1 ms|`` (p50/p99/max), SYNC lateness (the phase 
 earliest of the surrounding SYNCs, :func:`_lateness`: immune to clock drift, to the phase jump between the bench's
 start-up SYNCs and its loop, and to slots without a SYNC), slots without a SYNC, and for the bench the emulator's
 answer time (TPDO1 after SYNC) and lost frames (SYNCs the bench logged as sent against SYNCs received; TPDO1
-received by the receiver against TPDO1 logged by the bench). The bench's own counts (missed and skipped deadlines,
+received by the receiver against TPDO1 logged by the bench). Then, alternated (:func:`_alternated`: 6 rounds, each producer alone for 5 s, with the same privileges), the
+bench's own SYNC producer (``drivers.sync_process``, started by ``ProcessSync`` as the bench starts it) and
+python-can's ``send_periodic``: the like-for-like comparison of the two senders, judged by a test over the rounds
+(:func:`alternated_verdict`), not by one run's difference. The bench's own counts (missed and skipped deadlines,
 lost feedback, its feedback latency from ``/timing``) come from its ``--json`` document and log.
 
 :func:`collect` returns the whole document (the ``make bench`` generator calls it), :func:`markdown` renders it as
@@ -69,8 +72,10 @@ RECEIVER_FIFO = 49  # the instrument: above every normal process, below the cycl
 # SYNCs each way that define the local grid: short enough that a phase jump of the producer (the bench's start-up
 # SYNCs against its loop's) misjudges at most this many SYNCs, long enough to hold many on-time ones
 LATENESS_WINDOW = 50
-FULL = {"trials": 10, "time_scale": 1.0, "peer_seconds": 10.0}
-QUICK = {"trials": 2, "time_scale": 0.2, "peer_seconds": 3.0}
+FULL = {"trials": 10, "time_scale": 1.0, "peer_seconds": 10.0, "alone_rounds": 6, "alone_seconds": 5.0}
+QUICK = {"trials": 2, "time_scale": 0.2, "peer_seconds": 3.0, "alone_rounds": 2, "alone_seconds": 2.0}
+#: one-sided significance of the alternated producers' comparison (:func:`alternated_verdict`)
+SIGNIFICANCE = 0.05
 CONDITIONS = ("quiet", "load")
 
 # The instrument is benchmarks.frame_recorder (kernel timestamps, a 16 MiB receive buffer, its socket's drops).
@@ -92,6 +97,17 @@ task = bus.send_periodic(can.Message(arbitration_id=0x80, data=b"", is_extended_
 time.sleep(float(sys.argv[3]))
 task.stop()
 bus.shutdown()
+"""
+
+# the bench's own SYNC producer (drivers.sync_process), started as the bench starts it: ProcessSync from a thread at
+# SCHED_FIFO p - 1 runs the producer at p, with its memory locked, timer slack 1 ns and the channel's frame order
+_BENCH_PRODUCER = """
+import sys, time
+from drivers.sync_process import ProcessSync
+sync = ProcessSync("udp_multicast", sys.argv[1])
+sync.start(float(sys.argv[2]))
+time.sleep(float(sys.argv[3]))
+sync.stop()
 """
 
 
@@ -198,16 +214,52 @@ def _privileged(fifo: bool) -> contextlib.AbstractContextManager[CpuLatencyReque
     return contextlib.closing(request)
 
 
-def _peer(name: str, script: str, seconds: float, fifo: bool, work: Path) -> dict[str, Any]:
+def _peer(name: str, script: str, seconds: float, fifo: bool, work: Path, *,
+          priority: int = PEER_FIFO) -> dict[str, Any]:
+    """One SYNC producer alone on the bus for ``seconds``, as the receiver saw it; ``fifo``: under ``chrt -f
+    priority`` with the shipped PM QoS request held."""
     out = work / f"peer-{name}-{fifo}.json"
     receiver = _start_receiver(out)
-    prefix = ["chrt", "-f", str(PEER_FIFO)] if fifo else []
+    prefix = ["chrt", "-f", str(priority)] if fifo else []
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
     with _privileged(fifo) as held:
-        subprocess.run([*prefix, _python(), "-c", script, GROUP, str(PERIOD), str(seconds)], check=True, cwd=ROOT)
+        subprocess.run([*prefix, _python(), "-c", script, GROUP, str(PERIOD), str(seconds)], check=True, cwd=ROOT,
+                       env=env)
     frames, dropped = _stop_receiver(receiver, out)
     syncs = frames[frames[:, 0] == SYNC_ID, 1]
     return {"peer": name, "sched_fifo": fifo, "cpu_latency_us": _held_latency(held), "receiver_dropped": dropped,
             **sync_statistics(syncs)}
+
+
+def _alternated(rounds: int, seconds: float, work: Path) -> dict[str, Any]:
+    """The bench's SYNC producer and python-can's ``send_periodic``, each alone and with the same privileges
+    (SCHED_FIFO :data:`PEER_FIFO`, the PM QoS request), alternated ``rounds`` times (the first of each pair
+    alternates too): the like-for-like comparison of the two senders under the same host, round by round."""
+    pairs = []
+    for k in range(rounds):
+        order = [("bench", _BENCH_PRODUCER, PEER_FIFO - 1), ("python-can", _PYTHON_CAN_PEER, PEER_FIFO)]
+        measured = {name: _peer(name, script, seconds, True, work, priority=priority)
+                    for name, script, priority in (order if k % 2 == 0 else order[::-1])}
+        pairs.append({name: measured[name].get("lateness_us", {}).get("p99") for name in ("bench", "python-can")})
+    return {"seconds": seconds, "rounds": pairs, **alternated_verdict(pairs)}
+
+
+def alternated_verdict(pairs: Sequence[dict[str, float | None]]) -> dict[str, Any]:
+    """The verdict of the alternated rounds' SYNC lateness p99 (``bench`` and ``python-can`` per round): the median
+    of python-can's over the bench's (> 1: the bench earlier), and Wilcoxon's signed-rank test on the rounds' log
+    ratios, one-sided each way. ``better`` or ``worse`` only at :data:`SIGNIFICANCE`; otherwise the difference is
+    inside the rounds' noise, and with fewer than 5 rounds no verdict can be significant at all."""
+    from scipy.stats import wilcoxon
+
+    logs = np.array([np.log(p["python-can"] / p["bench"]) for p in pairs if p["bench"] and p["python-can"]])
+    if logs.size == 0:
+        return {"median_ratio": None, "p_better": None, "p_worse": None, "verdict": "not measured"}
+    p_better = float(wilcoxon(logs, alternative="greater").pvalue) if np.any(logs) else 1.0
+    p_worse = float(wilcoxon(logs, alternative="less").pvalue) if np.any(logs) else 1.0
+    verdict = ("better" if p_better < SIGNIFICANCE else "worse" if p_worse < SIGNIFICANCE
+               else "inside the noise")
+    return {"median_ratio": float(np.exp(np.median(logs))), "p_better": p_better, "p_worse": p_worse,
+            "verdict": verdict}
 
 
 def _held_latency(held: CpuLatencyRequest | None) -> int | None:
@@ -337,6 +389,7 @@ def _condition(name: str, settings: dict[str, Any], work: Path) -> dict[str, Any
             for peer, script in (("canopen", _CANOPEN_PEER), ("python-can", _PYTHON_CAN_PEER))
             for fifo in (False, True)
         ]
+        result["alone"] = _alternated(settings["alone_rounds"], settings["alone_seconds"], work)
         with _privileged(True) as held:  # the probe runs as the bench's cyclic threads do
             result["host_floor"] = host_floor.wakeups(settings["peer_seconds"], PERIOD, work)
         result["host_floor"]["cpu_latency_us"] = _held_latency(held)
@@ -491,12 +544,44 @@ def _issue28_rows(name: str, condition: dict[str, Any]) -> list[dict[str, Any]]:
     ratio = fraction / estimate if fraction is not None and estimate else None
     rows = [{"condition": name, "target": "missed deadlines / host-floor estimate <= 2", "bench": fraction,
              "peer": estimate, "ratio": ratio, "met": ratio is not None and ratio <= 2.0}]
+    alone = condition.get("alone")
+    if alone is not None:
+        rounds = alone["rounds"]
+        rows.append({"condition": name,
+                     "target": f"SYNC lateness p99, producers alone, {len(rounds)} alternated rounds: python-can "
+                     f"(chrt) / bench, not worse at {SIGNIFICANCE:g} (Wilcoxon: {alone['verdict']})",
+                     "bench": _median_of(rounds, "bench"), "peer": _median_of(rounds, "python-can"),
+                     "ratio": alone["median_ratio"], "met": alone["verdict"] in ("better", "inside the noise")})
     truth = bench.get("latched_truth")
     if truth is not None:
         rows.append({"condition": name, "target": "latched agrees with the wire on every sample",
                      "bench": f"{truth['agree']} of {truth['samples']}", "peer": None, "ratio": None,
                      "met": truth["samples"] > 0 and truth["agree"] == truth["samples"]})
     return rows
+
+
+def _median_of(rounds: Sequence[dict[str, float | None]], name: str) -> float | None:
+    values = [float(value) for r in rounds if (value := r[name]) is not None]
+    return float(np.median(values)) if values else None
+
+
+def _alone_lines(condition: dict[str, Any]) -> list[str]:
+    """The alternated producers of a condition (:func:`_alternated`), if the run measured them."""
+    alone = condition.get("alone")
+    if alone is None:
+        return []
+    pairs = ", ".join(f"{_us(r['bench'])}/{_us(r['python-can'])}" for r in alone["rounds"])
+    p_better, p_worse, ratio = alone["p_better"], alone["p_worse"], alone["median_ratio"]
+    tests = "" if p_better is None else f"; Wilcoxon one-sided p: better {p_better:.3f}, worse {p_worse:.3f}"
+    return [
+        f"Producers alone, alternated ({len(alone['rounds'])} rounds of {alone['seconds']:g} s each, both "
+        f"`chrt -f {PEER_FIFO}` with the PM QoS request: the bench's `drivers.sync_process` started by `ProcessSync` "
+        f"as the bench starts it, and python-can's `send_periodic`): SYNC lateness p99 bench/python-can per round "
+        f"{pairs} us; median ratio python-can/bench "
+        f"{'-' if ratio is None else f'{ratio:.2f}'}{tests}: "
+        f"**{alone['verdict']}**.",
+        "",
+    ]
 
 
 def _dropped(count: int | None) -> str:
@@ -588,7 +673,7 @@ def markdown(document: dict[str, Any]) -> str:
             _sync_row(f"{peer['peer']}{_privileges(peer)}", peer, receiver)
             for peer in condition["peers"]
         ]
-        lines += ["", *_floor_lines(condition), ""]
+        lines += ["", *_alone_lines(condition), *_floor_lines(condition), ""]
     lines += [
         "### Targets (issue 9)",
         "",

@@ -131,3 +131,22 @@ def test_missed_deadlines_are_judged_against_the_same_runs_host_floor() -> None:
     bench["missed_deadline_fraction"] = 0.01
     assert _issue28_rows("load", condition)[0]["met"] is True
     assert _issue28_rows("quiet", {"bench": {"missed_deadline_fraction": 0.0}})[0]["met"] is False  # no floor
+
+
+def test_the_alternated_producers_verdict_is_a_statistic_never_a_single_difference() -> None:
+    from benchmarks.realtime import _issue28_rows, alternated_verdict
+
+    earlier = [{"bench": 20.0 + k, "python-can": 40.0 + 3 * k} for k in range(6)]  # the bench earlier every round
+    assert alternated_verdict(earlier)["verdict"] == "better"
+    assert alternated_verdict(earlier)["median_ratio"] == pytest.approx(np.exp(np.median(
+        [np.log((40.0 + 3 * k) / (20.0 + k)) for k in range(6)])))
+    later = [{"bench": p["python-can"], "python-can": p["bench"]} for p in earlier]
+    assert alternated_verdict(later)["verdict"] == "worse"
+    mixed = [*earlier[:3], *later[3:]]  # three rounds each way: a difference inside the noise, whatever the median
+    assert alternated_verdict(mixed)["verdict"] == "inside the noise"
+    assert alternated_verdict(earlier[:4])["verdict"] == "inside the noise"  # 4 rounds can never be significant
+    assert alternated_verdict([{"bench": None, "python-can": 30.0}])["verdict"] == "not measured"
+    condition: dict[str, Any] = {"bench": {"missed_deadline_fraction": 0.0},
+                                 "alone": {"seconds": 5.0, "rounds": later, **alternated_verdict(later)}}
+    row = _issue28_rows("quiet", condition)[1]
+    assert row["met"] is False and row["bench"] == pytest.approx(np.median([p["bench"] for p in later]))
