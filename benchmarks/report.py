@@ -261,7 +261,11 @@ REALTIME_WHY = (
     "quiet, missed deadlines 11.13 -> 2.95 % (in quick A/B pairs 9.4-12.7 % -> 0.3-3.2 %), the host floor's "
     "wake-ups later than 1 ms 2.39 % (session 10, without it) -> 0.16 %; with the spins off as well (receive "
     "spin, spin tail, SYNC anticipation; 5 pairs) 2.7-13.3 % (median 5.4) against 1.3-4.6 % (median 4.1) "
-    "shipped: the spins stay",
+    "shipped: the spins stay. Session 15: CPU affinity (bench.realtime.cpus and emulator.realtime.cpus: the bench "
+    "on CPU 0 and the emulator on CPU 1, or the emulator alone on CPU 1; 6 alternated 3-trial runs of each against "
+    "the shipped settings): trial-cycle misses median 0.105 and 0.07 % against 0.15 %, Mann-Whitney p 0.52 and 0.57, "
+    "inside the noise, so not shipped; the kernel's softirq threads at SCHED_FIFO 52, above every cyclic thread (3 "
+    "alternated pairs): 0.08-0.19 % against 0.01-0.03 %, worse, reverted",
 )
 #: Figures measured by hand, outside ``make bench`` (this page is their one home: the README, the Makefile and
 #: pyproject point here). Update them when a change moves them, with how they were measured.

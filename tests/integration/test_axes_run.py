@@ -120,6 +120,23 @@ def test_replay_verify_and_report_handle_every_axis(scara_run: tuple[int, dict, 
         assert len(axis["trials"]) == TRIALS and (tmp_path / "report" / f"axis-{axis['node_id']}" / "sse.png").is_file()
 
 
+def test_replay_verify_holds_each_axis_latched_to_its_own_frames(scara_run: tuple[int, dict, Path]) -> None:
+    """The wire check runs per axis: one axis's ``latched`` moved at one sample fails ``replay --verify`` on ``/can``,
+    for that axis alone (each axis's view holds its own RPDO among the four nodes' frames)."""
+    from foilc_hil.logtools.axes import verify_axes
+
+    _code, _document, out = scara_run
+    contents = read_log(out)
+    row = [s for s in contents.samples if s["axis"] == NODES[2] and s["trial"] == 2][SAMPLES // 2]
+    row["latched"] += 0.5
+    total, axes = verify_axes(contents)
+    assert not total.verified
+    divergence = total.first_divergence
+    assert divergence is not None and divergence.topic == "/can" and "latched" in divergence.reason
+    assert (divergence.trial, divergence.sample) == (2, SAMPLES // 2)
+    assert [(axis.node_id, axis.verification.verified) for axis in axes] == [(n, n != NODES[2]) for n in NODES]
+
+
 @pytest.mark.parametrize(("spec", "faulted"), [("emcy-over-current@1+20", 1),  # no axis: the first axis
                                               ("emcy-over-current@1+20:axis=3", 3)])
 def test_a_fault_on_one_axis_stops_all_four_confirmed_per_drive(spec: str, faulted: int, tmp_path: Path,
