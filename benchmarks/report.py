@@ -300,8 +300,10 @@ MEASURED_OUTSIDE = (
     "- **Commands** (under load, load average 6; Python start-up included): `synthesize` of `paper_sim.yaml` 4 s, "
     "`simulate` of 10 FOILC trials 5 s, `run` of 5 trials of `demo.yaml` (6 s each, lockstep on the embedded "
     "emulator) 23 s, `replay --verify` of that log 4 s, `report` 6 s, `commission info` 3 s.",
-    "- **`make bench-realtime`**: about 10 minutes (root, a private network namespace): the 1 kHz runs and peers "
-    "about 290 s, the four-axes runs (5 rounds of both topologies) 194-272 s, on 2026-11-28 at load 3-7.",
+    "- **`make bench-realtime`**: about 10 minutes (root, a private network namespace): the 1 kHz runs, the peers "
+    "and the producers alone (6 alternated rounds per condition, since session 15) 420 s, the four-axes runs (5 "
+    "rounds of both topologies) 161 s, on 2026-11-28 08:37 at load about 1; before the alternated rounds the 1 kHz "
+    "part took about 290 s.",
     "",
 )
 #: Goals measured outside ``make bench`` (their figures: :data:`MEASURED_OUTSIDE`).
