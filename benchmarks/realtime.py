@@ -21,11 +21,12 @@ SYNC interval deviation ``|dt - 1 ms|`` (p50/p99/max), SYNC lateness (the phase 
 earliest of the surrounding SYNCs, :func:`_lateness`: immune to clock drift, to the phase jump between the bench's
 start-up SYNCs and its loop, and to slots without a SYNC), slots without a SYNC, and for the bench the emulator's
 answer time (TPDO1 after SYNC) and lost frames (SYNCs the bench logged as sent against SYNCs received; TPDO1
-received by the receiver against TPDO1 logged by the bench). Then, alternated (:func:`_alternated`: 6 rounds, each producer alone for 5 s, with the same privileges), the
-bench's own SYNC producer (``drivers.sync_process``, started by ``ProcessSync`` as the bench starts it) and
-python-can's ``send_periodic``: the like-for-like comparison of the two senders, judged by a test over the rounds
-(:func:`alternated_verdict`), not by one run's difference. The bench's own counts (missed and skipped deadlines,
-lost feedback, its feedback latency from ``/timing``) come from its ``--json`` document and log.
+received by the receiver against TPDO1 logged by the bench). Then, alternated (:func:`_alternated`: 6 rounds, each
+producer alone for 5 s, with the same privileges), the bench's own SYNC producer (``drivers.sync_process``, started
+by ``ProcessSync`` as the bench starts it) and python-can's ``send_periodic``: the like-for-like comparison of the
+two senders, judged by a test over the rounds (:func:`alternated_verdict`), not by one run's difference. The bench's
+own counts (missed and skipped deadlines, lost feedback, its feedback latency from ``/timing``) come from its
+``--json`` document and log.
 
 :func:`collect` returns the whole document (the ``make bench`` generator calls it), :func:`markdown` renders it as
 the "Realtime 1 kHz across processes" section of ``docs/benchmarks.md``.

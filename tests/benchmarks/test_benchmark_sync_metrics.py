@@ -136,11 +136,12 @@ def test_missed_deadlines_are_judged_against_the_same_runs_host_floor() -> None:
 def test_the_alternated_producers_verdict_is_a_statistic_never_a_single_difference() -> None:
     from benchmarks.realtime import _issue28_rows, alternated_verdict
 
-    earlier = [{"bench": 20.0 + k, "python-can": 40.0 + 3 * k} for k in range(6)]  # the bench earlier every round
+    # the bench earlier every round
+    earlier: list[dict[str, float | None]] = [{"bench": 20.0 + k, "python-can": 40.0 + 3 * k} for k in range(6)]
     assert alternated_verdict(earlier)["verdict"] == "better"
     assert alternated_verdict(earlier)["median_ratio"] == pytest.approx(np.exp(np.median(
         [np.log((40.0 + 3 * k) / (20.0 + k)) for k in range(6)])))
-    later = [{"bench": p["python-can"], "python-can": p["bench"]} for p in earlier]
+    later: list[dict[str, float | None]] = [{"bench": p["python-can"], "python-can": p["bench"]} for p in earlier]
     assert alternated_verdict(later)["verdict"] == "worse"
     mixed = [*earlier[:3], *later[3:]]  # three rounds each way: a difference inside the noise, whatever the median
     assert alternated_verdict(mixed)["verdict"] == "inside the noise"
