@@ -31,9 +31,9 @@ import numpy as np
 
 from drivers.cia402 import State402
 from drivers.drive import StopReport
-from foilc_hil.errors import DriveFaultError
+from foilc_hil.errors import DriveFaultError, FeedbackTimeoutError
 from foilc_hil.laws.learning import TrialUpdate
-from foilc_hil.loop.interfaces import TrialRecord, echoes_demand
+from foilc_hil.loop.interfaces import AxesFeedbackLostError, FaultCounts, TrialRecord, echoes_demand
 from foilc_hil.loop.log_sink import McapSink
 from foilc_hil.loop.safety import CommandLimiter
 from foilc_hil.loop.scheduler import CycleBlock
@@ -86,23 +86,35 @@ class AxisGroup:
         deadline, and an axis whose answer is late must not let the next axis's wait run past it (an axis whose
         answer is in returns it at once, whatever time is left).
 
-        Raises what a drive raises (its own stop commanded; a timeout as the drive's
-        :class:`~foilc_hil.errors.FeedbackTimeoutError`), and :class:`~foilc_hil.errors.DriveFaultError` naming
-        the node for an axis that left OPERATION ENABLED.
+        Raises what a drive raises (its own stop commanded), :class:`~foilc_hil.errors.DriveFaultError` naming the
+        node for an axis that left OPERATION ENABLED, and, where some axes' sets did not answer (each drive's
+        :class:`~foilc_hil.errors.FeedbackTimeoutError`), :class:`AxesFeedbackLostError` with every axis read: the
+        others' answers in it, so that only the lost axes are held.
         """
         velocity, demand = self._velocity, self._demand
         cycle = 0
         clock = self._clock
         deadline = clock() + timeout
+        lost: np.ndarray | None = None
+        first: FeedbackTimeoutError | None = None
         for k, drive in enumerate(self.drives):
             left = deadline - clock() if k else timeout
-            feedback = drive.wait_feedback(left if left > 0.0 else 0.0)
+            try:
+                feedback = drive.wait_feedback(left if left > 0.0 else 0.0)
+            except FeedbackTimeoutError as exc:  # this axis alone: the others are still read
+                if lost is None:
+                    lost, first = np.zeros(len(self.drives), dtype=bool), exc
+                lost[k] = True
+                velocity[k] = demand[k] = np.nan
+                continue
             if feedback.state is not State402.OPERATION_ENABLED:
                 raise DriveFaultError(f"node {drive.node_id} left OPERATION ENABLED (now {feedback.state.name}) at "
                                       f"SYNC {feedback.cycle}")
             velocity[k] = feedback.velocity
             demand[k] = feedback.demand
             cycle = feedback.cycle
+        if lost is not None:
+            raise AxesFeedbackLostError(str(first), velocity.copy(), demand.copy(), lost) from first
         return AxesFeedback(cycle, State402.OPERATION_ENABLED, velocity.copy(), demand.copy())
 
     def set_target(self, value: Any) -> np.ndarray:
@@ -259,11 +271,18 @@ class AxesSink:
             self._sink.trial_finished(replace(
                 record, reference=record.reference[:, k], seen=record.seen[:, k], control=record.control[:, k],
                 applied=record.applied[:, k], output=record.output[:, k], error=record.error[:, k],
-                E=record.E[:, k], metrics=update.metrics, clamped=clamped, axis=node,
+                E=record.E[:, k], metrics=update.metrics, clamped=clamped, axis=node, faults=self._faults(record, k),
                 command_limits=(limiter.lower, limiter.upper),
                 latched=None if record.latched is None else record.latched[:, k],
                 demand=None if record.demand is None or not self._echoes[k] else record.demand[:, k],
             ))
+
+    @staticmethod
+    def _faults(record: TrialRecord, k: int) -> FaultCounts:
+        """Axis ``k``'s faults: its own lost feedbacks (an axis is held alone), the bus's bad frames."""
+        if record.lost_by_axis is None:
+            return record.faults
+        return replace(record.faults, lost_feedback=int(record.lost_by_axis[k]))
 
     def timing(self, block: CycleBlock) -> None:
         self._sink.timing(block)

@@ -97,6 +97,7 @@ from foilc_hil.errors import (
     FoilcHilError,
 )
 from foilc_hil.loop.interfaces import (
+    AxesFeedbackLostError,
     BenchOutcome,
     ClockedDriveLike,
     DriveLike,
@@ -150,6 +151,7 @@ class _RawTrial:
     first_sync: int | None
     latched: np.ndarray
     demand: np.ndarray | None  # (N,): the demand echoed at SYNC i + 1 (NaN: its set lost); None: no echo mapped
+    lost_by_axis: np.ndarray | None  # (m,): each axis's lost feedbacks in the trial; None: one axis
 
 
 #: seconds between the loop's looks at its stop request while it waits for a between-trial update (a stalled log
@@ -290,7 +292,9 @@ class TrialLoop:
         self._clock = clock
         self._before_trial = before_trial
         self.watchdog = FeedbackWatchdog(settings.feedback_timeout, settings.max_lost_feedback)
-        self._held = 0.0  # the last good feedback: what the law is given again for a lost one
+        self._held: Any = 0.0  # the last good feedback: what the law is given again for a lost one
+        # several axes: each axis's lost feedbacks so far (an axis is held alone, AxesFeedbackLostError); None: one
+        self._lost_by_axis: np.ndarray | None = None
         self.guard = DivergenceGuard(settings.divergence_factor)
         self._noise_floor = NoiseFloorTracker()
         self.timing = TimingRecorder(settings.mode, settings.sample_time)
@@ -496,6 +500,7 @@ class TrialLoop:
         into = self._signal.into
         clamped_before = self._clamped_count()
         lost_before, bad_before = self.watchdog.total, self.drive.bad_frames
+        axes_before = None if self._lost_by_axis is None else self._lost_by_axis.copy()
         drive = self.drive
         law = self.law
         try:
@@ -537,8 +542,15 @@ class TrialLoop:
         first_sync = self._sync_number - n if whole == 0 else None
         return _RawTrial(
             trial, seen, control, applied, sync_times, self._clamped_count() - clamped_before, self._feedforward_used,
-            faults, first_sync, latched, None if echo is None else echo[1:],
+            faults, first_sync, latched, None if echo is None else echo[1:], self._lost_since(axes_before, width),
         )
+
+    def _lost_since(self, before: np.ndarray | None, width: tuple[int, ...]) -> np.ndarray | None:
+        """Each axis's lost feedbacks since ``before`` (the counts at the trial's start); None for one axis."""
+        if not width:
+            return None
+        now = self._lost_by_axis if self._lost_by_axis is not None else np.zeros(width[0], dtype=np.int64)
+        return now - before if before is not None else now.copy()
 
     def _run_whole_trial(
         self, seen: np.ndarray, control: np.ndarray, applied: np.ndarray, sync_times: np.ndarray
@@ -593,6 +605,7 @@ class TrialLoop:
             first_sync=raw.first_sync,
             latched=raw.latched,
             demand=raw.demand,
+            lost_by_axis=raw.lost_by_axis,
         )
         self.outcome.trials.append(metrics)
         mismatches = record.demand_mismatches
@@ -676,6 +689,10 @@ class TrialLoop:
         """This SYNC's wait expired: count it, and hold the last good feedback -- or trip the watchdog."""
         error = self.watchdog.lost(self._cycle, cause)
         self._demand = math.nan  # no echo to compare: the sample is not counted
+        if isinstance(cause, AxesFeedbackLostError):
+            self._hold_lost_axes(cause)
+        elif self.reference.ndim > 1:  # several axes, none read: every axis held, and counted
+            self._count_lost_axes(np.ones(self.reference.shape[1], dtype=bool))
         self._missing = True
         self._late = False
         self._latency = math.nan
@@ -687,6 +704,22 @@ class TrialLoop:
             )
             raise error from cause
         return self._held
+
+    def _hold_lost_axes(self, cause: AxesFeedbackLostError) -> None:
+        """Several axes, some answered: the lost axes' last good feedback is held, the others' fresh answers become
+        theirs (and their demand echoes are compared); each axis's losses are counted."""
+        lost = cause.lost
+        self._count_lost_axes(lost)
+        y = self._signal.output(cause.velocity)
+        answered = ~lost
+        self._signal.require_finite(y[answered], "drive feedback", self._cycle)
+        self._held = np.where(lost, self._held, y)
+        self._demand = cause.demand
+
+    def _count_lost_axes(self, lost: np.ndarray) -> None:
+        if self._lost_by_axis is None:
+            self._lost_by_axis = np.zeros(lost.shape, dtype=np.int64)
+        self._lost_by_axis += lost
 
     def _finish_cycle(self) -> None:
         sent = self._clock()

@@ -14,12 +14,14 @@ from typing import Any, Protocol
 import numpy as np
 
 from drivers.cia402 import State402
+from foilc_hil.errors import FeedbackTimeoutError
 from foilc_hil.io.records import TrialSamples
 from foilc_hil.laws.learning import TrialUpdate
 from foilc_hil.loop.scheduler import CycleBlock, TimingSummary
 from foilc_hil.metrics import TrialMetrics
 
 __all__ = [
+    "AxesFeedbackLostError",
     "BenchOutcome",
     "ClockedDriveLike",
     "DriveLike",
@@ -33,6 +35,25 @@ __all__ = [
     "WholeTrialRunner",
     "echoes_demand",
 ]
+
+
+class AxesFeedbackLostError(FeedbackTimeoutError):
+    """Some axes' TPDO sets did not answer a SYNC; the others did (:meth:`foilc_hil.loop.axes.AxisGroup.wait_feedback`).
+
+    The loop holds the last good feedback of the ``lost`` axes alone and gives the law the others' fresh answers:
+    one axis's lost set must not make every axis learn from a held value.
+
+    Attributes
+    ----------
+    velocity, demand
+        ``(m,)``: each axis's answer; NaN where ``lost``.
+    lost
+        ``(m,)`` bool: the axes whose set did not answer.
+    """
+
+    def __init__(self, message: str, velocity: np.ndarray, demand: np.ndarray, lost: np.ndarray) -> None:
+        super().__init__(message)
+        self.velocity, self.demand, self.lost = velocity, demand, lost
 
 
 # --- what the loop talks to (drivers.drive.Drive, foilc_hil.laws.learning, foilc_hil.io.mcap_log) ---------------
@@ -204,6 +225,9 @@ class TrialRecord:
     #: (N,): the demand the drive echoed in the TPDO set answering SYNC i + 1 (``drive.demand_echo``), in the units of
     #: ``latched``; NaN where that set was lost; None: no echo mapped
     demand: np.ndarray | None = None
+    #: (m,): each axis's lost feedbacks in the trial, for a run of several axes (an axis is held alone,
+    #: :class:`AxesFeedbackLostError`); None: one axis (``faults.lost_feedback`` is its count)
+    lost_by_axis: np.ndarray | None = None
 
     @property
     def demand_mismatches(self) -> int | None:

@@ -137,6 +137,27 @@ def test_replay_verify_holds_each_axis_latched_to_its_own_frames(scara_run: tupl
     assert [(axis.node_id, axis.verification.verified) for axis in axes] == [(n, n != NODES[2]) for n in NODES]
 
 
+def test_one_axis_lost_feedback_holds_that_axis_alone(scara_run: tuple[int, dict, Path], tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """Axis 1's TPDO sets dropped for three cycles of trial 2: axis 1 is held and counts them; the other axes are
+    given their own answers, so they learn exactly as in the clean run (bit for bit), and replay --verify agrees."""
+    _code, clean, _out = scara_run
+    out = tmp_path / "lost.mcap"
+    capsys.readouterr()
+    code = main(["run", "--config", str(SCARA), "--trials", str(TRIALS), "--inject", "drop-tpdo@2+50:count=3",
+                 "--json", "--out", str(out)])
+    document = json.loads(capsys.readouterr().out)
+    assert code == 0 and document["faults"]["lost_feedback"] == 3
+    sse = {axis["node_id"]: [trial["sse"] for trial in axis["trials"]] for axis in document["axes"]}
+    clean_sse = {axis["node_id"]: [trial["sse"] for trial in axis["trials"]] for axis in clean["axes"]}
+    assert sse[1][0] == clean_sse[1][0] and sse[1][1] != clean_sse[1][1]  # axis 1's trial 2 held three values
+    assert {node: sse[node] for node in NODES[1:]} == {node: clean_sse[node] for node in NODES[1:]}
+    lost = {(record["axis"], record["trial"]): record["lost_feedback"] for record in read_log(out).trials}
+    assert lost == {(node, trial): 3 if (node, trial) == (1, 2) else 0 for node in NODES for trial in range(1, 4)}
+    assert main(["replay", str(out), "--verify", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["verified"] is True
+
+
 @pytest.mark.parametrize(("spec", "faulted"), [("emcy-over-current@1+20", 1),  # no axis: the first axis
                                               ("emcy-over-current@1+20:axis=3", 3)])
 def test_a_fault_on_one_axis_stops_all_four_confirmed_per_drive(spec: str, faulted: int, tmp_path: Path,

@@ -86,6 +86,22 @@ def test_feedback_waits_share_one_deadline_across_the_axes() -> None:
     assert late[1].timeouts == [pytest.approx(0.3)] and clock.now == pytest.approx(start + 0.5)
 
 
+def test_a_lost_axis_is_reported_with_every_other_axis_answer() -> None:
+    """One axis's lost set must not hide the others' answers: the loop holds the lost axis alone."""
+    from foilc_hil.loop.interfaces import AxesFeedbackLostError
+
+    clock = _Clock()
+    drives = [_AnsweringDrive(1, clock, 0.1), _AnsweringDrive(2, clock, None), _AnsweringDrive(3, clock, 0.0),
+              _AnsweringDrive(4, clock, None)]
+    with pytest.raises(AxesFeedbackLostError, match="node 2") as caught:
+        AxisGroup(drives, clock=clock).wait_feedback(0.5)
+    lost = caught.value
+    assert isinstance(lost, FeedbackTimeoutError)  # the loop's lost-feedback path, and its watchdog, take it
+    assert lost.lost.tolist() == [False, True, False, True]
+    assert np.isnan(lost.velocity[[1, 3]]).all() and lost.velocity[[0, 2]].tolist() == [1.0, 3.0]
+    assert [len(drive.timeouts) for drive in drives] == [1, 1, 1, 1]  # every axis was read
+
+
 def test_set_target_sends_each_axis_its_own_command_or_one_for_all() -> None:
     drives = [_Drive(1), _Drive(2), _Drive(3)]
     group = AxisGroup(drives)
