@@ -814,3 +814,33 @@ def test_the_first_complete_tpdo_set_of_a_cycle_is_its_answer() -> None:
     cyclic.on_tpdo(tpdo2, bytearray(6), 0.0)
     cyclic.on_tpdo(tpdo3, bytearray(struct.pack("<i", 333)), 0.0)
     assert cyclic.wait_feedback(0.1).demand == 333 / CFG.velocity_scale
+
+
+class _LateOnce(ScriptedDrive):
+    """Leaves the first ``misses`` SYNCs unanswered (a loaded host's late answer), then answers every one."""
+
+    def __init__(self, rig: Rig, misses: int) -> None:
+        super().__init__(rig)
+        self.misses = misses
+
+    def answer(self) -> None:
+        self.mute = self.misses > 0
+        self.misses -= 1
+        super().answer()
+
+
+def test_enable_sends_an_unanswered_exchange_again_within_the_state_timeout() -> None:
+    cfg = DriveConfig(node_id=NODE, state_timeout=0.3, heartbeat_producer_ms=100, heartbeat_consumer_ms=500)
+    rig = Rig(cfg)
+    rig.clock.synchronous = False  # the wall clock's behaviour: an answer may come while the master waits
+    rig.started()
+    drive = _LateOnce(rig, misses=1)
+    rig.power.enable()  # the first SYNC went unanswered for the exchange's 0.2 s; the same controlword again
+    assert drive.state is State402.OPERATION_ENABLED
+    assert [word for word, _ in rig.rpdos()][:2] == [0x00, 0x00]  # the unanswered exchange, sent once more
+    rig = Rig(cfg)
+    rig.clock.synchronous = False
+    rig.started()
+    _LateOnce(rig, misses=10**6)  # a mute drive: still a lost feedback, after state_timeout's worth of tries
+    with pytest.raises(FeedbackTimeoutError, match="answered SYNC 2 "):
+        rig.power.enable()
