@@ -294,7 +294,7 @@ class TrialLoop:
         self.watchdog = FeedbackWatchdog(settings.feedback_timeout, settings.max_lost_feedback)
         self._held: Any = 0.0  # the last good feedback: what the law is given again for a lost one
         # several axes: each axis's lost feedbacks so far (an axis is held alone, AxesFeedbackLostError); None: one
-        self._lost_by_axis: np.ndarray | None = None
+        self._lost_by_axis = np.zeros(ref.shape[1], dtype=np.int64) if ref.ndim == 2 else None
         self.guard = DivergenceGuard(settings.divergence_factor)
         self._noise_floor = NoiseFloorTracker()
         self.timing = TimingRecorder(settings.mode, settings.sample_time)
@@ -542,15 +542,9 @@ class TrialLoop:
         first_sync = self._sync_number - n if whole == 0 else None
         return _RawTrial(
             trial, seen, control, applied, sync_times, self._clamped_count() - clamped_before, self._feedforward_used,
-            faults, first_sync, latched, None if echo is None else echo[1:], self._lost_since(axes_before, width),
+            faults, first_sync, latched, None if echo is None else echo[1:],
+            None if axes_before is None else cast(np.ndarray, self._lost_by_axis) - axes_before,
         )
-
-    def _lost_since(self, before: np.ndarray | None, width: tuple[int, ...]) -> np.ndarray | None:
-        """Each axis's lost feedbacks since ``before`` (the counts at the trial's start); None for one axis."""
-        if not width:
-            return None
-        now = self._lost_by_axis if self._lost_by_axis is not None else np.zeros(width[0], dtype=np.int64)
-        return now - before if before is not None else now.copy()
 
     def _run_whole_trial(
         self, seen: np.ndarray, control: np.ndarray, applied: np.ndarray, sync_times: np.ndarray
@@ -691,8 +685,8 @@ class TrialLoop:
         self._demand = math.nan  # no echo to compare: the sample is not counted
         if isinstance(cause, AxesFeedbackLostError):
             self._hold_lost_axes(cause)
-        elif self.reference.ndim > 1:  # several axes, none read: every axis held, and counted
-            self._count_lost_axes(np.ones(self.reference.shape[1], dtype=bool))
+        elif self._lost_by_axis is not None:  # several axes, none read: every axis held, and counted
+            self._lost_by_axis += 1
         self._missing = True
         self._late = False
         self._latency = math.nan
@@ -709,17 +703,13 @@ class TrialLoop:
         """Several axes, some answered: the lost axes' last good feedback is held, the others' fresh answers become
         theirs (and their demand echoes are compared); each axis's losses are counted."""
         lost = cause.lost
-        self._count_lost_axes(lost)
+        if self._lost_by_axis is not None:
+            self._lost_by_axis += lost
         y = self._signal.output(cause.velocity)
         answered = ~lost
         self._signal.require_finite(y[answered], "drive feedback", self._cycle)
         self._held = np.where(lost, self._held, y)
         self._demand = cause.demand
-
-    def _count_lost_axes(self, lost: np.ndarray) -> None:
-        if self._lost_by_axis is None:
-            self._lost_by_axis = np.zeros(lost.shape, dtype=np.int64)
-        self._lost_by_axis += lost
 
     def _finish_cycle(self) -> None:
         sent = self._clock()

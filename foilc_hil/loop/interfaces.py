@@ -67,7 +67,6 @@ def echoes_demand(drive: object) -> bool:
     return bool(getattr(cyclic if cyclic is not None else drive, "echoes_demand", False))
 
 
-
 class FeedbackLike(Protocol):
     """What the loop reads of one SYNC's answer: a :class:`~drivers.drive.Feedback`, or several axes' at once
     (``velocity`` then an ``(m,)`` array, :mod:`foilc_hil.loop.axes`)."""
